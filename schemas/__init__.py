@@ -1,0 +1,50 @@
+"""The wire contract: message Structs, MessagePack encode/decode, key builders."""
+
+from schemas import keys
+from schemas.messages import (
+    ACCEL_CHANNELS,
+    ALL_MESSAGES,
+    INDICATORS,
+    ONBOARD_INDICES,
+    SCHEMA_VERSION,
+    SUPPLY_CHANNEL,
+    Alert,
+    Calibration,
+    DeadLetter,
+    DegradationPosterior,
+    GpsFix,
+    MaintenanceEvent,
+    Message,
+    OnboardIndex,
+    PositionedChunk,
+    RawChunk,
+    SegmentState,
+    TrcRecord,
+)
+from schemas.wire import NDArray, SchemaError, decode, encode
+
+__all__ = [
+    "ACCEL_CHANNELS",
+    "ALL_MESSAGES",
+    "INDICATORS",
+    "ONBOARD_INDICES",
+    "SCHEMA_VERSION",
+    "SUPPLY_CHANNEL",
+    "Alert",
+    "Calibration",
+    "DeadLetter",
+    "DegradationPosterior",
+    "GpsFix",
+    "MaintenanceEvent",
+    "Message",
+    "NDArray",
+    "OnboardIndex",
+    "PositionedChunk",
+    "RawChunk",
+    "SchemaError",
+    "SegmentState",
+    "TrcRecord",
+    "decode",
+    "encode",
+    "keys",
+]

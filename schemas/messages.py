@@ -1,0 +1,336 @@
+"""Every message of the DESIGN key table as a versioned, validated msgspec Struct.
+
+Times are event times in UTC epoch seconds (float64) taken from the data; geometry is in
+millimetres; the state ``mean``/``cov`` are in natural-log space z = [ln Top6_mm, ln Align10_mm].
+Decoding runs ``__post_init__``, so a decoded message is a valid message.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import msgspec
+
+from schemas.wire import NDArray, check, check_array, check_finite, check_id
+
+SCHEMA_VERSION = 1
+INDICATORS = ("top6", "align10")  # state order, n = 2
+ONBOARD_INDICES = ("top6", "align10")  # on-board index order, m = 2
+ACCEL_CHANNELS = ("left_z", "left_y", "left_x", "right_z", "right_y", "right_x")
+SUPPLY_CHANNEL = "supply_v"
+
+
+class Message(msgspec.Struct, frozen=True, kw_only=True):
+    """Base: the schema version ``v`` and its check."""
+
+    v: int = SCHEMA_VERSION
+
+    def __post_init__(self) -> None:
+        check(self.v == SCHEMA_VERSION, f"v: unknown schema version {self.v}")
+
+
+def _check_samples(msg: RawChunk | PositionedChunk) -> None:
+    check_id("train", msg.train)
+    check_id("unit", msg.unit)
+    check(msg.seq >= 0, f"seq: must be >= 0, got {msg.seq}")
+    check_finite("t0", msg.t0)
+    check_finite("rate_hz", msg.rate_hz, positive=True)
+    check(len(msg.channels) > 0, "channels: empty")
+    check(len(set(msg.channels)) == len(msg.channels), f"channels: duplicates in {msg.channels}")
+    check_array("samples", msg.samples, (None, len(msg.channels)), kinds="fi")
+
+
+class RawChunk(Message, frozen=True, kw_only=True):
+    """About one second of bogie accelerometer samples from one on-board unit (gateway)."""
+
+    train: str
+    unit: str
+    seq: int  # per (train, unit), +1 per chunk
+    t0: float  # epoch s of the first sample
+    rate_hz: float  # samples per second per channel (2000 on the reference unit)
+    channels: list[str]  # column names, e.g. ACCEL_CHANNELS + (SUPPLY_CHANNEL,)
+    samples: NDArray  # (n_samples, n_channels) f4/f8/i2; accelerations in g, supply in V
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _check_samples(self)
+
+
+class GpsFix(Message, frozen=True, kw_only=True):
+    """One GPS fix of a train, 1 Hz."""
+
+    train: str
+    t: float  # epoch s
+    lat_deg: float  # WGS84
+    lon_deg: float  # WGS84
+    speed_mps: float | None = None  # GPS ground speed
+    fix_quality: int = 1  # 0 no fix, 1 GPS, 2 DGPS/RTK
+    hdop: float | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_id("train", self.train)
+        check_finite("t", self.t)
+        check_finite("lat_deg", self.lat_deg)
+        check_finite("lon_deg", self.lon_deg)
+        check(-90 <= self.lat_deg <= 90, f"lat_deg: {self.lat_deg} outside [-90, 90]")
+        check(-180 <= self.lon_deg <= 180, f"lon_deg: {self.lon_deg} outside [-180, 180]")
+        check_finite("speed_mps", self.speed_mps)
+        check_finite("hdop", self.hdop)
+        check(self.fix_quality in (0, 1, 2), f"fix_quality: {self.fix_quality} not 0, 1 or 2")
+
+
+class PositionedChunk(Message, frozen=True, kw_only=True):
+    """Cleaned samples of one unit with (t, line, chainage, speed) knots from map matching."""
+
+    train: str
+    unit: str
+    seq: int
+    t0: float
+    rate_hz: float
+    channels: list[str]
+    samples: NDArray  # (n_samples, n_channels) f4/f8; accelerations in m/s^2, supply-corrected
+    line: str
+    knot_t: NDArray  # (k,) f8 epoch s, non-decreasing
+    knot_chainage_m: NDArray  # (k,) f8 chainage along `line`
+    knot_speed_mps: NDArray  # (k,) f8
+    position_ok: bool  # False when the fix quality or map match is poor
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _check_samples(self)
+        check_id("line", self.line)
+        check_array("knot_t", self.knot_t, (None,))
+        k = self.knot_t.shape[0]
+        check(k >= 1, "knot_t: needs at least one knot")
+        check_array("knot_chainage_m", self.knot_chainage_m, (k,))
+        check_array("knot_speed_mps", self.knot_speed_mps, (k,))
+        t = self.knot_t.array()
+        check(bool((t[1:] >= t[:-1]).all()), "knot_t: must be non-decreasing")
+
+
+class OnboardIndex(Message, frozen=True, kw_only=True):
+    """On-board Top6 and Align10 indices of one train pass over one segment."""
+
+    line: str
+    segment: str
+    train: str
+    unit: str
+    t: float  # epoch s at which the unit passed the segment's middle
+    top6_mm: float  # > 0
+    align10_mm: float  # > 0
+    speed_mps: float  # mean speed over the segment
+    coverage: float  # fraction of the segment's length with valid samples, [0, 1]
+    quality: float = 1.0  # [0, 1], position and sensor health
+    run_id: str = ""  # a TRC run id when the unit rode the TRC (calibration campaign)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for name in ("line", "segment", "train", "unit"):
+            check_id(name, getattr(self, name))
+        check_finite("t", self.t)
+        check_finite("top6_mm", self.top6_mm, positive=True)
+        check_finite("align10_mm", self.align10_mm, positive=True)
+        check_finite("speed_mps", self.speed_mps)
+        check(self.speed_mps >= 0, f"speed_mps: must be >= 0, got {self.speed_mps}")
+        for name in ("coverage", "quality"):
+            value = getattr(self, name)
+            check_finite(name, value)
+            check(0 <= value <= 1, f"{name}: {value} outside [0, 1]")
+
+
+class TrcRecord(Message, frozen=True, kw_only=True):
+    """A Track Recording Car's measurement of one segment on one run."""
+
+    line: str
+    segment: str
+    t: float  # epoch s
+    top6_mm: float  # > 0
+    align10_mm: float  # > 0
+    run_id: str
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for name in ("line", "segment", "run_id"):
+            check_id(name, getattr(self, name))
+        check_finite("t", self.t)
+        check_finite("top6_mm", self.top6_mm, positive=True)
+        check_finite("align10_mm", self.align10_mm, positive=True)
+
+
+class MaintenanceEvent(Message, frozen=True, kw_only=True):
+    """Tamping of a segment at a known time (t_start == t_end) or within an interval."""
+
+    line: str
+    segment: str
+    event_id: str
+    kind: Literal["tamping"] = "tamping"
+    t_start: float  # epoch s
+    t_end: float  # epoch s, >= t_start
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for name in ("line", "segment", "event_id"):
+            check_id(name, getattr(self, name))
+        check_finite("t_start", self.t_start)
+        check_finite("t_end", self.t_end)
+        check(self.t_end >= self.t_start, f"t_end: {self.t_end} before t_start {self.t_start}")
+
+
+class Calibration(Message, frozen=True, kw_only=True):
+    """Observation model y = H z + b + e, e ~ N(0, R) (paper Eq. 3-6) with diagnostics."""
+
+    version: int  # >= 1, increases with every accepted refit
+    t: float  # event time of the newest pair used
+    indicators: list[str]  # state names, n
+    indices: list[str]  # on-board index names, m
+    H: NDArray  # (m, n) f8
+    b: NDArray  # (m,) f8
+    R: NDArray  # (m, m) f8, symmetric positive definite
+    n_pairs: int
+    r2: NDArray  # (m,) f8, coefficient of determination per index
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(self.version >= 1, f"version: must be >= 1, got {self.version}")
+        check_finite("t", self.t)
+        n, m = len(self.indicators), len(self.indices)
+        check(n > 0 and m > 0, "indicators/indices: must not be empty")
+        check_array("H", self.H, (m, n))
+        check_array("b", self.b, (m,))
+        check_array("R", self.R, (m, m))
+        check_array("r2", self.r2, (m,))
+        check(self.n_pairs > 0, f"n_pairs: must be > 0, got {self.n_pairs}")
+
+
+class DegradationPosterior(Message, frozen=True, kw_only=True):
+    """Ns posterior samples of the degradation parameters of one group (paper Eq. 2, 13)."""
+
+    group: str  # e.g. "class-fast", "line-L1", "L1.s0042"
+    version: int
+    t: float  # event time of the newest TRC record used
+    indicators: list[str]
+    mu: NDArray  # (Ns, n) f8, drift of z per day
+    sigma: NDArray  # (Ns, n, n) f8, diffusion of z per day
+    z_plus: NDArray  # (Ns, n) f8, mean z right after tamping
+    sigma_z_plus: NDArray  # (Ns, n, n) f8
+    n_increments: int  # TRC increments that did not span a tamping
+    n_levels: int  # post-tamping levels
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_id("group", self.group)
+        check(self.version >= 1, f"version: must be >= 1, got {self.version}")
+        check_finite("t", self.t)
+        n = len(self.indicators)
+        check(n > 0, "indicators: must not be empty")
+        check_array("mu", self.mu, (None, n))
+        ns = self.mu.shape[0]
+        check(ns > 0, "mu: needs at least one sample")
+        check_array("sigma", self.sigma, (ns, n, n))
+        check_array("z_plus", self.z_plus, (ns, n))
+        check_array("sigma_z_plus", self.sigma_z_plus, (ns, n, n))
+
+
+class SegmentState(Message, frozen=True, kw_only=True):
+    """The filter's mixture summary of one segment after an event (paper Eq. 13-14)."""
+
+    line: str
+    segment: str
+    t: float  # event time of the state
+    indicators: list[str]
+    mean: NDArray  # (n,) f8, mixture mean of z (log mm)
+    cov: NDArray  # (n, n) f8, total mixture covariance of z
+    ci_low_mm: NDArray  # (n,) f8, 2.5% marginal quantile
+    ci_high_mm: NDArray  # (n,) f8, 97.5% marginal quantile
+    width: float  # W = |cov|^(1/n)
+    limits_mm: NDArray  # (n,) f8, the limits p_exceed refers to
+    p_exceed: NDArray  # (n,) f8, P(indicator > limit)
+    horizons_days: NDArray  # (h,) f8
+    forecast_mean: NDArray  # (h, n) f8 log mm
+    forecast_ci_low_mm: NDArray  # (h, n) f8
+    forecast_ci_high_mm: NDArray  # (h, n) f8
+    forecast_p_exceed: NDArray  # (h, n) f8
+    last_trc_t: float | None = None  # epoch s of the restart, None before any TRC record
+    n_updates: int = 0  # on-board updates since the last TRC record
+    nis: float | None = None  # normalised innovation squared of the last update
+    calibration_version: int = 0
+    posterior_version: int = 0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_id("line", self.line)
+        check_id("segment", self.segment)
+        check_finite("t", self.t)
+        check_finite("width", self.width)
+        check_finite("last_trc_t", self.last_trc_t)
+        check_finite("nis", self.nis)
+        n = len(self.indicators)
+        check(n > 0, "indicators: must not be empty")
+        for name in ("mean", "ci_low_mm", "ci_high_mm", "limits_mm", "p_exceed"):
+            check_array(name, getattr(self, name), (n,))
+        check_array("cov", self.cov, (n, n))
+        check_array("horizons_days", self.horizons_days, (None,))
+        h = self.horizons_days.shape[0]
+        for name in (
+            "forecast_mean",
+            "forecast_ci_low_mm",
+            "forecast_ci_high_mm",
+            "forecast_p_exceed",
+        ):
+            check_array(name, getattr(self, name), (h, n))
+
+
+class Alert(Message, frozen=True, kw_only=True):
+    """An alert raised or cleared for one segment."""
+
+    line: str
+    segment: str
+    t: float  # event time
+    kind: Literal["exceedance", "predicted_exceedance", "sudden_change", "stale"]
+    status: Literal["raised", "cleared"]
+    indicator: str  # "top6", "align10" or "" when not about one indicator
+    level: str = ""  # "alert" or "intervention" for exceedance kinds
+    probability: float = 0.0  # [0, 1]
+    horizon_days: float | None = None  # predicted_exceedance only
+    message: str = ""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_id("line", self.line)
+        check_id("segment", self.segment)
+        check_finite("t", self.t)
+        check_finite("probability", self.probability)
+        check(0 <= self.probability <= 1, f"probability: {self.probability} outside [0, 1]")
+        check_finite("horizon_days", self.horizon_days)
+
+
+class DeadLetter(Message, frozen=True, kw_only=True):
+    """A rejected payload: where it came from and why it was refused."""
+
+    service: str
+    key: str
+    reason: str
+    payload_head: bytes  # first bytes of the payload (at most 256)
+    received_at: float  # wall-clock epoch s of the rejection (the payload has no trusted time)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_id("service", self.service)
+        check(bool(self.reason), "reason: must not be empty")
+        check_finite("received_at", self.received_at)
+
+
+ALL_MESSAGES: tuple[type[Message], ...] = (
+    RawChunk,
+    GpsFix,
+    PositionedChunk,
+    OnboardIndex,
+    TrcRecord,
+    MaintenanceEvent,
+    Calibration,
+    DegradationPosterior,
+    SegmentState,
+    Alert,
+    DeadLetter,
+)

@@ -1,0 +1,332 @@
+"""Wire contract: round trips, plain-msgpack payloads, one error type, README in step."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import msgpack
+import msgspec
+import numpy as np
+import pytest
+import zenoh
+
+import schemas
+from schemas import (
+    ACCEL_CHANNELS,
+    ALL_MESSAGES,
+    Alert,
+    Calibration,
+    DeadLetter,
+    DegradationPosterior,
+    GpsFix,
+    MaintenanceEvent,
+    NDArray,
+    OnboardIndex,
+    PositionedChunk,
+    RawChunk,
+    SchemaError,
+    SegmentState,
+    TrcRecord,
+    decode,
+    encode,
+    keys,
+)
+
+T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
+
+
+def f8(values) -> NDArray:
+    return NDArray.of(values, "f8")
+
+
+def examples() -> list[schemas.Message]:
+    rng = np.random.default_rng(0)
+    channels = [*ACCEL_CHANNELS, "supply_v"]
+    samples = NDArray.of(rng.normal(size=(2000, 7)), "f4")
+    knots = dict(
+        knot_t=f8([T0, T0 + 0.5, T0 + 1.0]),
+        knot_chainage_m=f8([100.0, 110.0, 120.0]),
+        knot_speed_mps=f8([20.0, 20.0, 20.0]),
+    )
+    eye = np.eye(2)
+    return [
+        RawChunk(
+            train="T1", unit="b1", seq=3, t0=T0, rate_hz=2000, channels=channels, samples=samples
+        ),
+        GpsFix(train="T1", t=T0, lat_deg=-27.47, lon_deg=153.02, speed_mps=21.5, hdop=0.9),
+        PositionedChunk(
+            train="T1",
+            unit="b1",
+            seq=3,
+            t0=T0,
+            rate_hz=2000,
+            channels=channels,
+            samples=samples,
+            line="L1",
+            position_ok=True,
+            **knots,
+        ),
+        OnboardIndex(
+            line="L1",
+            segment="s0001",
+            train="T1",
+            unit="b1",
+            t=T0,
+            top6_mm=3.2,
+            align10_mm=2.1,
+            speed_mps=20.0,
+            coverage=1.0,
+        ),
+        TrcRecord(line="L1", segment="s0001", t=T0, top6_mm=4.0, align10_mm=3.0, run_id="r7"),
+        MaintenanceEvent(line="L1", segment="s0001", event_id="m1", t_start=T0, t_end=T0 + 3600),
+        Calibration(
+            version=2,
+            t=T0,
+            indicators=["top6", "align10"],
+            indices=["top6", "align10"],
+            H=f8([[0.9, 0.05], [0.1, 0.7]]),
+            b=f8([-0.1, 0.2]),
+            R=f8([[0.04, 0.01], [0.01, 0.09]]),
+            n_pairs=120,
+            r2=f8([0.8, 0.5]),
+        ),
+        DegradationPosterior(
+            group="class-typical",
+            version=1,
+            t=T0,
+            indicators=["top6", "align10"],
+            mu=f8(rng.normal(size=(5, 2)) * 1e-3),
+            sigma=f8(np.broadcast_to(eye * 1e-4, (5, 2, 2))),
+            z_plus=f8(np.ones((5, 2))),
+            sigma_z_plus=f8(np.broadcast_to(eye * 0.01, (5, 2, 2))),
+            n_increments=40,
+            n_levels=6,
+        ),
+        SegmentState(
+            line="L1",
+            segment="s0001",
+            t=T0,
+            indicators=["top6", "align10"],
+            mean=f8([1.2, 0.8]),
+            cov=f8(eye * 0.01),
+            ci_low_mm=f8([2.8, 1.8]),
+            ci_high_mm=f8([4.1, 2.7]),
+            width=0.01,
+            limits_mm=f8([12.0, 10.0]),
+            p_exceed=f8([0.0, 0.0]),
+            horizons_days=f8([30, 90, 180]),
+            forecast_mean=f8(np.ones((3, 2))),
+            forecast_ci_low_mm=f8(np.ones((3, 2))),
+            forecast_ci_high_mm=f8(np.full((3, 2), 4.0)),
+            forecast_p_exceed=f8(np.zeros((3, 2))),
+            last_trc_t=T0 - 86400,
+            n_updates=4,
+            nis=1.3,
+        ),
+        Alert(
+            line="L1",
+            segment="s0001",
+            t=T0,
+            kind="predicted_exceedance",
+            status="raised",
+            indicator="top6",
+            level="intervention",
+            probability=0.4,
+            horizon_days=90.0,
+            message="Top6 may exceed 12 mm within 90 days",
+        ),
+        DeadLetter(
+            service="ingestion", key="tf/raw/T1/b1", reason="bad", payload_head=b"\x00", received_at=T0
+        ),
+    ]
+
+
+def test_every_message_has_an_example():
+    assert {type(m) for m in examples()} == set(ALL_MESSAGES)
+
+
+@pytest.mark.parametrize("message", examples(), ids=lambda m: type(m).__name__)
+def test_round_trip(message):
+    assert decode(encode(message), type(message)) == message
+
+
+def _plain(value):
+    """The message as a plain msgpack map, the way another language would build it."""
+    if isinstance(value, NDArray):
+        return {"dtype": value.dtype, "shape": list(value.shape), "data": bytes(value.data)}
+    if isinstance(value, msgspec.Struct):
+        return {f: _plain(getattr(value, f)) for f in value.__struct_fields__}
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    return value
+
+
+@pytest.mark.parametrize("message", examples(), ids=lambda m: type(m).__name__)
+def test_plain_msgpack_map_decodes(message):
+    payload = msgpack.packb(_plain(message), use_bin_type=True)
+    assert decode(payload, type(message)) == message
+
+
+def test_plain_msgpack_defaults_may_be_left_out():
+    payload = msgpack.packb({"train": "T9", "t": T0, "lat_deg": 1.5, "lon_deg": 2.5})
+    fix = decode(payload, GpsFix)
+    assert fix.v == 1 and fix.fix_quality == 1 and fix.speed_mps is None
+
+
+def test_arrays_are_little_endian_bytes():
+    a = NDArray.of([[1.0, 2.0], [3.0, 4.0]], "f4")
+    assert a.data == np.array([[1, 2], [3, 4]], "<f4").tobytes()
+    assert a.array().dtype == np.dtype("<f4") and a.array().shape == (2, 2)
+
+
+def _gps(**override) -> bytes:
+    fields = {"v": 1, "train": "T1", "t": T0, "lat_deg": 1.0, "lon_deg": 2.0, **override}
+    return msgpack.packb(fields)
+
+
+def _index(**override) -> bytes:
+    good = _plain(examples()[3])
+    return msgpack.packb({**good, **override})
+
+
+def _calibration(**override) -> bytes:
+    good = _plain(examples()[6])
+    return msgpack.packb({**good, **override})
+
+
+BAD_PAYLOADS = {
+    "not msgpack": (b"\xc1\xc1", GpsFix, "malformed"),
+    "not a map": (msgpack.packb([1, 2, 3]), GpsFix, "Expected `object`"),
+    "missing field": (msgpack.packb({"train": "T1", "t": T0}), GpsFix, "lat_deg"),
+    "wrong type": (_gps(t="yesterday"), GpsFix, "$.t"),
+    "NaN": (_gps(lat_deg=float("nan")), GpsFix, "lat_deg: must be finite"),
+    "inf": (_gps(t=float("inf")), GpsFix, "t: must be finite"),
+    "unknown version": (_gps(v=7), GpsFix, "unknown schema version 7"),
+    "out of range": (_gps(lat_deg=95.0), GpsFix, "lat_deg"),
+    "empty id": (_gps(train=""), GpsFix, "train: must be a non-empty string"),
+    "id with wildcard": (_gps(train="T*"), GpsFix, "forbidden characters"),
+    "non-positive index": (_index(top6_mm=0.0), OnboardIndex, "top6_mm: must be > 0"),
+    "coverage > 1": (_index(coverage=1.5), OnboardIndex, "coverage"),
+    "unknown dtype": (
+        _calibration(b={"dtype": "f16", "shape": [2], "data": b"\x00" * 32}),
+        Calibration,
+        "dtype",
+    ),
+    "data size mismatch": (
+        _calibration(b={"dtype": "f8", "shape": [2], "data": b"\x00" * 8}),
+        Calibration,
+        "needs 16",
+    ),
+    "wrong shape": (
+        _calibration(H={"dtype": "f8", "shape": [3, 2], "data": b"\x00" * 48}),
+        Calibration,
+        "H: shape",
+    ),
+    "NaN in array": (
+        _calibration(b={"dtype": "f8", "shape": [2], "data": np.array([0, np.nan]).tobytes()}),
+        Calibration,
+        "NaN or inf",
+    ),
+    "huge array": (
+        _calibration(b={"dtype": "u1", "shape": [10**9], "data": b""}),
+        Calibration,
+        "elements",
+    ),
+    "unknown alert kind": (
+        msgpack.packb({**_plain(examples()[9]), "kind": "panic"}),
+        Alert,
+        "kind",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", BAD_PAYLOADS, ids=str)
+def test_malformed_payload_raises_schema_error_saying_why(case):
+    payload, message_type, says = BAD_PAYLOADS[case]
+    with pytest.raises(SchemaError) as info:
+        decode(payload, message_type)
+    assert says in str(info.value)
+    assert str(info.value).startswith(message_type.__name__)
+
+
+def test_constructing_an_invalid_message_raises_the_same_error():
+    with pytest.raises(SchemaError, match="t_end"):
+        MaintenanceEvent(line="L1", segment="s1", event_id="e", t_start=T0, t_end=T0 - 1)
+
+
+# --- keys --------------------------------------------------------------------------------
+
+
+def test_keys_follow_the_design_table():
+    ns = "tf"
+    assert keys.raw(ns, "T1", "b1") == "tf/raw/T1/b1"
+    assert keys.gps(ns, "T1") == "tf/gps/T1"
+    assert keys.accel(ns, "T1", "b1") == "tf/accel/T1/b1"
+    assert keys.index(ns, "L1", "s1") == "tf/index/L1/s1"
+    assert keys.trc(ns, "L1", "s1") == "tf/trc/L1/s1"
+    assert keys.maintenance(ns, "L1", "s1") == "tf/maintenance/L1/s1"
+    assert keys.calibration(ns) == "tf/model/calibration"
+    assert keys.degradation(ns, "class-fast") == "tf/model/degradation/class-fast"
+    assert keys.state(ns, "L1", "s1") == "tf/state/L1/s1"
+    assert keys.alert(ns, "L1", "s1") == "tf/alert/L1/s1"
+    assert keys.deadletter(ns, "ingestion") == "tf/deadletter/ingestion"
+    assert keys.alive(ns, "filtering", "i0") == "tf/alive/filtering/i0"
+    assert keys.q_state(ns, "L1", "s1") == "tf/q/state/L1/s1"
+    assert keys.q_alerts(ns) == "tf/q/alerts"
+    assert keys.q_plan(ns) == "tf/q/plan"
+
+
+def test_wildcards_include_their_concrete_keys():
+    ke = zenoh.KeyExpr
+    ns = "tf"
+    pairs = [
+        (keys.raw_all(ns), keys.raw(ns, "T1", "b1")),
+        (keys.gps_all(ns), keys.gps(ns, "T1")),
+        (keys.accel_all(ns), keys.accel(ns, "T1", "b1")),
+        (keys.segment_keys(ns, "index"), keys.index(ns, "L1", "s1")),
+        (keys.segment_keys(ns, "state", "L1/*"), keys.state(ns, "L1", "s1")),
+        (keys.model_all(ns), keys.degradation(ns, "g")),
+        (keys.model_all(ns), keys.calibration(ns)),
+        (keys.deadletter_all(ns), keys.deadletter(ns, "x")),
+        (keys.alive_all(ns), keys.alive(ns, "x", "y")),
+        (keys.q_state_all(ns), keys.q_state(ns, "L1", "s1")),
+    ]
+    for wildcard, concrete in pairs:
+        assert ke(wildcard).includes(ke(concrete)), (wildcard, concrete)
+    assert not ke(keys.segment_keys(ns, "state", "L1/*")).intersects(ke(keys.state(ns, "L2", "s")))
+    assert not ke(keys.raw_all("tf")).intersects(ke(keys.raw("tf2", "T1", "b1")))
+
+
+@pytest.mark.parametrize("bad", ["", "a/b", "a*", "$x", "q?", "#", "has space"])
+def test_keys_refuse_unsafe_chunks(bad):
+    with pytest.raises(ValueError):
+        keys.index("tf", "L1", bad)
+
+
+def test_parse_segment_key():
+    assert keys.parse_segment_key("tf/index/L1/s1") == ("tf", "index", "L1", "s1")
+    with pytest.raises(ValueError):
+        keys.parse_segment_key("tf/index/L1")
+
+
+# --- the wire reference stays in step ------------------------------------------------------
+
+
+def _readme_fields() -> dict[str, tuple[int, list[str]]]:
+    text = (Path(schemas.__file__).parent / "README.md").read_text()
+    documented = {}
+    for match in re.finditer(r"^### (\w+) \(v(\d+)\)\n(.*?)(?=^### |\Z)", text, re.M | re.S):
+        name, version, body = match.group(1), int(match.group(2)), match.group(3)
+        rows = re.findall(r"^\| (\w+) \|", body, re.M)
+        documented[name] = (version, [r for r in rows if r != "field"])
+    return documented
+
+
+def test_wire_reference_documents_every_field_of_every_message():
+    documented = _readme_fields()
+    assert set(documented) == {m.__name__ for m in ALL_MESSAGES}
+    for message_type in ALL_MESSAGES:
+        version, fields = documented[message_type.__name__]
+        assert version == schemas.SCHEMA_VERSION
+        assert fields == list(message_type.__struct_fields__), message_type.__name__
