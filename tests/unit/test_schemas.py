@@ -137,7 +137,11 @@ def examples() -> list[schemas.Message]:
             message="Top6 may exceed 12 mm within 90 days",
         ),
         DeadLetter(
-            service="ingestion", key="tf/raw/T1/b1", reason="bad", payload_head=b"\x00", received_at=T0
+            service="ingestion",
+            key="tf/raw/T1/b1",
+            reason="bad",
+            payload_head=b"\x00",
+            received_at=T0,
         ),
     ]
 

@@ -1,0 +1,183 @@
+"""Observation model calibration: least squares fit of ``y = H z + b + e`` (paper Eq. 3-6).
+
+Pure core: numpy only, no I/O. ``z`` are ln TRC indicators (n), ``y`` ln on-board indices (m).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["CalibrationError", "ObservationFit", "fit_observation"]
+
+
+class CalibrationError(ValueError):
+    """The data cannot support the requested estimate; the message says what is missing."""
+
+
+def as_finite(name: str, x, ndim: int) -> np.ndarray:
+    """Return ``x`` as a finite float64 array of ``ndim`` dims or raise ValueError naming it.
+
+    A 1-D array where 2-D is expected is taken as a single column (n = 1).
+    """
+    a = np.asarray(x, dtype=np.float64)
+    if ndim == 2 and a.ndim == 1:
+        a = a[:, None]
+    if a.ndim != ndim:
+        raise ValueError(f"{name}: expected a {ndim}-D array, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(
+            f"{name}: contains NaN or inf at {np.argwhere(~np.isfinite(a))[:3].tolist()}"
+        )
+    return a
+
+
+@dataclass(frozen=True)
+class ObservationFit:
+    """Fitted observation model ``y = H z + b + e``, ``e ~ N(0, R)``.
+
+    Attributes
+    ----------
+    H : ndarray, shape (m, n)
+        Sensitivity of the on-board indices to the TRC indicators.
+    b : ndarray, shape (m,)
+        Bias.
+    R : ndarray, shape (m, m)
+        Maximum-likelihood residual covariance ``E^T E / N`` (paper: zero-mean MVN fit).
+    n_pairs : int
+        Number N of (z, y) pairs used.
+    r2 : ndarray, shape (m,)
+        Coefficient of determination of each on-board index.
+    resid_std : ndarray, shape (m,)
+        ``sqrt(diag R)``, residual standard deviation of each index (ln units).
+    condition : float
+        Condition number of the centred, unit-variance indicator matrix (1 = uncorrelated
+        indicators; large = nearly collinear, H badly determined).
+    z_min, z_max : ndarray, shape (n,)
+        Range of the calibration data; predictions outside it are extrapolations.
+    """
+
+    H: np.ndarray
+    b: np.ndarray
+    R: np.ndarray
+    n_pairs: int
+    r2: np.ndarray
+    resid_std: np.ndarray
+    condition: float
+    z_min: np.ndarray
+    z_max: np.ndarray
+
+    def predict(self, z) -> np.ndarray:
+        """Mean on-board indices ``H z + b`` for ``z`` of shape (..., n)."""
+        return np.asarray(z, dtype=np.float64) @ self.H.T + self.b
+
+
+def fit_observation(
+    Z, Y, *, min_pairs: int = 10, max_condition: float = 1e4, rel_tol: float = 1e-10
+) -> ObservationFit:
+    r"""Fit ``H``, ``b`` and ``R`` by multivariate least squares with intercept (Eq. 5-6).
+
+    .. math::
+
+        \mathbf{Y} = \tilde{\mathbf{Z}}\tilde{\mathbf{H}} + \mathbf{E},\quad
+        \tilde{\mathbf{Z}} = [\mathbf{Z}\ \mathbf{1}],\quad
+        \tilde{\mathbf{H}} = (\tilde{\mathbf{Z}}^T\tilde{\mathbf{Z}})^{-1}
+        \tilde{\mathbf{Z}}^T\mathbf{Y} = \begin{bmatrix}\mathbf{H}^T\\ \mathbf{b}\end{bmatrix},
+        \quad \mathbf{R} = \frac{1}{N}\mathbf{E}^T\mathbf{E}
+
+    The normal equations are never formed: the slopes come from an SVD least squares solve
+    on the centred data and :math:`\mathbf{b} = \bar{\mathbf{y}} - \mathbf{H}\bar{\mathbf{z}}`,
+    which is algebraically the same estimate with better numerics.
+
+    Parameters
+    ----------
+    Z : array_like, shape (N, n)
+        ln TRC indicators (1-D is taken as n = 1).
+    Y : array_like, shape (N, m)
+        ln on-board indices paired row by row with ``Z`` (1-D is taken as m = 1).
+    min_pairs : int
+        Smallest N accepted; the fit also needs ``N >= n + 1 + m`` (and ``n + 2``) so that
+        the residuals have at least m degrees of freedom and ``R`` can be nonsingular.
+    max_condition : float
+        Largest accepted condition number of the standardised ``Z`` (collinearity guard).
+    rel_tol : float
+        ``R`` is refused as singular when its smallest eigenvalue is below ``rel_tol``
+        times the largest variance of ``Y``, and a ``Z`` column is constant when its std is below
+        ``rel_tol * max(1, |mean|)``.
+
+    Returns
+    -------
+    ObservationFit
+
+    Raises
+    ------
+    ValueError
+        NaN/inf, wrong dimensionality or mismatched row counts (message names the argument).
+    CalibrationError
+        Too few pairs, a constant or collinear indicator, or a singular ``R`` (exact fit).
+    """
+    Z = as_finite("Z", Z, 2)
+    Y = as_finite("Y", Y, 2)
+    if Z.shape[0] != Y.shape[0]:
+        raise ValueError(f"Z and Y: row counts differ ({Z.shape[0]} vs {Y.shape[0]} pairs)")
+    (N, n), m = Z.shape, Y.shape[1]
+    need = max(min_pairs, n + 2, n + 1 + m)
+    if need > N:
+        raise CalibrationError(
+            f"too few (TRC, on-board) pairs: {N}; need at least {need} "
+            f"(n={n} indicators, m={m} indices, min_pairs={min_pairs})"
+        )
+    zbar, ybar = Z.mean(axis=0), Y.mean(axis=0)
+    Zc, Yc = Z - zbar, Y - ybar
+    zsd = np.sqrt((Zc**2).mean(axis=0))
+    const = np.flatnonzero(zsd <= rel_tol * np.maximum(1.0, np.abs(zbar)))
+    if const.size:
+        raise CalibrationError(
+            f"TRC indicator column(s) {const.tolist()} are constant over the {N} pairs; "
+            "H cannot be identified: need pairs spanning a range of each indicator"
+        )
+    # Condition of the standardised design measures collinearity between indicators only;
+    # the intercept is handled exactly by centring.
+    sv = np.linalg.svd(Zc / zsd, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else np.inf
+    if cond > max_condition:
+        raise CalibrationError(
+            f"TRC indicators are (nearly) collinear: condition number {cond:.3g} > "
+            f"{max_condition:.3g}; H cannot be separated per indicator: need pairs where "
+            "the indicators vary independently, or fit fewer indicators"
+        )
+    Ht, *_ = np.linalg.lstsq(Zc, Yc, rcond=None)  # (n, m) = H^T
+    H = Ht.T
+    b = ybar - zbar @ Ht
+    E = Yc - Zc @ Ht
+    R = E.T @ E / N
+    R = 0.5 * (R + R.T)
+    # Judge R against the spread of Y itself: an exact fit leaves round-off residuals whose
+    # own eigenvalue ratio can look harmless.
+    tiny = np.finfo(float).tiny
+    var_y = (Yc**2).mean(axis=0)
+    ev = np.linalg.eigvalsh(R)
+    if ev[0] <= rel_tol * max(var_y.max(), tiny):
+        exact = np.flatnonzero(np.diag(R) <= rel_tol * np.maximum(var_y, tiny))
+        what = (
+            f"on-board index column(s) {exact.tolist()} are fitted exactly"
+            if exact.size
+            else "a combination of on-board indices is fitted exactly (collinear indices)"
+        )
+        raise CalibrationError(
+            f"residual covariance R is not positive definite (eigenvalues {ev.tolist()}): "
+            f"{what}; need noisy, non-duplicated on-board indices"
+        )
+    r2 = 1.0 - np.diag(R) / var_y
+    return ObservationFit(
+        H=H,
+        b=b,
+        R=R,
+        n_pairs=N,
+        r2=r2,
+        resid_std=np.sqrt(np.diag(R)),
+        condition=cond,
+        z_min=Z.min(axis=0),
+        z_max=Z.max(axis=0),
+    )
