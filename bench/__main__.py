@@ -20,7 +20,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from services.filtering import study
-from services.filtering.bank import FilterBank
+from services.filtering.bank import FilterBank, ObservationModel
 from services.filtering.degradation import DegradationParams
 from services.filtering.mixture import summarize
 
@@ -29,6 +29,7 @@ BASELINE_SEGMENTS = 4
 H = np.array([[0.9, 0.05], [0.05, 0.75]])
 B = np.array([-0.25, -0.35])
 R = np.array([[0.01, 0.002], [0.002, 0.03]])
+MODEL = ObservationModel(H, B, R)
 
 
 def make_params(rng: np.random.Generator, segments: int) -> DegradationParams:
@@ -79,8 +80,7 @@ def bench_replay(rng: np.random.Generator) -> None:
         bank = FilterBank(SEGMENTS, params)
         bank.restart(everyone, z0, 0.0)
         for week in range(WEEKS):
-            bank.predict_to(everyone, t[week])
-            bank.update(everyone, y[:, week], H, B, R)
+            bank.observe(everyone, t[week], y[:, week], MODEL)
         return bank
 
     replay()  # warm-up
@@ -123,8 +123,7 @@ def bench_single_event(rng: np.random.Generator, repeats: int = 3000) -> None:
     summary_latencies = np.empty(repeats)
     for i in range(repeats):
         start = time.perf_counter()
-        bank.predict_to(one, 0.01 * (i + 1))
-        bank.update(one, y[7:8, i % WEEKS], H, B, R)
+        bank.observe(one, 0.01 * (i + 1), y[7:8, i % WEEKS], MODEL)
         mid = time.perf_counter()
         summarize(bank.z[7], bank.P[7], limits_mm=np.array([12.0, 10.0]))
         latencies[i] = mid - start

@@ -5,11 +5,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import ndtr
+from scipy.special import ndtr, ndtri
 
 from .degradation import DegradationParams, as_finite, check_covariance, transition_unchecked
 
 _QUANTILE_TOL = 1e-11  # bisection bracket width in log space; the brief asks for 1e-10
+_MAX_ITERATIONS = 200  # bisection alone reaches the tolerance from any bracket in < 60
+_SQRT_2PI = np.sqrt(2 * np.pi)
 _TAIL_SIGMAS = 40.0  # ndtr(-40) ~ 4e-350 underflows to 0: a bracket certain to hold a quantile
 
 
@@ -74,24 +76,50 @@ def _marginal_cdf(x, m, s, upper=False):
 
 
 def _mixture_quantile(q, m, s):
-    r"""Equal-weight mixture quantile :math:`\inf\{x : F(x) \ge q\}` by vectorised bisection.
+    r"""Equal-weight mixture quantile :math:`\inf\{x : F(x) \ge q\}`, vectorised.
 
     ``q`` broadcasts against ``m.shape[:-1]``; ``m, s`` (..., Ns) are component means and
-    standard deviations. Bisection keeps ``F(lo) < q <= F(hi)``, which is also the right
-    invariant at the jumps of point-mass components.
+    standard deviations. Safeguarded Newton: start from the moment-matched Gaussian, keep a
+    bracket with ``F(lo) < q <= F(hi)`` (also the right invariant at the jumps of point-mass
+    components) and bisect whenever the Newton step leaves it; only the mixtures not yet
+    converged are iterated. A mixture of point masses only is the empirical quantile.
     """
-    lo = np.broadcast_to((m - _TAIL_SIGMAS * s).min(-1), np.broadcast_shapes(q.shape, m.shape[:-1]))
-    hi = np.broadcast_to((m + _TAIL_SIGMAS * s).max(-1), lo.shape)
-    lo, hi = lo.copy(), hi.copy()
-    lo_at_q = _marginal_cdf(lo[..., None], m, s) >= q  # all mass at the lower end
-    hi[lo_at_q] = lo[lo_at_q]
-    span = float((hi - lo).max(initial=0.0))
-    for _ in range(int(np.ceil(np.log2(max(span, _QUANTILE_TOL) / _QUANTILE_TOL)))):
-        mid = 0.5 * (lo + hi)
-        below = _marginal_cdf(mid[..., None], m, s) < q
-        lo = np.where(below, mid, lo)
-        hi = np.where(below, hi, mid)
-    return 0.5 * (lo + hi)
+    shape = np.broadcast_shapes(q.shape, m.shape[:-1])
+    ns = m.shape[-1]
+    m = np.broadcast_to(m, shape + (ns,)).reshape(-1, ns)
+    s = np.broadcast_to(s, shape + (ns,)).reshape(-1, ns)
+    q = np.broadcast_to(q, shape).reshape(-1)
+    mean = m.mean(-1)
+    sd = np.sqrt((s**2).mean(-1) + m.var(-1))
+    x = mean + sd * ndtri(q)
+    lo = (m - _TAIL_SIGMAS * s).min(-1)
+    hi = (m + _TAIL_SIGMAS * s).max(-1)
+    points_only = (s == 0).all(-1)
+    if points_only.any():
+        rank = np.maximum(np.ceil(q[points_only] * ns - 1e-12).astype(int) - 1, 0)
+        x[points_only] = np.take_along_axis(np.sort(m[points_only], -1), rank[:, None], -1)[:, 0]
+    active = np.flatnonzero(~points_only)
+    for _ in range(_MAX_ITERATIONS):
+        if active.size == 0:
+            break
+        xa, ma, sa, qa = x[active], m[active], s[active], q[active]
+        point = sa == 0
+        u = (xa[:, None] - ma) / np.where(point, 1.0, sa)
+        cdf = np.where(point, xa[:, None] >= ma, ndtr(u)).mean(-1)
+        pdf = np.where(point, 0.0, np.exp(-0.5 * u * u) / (_SQRT_2PI * np.where(point, 1.0, sa)))
+        pdf = pdf.mean(-1)
+        below = cdf < qa
+        lo[active] = np.where(below, xa, lo[active])
+        hi[active] = np.where(below, hi[active], xa)
+        la, ha = lo[active], hi[active]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            newton = xa - (cdf - qa) / pdf
+        inside = (pdf > 0) & (newton > la) & (newton < ha)
+        step = np.where(inside, newton, 0.5 * (la + ha))
+        x[active] = step
+        done = (np.abs(step - xa) < _QUANTILE_TOL) | (ha - la < _QUANTILE_TOL)
+        active = active[~done]
+    return x.reshape(shape)
 
 
 def summarize(z, P, limits_mm=None, level: float = 0.95) -> MixtureSummary:

@@ -68,7 +68,8 @@ class StudyConfig:
 
 def load_study_config(path: str | Path = DEFAULT_CONFIG, **overrides) -> StudyConfig:
     """Read a study config (JSON5); keyword overrides replace top-level entries."""
-    raw = {**json5.loads(Path(path).read_text()), **{k: v for k, v in overrides.items() if v is not None}}
+    given = {key: value for key, value in overrides.items() if value is not None}
+    raw = {**json5.loads(Path(path).read_text()), **given}
     scenarios = []
     for name, s in raw["scenarios"].items():
         sd = np.asarray(s["sigma_sd"], float)
@@ -236,7 +237,7 @@ def format_table(result: StudyResult) -> str:
         for j, (label, row) in enumerate(rows.items()):
             first = f"{months} months" if j == 0 else ""
             cells = "".join(
-                f"{'[%.3f,%.3f]' % tuple(row[name][ind]):>18}"
+                f"{'[{:.3f},{:.3f}]'.format(*row[name][ind]):>18}"
                 for name in names
                 for ind in INDICATOR_NAMES
             )
@@ -271,12 +272,12 @@ def plot(result: StudyResult, path: str | Path) -> None:
     import matplotlib.pyplot as plt
 
     config = result.config
-    weeks = np.arange(config.weeks + 1)
+    weeks = np.arange(1, config.weeks + 1)  # W_0 = 0 at the TRC record: off a log axis
     fig, axes = plt.subplots(1, len(result.scenarios), figsize=(5 * len(result.scenarios), 4.2))
     for ax, scenario in zip(np.atleast_1d(axes), result.scenarios, strict=True):
         for i, interval in enumerate(config.intervals_weeks):
-            median = np.median(scenario.width[i], axis=0)
-            lo, hi = np.percentile(scenario.width[i], [5, 95], axis=0)
+            median = np.median(scenario.width[i, :, 1:], axis=0)
+            lo, hi = np.percentile(scenario.width[i, :, 1:], [5, 95], axis=0)
             style = dict(color="black", ls="--") if interval == 0 else {}
             (line,) = ax.plot(weeks, median, label=interval_label(interval), **style)
             ax.fill_between(weeks, lo, hi, color=line.get_color(), alpha=0.12, lw=0)
