@@ -1,0 +1,229 @@
+"""Service configuration: a JSON5 file overlaid with command-line flags (flags win).
+
+A configuration file is a Zenoh configuration (``mode``, ``connect``, ``listen``, ``scouting``,
+``transport``, ``access_control`` …, see the Zenoh docs) plus a few TrackFusion keys at the top
+level, which are taken out before the rest is handed to Zenoh:
+
+``ns``
+    namespace, the first chunk of every key expression (default ``"tf"``);
+``instance``
+    instance id of the service, a single key chunk (default ``{hostname}-{pid}``);
+``services``
+    per-service settings, ``{"filtering": {...}, ...}``, read with :meth:`RuntimeConfig.options`.
+
+A file without these keys (``deploy/router.json5``) is therefore also a valid ``zenohd``
+configuration. Whatever the file says, multicast scouting is turned off: every process
+connects or listens on explicit endpoints.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import socket
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import json5
+
+if TYPE_CHECKING:
+    import zenoh  # imported when a config is built, so that `trackfusion --help` stays fast
+
+DEFAULT_NS = "tf"
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+MODES = ("client", "peer", "router")
+TRACKFUSION_KEYS = ("ns", "instance", "services")
+
+_REPO = Path(__file__).resolve().parents[2]
+DEPLOY_DIR = _REPO / "deploy"
+ROUTER_CONFIG = DEPLOY_DIR / "router.json5"
+SERVICE_CONFIG = DEPLOY_DIR / "service.json5"
+
+_FORBIDDEN = set("*$?# ")
+
+
+@dataclass(frozen=True)
+class RuntimeConfig:
+    """What a service needs to join the bus; build it with :func:`load_config`."""
+
+    ns: str = DEFAULT_NS
+    instance: str | None = None  # None: default_instance() when the service starts
+    zenoh: Mapping[str, Any] = field(default_factory=dict)  # plain-JSON Zenoh settings
+    services: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    source: Path | None = None  # the file it came from, for error messages
+
+    @property
+    def mode(self) -> str:
+        return str(self.zenoh.get("mode") or "client")
+
+    def options(self, service: str) -> dict[str, Any]:
+        """The ``services.{service}`` section of the file (empty if absent)."""
+        return dict(self.services.get(service, {}))
+
+    def zenoh_config(self) -> zenoh.Config:
+        return zenoh_config(self)
+
+
+def default_instance() -> str:
+    """``{hostname}-{pid}``, reduced to characters safe in a key chunk."""
+    host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname()) or "host"
+    return f"{host}-{os.getpid()}"
+
+
+def add_zenoh_arguments(parser: argparse.ArgumentParser, *, mode: bool = True) -> None:
+    """Add the flags every service shares; :func:`config_from_args` reads them back."""
+    group = parser.add_argument_group("zenoh")
+    group.add_argument("--config", metavar="FILE", type=Path, help="JSON5 configuration file")
+    if mode:
+        group.add_argument("--mode", choices=MODES, help="Zenoh mode (default: client)")
+    group.add_argument(
+        "--connect",
+        metavar="ENDPOINT",
+        action="append",
+        default=[],
+        help=f"endpoint to connect to, repeatable (default: {DEFAULT_ENDPOINT})",
+    )
+    group.add_argument(
+        "--listen", metavar="ENDPOINT", action="append", default=[], help="repeatable"
+    )
+    group.add_argument("--ns", metavar="NAMESPACE", help=f"key namespace (default: {DEFAULT_NS})")
+    group.add_argument("--instance", metavar="ID", help="instance id (default: hostname-pid)")
+    group.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+
+
+def config_from_args(
+    args: argparse.Namespace, *, default_file: Path | None = None, mode: str | None = None
+) -> RuntimeConfig:
+    """Load ``args.config`` (else ``default_file``) and overlay the flags of
+    :func:`add_zenoh_arguments`; ``mode`` forces a mode (the router)."""
+    return load_config(
+        args.config or default_file,
+        mode=mode or getattr(args, "mode", None),
+        connect=args.connect,
+        listen=args.listen,
+        ns=args.ns,
+        instance=args.instance,
+    )
+
+
+def load_config(
+    path: str | Path | None = None,
+    *,
+    mode: str | None = None,
+    connect: Sequence[str] = (),
+    listen: Sequence[str] = (),
+    ns: str | None = None,
+    instance: str | None = None,
+) -> RuntimeConfig:
+    """Read the JSON5 file at ``path`` (if any) and overlay the given values.
+
+    Non-empty ``connect`` / ``listen`` replace the file's endpoints. Raises ``SystemExit``
+    with a message saying what to fix when the file or a value is unusable.
+    """
+    source = Path(path) if path is not None else None
+    data = read_config_file(source) if source is not None else {}
+    where = f"config file {source}" if source else "configuration"
+
+    ns = ns if ns is not None else data.pop("ns", DEFAULT_NS)
+    instance = instance if instance is not None else data.pop("instance", None)
+    services = data.pop("services", {})
+    data.pop("ns", None)
+    data.pop("instance", None)
+
+    _check_chunk("ns", ns, where)
+    if instance is not None:
+        _check_chunk("instance", instance, where)
+    if not isinstance(services, dict) or not all(isinstance(v, dict) for v in services.values()):
+        raise SystemExit(f"{where}: 'services' must be an object of objects, got {services!r}")
+
+    if mode is not None:
+        data["mode"] = mode
+    if data.get("mode") is not None and data["mode"] not in MODES:
+        raise SystemExit(f"{where}: mode must be one of {', '.join(MODES)}, got {data['mode']!r}")
+    if connect:
+        _section(data, "connect", where)["endpoints"] = list(connect)
+    if listen:
+        _section(data, "listen", where)["endpoints"] = list(listen)
+
+    conf = RuntimeConfig(ns=ns, instance=instance, zenoh=data, services=services, source=source)
+    zenoh_config(conf)  # fail now, with the file's name, rather than when a session opens
+    return conf
+
+
+def read_config_file(path: Path) -> dict[str, Any]:
+    """The JSON5 object in ``path``; ``SystemExit`` with the reason if it is not one."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as e:
+        raise SystemExit(
+            f"cannot read config file {path}: {e.strerror or e}; "
+            "check the --config path (or leave --config out for the defaults)"
+        ) from None
+    except UnicodeDecodeError as e:
+        raise SystemExit(f"config file {path} is not UTF-8 text: {e}") from None
+    try:
+        data = json5.loads(text)
+    except ValueError as e:
+        raise SystemExit(f"config file {path} is not valid JSON5: {e}") from None
+    if not isinstance(data, dict):
+        raise SystemExit(
+            f"config file {path} must hold a JSON5 object {{...}}, got {type(data).__name__}"
+        )
+    return data
+
+
+def zenoh_config(conf: RuntimeConfig | Mapping[str, Any] | None = None) -> zenoh.Config:
+    """A ``zenoh.Config`` from ``conf``: client mode connecting to the local router unless told
+    otherwise, a router listening on it, multicast scouting always off."""
+    import zenoh
+
+    if isinstance(conf, RuntimeConfig):
+        settings, source = conf.zenoh, conf.source
+    else:
+        settings, source = conf or {}, None
+    where = f"config file {source}" if source else "Zenoh configuration"
+    data: dict[str, Any] = json.loads(json.dumps(settings))  # deep copy, JSON-only values
+    mode = data.setdefault("mode", "client")
+    if mode in ("client", "peer") and not _endpoints(data, "connect"):
+        _section(data, "connect", where)["endpoints"] = [DEFAULT_ENDPOINT]
+    if mode == "router" and not _endpoints(data, "listen"):
+        _section(data, "listen", where)["endpoints"] = [DEFAULT_ENDPOINT]
+    _section(_section(data, "scouting", where), "multicast", where)["enabled"] = False
+    try:
+        return zenoh.Config.from_json5(json.dumps(data))
+    except zenoh.ZError as e:
+        raise SystemExit(f"{where}: invalid Zenoh settings: {e}") from None
+
+
+def endpoints(conf: RuntimeConfig, section: str) -> list[str]:
+    """The ``connect`` or ``listen`` endpoints Zenoh will use for ``conf``'s mode."""
+    value = json.loads(zenoh_config(conf).get_json(f"{section}/endpoints"))
+    if isinstance(value, dict):
+        value = value.get(conf.mode, [])
+    return list(value or [])
+
+
+def _endpoints(data: Mapping[str, Any], section: str) -> bool:
+    """Whether the settings name endpoints (a list, or a per-mode object) for ``section``."""
+    value = data.get(section)
+    return bool(value.get("endpoints")) if isinstance(value, dict) else False
+
+
+def _section(data: dict[str, Any], name: str, where: str) -> dict[str, Any]:
+    value = data.setdefault(name, {})
+    if not isinstance(value, dict):
+        raise SystemExit(f"{where}: '{name}' must be an object like {{endpoints: [...]}}")
+    return value
+
+
+def _check_chunk(name: str, value: object, where: str) -> None:
+    """Same rule as schemas.keys: one non-empty key chunk."""
+    if not isinstance(value, str) or not value:
+        raise SystemExit(f"{where}: {name} must be a non-empty string, got {value!r}")
+    bad = (_FORBIDDEN | {"/"}).intersection(value)
+    if bad:
+        raise SystemExit(f"{where}: {name} {value!r} contains forbidden characters {sorted(bad)}")
