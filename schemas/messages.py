@@ -244,18 +244,20 @@ class SegmentState(Message, frozen=True, kw_only=True):
     ci_low_mm: NDArray  # (n,) f8, 2.5% marginal quantile
     ci_high_mm: NDArray  # (n,) f8, 97.5% marginal quantile
     width: float  # W = |cov|^(1/n)
-    limits_mm: NDArray  # (n,) f8, the limits p_exceed refers to
-    p_exceed: NDArray  # (n,) f8, P(indicator > limit)
+    limit_levels: list[str]  # L names, e.g. ["alert", "intervention"]
+    limits_mm: NDArray  # (L, n) f8, the limits p_exceed refers to
+    p_exceed: NDArray  # (L, n) f8, P(indicator > limit) now
     horizons_days: NDArray  # (h,) f8
     forecast_mean: NDArray  # (h, n) f8 log mm
     forecast_ci_low_mm: NDArray  # (h, n) f8
     forecast_ci_high_mm: NDArray  # (h, n) f8
-    forecast_p_exceed: NDArray  # (h, n) f8
+    forecast_p_exceed: NDArray  # (h, L, n) f8
     last_trc_t: float | None = None  # epoch s of the restart, None before any TRC record
     n_updates: int = 0  # on-board updates since the last TRC record
     nis: float | None = None  # normalised innovation squared of the last update
     calibration_version: int = 0
     posterior_version: int = 0
+    posterior_group: str = ""  # the DegradationPosterior group in use
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -265,20 +267,18 @@ class SegmentState(Message, frozen=True, kw_only=True):
         check_finite("width", self.width)
         check_finite("last_trc_t", self.last_trc_t)
         check_finite("nis", self.nis)
-        n = len(self.indicators)
+        n, levels = len(self.indicators), len(self.limit_levels)
         check(n > 0, "indicators: must not be empty")
-        for name in ("mean", "ci_low_mm", "ci_high_mm", "limits_mm", "p_exceed"):
+        for name in ("mean", "ci_low_mm", "ci_high_mm"):
             check_array(name, getattr(self, name), (n,))
         check_array("cov", self.cov, (n, n))
+        check_array("limits_mm", self.limits_mm, (levels, n))
+        check_array("p_exceed", self.p_exceed, (levels, n))
         check_array("horizons_days", self.horizons_days, (None,))
         h = self.horizons_days.shape[0]
-        for name in (
-            "forecast_mean",
-            "forecast_ci_low_mm",
-            "forecast_ci_high_mm",
-            "forecast_p_exceed",
-        ):
+        for name in ("forecast_mean", "forecast_ci_low_mm", "forecast_ci_high_mm"):
             check_array(name, getattr(self, name), (h, n))
+        check_array("forecast_p_exceed", self.forecast_p_exceed, (h, levels, n))
 
 
 class Alert(Message, frozen=True, kw_only=True):
