@@ -95,9 +95,12 @@ class DegradationParams:
         if self.mu.ndim == 2:
             return self
         rows = object.__new__(DegradationParams)
-        for f in fields(self):  # rows of validated arrays are valid: skip the eigen-check
-            object.__setattr__(rows, f.name, getattr(self, f.name)[idx])
+        for name in _PARAM_FIELDS:  # rows of validated arrays are valid: skip the eigen-check
+            object.__setattr__(rows, name, getattr(self, name)[idx])
         return rows
+
+
+_PARAM_FIELDS = tuple(f.name for f in fields(DegradationParams))
 
 
 def mid_interval_age(dt):

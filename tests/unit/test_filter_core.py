@@ -3,7 +3,15 @@
 import numpy as np
 import pytest
 
-from services.filtering.bank import FilterBank, _update_2x2, _update_general, predict, update
+from services.filtering import bank as bank_module
+from services.filtering.bank import (
+    FilterBank,
+    ObservationModel,
+    _update_2x2,
+    _update_general,
+    predict,
+    update,
+)
 from services.filtering.degradation import DegradationParams, mid_interval_age, transition
 from services.filtering.mixture import forecast
 
@@ -97,6 +105,23 @@ def test_2x2_fast_path_equals_general(lead):
         np.testing.assert_allclose(fast, general, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("lead", [(40,), (3,), (40,), (0,)])
+def test_2x2_fast_path_large_batches_fresh_outputs(lead):
+    """Scratch arrays are reused across calls: outputs must be fresh, P+ exactly symmetric."""
+    rng = np.random.default_rng(sum(lead) + 7)
+    z, P = rng.normal(size=lead + (200, 2)), random_spd(rng, lead + (200,), 2, 0.05)
+    y, H, b = rng.normal(size=lead + (2,)), rng.normal(size=(2, 2)), rng.normal(size=2)
+    R = random_spd(rng, (), 2, 0.1)
+    first = _update_2x2(z, P, y, H, b, R)
+    kept = [a.copy() for a in first]
+    _update_2x2(z[..., ::-1, :], P[..., ::-1, :, :], -y, H, b, R)  # same sizes, other data
+    for a, b_ in zip(first, kept, strict=True):
+        np.testing.assert_array_equal(a, b_)
+    np.testing.assert_array_equal(first[1], np.swapaxes(first[1], -1, -2))
+    for fast, general in zip(first, _update_general(z, P, y, H, b, R), strict=True):
+        np.testing.assert_allclose(fast, general, rtol=1e-12, atol=1e-12)
+
+
 class DenseReference:
     """Independent per-sample loop: standard-form covariance update with an explicit inverse."""
 
@@ -174,7 +199,7 @@ def test_bank_matches_dense_reference(S, ns, n, m, per_segment):
                 ref.predict(s, t[i], modes[i], age[i])
         elif kind == "update":
             y = rng.normal(0.5, 0.5, (len(idx), m))
-            nis = bank.update(idx, y, H, b, R)
+            nis = bank.update(idx, y, ObservationModel(H, b, R))
             expected = [ref.update(s, y[i], H, b, R) for i, s in enumerate(idx)]
             np.testing.assert_allclose(nis, expected, rtol=1e-9, atol=1e-9)
         elif kind == "restart":
@@ -199,13 +224,13 @@ def test_bank_snapshot_restore_and_unstarted_segments():
     with pytest.raises(ValueError, match="idx: segment without state"):
         bank.predict_to([0], 5.0)
     with pytest.raises(ValueError, match="idx: segment without state"):
-        bank.update([0], [[1.0, 1.0]], np.eye(2), np.zeros(2), np.eye(2))
+        bank.update([0], [[1.0, 1.0]], ObservationModel(np.eye(2), np.zeros(2), np.eye(2)))
     bank.predict_to([0], 5.0, tamping_age=[2.0])  # a tamping resets even a stateless segment
     np.testing.assert_allclose(bank.z[0], params.z_plus + 2.0 * params.mu)
     bank.restart([1, 2], [[1.0, 2.0], [1.5, 2.5]], 3.0)
     snapshot, state = bank.copy(), bank.get_state([1])
     bank.predict_to([1, 2], 10.0)
-    bank.update([1], [[1.0, 2.0]], np.eye(2), np.zeros(2), 0.1 * np.eye(2))
+    bank.update([1], [[1.0, 2.0]], ObservationModel(np.eye(2), np.zeros(2), 0.1 * np.eye(2)))
     bank.set_state([1], *state)
     for a, b in [(bank.z, snapshot.z), (bank.P, snapshot.P), (bank.t, snapshot.t)]:
         assert np.array_equal(a[:2], b[:2])
@@ -267,7 +292,9 @@ H, B, R = np.eye(2), np.zeros(2), 0.1 * np.eye(2)
         ("idx", lambda: _bank().predict_to([2], 12.0)),
         ("idx", lambda: _bank().predict_to([0.5], 12.0)),
         ("tamping_age", lambda: _bank().predict_to([0, 1], 12.0, [1.0, 3.0])),
-        ("y", lambda: _bank().update([0], [[1.0, 1.0], [1.0, 1.0]], H, B, R)),
+        ("y", lambda: _bank().update([0], [[1.0, 1.0], [1.0, 1.0]], ObservationModel(H, B, R))),
+        ("R", lambda: ObservationModel(H, B, np.zeros((2, 2)))),
+        ("model", lambda: _bank().update([0], [[1.0, 1.0]], (H, B, R))),
         ("z_trc", lambda: _bank().restart([0], [[1.0, np.nan]], 12.0)),
         (
             "params",
@@ -279,3 +306,29 @@ H, B, R = np.eye(2), np.zeros(2), 0.1 * np.eye(2)
 def test_bad_input_raises_naming_argument(name, call):
     with pytest.raises(ValueError, match=rf"^{name}:"):
         call()
+
+
+@pytest.mark.parametrize("block_filters", [1, 7, 8192])
+def test_observe_equals_predict_then_update_in_any_block_size(monkeypatch, block_filters):
+    monkeypatch.setattr(bank_module, "BLOCK_FILTERS", block_filters)
+    rng = np.random.default_rng(11)
+    S, ns = 9, 5
+    params = random_params(rng, (S,), ns, 2)
+    model = ObservationModel(
+        rng.normal(size=(2, 2)), rng.normal(size=2), random_spd(rng, (), 2, 0.1)
+    )
+    fused, stepwise = FilterBank(S, params), FilterBank(S, params)
+    z0 = rng.normal(1.0, 0.3, (S, 2))
+    for bank in (fused, stepwise):
+        bank.restart(np.arange(S), z0, 0.0)
+    for step in range(1, 6):
+        idx = rng.choice(S, rng.integers(1, S + 1), replace=False)
+        t = np.full(len(idx), 7.0 * step)
+        age = np.where(rng.random(len(idx)) < 0.3, 1.0, np.nan)
+        y = rng.normal(0.5, 0.2, (len(idx), 2))
+        nis = fused.observe(idx, t, y, model, age)
+        stepwise.predict_to(idx, t, age)
+        np.testing.assert_allclose(nis, stepwise.update(idx, y, model), rtol=1e-12)
+    np.testing.assert_allclose(fused.z, stepwise.z, rtol=1e-12)
+    np.testing.assert_allclose(fused.P, stepwise.P, rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(fused.t, stepwise.t)
