@@ -1,0 +1,1 @@
+"""Alerting: exceedance, predicted exceedance, sudden change and stale alerts; the TRC plan."""

@@ -1,0 +1,207 @@
+"""`trackfusion alerting`: the thin adapter around :mod:`services.alerting.core`.
+
+Subscribes ``{ns}/state/**`` (SegmentState) and ``{ns}/trc/**`` (TrcRecord, to learn each
+line's TRC schedule); both subscriptions feed ONE bounded queue drained by ONE worker, so
+the core sees one ordered stream and needs no lock of its own (the queryables take the
+adapter's lock to read it). Alerts go out with ``session.put`` on ``{ns}/alert/{line}/{segment}``;
+``{ns}/q/alerts`` and ``{ns}/q/plan`` answer from the core (payloads: README.md beside this file).
+The raised set, the segments' last states and the TRC runs persist in SQLite
+(``./var/alerting-{instance}.sqlite`` by default).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import queue
+import threading
+from pathlib import Path
+from typing import Any
+
+import json5
+import msgspec
+import zenoh
+
+from schemas import Alert, SchemaError, SegmentState, TrcRecord, decode, encode, keys
+from schemas.keys import parse_segment_key
+from services.alerting.core import AlertingConfig, AlertingCore
+from services.alerting.store import AlertStore
+from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits
+from services.runtime.config import DEPLOY_DIR, RuntimeConfig
+from services.runtime.service import DEFAULT_CAPACITY, ServiceRuntime
+
+log = logging.getLogger(__name__)
+
+SERVICE = "alerting"
+DEFAULT_ALERTING_FILE = DEPLOY_DIR / "alerting.json5"
+PLAN_VERSION = 1
+_DONE = object()  # queued by a subscriber's drop callback: that subscription has ended
+
+_list_encoder = msgspec.msgpack.Encoder()
+
+
+def load_alerting_config(path: str | Path = DEFAULT_ALERTING_FILE) -> AlertingConfig:
+    """Read ``deploy/alerting.json5`` (or ``path``); SystemExit says what to fix."""
+    try:
+        raw = json5.loads(Path(path).read_text(encoding="utf-8"))
+        if not isinstance(raw, dict):
+            raise ValueError("must hold a JSON5 object {...}")
+        return AlertingConfig.from_dict(raw)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"alerting config {path}: {exc}") from None
+
+
+def default_db_path(instance: str | None) -> Path:
+    """``./var/alerting-{instance}.sqlite``; ``default`` when no instance id was configured
+    (a hostname-pid id would give every restart a new, empty file)."""
+    return Path("var") / f"alerting-{instance or 'default'}.sqlite"
+
+
+class AlertingAdapter:
+    """Decode → core → encode → put, persisted; one instance per running service."""
+
+    def __init__(self, rt: ServiceRuntime, core: AlertingCore, store: AlertStore) -> None:
+        self.rt = rt
+        self.core = core
+        self.store = store
+        self.lock = threading.Lock()  # the worker writes the core, queryables read it
+        self.queue: queue.Queue[Any] = queue.Queue(DEFAULT_CAPACITY)
+        self.published = 0
+
+    # --- subscriptions: one queue, one worker ------------------------------------------------
+
+    def start(self) -> None:
+        ns = self.rt.ns
+        subscriptions = {
+            "state": keys.segment_keys(ns, "state"),
+            "trc": keys.segment_keys(ns, "trc"),
+        }
+        for kind, key in subscriptions.items():
+            self.rt.declare_subscriber(key, self._handler(kind))
+        self.rt.declare_queryable(keys.q_alerts(ns), self.on_query_alerts)
+        self.rt.declare_queryable(keys.q_plan(ns), self.on_query_plan)
+        self.rt.spawn(self._work, len(subscriptions), name=f"{SERVICE}:worker")
+
+    def _handler(self, kind: str) -> zenoh.handlers.Callback:
+        def on_sample(sample: zenoh.Sample) -> None:
+            # short: copy out and queue (blocks the receive thread when full: nothing dropped)
+            self.queue.put((kind, str(sample.key_expr), sample.payload.to_bytes()))
+
+        return zenoh.handlers.Callback(on_sample, lambda: self.queue.put(_DONE))
+
+    def _work(self, n_subscriptions: int) -> None:
+        ended = 0
+        while ended < n_subscriptions:  # every subscription undeclared: done
+            item = self.queue.get()
+            if item is _DONE:
+                ended += 1
+                continue
+            kind, key, payload = item
+            try:
+                self.handle(kind, key, payload)
+            except SchemaError as e:
+                self.rt.deadletters.reject(key, str(e), payload)
+            except Exception as e:
+                log.exception("%s: error handling %s", SERVICE, key)
+                self.rt.deadletters.reject(key, f"{type(e).__name__}: {e}", payload)
+
+    def handle(self, kind: str, key: str, payload: bytes) -> list[Alert]:
+        """One message through the core; publishes and persists what it changes."""
+        message_type: type[SegmentState | TrcRecord] = (
+            SegmentState if kind == "state" else TrcRecord
+        )
+        message = decode(payload, message_type)
+        _, _, line, segment = parse_segment_key(key)
+        if (line, segment) != (message.line, message.segment):
+            raise SchemaError(
+                f"{type(message).__name__}: key says {line}/{segment}, "
+                f"message says {message.line}/{message.segment}"
+            )
+        with self.lock:
+            run = None
+            memory = None
+            match message:
+                case SegmentState():
+                    alerts = self.core.on_state(message)
+                    memory = self.core.segments[(message.line, message.segment)]
+                case TrcRecord():
+                    alerts = []
+                    if self.core.on_trc(message):
+                        run = (message.line, message.run_id, message.t)
+            if self.core.newest_t is not None:
+                alerts += self.core.check_stale(self.core.newest_t)
+        # publish, then persist: a kill in between repeats an alert rather than losing it
+        for alert in alerts:
+            self.rt.session.put(keys.alert(self.rt.ns, alert.line, alert.segment), encode(alert))
+            log.info("%s %s %s/%s: %s", alert.status, alert.kind, alert.line, alert.segment,
+                     alert.message)  # fmt: skip
+        self.published += len(alerts)
+        self.store.save(alerts, memory, run)
+        return alerts
+
+    # --- queryables (callbacks: short, read under the lock) ------------------------------------
+
+    def on_query_alerts(self, query: zenoh.Query) -> None:
+        line = query.parameters.get("line")
+        with self.lock:
+            alerts = self.core.raised_alerts(line)
+        query.reply(keys.q_alerts(self.rt.ns), _list_encoder.encode(alerts))
+
+    def on_query_plan(self, query: zenoh.Query) -> None:
+        line = query.parameters.get("line")
+        limit = query.parameters.get("limit")
+        try:
+            top = int(limit) if limit is not None else None
+            if top is not None and top < 0:
+                raise ValueError(limit)
+        except ValueError:
+            query.reply_err(f"limit: not a non-negative integer: {limit!r}".encode())
+            return
+        with self.lock:
+            rows = self.core.plan(line=line)
+            t = self.core.newest_t
+        body = {
+            "v": PLAN_VERSION,
+            "t": t,
+            "rows": [dataclasses.asdict(r) for r in rows[:top]],
+        }
+        query.reply(keys.q_plan(self.rt.ns), _list_encoder.encode(body))
+
+
+def main(
+    conf: RuntimeConfig,
+    *,
+    alerting_config: str | Path | None = None,
+    limits: str | Path | None = None,
+    db: str | Path | None = None,
+    stop: threading.Event | None = None,
+    handle_signals: bool = True,
+) -> int:
+    """Run the alerting service until ``stop`` is set or SIGINT/SIGTERM; 0."""
+    core = AlertingCore(
+        load_alerting_config(alerting_config or DEFAULT_ALERTING_FILE),
+        _load_limits(limits or DEFAULT_LIMITS_FILE),
+    )
+    db_path = Path(db) if db is not None else default_db_path(conf.instance)
+    store = AlertStore(db_path)
+    try:
+        core.restore(*store.load())
+        log.info(
+            "%s: %d raised alerts, %d segments restored from %s",
+            SERVICE,
+            len(core.raised),
+            len(core.segments),
+            db_path,
+        )
+        with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
+            AlertingAdapter(rt, core, store).start()
+            return rt.run()
+    finally:
+        store.close()
+
+
+def _load_limits(path: str | Path) -> Limits:
+    try:
+        return load_limits(path)
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None

@@ -1,0 +1,81 @@
+"""Test doubles of the alerting core: SegmentStates built from given probabilities."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from schemas import INDICATORS, NDArray, SegmentState
+from services.limits import Limits
+
+T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
+LEVELS = ("alert", "intervention")
+LIMITS_MM = np.array([[6.0, 5.0], [8.0, 7.0]])  # (L, n): alert, intervention x top6, align10
+HORIZONS = (30.0, 90.0, 180.0)
+
+
+def f8(values) -> NDArray:
+    return NDArray.of(values, "f8")
+
+
+def make_limits() -> Limits:
+    """One speed class for every line, with :data:`LIMITS_MM`."""
+    return Limits(LEVELS, {"c": LIMITS_MM}, "c", {})
+
+
+def make_state(
+    t: float = T0,
+    *,
+    line: str = "L1",
+    segment: str = "s1",
+    p_exceed=None,
+    forecast=None,
+    nis: float | None = None,
+    limits_mm=LIMITS_MM,
+    mean_mm=(4.0, 3.0),
+    sd_log=(0.1, 0.1),
+    last_trc_t: float | None = None,
+) -> SegmentState:
+    """A SegmentState with the given (L, n) ``p_exceed`` and (h, L, n) ``forecast`` at
+    :data:`HORIZONS` (zeros by default); the rest is a consistent log-normal summary
+    with a flat forecast."""
+    n, h = len(INDICATORS), len(HORIZONS)
+    p_exceed = np.zeros((len(LEVELS), n)) if p_exceed is None else np.asarray(p_exceed, float)
+    forecast = np.zeros((h, len(LEVELS), n)) if forecast is None else np.asarray(forecast, float)
+    mean = np.log(mean_mm)
+    sd = np.asarray(sd_log, float)
+    low, high = np.exp(mean - 1.96 * sd), np.exp(mean + 1.96 * sd)
+    return SegmentState(
+        line=line,
+        segment=segment,
+        t=t,
+        indicators=list(INDICATORS),
+        mean=f8(mean),
+        cov=f8(np.diag(sd**2)),
+        ci_low_mm=f8(low),
+        ci_high_mm=f8(high),
+        width=float(np.prod(sd**2) ** (1 / n)),
+        limit_levels=list(LEVELS),
+        limits_mm=f8(limits_mm),
+        p_exceed=f8(p_exceed),
+        horizons_days=f8(HORIZONS),
+        forecast_mean=f8(np.tile(mean, (h, 1))),
+        forecast_ci_low_mm=f8(np.tile(low, (h, 1))),
+        forecast_ci_high_mm=f8(np.tile(high, (h, 1))),
+        forecast_p_exceed=f8(forecast),
+        last_trc_t=last_trc_t,
+        nis=nis,
+    )
+
+
+def p_top6(level: int, p: float) -> np.ndarray:
+    """(L, n) exceedance probabilities: ``p`` for Top6 at level index ``level``, else 0."""
+    out = np.zeros((len(LEVELS), len(INDICATORS)))
+    out[level, 0] = p
+    return out
+
+
+def forecast_top6(p30: float, p90: float, p180: float) -> np.ndarray:
+    """(h, L, n) forecasts: Top6 above the intervention limit at 30/90/180 days."""
+    out = np.zeros((len(HORIZONS), len(LEVELS), len(INDICATORS)))
+    out[:, 1, 0] = (p30, p90, p180)
+    return out

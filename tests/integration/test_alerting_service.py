@@ -1,0 +1,137 @@
+"""The alerting service in-process on a real router: states in, alerts out, queryables,
+dead letters, and a restart that keeps the raised set."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import zenoh
+
+from schemas import Alert, DeadLetter, TrcRecord, decode, encode, keys
+from services.alerting import service as alerting
+from services.alerting.core import DAY_S
+from services.alerting.testing import T0, make_state, p_top6
+from services.runtime.config import RuntimeConfig
+
+PUT = zenoh.SampleKind.PUT
+TIMEOUT_S = 5.0
+
+
+@contextmanager
+def running(
+    conf: RuntimeConfig, db: Path, observer: zenoh.Session, liveliness_events: Callable
+) -> Iterator[None]:
+    """The service in a thread until the block ends; entered once its token is alive."""
+    events = liveliness_events(observer, keys.alive(conf.ns, alerting.SERVICE, "test"))
+    stop = threading.Event()
+    result: list[int] = []
+    thread = threading.Thread(
+        target=lambda: result.append(alerting.main(conf, db=db, stop=stop, handle_signals=False)),
+        name="alerting-under-test",
+    )
+    thread.start()
+    try:
+        assert events.get() == (PUT, keys.alive(conf.ns, alerting.SERVICE, "test"))
+        yield
+    finally:
+        stop.set()
+        thread.join(TIMEOUT_S)
+    assert not thread.is_alive() and result == [0]
+
+
+def query(session: zenoh.Session, key: str) -> list[bytes]:
+    replies = session.get(key, timeout=TIMEOUT_S)
+    return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
+
+
+def test_state_raises_alert_queryables_answer_and_restart_keeps_it(
+    open_session, service_config, liveliness_events, collector, until_matched, tmp_path
+):
+    ns = service_config.ns
+    db = tmp_path / "alerting.sqlite"
+    client = open_session()
+    alerts = collector(lambda s: (str(s.key_expr), decode(s.payload.to_bytes(), Alert)))
+    client.declare_subscriber(keys.segment_keys(ns, "alert"), alerts)
+    state_pub = client.declare_publisher(keys.state(ns, "L1", "s1"))
+
+    with running(service_config, db, client, liveliness_events):
+        until_matched(state_pub)
+        client.put(
+            keys.trc(ns, "L1", "s1"),
+            encode(TrcRecord(line="L1", segment="s1", t=T0, top6_mm=3, align10_mm=2, run_id="r1")),
+        )
+        state_pub.put(encode(make_state(T0 + DAY_S, p_exceed=p_top6(1, 0.72))))
+
+        key, alert = alerts.get()
+        assert key == keys.alert(ns, "L1", "s1")
+        assert (alert.kind, alert.status, alert.indicator, alert.level) == (
+            "exceedance",
+            "raised",
+            "top6",
+            "intervention",
+        )
+        assert alert.message == "Top6 likely above intervention limit 8.0 mm (p=0.72)"
+
+        (body,) = query(client, keys.q_alerts(ns))
+        assert [Alert(**a) for a in msgpack.unpackb(body)] == [alert]
+        assert query(client, keys.q_alerts(ns) + "?line=L2") == [msgpack.packb([])]
+
+        (body,) = query(client, keys.q_plan(ns))
+        plan = msgpack.unpackb(body)
+        assert plan["v"] == 1 and plan["t"] == T0 + DAY_S
+        (row,) = plan["rows"]
+        assert (row["line"], row["segment"], row["level"]) == ("L1", "s1", "intervention")
+        assert row["next_trc_t"] == T0 + 70 * DAY_S  # one run seen: the default interval
+        assert np.isclose(row["probability"], 0.72) and row["indicator"] == "top6"
+        assert msgpack.unpackb(query(client, keys.q_plan(ns) + "?limit=0")[0])["rows"] == []
+        (bad,) = client.get(keys.q_plan(ns) + "?limit=x", timeout=TIMEOUT_S)
+        assert bad.err is not None and b"limit" in bad.err.payload.to_bytes()
+
+    with running(service_config, db, client, liveliness_events):
+        # restarted: the raised alert is still there and the same condition does not repeat it
+        (body,) = query(client, keys.q_alerts(ns))
+        assert [Alert(**a) for a in msgpack.unpackb(body)] == [alert]
+        state_pub = client.declare_publisher(keys.state(ns, "L1", "s1"))
+        until_matched(state_pub)
+        state_pub.put(encode(make_state(T0 + 2 * DAY_S, p_exceed=p_top6(1, 0.8))))
+        state_pub.put(encode(make_state(T0 + 3 * DAY_S, p_exceed=p_top6(1, 0.1))))
+        _, cleared = alerts.get()
+        assert (cleared.kind, cleared.status, cleared.t) == (
+            "exceedance",
+            "cleared",
+            T0 + 3 * DAY_S,
+        )
+        assert alerts.empty()
+        state_pub.undeclare()
+
+
+def test_malformed_payload_goes_to_dead_letter(
+    open_session, service_config, liveliness_events, collector, until_matched, tmp_path
+):
+    ns = service_config.ns
+    client = open_session()
+    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
+    client.declare_subscriber(keys.deadletter(ns, alerting.SERVICE), letters)
+    alerts = collector(lambda s: decode(s.payload.to_bytes(), Alert))
+    client.declare_subscriber(keys.segment_keys(ns, "alert"), alerts)
+    pub = client.declare_publisher(keys.state(ns, "L1", "s1"))
+
+    with running(service_config, tmp_path / "a.sqlite", client, liveliness_events):
+        until_matched(pub)
+        pub.put(b"\x81\xa1v\x01")  # a map {v: 1}: fields missing
+        pub.put(msgpack.packb({**msgpack.unpackb(encode(make_state(T0))), "v": 2}))
+        client.put(keys.state(ns, "L1", "other"), encode(make_state(T0)))  # key mismatch
+        # the worker keeps going: a good state after the bad ones still raises
+        pub.put(encode(make_state(T0, nis=50.0)))
+
+        reasons = [letters.get().reason for _ in range(3)]
+        assert reasons[0].startswith("SegmentState: Object missing required field")
+        assert "unknown schema version 2" in reasons[1]
+        assert reasons[2] == "SegmentState: key says L1/other, message says L1/s1"
+        assert alerts.get().kind == "sudden_change"
+    pub.undeclare()
