@@ -10,6 +10,8 @@ Workloads (DESIGN "Performance targets"):
    p50/p99 latency. Baseline: the filterpy loop over the 200 samples of that segment.
 3. the frequency study at its default size (1,000 paths x 52 weeks x 5 intervals x 3
    scenarios), against its 20 s target.
+4. the simulator's raw-signal generation, in trains simulated in real time per core
+   (``bench/simulator.py``), against its target of 200.
 """
 
 from __future__ import annotations
@@ -163,10 +165,13 @@ def bench_study() -> None:
 
 
 def main() -> None:
+    from bench.simulator import bench_raw_generation
+
     rng = np.random.default_rng(1)
     bench_replay(rng)
     bench_single_event(rng)
     bench_study()
+    bench_raw_generation()
 
 
 if __name__ == "__main__":

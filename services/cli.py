@@ -51,6 +51,169 @@ def build_parser() -> argparse.ArgumentParser:
     add_zenoh_arguments(p)
     p.set_defaults(func=_deadletters)
 
+    # --- filtering (services/filtering/service.py) ----------------------------------------
+    def _filtering(args: argparse.Namespace) -> int:
+        from services.filtering import service as filtering
+        from services.runtime.config import config_from_args
+        from services.runtime.service import configure_logging
+
+        configure_logging(args.log_level)
+        return filtering.main(
+            config_from_args(args), selector=args.selector, db=args.db, limits=args.limits
+        )
+
+    p = sub.add_parser(
+        "filtering",
+        help="run the per-segment filter bank: events in, SegmentState out",
+        description="Filter every segment under --selector; state persisted in SQLite.",
+    )
+    p.add_argument(
+        "--selector",
+        metavar="KEYEXPR_SUFFIX",
+        help="the part of the network this instance owns, e.g. 'L1/**' (default: **)",
+    )
+    p.add_argument(
+        "--db",
+        metavar="FILE",
+        help="SQLite file of the accepted events and models "
+        "(default: ./var/filtering-{instance}.sqlite, instance 'default' without --instance)",
+    )
+    p.add_argument("--limits", metavar="FILE", help="limits file (default: deploy/limits.json5)")
+    add_zenoh_arguments(p)
+    p.set_defaults(func=_filtering)
+
+    # --- calibration (services/calibration/service.py) -----------------------------------
+    def _calibration(args: argparse.Namespace) -> int:
+        from services.calibration import service as calibration
+        from services.runtime.config import config_from_args
+        from services.runtime.service import configure_logging
+
+        configure_logging(args.log_level)
+        conf = config_from_args(args)
+        settings = calibration.settings_from(
+            conf.options(calibration.SERVICE),
+            db=args.db,
+            initial_models=args.initial_models,
+            min_pairs=args.min_pairs,
+            refit_every=args.refit_every,
+            tolerance_days=args.tolerance_days,
+            samples=args.samples,
+            seed=args.seed,
+        )
+        return calibration.main(conf, settings)
+
+    p = sub.add_parser(
+        "calibration",
+        help="fit H, b, R and degradation posteriors from TRC records and on-board indices",
+        description="Pair TRC records with on-board indices, fit the observation model, build "
+        "degradation posteriors per group, publish them on {ns}/model/**. Flags override the "
+        "config file's services.calibration section.",
+    )
+    p.add_argument(
+        "--db", type=Path, help="SQLite file (default: ./var/calibration-{instance}.sqlite)"
+    )
+    p.add_argument(
+        "--initial-models",
+        type=Path,
+        metavar="FILE.json5",
+        help="prior models published as version 1 until data gives better ones "
+        "(e.g. deploy/initial-models.json5; default: none)",
+    )
+    p.add_argument("--min-pairs", type=int, help="pairs before the first fit (default: 30)")
+    p.add_argument("--refit-every", type=int, help="new pairs between refits (default: 10)")
+    p.add_argument(
+        "--tolerance-days",
+        type=float,
+        help="pair an index without run_id with a TRC record this close in time (default: 1)",
+    )
+    p.add_argument("--samples", type=int, help="posterior samples Ns (default: 200)")
+    p.add_argument("--seed", type=int, help="seed of the posterior draws (default: 0)")
+    add_zenoh_arguments(p)
+    p.set_defaults(func=_calibration)
+
+    # --- simulate, network (simulators/run.py) --------------------------------------------
+    def _simulate(args: argparse.Namespace) -> int:
+        from datetime import datetime
+
+        from services.runtime.config import config_from_args
+        from services.runtime.service import configure_logging
+        from simulators import run
+
+        configure_logging(args.log_level)
+        try:
+            start_t = datetime.fromisoformat(args.start).timestamp()
+        except ValueError:
+            raise SystemExit(f"--start {args.start!r}: not an ISO date, e.g. 2026-01-01") from None
+        return run.main_simulate(
+            config_from_args(args),
+            network_path=args.network,
+            trains=args.trains,
+            days=args.days,
+            speedup=args.speedup,
+            fidelity=args.fidelity,
+            seed=args.seed,
+            start_t=start_t,
+            truth_path=args.truth,
+            config_path=args.sim_config,
+            units=args.units,
+            progress=not args.no_progress and sys.stderr.isatty(),
+        )
+
+    def _speedup(text: str) -> float:
+        from simulators.run import parse_speedup
+
+        try:
+            return parse_speedup(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    p = sub.add_parser(
+        "simulate",
+        help="publish a simulated fleet, TRC runs and maintenance on Zenoh",
+        description="Run the fleet simulator on a network and publish its gateways' raw data "
+        "(--fidelity raw) or on-board indices (--fidelity index), TRC records and tamping.",
+    )
+    p.add_argument("--network", metavar="FILE.geojson", help="network (default: the demo)")
+    p.add_argument(
+        "--trains", type=int, default=6, help="raw: trains; index: passes per line per day"
+    )
+    p.add_argument("--days", type=float, default=1.0, help="simulated days (default 1)")
+    p.add_argument(
+        "--speedup", type=_speedup, default=1.0, help="simulated s per wall s, or 'inf'"
+    )
+    p.add_argument("--fidelity", choices=["raw", "index"], default="index")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--units", type=int, default=1, help="on-board units per train (raw)")
+    p.add_argument("--start", default="2026-01-01T00:00:00+00:00", help="ISO start time (UTC)")
+    p.add_argument("--truth", metavar="FILE.sqlite", help="write the ground truth here")
+    p.add_argument(
+        "--sim-config", metavar="FILE.json5", help="default: deploy/simulator.json5"
+    )
+    p.add_argument("--no-progress", action="store_true")
+    add_zenoh_arguments(p)
+    p.set_defaults(func=_simulate)
+
+    def _network_generate(args: argparse.Namespace) -> int:
+        from simulators import run
+
+        return run.main_network_generate(
+            lines=args.lines,
+            length_km=args.length_km,
+            seed=args.seed,
+            segment_length_m=args.segment_m,
+            out=args.out,
+        )
+
+    network_parser = sub.add_parser("network", help="network files")
+    networks = network_parser.add_subparsers(dest="network_command", required=True)
+    p = networks.add_parser("generate", help="generate a large random network as GeoJSON")
+    p.add_argument("--lines", type=int, default=40)
+    p.add_argument("--length-km", type=float, default=50.0)
+    p.add_argument("--segment-m", type=float, default=200.0)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--out", metavar="FILE.geojson", help="default: stdout")
+    p.set_defaults(func=_network_generate)
+
     # --- study (services/filtering/study.py) ---------------------------------------------
     def _study_frequency(args: argparse.Namespace) -> int:
         from services.filtering import study
@@ -82,6 +245,51 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", metavar="FILE.png", help="draw W_k against time (like Fig. 7)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=_study_frequency)
+
+    # --- alerting (services/alerting) ----------------------------------------------------
+    def _alerting(args: argparse.Namespace) -> int:
+        from services.alerting import service as alerting
+        from services.runtime.config import config_from_args
+        from services.runtime.service import configure_logging
+
+        configure_logging(args.log_level)
+        return alerting.main(
+            config_from_args(args),
+            alerting_config=args.config_alerting,
+            limits=args.limits,
+            db=args.db,
+        )
+
+    deploy = Path(__file__).resolve().parents[1] / "deploy"
+    p = sub.add_parser(
+        "alerting",
+        help="raise and clear alerts from segment states; answer q/alerts and q/plan",
+        description="Subscribe to {ns}/state/** and {ns}/trc/**, publish Alerts on "
+        "{ns}/alert/{line}/{segment}, answer {ns}/q/alerts and {ns}/q/plan.",
+    )
+    p.add_argument(
+        "--config-alerting",
+        metavar="FILE",
+        type=Path,
+        default=deploy / "alerting.json5",
+        help="alerting thresholds, JSON5 (default: %(default)s)",
+    )
+    p.add_argument(
+        "--limits",
+        metavar="FILE",
+        type=Path,
+        default=deploy / "limits.json5",
+        help="alert and intervention limits per line, JSON5 (default: %(default)s)",
+    )
+    p.add_argument(
+        "--db",
+        metavar="FILE",
+        type=Path,
+        help="SQLite file of the raised alerts (default: ./var/alerting-{instance}.sqlite, "
+        "'default' when --instance is not given)",
+    )
+    add_zenoh_arguments(p)
+    p.set_defaults(func=_alerting)
 
     return parser
 

@@ -1,0 +1,117 @@
+"""`trackfusion simulate` and `trackfusion network generate`: the simulator's entry points."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+
+from services.runtime.config import RuntimeConfig
+from simulators.gateway import publish
+from simulators.groundtruth import GroundTruthWriter
+from simulators.network import Network, demo_network, generate_network
+from simulators.truth import load_config
+from simulators.world import WorldSpec, message_count, world_events
+
+log = logging.getLogger(__name__)
+DEFAULT_START = "2026-01-01T00:00:00+00:00"
+
+
+def load_network(path: str | None, segment_length_m: float = 200.0) -> Network:
+    """The demo network, or a GeoJSON file; SystemExit saying what to fix when it is bad."""
+    if path is None:
+        return demo_network(segment_length_m)
+    try:
+        return Network.from_geojson(Path(path), segment_length_m=segment_length_m)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"--network {path}: {exc}") from None
+
+
+def main_simulate(
+    conf: RuntimeConfig,
+    *,
+    network_path: str | None,
+    trains: int,
+    days: float,
+    speedup: float,
+    fidelity: str,
+    seed: int,
+    start_t: float,
+    truth_path: str | None,
+    config_path: str | None,
+    units: int = 1,
+    progress: bool = True,
+    stop=None,
+) -> int:
+    """Publish the simulated world on Zenoh (and write its ground truth to ``truth_path``)."""
+    from tqdm import tqdm
+
+    from services.runtime.service import ServiceRuntime
+
+    network = load_network(network_path)
+    config = load_config(config_path)
+    try:
+        spec = WorldSpec(network, config, start_t, days, seed, trains, fidelity, units)
+    except ValueError as exc:
+        raise SystemExit(f"simulate: {exc}") from None
+    truth = (
+        GroundTruthWriter(truth_path, network, config, start_t, days, seed) if truth_path else None
+    )
+    counts: dict[str, int] = {}
+    bar = tqdm(total=round(days * 86400), unit="sim-s", disable=not progress, desc="simulating")
+    last = [start_t]
+
+    def on_batch(t: float, messages) -> None:
+        for name, n in message_count(messages).items():
+            counts[name] = counts.get(name, 0) + n
+        if truth:
+            truth.record(t, messages)
+        bar.update(round(t - last[0]))
+        last[0] = t
+        bar.set_postfix(counts, refresh=False)
+
+    started = time.monotonic()
+    with ServiceRuntime("simulator", conf, handle_signals=True, stop_event=stop) as rt:
+        rt.announce()
+        total = publish(
+            rt.session,
+            rt.ns,
+            world_events(spec),
+            speedup=speedup,
+            stop=rt.stop_event,
+            on_batch=on_batch,
+        )
+    bar.close()
+    if truth:
+        truth.close(finish=not (stop and stop.is_set()))
+    log.info(
+        "published %d messages in %.1f s: %s", total, time.monotonic() - started, json.dumps(counts)
+    )
+    print(json.dumps({"published": total, "by_type": counts}), flush=True)
+    return 0
+
+
+def main_network_generate(
+    *, lines: int, length_km: float, seed: int, segment_length_m: float, out: str | None
+) -> int:
+    """Write a generated network as GeoJSON (lines and segments) to ``out`` or stdout."""
+    if lines < 1 or length_km <= 0 or segment_length_m <= 0:
+        raise SystemExit("network generate: --lines >= 1, --length-km > 0, --segment-m > 0")
+    network = generate_network(lines, length_km, seed, segment_length_m=segment_length_m)
+    text = json.dumps(network.to_geojson(include_segments=True))
+    if out:
+        Path(out).write_text(text)
+        print(f"{out}: {len(network.lines)} lines, {network.n_segments} segments", file=sys.stderr)
+    else:
+        print(text)
+    return 0
+
+
+def parse_speedup(text: str) -> float:
+    value = math.inf if text in ("inf", "max") else float(text)
+    if not value > 0:
+        raise ValueError("speedup must be > 0 (or 'inf')")
+    return value
