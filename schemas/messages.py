@@ -95,6 +95,8 @@ class PositionedChunk(Message, frozen=True, kw_only=True):
     knot_chainage_m: NDArray  # (k,) f8 chainage along `line`
     knot_speed_mps: NDArray  # (k,) f8
     position_ok: bool  # False when the fix quality or map match is poor
+    gap_before: bool = False  # samples are missing between the previous chunk and this one
+    sensor_flags: list[str] = []  # health findings, e.g. "clipping", "flatline:left_z"
 
     def __post_init__(self) -> None:
         super().__post_init__()
