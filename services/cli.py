@@ -178,17 +178,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--trains", type=int, default=6, help="raw: trains; index: passes per line per day"
     )
     p.add_argument("--days", type=float, default=1.0, help="simulated days (default 1)")
-    p.add_argument(
-        "--speedup", type=_speedup, default=1.0, help="simulated s per wall s, or 'inf'"
-    )
+    p.add_argument("--speedup", type=_speedup, default=1.0, help="simulated s per wall s, or 'inf'")
     p.add_argument("--fidelity", choices=["raw", "index"], default="index")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--units", type=int, default=1, help="on-board units per train (raw)")
     p.add_argument("--start", default="2026-01-01T00:00:00+00:00", help="ISO start time (UTC)")
     p.add_argument("--truth", metavar="FILE.sqlite", help="write the ground truth here")
-    p.add_argument(
-        "--sim-config", metavar="FILE.json5", help="default: deploy/simulator.json5"
-    )
+    p.add_argument("--sim-config", metavar="FILE.json5", help="default: deploy/simulator.json5")
     p.add_argument("--no-progress", action="store_true")
     add_zenoh_arguments(p)
     p.set_defaults(func=_simulate)

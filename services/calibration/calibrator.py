@@ -1,0 +1,831 @@
+r"""Live calibration core: pairs TRC records with on-board indices, fits the observation model
+and builds the degradation posteriors per group. Pure: no Zenoh, no clock, no I/O.
+
+Conventions shared with the other services: time in days (epoch s / 86400) inside the maths,
+``z = ln([top6_mm, align10_mm])`` of a TRC record, ``y = ln`` of an on-board index's values.
+
+Use::
+
+    core = Calibrator(CalibratorConfig(), state=store.load())   # or state=None when new
+    outputs = core.step([trc, index, tamping, ...])   # new Calibration / DegradationPosterior
+    store.apply(core.drain_changes())                  # persist what changed, one transaction
+
+Pairing
+    An on-board index and a TRC record of the same (line, segment) pair up
+
+    * when the index carries a non-empty ``run_id`` equal to the record's (the on-board unit
+      rode the TRC: the paper's campaign, section 3.2). Such an index pairs by ``run_id`` only;
+    * otherwise, when ``tolerance_days`` is set, when ``|t_trc - t_index| <= tolerance_days``;
+      the nearest record known at that moment wins.
+
+    An index pairs at most once and a pair is never undone; a record may pair with several
+    indices (several passes within the tolerance). An index that has not paired waits for its
+    record while it is within ``index_window_days`` of the newest TRC record of its segment,
+    and while it is among the ``max_pending_per_segment`` newest waiting indices of that
+    segment (a memory bound). The window is measured against the segment's own TRC records,
+    not against the newest event seen anywhere: TRC records and indices come on different
+    keys, and a replay or an import of a year of records arrives in any interleaving.
+    Duplicates (same identity: TRC ``(line, segment, run_id)``, index
+    ``(line, segment, train, unit, t)``, tamping ``(line, segment, event_id)``) are ignored,
+    as is a second TRC record of a segment at the same instant. A pair's time is the index's.
+
+Observation model and the swap rule
+    Once ``min_pairs`` pairs exist, H, b, R are fitted (:func:`fit_observation`, paper Eq. 5-6)
+    on all pairs; a refit is tried every ``refit_every`` further pairs. The first fit is
+    accepted when the regression succeeds (it replaces an initial prior model, which has no
+    pairs). A refit **replaces the current model only if it is not worse**, judged on the
+    ``n_old`` pairs the current model was fitted on (the pairs are kept in arrival order, so
+    these are the first ``n_old`` of the candidate's pairs, held by both):
+
+    1. R² of every on-board index drops by at most ``max_r2_drop`` (default 0.10), and
+    2. the mean Gaussian log-likelihood per pair of those ``n_old`` pairs,
+       :math:`\frac{1}{n}\sum_i \log N(\mathbf y_i;\ \mathbf H\mathbf z_i + \mathbf b,\ \mathbf R)`,
+       under the candidate is at most ``max_loglik_drop`` nats (default 0.25) below that under
+       the current model.
+
+    The current model is the maximum-likelihood fit of those pairs, so the candidate is never
+    better on them; for good new pairs the gap is small (about 0.04 nats per pair at 30 -> 40
+    pairs), while pairs from a faulty sensor or a broken pairing inflate R and bend H and cost
+    nats per pair. A rejected refit is counted (``stats["fits_rejected"]``), its reason is kept
+    in :attr:`Calibrator.rejections` and logged; the current model stays, and the pairs added
+    since it (the evidence of the fault) are quarantined: kept, so that their indices stay
+    recognised as duplicates, but left out of every later fit (``stats["pairs_quarantined"]``).
+    Without that, one burst of bad pairs would block every later refit. Versions increase by
+    one per accepted fit (an initial model is version 1).
+
+Degradation posteriors
+    Per segment, the TRC history (``z`` at record times) and the tampings (known time, or the
+    middle of the interval: the paper's mid-interval rule) give increments that do not span a
+    tamping and post-tamping levels (:func:`history_to_increments`). Groups:
+
+    * ``seg.{line}.{segment}`` when the segment alone has ``>= segment_min_increments``;
+    * ``line.{line}`` pooling the increments of the line's segments;
+    * ``net`` pooling every segment.
+
+    Post-tamping levels come from the group itself when it has ``>= min_levels``, else from
+    its line, else from the network; when even the network has fewer, ``(z+, Σz+)`` are drawn
+    from the level prior alone (``n_levels = 0``) so that drift and diffusion are published
+    before any tamping has been recorded. ``samples`` draws of :func:`sample_degradation_posterior`
+    use a generator seeded from ``(seed, group, version)``: re-running gives identical samples.
+    A group is rebuilt (version + 1) when a fingerprint of its inputs (increments, levels, and
+    the settings that shape the draws) changed; when the core raises :class:`CalibrationError`
+    (too little data) the old posterior stays and the refusal is counted.
+"""
+
+from __future__ import annotations
+
+import bisect
+import hashlib
+import logging
+import math
+from collections import Counter, deque
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from schemas import (
+    INDICATORS,
+    ONBOARD_INDICES,
+    Calibration,
+    DegradationPosterior,
+    MaintenanceEvent,
+    NDArray,
+    OnboardIndex,
+    TrcRecord,
+)
+from services.calibration.posterior import (
+    NIWPosterior,
+    NIWPrior,
+    SegmentIncrements,
+    history_to_increments,
+    posterior_drift_diffusion,
+    sample_degradation_posterior,
+)
+from services.calibration.regression import CalibrationError, fit_observation
+
+__all__ = [
+    "CALIBRATION_KEY",
+    "Calibrator",
+    "CalibratorConfig",
+    "Changes",
+    "Event",
+    "ModelEntry",
+    "Model",
+    "Pair",
+    "StoredState",
+    "initial_models",
+    "mean_loglik",
+]
+
+log = logging.getLogger(__name__)
+
+DAY_S = 86400.0
+CALIBRATION_KEY = "calibration"  # ModelEntry.key of the Calibration; posteriors use their group
+_N = len(INDICATORS)
+
+Event = TrcRecord | OnboardIndex | MaintenanceEvent
+Model = Calibration | DegradationPosterior
+Segment = tuple[str, str]  # (line, segment)
+
+
+@dataclass(frozen=True)
+class CalibratorConfig:
+    """Settings of :class:`Calibrator` (see the module docstring for what each one rules)."""
+
+    min_pairs: int = 30  # pairs before the first fit
+    refit_every: int = 10  # new pairs between fit attempts
+    tolerance_days: float | None = 1.0  # time pairing of indices without run_id; None: off
+    index_window_days: float = 30.0  # an unpaired index waits this long (segment's TRC time)
+    max_pending_per_segment: int = 500  # unpaired indices kept per segment (newest by t)
+    min_quality: float = 0.5  # indices below are not used for calibration
+    min_coverage: float = 0.5
+    max_r2_drop: float = 0.10  # swap rule 1
+    max_loglik_drop: float = 0.25  # swap rule 2, nats per pair
+    segment_min_increments: int = 6  # k: a segment gets its own posterior group
+    min_increments: int = _N + 2  # pooled groups (line, net)
+    min_levels: int = _N + 2  # post-tamping levels for (z+, Σz+) from data
+    max_level_age_days: float | None = 120.0  # older post-tamping levels are not used
+    samples: int = 200  # Ns
+    seed: int = 0
+    drift_prior: NIWPrior | None = None  # None: NIWPrior.default_drift
+    level_prior: NIWPrior | None = None  # None: NIWPrior.default_level
+
+    def __post_init__(self) -> None:
+        if self.min_pairs < 1 or self.refit_every < 1:
+            raise ValueError(
+                f"min_pairs and refit_every must be >= 1, got {self.min_pairs}, {self.refit_every}"
+            )
+        if self.tolerance_days is not None and not self.tolerance_days >= 0:
+            raise ValueError(f"tolerance_days: must be >= 0 or None, got {self.tolerance_days}")
+        if not self.index_window_days >= 0:
+            raise ValueError(f"index_window_days: must be >= 0, got {self.index_window_days}")
+        if self.samples < 1:
+            raise ValueError(f"samples: must be >= 1, got {self.samples}")
+        if self.seed < 0:
+            raise ValueError(f"seed: must be >= 0, got {self.seed}")
+        if self.segment_min_increments < 1 or self.min_increments < 1 or self.min_levels < 1:
+            raise ValueError("segment_min_increments, min_increments, min_levels must be >= 1")
+
+
+@dataclass(frozen=True)
+class Pair:
+    """One (TRC record, on-board index) pair: ``z`` and ``y`` in ln mm, ``t`` the index's (s)."""
+
+    line: str
+    segment: str
+    run_id: str  # the TRC record's
+    index_id: str
+    t: float
+    z: tuple[float, float]
+    y: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class ModelEntry:
+    """A current model as stored: ``key`` is ``"calibration"`` or the posterior's group."""
+
+    key: str
+    message: Model
+    fingerprint: str = ""  # of the posterior's inputs; "" for the calibration
+    prior: bool = False  # an initial model (no data behind it)
+
+
+@dataclass
+class StoredState:
+    """Everything a :class:`Calibrator` needs to continue: what a store loads."""
+
+    trc: list[TrcRecord] = field(default_factory=list)
+    maintenance: list[MaintenanceEvent] = field(default_factory=list)
+    pending: list[OnboardIndex] = field(default_factory=list)  # unpaired, in arrival order
+    pairs: list[Pair] = field(default_factory=list)  # in arrival order
+    quarantined: list[Pair] = field(default_factory=list)  # left out of fits
+    models: list[ModelEntry] = field(default_factory=list)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Changes:
+    """What changed since the last :meth:`Calibrator.drain_changes`: what a store writes."""
+
+    trc: list[TrcRecord] = field(default_factory=list)
+    maintenance: list[MaintenanceEvent] = field(default_factory=list)
+    pending_added: list[OnboardIndex] = field(default_factory=list)
+    pending_removed: list[str] = field(default_factory=list)  # index ids
+    pairs: list[Pair] = field(default_factory=list)
+    quarantined: list[str] = field(default_factory=list)  # index ids of pairs set aside
+    models: list[ModelEntry] = field(default_factory=list)
+    meta: dict[str, Any] | None = None  # the whole meta when it changed
+
+    def __bool__(self) -> bool:
+        return bool(
+            self.trc
+            or self.maintenance
+            or self.pending_added
+            or self.pending_removed
+            or self.pairs
+            or self.quarantined
+            or self.models
+            or self.meta is not None
+        )
+
+
+def trc_id(rec: TrcRecord) -> str:
+    return f"{rec.line}/{rec.segment}/{rec.run_id}"
+
+
+def index_id(idx: OnboardIndex) -> str:
+    return f"{idx.line}/{idx.segment}/{idx.train}/{idx.unit}/{idx.t!r}"
+
+
+def maintenance_id(ev: MaintenanceEvent) -> str:
+    return f"{ev.line}/{ev.segment}/{ev.event_id}"
+
+
+def _z(msg: TrcRecord | OnboardIndex) -> tuple[float, float]:
+    return (math.log(msg.top6_mm), math.log(msg.align10_mm))
+
+
+def mean_loglik(H, b, R, Z, Y) -> float:
+    r"""Mean Gaussian log-likelihood per pair, :math:`\frac1N\sum_i\log N(y_i; Hz_i + b, R)`."""
+    H, b, R = (np.asarray(a, dtype=np.float64) for a in (H, b, R))
+    E = np.asarray(Y, dtype=np.float64) - np.asarray(Z, dtype=np.float64) @ H.T - b
+    L = np.linalg.cholesky(R)
+    w = np.linalg.solve(L, E.T)  # (m, N)
+    logdet = 2.0 * np.log(np.diag(L)).sum()
+    m = R.shape[0]
+    return float(-0.5 * (m * math.log(2 * math.pi) + logdet + (w**2).sum(axis=0).mean()))
+
+
+def group_rng(seed: int, group: str, version: int) -> np.random.Generator:
+    """The generator of a posterior's draws: a pure function of (seed, group, version)."""
+    g = int.from_bytes(hashlib.sha256(group.encode()).digest()[:8], "little")
+    return np.random.default_rng(np.random.SeedSequence([seed, g, version]))
+
+
+def _arr(x: Any) -> NDArray:
+    return NDArray.of(np.asarray(x, dtype=np.float64))
+
+
+def _prior_from_spec(spec: Mapping[str, Any], what: str, weight: str, cov: str) -> NIWPrior:
+    """NIW prior from ``{mean, <weight>, <cov> (prior mean of the covariance), dof}``."""
+    try:
+        dof = float(spec["dof"])
+        cov_mean = np.asarray(spec[cov], dtype=np.float64)
+        n = cov_mean.shape[0]
+        if not dof > n + 1:
+            raise ValueError(f"{what}.dof: must be > n + 1 = {n + 1} (finite mean), got {dof}")
+        return NIWPrior(
+            m0=np.asarray(spec["mean"], dtype=np.float64),
+            lambda0=float(spec[weight]),
+            Psi0=cov_mean * (dof - n - 1),  # so that E[Σ] = Psi0 / (nu0 - n - 1) = cov_mean
+            nu0=dof,
+        )
+    except KeyError as e:
+        raise ValueError(f"{what}: missing {e.args[0]!r}") from None
+
+
+def _sample_prior(prior: NIWPrior, ns: int, rng: np.random.Generator):
+    """Draws of (mean, cov) from the NIW prior itself (no data)."""
+    return NIWPosterior(
+        m=prior.m0, lam=prior.lambda0, Psi=prior.Psi0, nu=prior.nu0, n_obs=0
+    ).sample(ns, rng)
+
+
+def initial_models(
+    spec: Mapping[str, Any], *, samples: int, seed: int
+) -> tuple[Calibration | None, list[DegradationPosterior]]:
+    """Version-1 models from a prior specification (``deploy/initial-models.json5``).
+
+    ``spec["calibration"]``: ``H``, ``b``, ``R``, optionally ``r2`` (default 0) and ``n_pairs``
+    (default 1: the schema needs > 0; the pairs behind a prior model are not ours). ``t`` is 0.
+    ``spec["degradation"]``: ``{group: {drift: {...}, level: {...}}}`` where ``drift`` is
+    ``{mean (ln mm/day), weight_days, sigma (prior mean of Σ, ln mm²/day), dof}`` and
+    ``level`` is ``{mean (ln mm), weight_levels, cov (prior mean of Σz+), dof}``; the
+    ``samples`` draws come from these Normal-Inverse-Wishart priors, seeded by
+    ``(seed, group, 1)``. Raises ValueError naming what is wrong.
+    """
+    calibration = None
+    if (cal := spec.get("calibration")) is not None:
+        try:
+            H, b, R = (np.asarray(cal[k], dtype=np.float64) for k in ("H", "b", "R"))
+        except KeyError as e:
+            raise ValueError(f"calibration: missing {e.args[0]!r}") from None
+        m = len(ONBOARD_INDICES)
+        if H.shape != (m, _N) or b.shape != (m,) or R.shape != (m, m):
+            raise ValueError(
+                f"calibration: H {H.shape}, b {b.shape}, R {R.shape}; need ({m}, {_N}), "
+                f"({m},), ({m}, {m})"
+            )
+        if not np.allclose(R, R.T) or np.linalg.eigvalsh(R)[0] <= 0:
+            raise ValueError("calibration.R: must be symmetric positive definite")
+        calibration = Calibration(
+            version=1,
+            t=0.0,
+            indicators=list(INDICATORS),
+            indices=list(ONBOARD_INDICES),
+            H=_arr(H),
+            b=_arr(b),
+            R=_arr(R),
+            n_pairs=int(cal.get("n_pairs", 1)),
+            r2=_arr(cal.get("r2", np.zeros(m))),
+        )
+    posteriors = []
+    for group, gspec in sorted(dict(spec.get("degradation") or {}).items()):
+        drift = _prior_from_spec(gspec.get("drift", {}), f"{group}.drift", "weight_days", "sigma")
+        level = _prior_from_spec(gspec.get("level", {}), f"{group}.level", "weight_levels", "cov")
+        rng = group_rng(seed, group, 1)
+        mu, sigma = _sample_prior(drift, samples, rng)
+        z_plus, sigma_z_plus = _sample_prior(level, samples, rng)
+        posteriors.append(
+            DegradationPosterior(
+                group=group,
+                version=1,
+                t=0.0,
+                indicators=list(INDICATORS),
+                mu=_arr(mu),
+                sigma=_arr(sigma),
+                z_plus=_arr(z_plus),
+                sigma_z_plus=_arr(sigma_z_plus),
+                n_increments=0,
+                n_levels=0,
+            )
+        )
+    return calibration, posteriors
+
+
+@dataclass(frozen=True)
+class _GroupInput:
+    dz: np.ndarray
+    dt: np.ndarray
+    level: np.ndarray
+    age: np.ndarray
+    level_source: str  # the group whose levels are used, or "prior"
+    t_newest: float  # epoch s of the newest TRC record of the group's segments
+
+
+class Calibrator:
+    """The calibration service's state and rules; see the module docstring.
+
+    Feed events with :meth:`ingest` (or :meth:`step`), call :meth:`flush` to fit/rebuild,
+    persist :meth:`drain_changes`. Single-threaded by design.
+    """
+
+    def __init__(self, config: CalibratorConfig | None = None, state: StoredState | None = None):
+        self.config = config or CalibratorConfig()
+        self.stats: Counter[str] = Counter()
+        self.rejections: deque[str] = deque(maxlen=100)  # reasons of rejected refits, newest last
+        self._trc: dict[Segment, dict[str, TrcRecord]] = {}
+        self._trc_times: dict[Segment, list[tuple[float, str]]] = {}  # sorted (t, run_id)
+        self._maint: dict[Segment, dict[str, MaintenanceEvent]] = {}
+        self._pending: dict[Segment, dict[str, OnboardIndex]] = {}
+        self._pairs: list[Pair] = []
+        self._quarantined: list[Pair] = []
+        self._paired: set[str] = set()
+        self._models: dict[str, ModelEntry] = {}
+        self._refused: dict[str, str] = {}  # group -> fingerprint whose build failed
+        self._increments: dict[Segment, SegmentIncrements] = {}
+        self._dirty: set[Segment] = set()
+        self._attempt_at = 0  # number of pairs at the last fit attempt
+        self._changes = Changes()
+        if state is not None:
+            self._restore(state)
+
+    # --- state ---------------------------------------------------------------------------
+
+    def _restore(self, state: StoredState) -> None:
+        for rec in state.trc:
+            self._add_trc(rec)
+        for ev in state.maintenance:
+            self._maint.setdefault((ev.line, ev.segment), {})[maintenance_id(ev)] = ev
+        for idx in state.pending:
+            self._pending.setdefault((idx.line, idx.segment), {})[index_id(idx)] = idx
+        for pair in state.pairs:
+            self._pairs.append(pair)
+            self._paired.add(pair.index_id)
+        for pair in state.quarantined:
+            self._quarantined.append(pair)
+            self._paired.add(pair.index_id)
+        for entry in state.models:
+            self._models[entry.key] = entry
+        self._attempt_at = int(state.meta.get("attempt_at", 0))
+        self.stats.update(state.meta.get("stats", {}))
+        self.rejections.extend(state.meta.get("rejections", []))
+        self._dirty = set(self._trc) | set(self._maint)
+        self._update_increments()
+        self._dirty.clear()
+
+    def _meta(self) -> dict[str, Any]:
+        return {
+            "attempt_at": self._attempt_at,
+            "stats": dict(self.stats),
+            "rejections": list(self.rejections),
+        }
+
+    def drain_changes(self) -> Changes:
+        """What to persist since the last call (the store applies it in one transaction)."""
+        changes, self._changes = self._changes, Changes()
+        if changes:
+            changes.meta = self._meta()
+        return changes
+
+    @property
+    def pairs(self) -> list[Pair]:
+        """The pairs fits use, in arrival order."""
+        return list(self._pairs)
+
+    @property
+    def quarantined(self) -> list[Pair]:
+        """Pairs set aside by rejected refits."""
+        return list(self._quarantined)
+
+    @property
+    def calibration(self) -> Calibration | None:
+        entry = self._models.get(CALIBRATION_KEY)
+        return entry.message if entry is not None else None  # type: ignore[return-value]
+
+    @property
+    def posteriors(self) -> dict[str, DegradationPosterior]:
+        return {
+            k: e.message  # type: ignore[misc]
+            for k, e in sorted(self._models.items())
+            if k != CALIBRATION_KEY
+        }
+
+    def models(self) -> list[Model]:
+        """The current models: the Calibration (if any) first, then posteriors by group."""
+        cal = self.calibration
+        return ([cal] if cal is not None else []) + list(self.posteriors.values())
+
+    def n_pending(self) -> int:
+        return sum(len(p) for p in self._pending.values())
+
+    # --- events ----------------------------------------------------------------------------
+
+    def step(self, events: Iterable[Event]) -> list[Model]:
+        """Ingest ``events`` in order, then :meth:`flush`: the new models, if any."""
+        for event in events:
+            self.ingest(event)
+        return self.flush()
+
+    def ingest(self, event: Event) -> bool:
+        """Take one event; False if it was a duplicate or otherwise not used."""
+        match event:
+            case TrcRecord():
+                return self._ingest_trc(event)
+            case OnboardIndex():
+                return self._ingest_index(event)
+            case MaintenanceEvent():
+                return self._ingest_maintenance(event)
+            case _:
+                raise TypeError(f"not a calibration input: {type(event).__name__}")
+
+    def install_initial(
+        self, calibration: Calibration | None, posteriors: Iterable[DegradationPosterior]
+    ) -> list[Model]:
+        """Install initial (prior) models where no model exists yet; returns those installed."""
+        installed: list[Model] = []
+        if calibration is not None and CALIBRATION_KEY not in self._models:
+            self._set_model(ModelEntry(CALIBRATION_KEY, calibration, prior=True))
+            installed.append(calibration)
+        for post in posteriors:
+            if post.group not in self._models:
+                self._set_model(ModelEntry(post.group, post, fingerprint="prior", prior=True))
+                installed.append(post)
+        return installed
+
+    def _add_trc(self, rec: TrcRecord) -> None:
+        seg = (rec.line, rec.segment)
+        self._trc.setdefault(seg, {})[rec.run_id] = rec
+        bisect.insort(self._trc_times.setdefault(seg, []), (rec.t, rec.run_id))
+
+    def _ingest_trc(self, rec: TrcRecord) -> bool:
+        seg = (rec.line, rec.segment)
+        known = self._trc.get(seg, {})
+        if rec.run_id in known:
+            self.stats["trc_duplicates"] += 1
+            if known[rec.run_id] != rec:
+                log.warning("TRC record %s differs from the one kept; ignored", trc_id(rec))
+            return False
+        if any(r.t == rec.t for r in known.values()):
+            self.stats["trc_duplicates"] += 1
+            log.warning("TRC record %s: segment already has a record at t=%r", trc_id(rec), rec.t)
+            return False
+        self._add_trc(rec)
+        self._changes.trc.append(rec)
+        self.stats["trc"] += 1
+        self._dirty.add(seg)
+        # pending indices of the segment that this record completes
+        pending = self._pending.get(seg, {})
+        for iid, idx in list(pending.items()):
+            match = self._match(idx)
+            if match is not None and match.run_id == rec.run_id:
+                del pending[iid]
+                self._changes.pending_removed.append(iid)
+                self._add_pair(idx, iid, rec)
+        oldest = self._oldest_waiting(seg)
+        for iid in [iid for iid, idx in pending.items() if idx.t < oldest]:
+            self._drop_pending(seg, iid)
+        return True
+
+    def _oldest_waiting(self, seg: Segment) -> float:
+        """Indices of ``seg`` older than this (epoch s) no longer wait for a TRC record."""
+        times = self._trc_times.get(seg)
+        return times[-1][0] - self.config.index_window_days * DAY_S if times else -math.inf
+
+    def _drop_pending(self, seg: Segment, iid: str) -> None:
+        del self._pending[seg][iid]
+        self._changes.pending_removed.append(iid)
+        self.stats["index_expired"] += 1
+
+    def _match(self, idx: OnboardIndex) -> TrcRecord | None:
+        """The TRC record ``idx`` pairs with among those known, if any."""
+        seg = (idx.line, idx.segment)
+        records = self._trc.get(seg)
+        if not records:
+            return None
+        if idx.run_id:
+            return records.get(idx.run_id)
+        tol = self.config.tolerance_days
+        if tol is None:
+            return None
+        times = self._trc_times[seg]
+        i = bisect.bisect_left(times, (idx.t, ""))
+        best: tuple[float, str] | None = None
+        for t, run_id in times[max(0, i - 1) : i + 1]:
+            d = abs(t - idx.t)
+            if d <= tol * DAY_S and (best is None or d < best[0]):
+                best = (d, run_id)
+        return records[best[1]] if best is not None else None
+
+    def _add_pair(self, idx: OnboardIndex, iid: str, rec: TrcRecord) -> None:
+        pair = Pair(idx.line, idx.segment, rec.run_id, iid, idx.t, _z(rec), _z(idx))
+        self._pairs.append(pair)
+        self._paired.add(iid)
+        self._changes.pairs.append(pair)
+        self.stats["pairs"] += 1
+
+    def _ingest_index(self, idx: OnboardIndex) -> bool:
+        iid = index_id(idx)
+        seg = (idx.line, idx.segment)
+        if iid in self._paired or iid in self._pending.get(seg, {}):
+            self.stats["index_duplicates"] += 1
+            return False
+        if idx.quality < self.config.min_quality or idx.coverage < self.config.min_coverage:
+            self.stats["index_low_quality"] += 1
+            return False
+        rec = self._match(idx)
+        if rec is not None:
+            self._add_pair(idx, iid, rec)
+            return True
+        if idx.t < self._oldest_waiting(seg):
+            self.stats["index_expired"] += 1
+            return False
+        pending = self._pending.setdefault(seg, {})
+        pending[iid] = idx
+        self._changes.pending_added.append(idx)
+        if len(pending) > self.config.max_pending_per_segment:
+            self._drop_pending(seg, min(pending, key=lambda i: (pending[i].t, i)))
+        return True
+
+    def _ingest_maintenance(self, ev: MaintenanceEvent) -> bool:
+        seg = (ev.line, ev.segment)
+        mid = maintenance_id(ev)
+        known = self._maint.setdefault(seg, {})
+        if mid in known:
+            self.stats["maintenance_duplicates"] += 1
+            return False
+        known[mid] = ev
+        self._changes.maintenance.append(ev)
+        self.stats["maintenance"] += 1
+        self._dirty.add(seg)
+        return True
+
+    # --- models ------------------------------------------------------------------------------
+
+    def flush(self) -> list[Model]:
+        """Fit or rebuild what the new data calls for; the models that changed, in order."""
+        out: list[Model] = []
+        cal = self._maybe_fit()
+        if cal is not None:
+            out.append(cal)
+        if self._dirty:
+            self._update_increments()
+            self._dirty.clear()
+            out.extend(self._rebuild_posteriors())
+        return out
+
+    def _set_model(self, entry: ModelEntry) -> None:
+        self._models[entry.key] = entry
+        self._changes.models.append(entry)
+
+    def _maybe_fit(self) -> Calibration | None:
+        cfg, n = self.config, len(self._pairs)
+        if n < cfg.min_pairs:
+            return None
+        current = self._models.get(CALIBRATION_KEY)
+        fitted = current is not None and not current.prior
+        if fitted and n - self._attempt_at < cfg.refit_every:
+            return None
+        if not fitted and self._attempt_at and n - self._attempt_at < cfg.refit_every:
+            return None  # the last first-fit attempt failed: wait for more pairs
+        self._attempt_at = n
+        self._changes.meta = {}  # mark meta as changed
+        Z = np.array([p.z for p in self._pairs])
+        Y = np.array([p.y for p in self._pairs])
+        try:
+            fit = fit_observation(Z, Y, min_pairs=cfg.min_pairs)
+        except CalibrationError as e:
+            self.stats["fit_errors"] += 1
+            log.warning("calibration fit on %d pairs refused: %s", n, e)
+            return None
+        if fitted:
+            old: Calibration = current.message  # type: ignore[union-attr,assignment]
+            reason = self._worse(old, fit, Z[: old.n_pairs], Y[: old.n_pairs])
+            if reason is not None:
+                self.stats["fits_rejected"] += 1
+                msg = f"refit on {n} pairs rejected against version {old.version}: {reason}"
+                self.rejections.append(msg)
+                log.warning("%s; %d new pairs quarantined", msg, n - old.n_pairs)
+                new = self._pairs[old.n_pairs :]
+                del self._pairs[old.n_pairs :]
+                self._quarantined.extend(new)
+                self._changes.quarantined.extend(p.index_id for p in new)
+                self.stats["pairs_quarantined"] += len(new)
+                self._attempt_at = old.n_pairs
+                return None
+        version = current.message.version + 1 if current is not None else 1
+        cal = Calibration(
+            version=version,
+            t=max(p.t for p in self._pairs),
+            indicators=list(INDICATORS),
+            indices=list(ONBOARD_INDICES),
+            H=_arr(fit.H),
+            b=_arr(fit.b),
+            R=_arr(fit.R),
+            n_pairs=n,
+            r2=_arr(fit.r2),
+        )
+        self.stats["fits_accepted"] += 1
+        self._set_model(ModelEntry(CALIBRATION_KEY, cal))
+        log.info("calibration version %d on %d pairs, R² %s", version, n, np.round(fit.r2, 3))
+        return cal
+
+    def _worse(self, old: Calibration, fit, Z: np.ndarray, Y: np.ndarray) -> str | None:
+        """The swap rule: why the candidate ``fit`` is worse than ``old``, or None."""
+        cfg = self.config
+        drop = old.r2.array() - fit.r2
+        if np.any(drop > cfg.max_r2_drop):
+            i = int(np.argmax(drop))
+            return (
+                f"R² of {ONBOARD_INDICES[i]} drops {old.r2.array()[i]:.3f} -> {fit.r2[i]:.3f} "
+                f"(more than {cfg.max_r2_drop})"
+            )
+        ll_old = mean_loglik(old.H.array(), old.b.array(), old.R.array(), Z, Y)
+        ll_new = mean_loglik(fit.H, fit.b, fit.R, Z, Y)
+        if ll_new < ll_old - cfg.max_loglik_drop:
+            return (
+                f"log-likelihood per pair on the {len(Z)} pairs of version {old.version} drops "
+                f"{ll_old:.3f} -> {ll_new:.3f} (more than {cfg.max_loglik_drop} nats)"
+            )
+        return None
+
+    def _update_increments(self) -> None:
+        for seg in self._dirty:
+            records = sorted(self._trc.get(seg, {}).values(), key=lambda r: r.t)
+            if not records:
+                self._increments.pop(seg, None)
+                continue
+            t = np.array([r.t / DAY_S for r in records])
+            z = np.array([_z(r) for r in records]).reshape(len(records), _N)
+            tamping = [
+                0.5 * (e.t_start + e.t_end) / DAY_S for e in self._maint.get(seg, {}).values()
+            ]
+            self._increments[seg] = history_to_increments(
+                t, z, sorted(tamping), max_age=self.config.max_level_age_days
+            )
+
+    def _group_inputs(self) -> dict[str, _GroupInput]:
+        """Inputs of every group that exists now (deterministic order of pooling)."""
+        cfg = self.config
+        segs = sorted(self._increments)
+        newest = {s: max(r.t for r in self._trc[s].values()) for s in segs}
+
+        def pool(members: list[Segment]):
+            incs = [self._increments[s] for s in members]
+            return (
+                np.concatenate([i.dz for i in incs]).reshape(-1, _N),
+                np.concatenate([i.dt for i in incs]),
+                np.concatenate([i.level for i in incs]).reshape(-1, _N),
+                np.concatenate([i.age for i in incs]),
+                max(newest[s] for s in members),
+            )
+
+        net = pool(segs)
+        lines: dict[str, list[Segment]] = {}
+        for s in segs:
+            lines.setdefault(s[0], []).append(s)
+        line_pool = {line: pool(members) for line, members in lines.items()}
+
+        def make(own, chain: list[tuple[str, tuple]]) -> _GroupInput:
+            dz, dt, _, _, t_newest = own
+            for source, (_, _, level, age, _) in chain:
+                if len(level) >= cfg.min_levels:
+                    return _GroupInput(dz, dt, level, age, source, t_newest)
+            return _GroupInput(dz, dt, net[2][:0], net[3][:0], "prior", t_newest)
+
+        out: dict[str, _GroupInput] = {"net": make(net, [("net", net)])}
+        for line, lp in line_pool.items():
+            out[f"line.{line}"] = make(lp, [(f"line.{line}", lp), ("net", net)])
+        for s in segs:
+            if len(self._increments[s].dt) >= cfg.segment_min_increments:
+                own = pool([s])
+                group = f"seg.{s[0]}.{s[1]}"
+                out[group] = make(
+                    own, [(group, own), (f"line.{s[0]}", line_pool[s[0]]), ("net", net)]
+                )
+        return out
+
+    def _fingerprint(self, group: str, g: _GroupInput) -> str:
+        cfg = self.config
+        h = hashlib.sha256()
+        settings = (
+            group,
+            g.level_source,
+            cfg.samples,
+            cfg.seed,
+            cfg.min_increments,
+            cfg.min_levels,
+        )
+        h.update(repr(settings).encode())
+        for prior in (cfg.drift_prior, cfg.level_prior):
+            if prior is not None:
+                h.update(
+                    repr(
+                        (prior.m0.tolist(), prior.lambda0, prior.Psi0.tolist(), prior.nu0)
+                    ).encode()
+                )
+        for a in (g.dz, g.dt, g.level, g.age):
+            h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
+            h.update(repr(a.shape).encode())
+        return h.hexdigest()
+
+    def _rebuild_posteriors(self) -> list[DegradationPosterior]:
+        if not self._increments:
+            return []
+        out = []
+        for group, g in sorted(self._group_inputs().items()):
+            fp = self._fingerprint(group, g)
+            entry = self._models.get(group)
+            if (entry is not None and entry.fingerprint == fp) or self._refused.get(group) == fp:
+                continue
+            version = entry.message.version + 1 if entry is not None else 1
+            try:
+                post = self._build(group, g, version)
+            except CalibrationError as e:
+                self._refused[group] = fp
+                self.stats["posteriors_refused"] += 1
+                log.info("posterior %s not rebuilt: %s", group, e)
+                continue
+            self._refused.pop(group, None)
+            self._set_model(ModelEntry(group, post, fingerprint=fp))
+            self.stats["posteriors_built"] += 1
+            out.append(post)
+        return out
+
+    def _build(self, group: str, g: _GroupInput, version: int) -> DegradationPosterior:
+        cfg = self.config
+        rng = group_rng(cfg.seed, group, version)
+        min_inc = cfg.segment_min_increments if group.startswith("seg.") else cfg.min_increments
+        if g.level_source != "prior":
+            s = sample_degradation_posterior(
+                g.dz,
+                g.dt,
+                g.level,
+                g.age,
+                ns=cfg.samples,
+                rng=rng,
+                drift_prior=cfg.drift_prior,
+                level_prior=cfg.level_prior,
+                min_increments=min_inc,
+                min_levels=cfg.min_levels,
+            )
+            mu, sigma, z_plus, sigma_z_plus = s.mu, s.sigma, s.z_plus, s.sigma_z_plus
+        else:
+            post = posterior_drift_diffusion(g.dz, g.dt, cfg.drift_prior, min_increments=min_inc)
+            mu, sigma = post.sample(cfg.samples, rng)
+            level_prior = cfg.level_prior or NIWPrior.default_level(_N)
+            z_plus, sigma_z_plus = _sample_prior(level_prior, cfg.samples, rng)
+        return DegradationPosterior(
+            group=group,
+            version=version,
+            t=g.t_newest,
+            indicators=list(INDICATORS),
+            mu=_arr(mu),
+            sigma=_arr(sigma),
+            z_plus=_arr(z_plus),
+            sigma_z_plus=_arr(sigma_z_plus),
+            n_increments=len(g.dt),
+            n_levels=len(g.age),
+        )

@@ -1,0 +1,243 @@
+"""`trackfusion calibration`: the live calibration service (thin adapter over the core).
+
+Subscribes ``{ns}/trc/**``, ``{ns}/index/**`` and ``{ns}/maintenance/**``; every sample goes
+into ONE bounded queue drained by ONE worker, so the :class:`Calibrator` stays
+single-threaded. The worker decodes (a bad payload becomes a dead letter), feeds the core a
+batch, persists what changed (one SQLite transaction), then publishes the new models with
+``session.put`` on ``{ns}/model/calibration`` and ``{ns}/model/degradation/{group}``.
+A queryable on ``{ns}/model/**`` answers late joiners with the latest of each model.
+
+At start the store is loaded (the same models, versions and samples are republished), then
+the optional initial models (``initial_models``: a JSON5 file, see
+``deploy/initial-models.json5``) are installed as version 1 where no model exists yet.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import json5
+import zenoh
+
+from schemas import (
+    Calibration,
+    MaintenanceEvent,
+    OnboardIndex,
+    SchemaError,
+    TrcRecord,
+    decode,
+    encode,
+    keys,
+)
+from services.calibration.calibrator import (
+    Calibrator,
+    CalibratorConfig,
+    Event,
+    Model,
+    initial_models,
+)
+from services.calibration.store import SqliteStore
+from services.runtime.config import RuntimeConfig
+from services.runtime.service import ServiceRuntime
+
+log = logging.getLogger(__name__)
+
+SERVICE = "calibration"
+QUEUE_CAPACITY = 4096  # samples waiting for the worker; a full queue slows the senders
+BATCH = 512  # samples handed to the core before one flush + one transaction
+_KINDS: dict[str, type[Event]] = {
+    "trc": TrcRecord,
+    "index": OnboardIndex,
+    "maintenance": MaintenanceEvent,
+}
+_STOP = object()
+_STOP_TIMEOUT_S = 3.0
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What the service needs besides the bus (``db`` None: ``./var/calibration-{instance}``)."""
+
+    core: CalibratorConfig = field(default_factory=CalibratorConfig)
+    db: Path | None = None
+    initial_models: Path | None = None
+
+
+def settings_from(options: Mapping[str, Any], **overrides: Any) -> Settings:
+    """Settings from the config file's ``services.calibration`` section, then ``overrides``
+    (command-line values; None means "not given").
+
+    Keys: ``db``, ``initial_models`` and every field of :class:`CalibratorConfig`
+    (``min_pairs``, ``refit_every``, ``tolerance_days``, ``samples``, ``seed``, …).
+    """
+    merged = dict(options)
+    merged.update({k: v for k, v in overrides.items() if v is not None})
+    db = merged.pop("db", None)
+    initial = merged.pop("initial_models", None)
+    fields = set(CalibratorConfig.__dataclass_fields__) - {"drift_prior", "level_prior"}
+    unknown = set(merged) - fields
+    if unknown:
+        raise SystemExit(f"services.calibration: unknown setting(s) {sorted(unknown)}")
+    try:
+        core = CalibratorConfig(**merged)
+    except (TypeError, ValueError) as e:
+        raise SystemExit(f"services.calibration: {e}") from None
+    return Settings(
+        core=core,
+        db=Path(db) if db is not None else None,
+        initial_models=Path(initial) if initial is not None else None,
+    )
+
+
+def load_initial_models(path: Path, core: CalibratorConfig):
+    """The initial models of the JSON5 file at ``path``; SystemExit saying what is wrong."""
+    try:
+        spec = json5.loads(path.read_text(encoding="utf-8"))
+        return initial_models(spec, samples=core.samples, seed=core.seed)
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"initial models {path}: {e}") from None
+
+
+def model_key(ns: str, model: Model) -> str:
+    if isinstance(model, Calibration):
+        return keys.calibration(ns)
+    return keys.degradation(ns, model.group)
+
+
+class _Latest:
+    """The latest payload per model key, shared by the worker and the queryable callback."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._payloads: dict[str, bytes] = {}
+
+    def set(self, key: str, payload: bytes) -> None:
+        with self._lock:
+            self._payloads[key] = payload
+
+    def items(self) -> list[tuple[str, bytes]]:
+        with self._lock:
+            return sorted(self._payloads.items())
+
+
+def main(
+    conf: RuntimeConfig,
+    settings: Settings | None = None,
+    *,
+    stop_event: threading.Event | None = None,
+    handle_signals: bool = True,
+) -> int:
+    """Run the calibration service until SIGINT/SIGTERM or ``stop_event``; returns 0."""
+    settings = settings or settings_from(conf.options(SERVICE))
+    with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop_event) as rt:
+        db = settings.db or Path("var") / f"calibration-{rt.instance}.sqlite"
+        store = SqliteStore(db)
+        try:
+            core = Calibrator(settings.core, state=store.load())
+            log.info(
+                "store %s: %d pairs, %d pending indices, models %s",
+                db,
+                len(core.pairs),
+                core.n_pending(),
+                [type(m).__name__ + f" v{m.version}" for m in core.models()],
+            )
+            if settings.initial_models is not None:
+                cal, posts = load_initial_models(settings.initial_models, settings.core)
+                installed = core.install_initial(cal, posts)
+                if installed:
+                    log.info("initial models installed: %d", len(installed))
+            store.apply(core.drain_changes())
+            return _serve(rt, core, store)
+        finally:
+            store.close()
+
+
+def _serve(rt: ServiceRuntime, core: Calibrator, store: SqliteStore) -> int:
+    ns = rt.ns
+    latest = _Latest()
+    inbox: queue.Queue[Any] = queue.Queue(QUEUE_CAPACITY)
+
+    def publish(models: list[Model]) -> None:
+        for model in models:
+            key, payload = model_key(ns, model), encode(model)
+            latest.set(key, payload)
+            # models are few and must arrive: block rather than drop under congestion
+            rt.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+            log.info("published %s version %d", key, model.version)
+
+    def enqueue(sample: zenoh.Sample) -> None:
+        # short: the worker does the work; when the queue is full, hold Zenoh back
+        item = (str(sample.key_expr), sample.payload.to_bytes())
+        while True:
+            try:
+                inbox.put(item, timeout=0.5)
+                return
+            except queue.Full:
+                if rt.stopping:
+                    return
+
+    def decode_sample(key: str, payload: bytes) -> Event:
+        _, kind, line, segment = keys.parse_segment_key(key)
+        message = decode(payload, _KINDS[kind])
+        if (message.line, message.segment) != (line, segment):
+            raise SchemaError(
+                f"{type(message).__name__}: line/segment {message.line}/{message.segment} "
+                f"do not match the key {key}"
+            )
+        return message
+
+    def work() -> None:
+        while True:
+            item = inbox.get()
+            batch = [item]
+            while len(batch) < BATCH:
+                try:
+                    batch.append(inbox.get_nowait())
+                except queue.Empty:
+                    break
+            stopping = _STOP in batch
+            for entry in batch:
+                if entry is _STOP:
+                    continue
+                key, payload = entry
+                try:
+                    core.ingest(decode_sample(key, payload))
+                except (SchemaError, ValueError) as e:
+                    rt.deadletters.reject(key, str(e), payload)
+                except Exception as e:  # a bug: keep the service up, say why in the letter
+                    log.exception("error handling %s", key)
+                    rt.deadletters.reject(key, f"{type(e).__name__}: {e}", payload)
+            log.debug("batch of %d", len(batch))
+            try:
+                models = core.flush()
+            finally:
+                store.apply(core.drain_changes())  # persisted before anyone sees the models
+            publish(models)
+            if stopping:
+                return
+
+    def on_query(query: zenoh.Query) -> None:
+        for key, payload in latest.items():
+            if zenoh.KeyExpr(key).intersects(query.key_expr):
+                query.reply(key, payload)
+
+    publish(core.models())  # restored and initial models, for those already listening
+    rt.declare_queryable(keys.model_all(ns), on_query)
+    worker = rt.spawn(work, name=f"{SERVICE}:worker")
+    for kind in _KINDS:
+        rt.declare_subscriber(keys.segment_keys(ns, kind), enqueue)
+    try:
+        return rt.run()
+    finally:
+        # the worker finishes what is queued, persists, and returns before the store closes
+        try:
+            inbox.put(_STOP, timeout=_STOP_TIMEOUT_S)
+        except queue.Full:
+            log.warning("worker not draining its queue; stopping without it")
+        worker.join(_STOP_TIMEOUT_S)

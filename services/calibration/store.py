@@ -1,0 +1,170 @@
+"""Persistence of the calibration core: what :meth:`Calibrator.drain_changes` says changed.
+
+:class:`SqliteStore` (stdlib ``sqlite3``, one file per instance) and :class:`MemoryStore` (the
+test double) both ``apply(changes)`` atomically and ``load()`` a :class:`StoredState` that
+:class:`Calibrator` continues from. Messages are kept as their wire bytes and floats as SQLite
+REALs (IEEE doubles), so a restart gives back bit-identical models.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import sqlite3
+from pathlib import Path
+
+from schemas import (
+    Calibration,
+    DegradationPosterior,
+    MaintenanceEvent,
+    OnboardIndex,
+    TrcRecord,
+    decode,
+    encode,
+)
+from services.calibration.calibrator import (
+    CALIBRATION_KEY,
+    Changes,
+    ModelEntry,
+    Pair,
+    StoredState,
+    index_id,
+    maintenance_id,
+    trc_id,
+)
+
+__all__ = ["MemoryStore", "SqliteStore"]
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS trc (id TEXT PRIMARY KEY, payload BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS maintenance (id TEXT PRIMARY KEY, payload BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS pending (id TEXT PRIMARY KEY, payload BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS pairs (
+    seq INTEGER PRIMARY KEY, line TEXT NOT NULL, segment TEXT NOT NULL, run_id TEXT NOT NULL,
+    index_id TEXT NOT NULL UNIQUE, t REAL NOT NULL,
+    z0 REAL NOT NULL, z1 REAL NOT NULL, y0 REAL NOT NULL, y1 REAL NOT NULL,
+    quarantined INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS models (
+    key TEXT PRIMARY KEY, payload BLOB NOT NULL, fingerprint TEXT NOT NULL, prior INTEGER NOT NULL
+);
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+"""
+
+
+class MemoryStore:
+    """In-memory store with the same contract as :class:`SqliteStore` (tests, dry runs)."""
+
+    def __init__(self) -> None:
+        self._state = StoredState()
+
+    def apply(self, changes: Changes) -> None:
+        s = self._state
+        s.trc.extend(changes.trc)
+        s.maintenance.extend(changes.maintenance)
+        s.pending.extend(changes.pending_added)
+        removed = set(changes.pending_removed)
+        s.pending = [i for i in s.pending if index_id(i) not in removed]
+        s.pairs.extend(changes.pairs)
+        out = set(changes.quarantined)
+        s.quarantined.extend(p for p in s.pairs if p.index_id in out)
+        s.pairs = [p for p in s.pairs if p.index_id not in out]
+        models = {e.key: e for e in s.models}
+        models.update({e.key: e for e in changes.models})
+        s.models = list(models.values())
+        if changes.meta is not None:
+            s.meta = copy.deepcopy(changes.meta)
+
+    def load(self) -> StoredState:
+        return copy.deepcopy(self._state)
+
+    def close(self) -> None:
+        pass
+
+
+class SqliteStore:
+    """One SQLite file; every :meth:`apply` is one transaction (WAL, survives SIGKILL)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # the service's single worker is the only user, but it is not the opening thread
+        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=NORMAL")  # durable against a killed process
+        self._db.executescript(_SCHEMA)
+
+    def apply(self, changes: Changes) -> None:
+        if not changes:
+            return
+        db = self._db
+        db.execute("BEGIN")
+        try:
+            db.executemany(
+                "INSERT OR REPLACE INTO trc VALUES (?, ?)",
+                [(trc_id(r), encode(r)) for r in changes.trc],
+            )
+            db.executemany(
+                "INSERT OR REPLACE INTO maintenance VALUES (?, ?)",
+                [(maintenance_id(e), encode(e)) for e in changes.maintenance],
+            )
+            db.executemany(
+                "INSERT OR REPLACE INTO pending VALUES (?, ?)",
+                [(index_id(i), encode(i)) for i in changes.pending_added],
+            )
+            db.executemany(
+                "DELETE FROM pending WHERE id = ?", [(i,) for i in changes.pending_removed]
+            )
+            db.executemany(
+                "INSERT INTO pairs (line, segment, run_id, index_id, t, z0, z1, y0, y1) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                [(p.line, p.segment, p.run_id, p.index_id, p.t, *p.z, *p.y) for p in changes.pairs],
+            )
+            db.executemany(
+                "UPDATE pairs SET quarantined = 1 WHERE index_id = ?",
+                [(i,) for i in changes.quarantined],
+            )
+            db.executemany(
+                "INSERT OR REPLACE INTO models VALUES (?, ?, ?, ?)",
+                [(e.key, encode(e.message), e.fingerprint, int(e.prior)) for e in changes.models],
+            )
+            if changes.meta is not None:
+                db.execute(
+                    "INSERT OR REPLACE INTO meta VALUES ('state', ?)", (json.dumps(changes.meta),)
+                )
+            db.execute("COMMIT")
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+
+    def load(self) -> StoredState:
+        db = self._db
+        state = StoredState(
+            trc=[decode(p, TrcRecord) for (p,) in db.execute("SELECT payload FROM trc")],
+            maintenance=[
+                decode(p, MaintenanceEvent)
+                for (p,) in db.execute("SELECT payload FROM maintenance ORDER BY rowid")
+            ],
+            pending=[
+                decode(p, OnboardIndex)
+                for (p,) in db.execute("SELECT payload FROM pending ORDER BY rowid")
+            ],
+        )
+        for line, segment, run_id, iid, t, z0, z1, y0, y1, out in db.execute(
+            "SELECT line, segment, run_id, index_id, t, z0, z1, y0, y1, quarantined FROM pairs "
+            "ORDER BY seq"
+        ):
+            pair = Pair(line, segment, run_id, iid, t, (z0, z1), (y0, y1))
+            (state.quarantined if out else state.pairs).append(pair)
+        for key, payload, fingerprint, prior in db.execute(
+            "SELECT key, payload, fingerprint, prior FROM models ORDER BY key"
+        ):
+            kind = Calibration if key == CALIBRATION_KEY else DegradationPosterior
+            state.models.append(ModelEntry(key, decode(payload, kind), fingerprint, bool(prior)))
+        row = db.execute("SELECT value FROM meta WHERE key = 'state'").fetchone()
+        if row is not None:
+            state.meta = json.loads(row[0])
+        return state
+
+    def close(self) -> None:
+        self._db.close()

@@ -1,0 +1,322 @@
+"""Unit tests of the live calibration core (services/calibration/calibrator.py): lists in,
+lists out; persistence through the in-memory and the SQLite store."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import json5
+import numpy as np
+import pytest
+
+from schemas import Calibration, DegradationPosterior, MaintenanceEvent, OnboardIndex, TrcRecord
+from services.calibration.calibrator import (
+    Calibrator,
+    CalibratorConfig,
+    group_rng,
+    initial_models,
+    mean_loglik,
+)
+from services.calibration.store import MemoryStore, SqliteStore
+
+DAY = 86400.0
+T0 = 1_700_000_000.0
+H = np.array([[0.9, 0.05], [0.05, 0.75]])
+B = np.array([-0.25, -0.35])
+R = np.array([[0.010, 0.002], [0.002, 0.030]])
+MU = np.array([1.0e-3, 5.0e-4])  # ln mm / day
+SIGMA = np.array([[1.0e-4, 2.8e-5], [2.8e-5, 4.9e-5]])
+REPO = Path(__file__).resolve().parents[2]
+
+
+def trc(line, seg, run, t, z):
+    top, align = (float(v) for v in np.exp(z))
+    return TrcRecord(line=line, segment=seg, t=t, top6_mm=top, align10_mm=align, run_id=run)
+
+
+def index(line, seg, t, y, run="", train="T1", unit="u1", quality=1.0):
+    top, align = (float(v) for v in np.exp(y))
+    return OnboardIndex(
+        line=line,
+        segment=seg,
+        train=train,
+        unit=unit,
+        t=t,
+        top6_mm=top,
+        align10_mm=align,
+        speed_mps=30.0,
+        coverage=1.0,
+        quality=quality,
+        run_id=run,
+    )
+
+
+def campaign(n_pairs, rng, *, line="L1", start=0, H=H, B=B, R=R, t0=T0):
+    """``n_pairs`` (TRC record, index of the unit on the TRC) of distinct segments."""
+    events = []
+    for k in range(start, start + n_pairs):
+        z = rng.normal([1.1, 0.9], [0.35, 0.3])
+        y = H @ z + B + rng.multivariate_normal([0, 0], R)
+        t = t0 + k * 60.0
+        events += [
+            trc(line, f"c{k}", f"run{k}", t, z),
+            index(line, f"c{k}", t + 5, y, run=f"run{k}"),
+        ]
+    return events
+
+
+def histories(rng, *, lines=("L1", "L2"), segs=4, records=8, tamp_every=3):
+    """TRC histories every ~60 days with a Wiener degradation and a tamping every few records."""
+    events = []
+    for line in lines:
+        for s in range(segs):
+            z = rng.normal([1.0, 0.8], 0.1)
+            t = T0 + rng.uniform(0, 20) * DAY
+            for r in range(records):
+                if r and r % tamp_every == 0:
+                    tm = t - 10 * DAY
+                    events.append(
+                        MaintenanceEvent(
+                            line=line, segment=f"s{s}", event_id=f"m{r}", t_start=tm, t_end=tm
+                        )
+                    )
+                    z = rng.normal([0.7, 0.6], 0.1) + MU * 10
+                events.append(trc(line, f"s{s}", f"r{r}", t, z))
+                dt = rng.uniform(56, 77)
+                z = z + MU * dt + rng.multivariate_normal([0, 0], SIGMA * dt)
+                t += dt * DAY
+    return events
+
+
+# ---------------------------------------------------------------- pairing
+
+
+def test_pairs_by_run_id_in_either_order_and_ignores_duplicates():
+    core = Calibrator(CalibratorConfig(tolerance_days=None))
+    z, y = np.log([3.0, 2.0]), np.log([2.5, 1.5])
+    idx = index("L1", "s1", T0 + 9 * DAY, y, run="R7")  # 9 days off: only run_id pairs it
+    core.step([idx, idx])
+    assert core.pairs == [] and core.n_pending() == 1
+    rec = trc("L1", "s1", "R7", T0, z)
+    core.step([rec, rec, trc("L1", "s2", "R7", T0, z)])
+    (pair,) = core.pairs
+    assert (pair.run_id, pair.t) == ("R7", idx.t)
+    np.testing.assert_allclose(pair.z, z)
+    np.testing.assert_allclose(pair.y, y)
+    core.step([idx, index("L1", "s1", T0, y, run="R8")])  # duplicate; other run: waits
+    assert len(core.pairs) == 1 and core.n_pending() == 1
+    assert core.stats["index_duplicates"] == 2 and core.stats["trc_duplicates"] == 1
+
+
+def test_pairs_by_tolerance_with_the_nearest_record():
+    core = Calibrator(CalibratorConfig(tolerance_days=1.0))
+    z1, z2, y = np.log([3.0, 2.0]), np.log([4.0, 2.5]), np.log([2.5, 1.5])
+    core.step([trc("L1", "s1", "A", T0, z1), trc("L1", "s1", "B", T0 + 1.5 * DAY, z2)])
+    core.step(
+        [
+            index("L1", "s1", T0 + 0.5 * DAY, y, train="T1"),  # nearer A
+            index("L1", "s1", T0 + 1.0 * DAY, y, train="T2"),  # nearer B
+            index("L1", "s1", T0 + 3.0 * DAY, y, train="T3"),  # too far from both: waits
+            index("L1", "s2", T0, y, train="T4"),  # other segment: waits
+        ]
+    )
+    assert [p.run_id for p in core.pairs] == ["A", "B"]
+    assert core.n_pending() == 2
+    core.step([trc("L1", "s2", "C", T0 + 0.9 * DAY, z1)])  # completes the waiting index
+    assert [p.run_id for p in core.pairs] == ["A", "B", "C"]
+
+
+def test_time_pairing_off_low_quality_and_the_waiting_window():
+    core = Calibrator(
+        CalibratorConfig(tolerance_days=None, index_window_days=10, max_pending_per_segment=3)
+    )
+    y = np.log([2.5, 1.5])
+    core.step([index("L1", "s1", T0, y), index("L1", "s1", T0, y, train="T9", quality=0.1)])
+    assert core.n_pending() == 1 and core.stats["index_low_quality"] == 1
+    core.step([trc("L1", "s1", "A", T0, y)])
+    assert core.pairs == []  # no run_id and time pairing off
+    # events of other segments, however new, do not expire it
+    core.step([trc("L1", "s2", "B", T0 + 99 * DAY, y)])
+    assert core.n_pending() == 1
+    # a TRC record of its own segment 11 days later does; older indices are not kept
+    core.step([trc("L1", "s1", "C", T0 + 11 * DAY, y), index("L1", "s1", T0 - DAY, y, run="Q")])
+    assert core.n_pending() == 0 and core.stats["index_expired"] == 2
+    # at most max_pending_per_segment wait, the newest
+    core.step([index("L1", "s3", T0 + k, y, run="Z") for k in (5, 1, 4, 2)])
+    assert core.n_pending() == 3 and core.stats["index_expired"] == 3
+
+
+# ---------------------------------------------------------------- fitting and swap rule
+
+
+def test_first_fit_at_min_pairs_then_refit_cadence_and_versions():
+    rng = np.random.default_rng(1)
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10))
+    assert core.step(campaign(29, rng)) == []
+    (cal,) = core.step(campaign(1, rng, start=29))
+    assert isinstance(cal, Calibration) and (cal.version, cal.n_pairs) == (1, 30)
+    assert cal.t == max(p.t for p in core.pairs)
+    assert core.step(campaign(9, rng, start=30)) == []  # 39 pairs: not yet
+    (cal2,) = core.step(campaign(1, rng, start=39))
+    assert (cal2.version, cal2.n_pairs) == (2, 40)
+    out = core.step(campaign(200, rng, start=40))  # one batch: one refit
+    assert [(m.version, m.n_pairs) for m in out] == [(3, 240)]
+    assert core.stats["fits_accepted"] == 3 and core.stats["fits_rejected"] == 0
+    np.testing.assert_allclose(out[0].H.array(), H, atol=0.1)
+    np.testing.assert_allclose(out[0].b.array(), B, atol=0.12)
+    np.testing.assert_allclose(out[0].R.array(), R, atol=0.01)
+
+
+def test_worse_refit_is_rejected_with_a_reason_and_a_better_one_accepted():
+    rng = np.random.default_rng(2)
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10))
+    (cal,) = core.step(campaign(30, rng))
+    # a faulty unit: on-board indices unrelated to the TRC values
+    garbage = campaign(15, rng, start=30, H=np.zeros((2, 2)), B=np.zeros(2), R=0.5 * np.eye(2))
+    assert core.step(garbage) == []
+    assert core.calibration == cal and core.stats["fits_rejected"] == 1
+    (reason,) = core.rejections
+    assert "rejected against version 1" in reason and ("R²" in reason or "log-likelihood" in reason)
+    # the garbage is quarantined: left out of later fits, its indices still duplicates
+    assert len(core.pairs) == 30 and len(core.quarantined) == 15
+    assert core.step(garbage[1::2]) == [] and core.stats["index_duplicates"] == 15
+    # good pairs: the next refit is better, accepted as version 2
+    (cal2,) = core.step(campaign(10, rng, start=45))
+    assert cal2.version == 2 and cal2.n_pairs == 40
+    assert core.stats["fits_rejected"] == 1 and core.stats["pairs_quarantined"] == 15
+
+
+def test_swap_rule_loglik_threshold():
+    """Rule 2 alone: same R² but a shifted bias costs log-likelihood on the old pairs."""
+    rng = np.random.default_rng(3)
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=30, max_r2_drop=1.0))
+    (cal,) = core.step(campaign(30, rng))
+    assert core.step(campaign(30, rng, start=30, B=B + 0.5)) == []
+    assert "log-likelihood per pair on the 30 pairs" in core.rejections[-1]
+    Z = np.array([p.z for p in core.pairs[:30]])
+    Y = np.array([p.y for p in core.pairs[:30]])
+    ll = mean_loglik(cal.H.array(), cal.b.array(), cal.R.array(), Z, Y)
+    # the current model is the ML fit of its pairs: the closed form -(m/2)(log 2π + 1) - ½log|R|
+    expected = -(np.log(2 * np.pi) + 1) - 0.5 * np.linalg.slogdet(cal.R.array())[1]
+    assert ll == pytest.approx(expected)
+
+
+def test_initial_calibration_replaced_by_first_fit():
+    spec = json5.loads((REPO / "deploy" / "initial-models.json5").read_text())
+    cal0, posts = initial_models(spec, samples=50, seed=4)
+    assert cal0 is not None and cal0.version == 1 and [p.group for p in posts] == ["net"]
+    assert posts[0].mu.shape == [50, 2]
+    core = Calibrator(CalibratorConfig(min_pairs=30, samples=50))
+    assert core.install_initial(cal0, posts) == [cal0, posts[0]]
+    assert core.install_initial(cal0, posts) == []  # only where nothing exists
+    rng = np.random.default_rng(5)
+    (cal,) = core.step(campaign(30, rng))
+    assert cal.version == 2 and cal.n_pairs == 30
+    # the same file and seed give the same draws
+    again = initial_models(spec, samples=50, seed=4)[1][0]
+    assert again == posts[0]
+
+
+# ---------------------------------------------------------------- degradation posteriors
+
+
+def test_groups_pooling_and_levels():
+    rng = np.random.default_rng(6)
+    cfg = CalibratorConfig(samples=50, segment_min_increments=5, min_levels=4)
+    core = Calibrator(cfg)
+    events = histories(rng, segs=4, records=8, tamp_every=3)
+    events += [
+        trc("L3", "x0", "r0", T0, np.log([3, 2])),
+        trc("L3", "x0", "r1", T0 + 60 * DAY, np.log([3, 2])),
+    ]
+    out = core.step(events)
+    groups = {p.group: p for p in out if isinstance(p, DegradationPosterior)}
+    # 8 records, tampings before records 3 and 6: 5 increments per segment, 2 levels
+    assert set(groups) == {"net", "line.L1", "line.L2"} | {
+        f"seg.{line}.s{s}" for line in ("L1", "L2") for s in range(4)
+    }, "line.L3 has 1 increment: refused"
+    assert core.stats["posteriors_refused"] == 1
+    assert groups["net"].n_increments == 2 * 4 * 5 + 1 and groups["net"].n_levels == 16
+    assert groups["line.L1"].n_increments == 20 and groups["line.L1"].n_levels == 8
+    seg = groups["seg.L1.s0"]
+    assert seg.n_increments == 5 and seg.n_levels == 8  # 2 own levels < 4: the line's
+    assert seg.mu.shape == [50, 2] and seg.sigma.shape == [50, 2, 2]
+    assert all(p.version == 1 for p in groups.values())
+    assert groups["net"].t == max(e.t for e in events if isinstance(e, TrcRecord))
+    mean_mu = groups["net"].mu.array().mean(axis=0)
+    assert np.all(np.abs(mean_mu - MU) < 1e-3)
+    # nothing new: nothing rebuilt; a new record on L1/s0: its groups get version 2
+    assert core.step([]) == []
+    last = max(
+        e.t for e in events if isinstance(e, TrcRecord) and e.segment == "s0" and e.line == "L1"
+    )
+    out = core.step([trc("L1", "s0", "new", last + 60 * DAY, np.log([3.5, 2.5]))])
+    assert sorted((p.group, p.version) for p in out) == [
+        ("line.L1", 2),
+        ("net", 2),
+        ("seg.L1.s0", 2),
+    ]
+
+
+def test_levels_from_prior_when_no_tamping_and_deterministic_samples():
+    rng = np.random.default_rng(7)
+    events = histories(rng, lines=("L1",), segs=2, records=4, tamp_every=99)
+    cfg = CalibratorConfig(samples=30, seed=11)
+    (a,) = [m for m in Calibrator(cfg).step(events) if m.group == "net"]
+    (b,) = [m for m in Calibrator(cfg).step(events) if m.group == "net"]
+    assert a.n_levels == 0 and a.n_increments == 6
+    assert a == b  # identical draws from (seed, group, version)
+    (c,) = [
+        m
+        for m in Calibrator(CalibratorConfig(samples=30, seed=12)).step(events)
+        if m.group == "net"
+    ]
+    assert c.mu != a.mu
+    assert group_rng(1, "net", 1).random() == group_rng(1, "net", 1).random()
+    assert group_rng(1, "net", 1).random() != group_rng(1, "net", 2).random()
+
+
+def test_tamping_interval_mid_rule_and_rebuild_on_maintenance():
+    rng = np.random.default_rng(8)
+    events = histories(rng, lines=("L1",), segs=3, records=6, tamp_every=99)
+    core = Calibrator(CalibratorConfig(samples=20, min_increments=4))
+    first = {m.group: m for m in core.step(events)}
+    assert first["net"].n_increments == 15
+    s0 = sorted((e for e in events if e.segment == "s0"), key=lambda e: e.t)
+    # an interval whose middle falls between records 2 and 3 of s0: that increment is dropped
+    ev = MaintenanceEvent(
+        line="L1", segment="s0", event_id="m", t_start=s0[2].t + DAY, t_end=s0[3].t - DAY
+    )
+    out = {m.group: m for m in core.step([ev, ev])}
+    assert out["net"].version == 2 and out["net"].n_increments == 14
+    assert core.stats["maintenance_duplicates"] == 1
+
+
+# ---------------------------------------------------------------- persistence
+
+
+@pytest.mark.parametrize("kind", ["memory", "sqlite"])
+def test_restart_from_store_gives_identical_models(kind, tmp_path):
+    def open_store():
+        return MemoryStore() if kind == "memory" else SqliteStore(tmp_path / "c.sqlite")
+
+    rng = np.random.default_rng(9)
+    cfg = CalibratorConfig(min_pairs=30, refit_every=10, samples=40, seed=3)
+    events = campaign(45, rng) + histories(rng) + [index("L1", "s0", T0 + 1e9, np.log([2, 1]))]
+    store = open_store()
+    core = Calibrator(cfg, store.load())
+    for k in range(0, len(events), 7):  # several batches, several transactions
+        core.step(events[k : k + 7])
+        store.apply(core.drain_changes())
+    more = campaign(25, rng, start=45) + [trc("L1", "s0", "late", T0 + 2e9, np.log([4, 3]))]
+    if kind == "sqlite":
+        store.close()
+        store = open_store()
+    restored = Calibrator(cfg, store.load())
+    assert restored.models() == core.models()
+    assert restored.pairs == core.pairs and restored.n_pending() == core.n_pending() == 1
+    assert restored.stats == core.stats
+    assert restored.step([]) == []  # nothing to redo after a restart
+    # and both continue identically
+    assert restored.step(more) == core.step(more) != []
+    store.close()
