@@ -210,6 +210,60 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="FILE.geojson", help="default: stdout")
     p.set_defaults(func=_network_generate)
 
+    # --- operator commands (services/operator.py) ------------------------------------------
+    def _operator(command: str):
+        def run(args: argparse.Namespace) -> int:
+            from services import operator
+            from services.runtime.config import config_from_args
+
+            conf = config_from_args(args)
+            match command:
+                case "status":
+                    return operator.main_status(conf)
+                case "state":
+                    return operator.main_state(conf, args.segment)
+                case "alerts":
+                    return operator.main_alerts(conf)
+                case "plan":
+                    return operator.main_plan(conf, args.limit)
+                case "import-trc":
+                    return operator.main_import_trc(conf, args.file)
+                case "export":
+                    return operator.main_export(conf, args.what, args.format, args.network)
+            raise AssertionError(command)
+
+        return run
+
+    p = sub.add_parser("status", help="which services are alive (liveliness tokens)")
+    add_zenoh_arguments(p, mode=False)
+    p.set_defaults(func=_operator("status"))
+    p = sub.add_parser("state", help="state and forecast of a segment (LINE/SEGMENT)")
+    p.add_argument("segment", metavar="LINE/SEGMENT", help="e.g. L1/s00042, or L1/** for a line")
+    add_zenoh_arguments(p, mode=False)
+    p.set_defaults(func=_operator("state"))
+    p = sub.add_parser("alerts", help="the alerts raised now")
+    add_zenoh_arguments(p, mode=False)
+    p.set_defaults(func=_operator("alerts"))
+    p = sub.add_parser("plan", help="the TRC inspection plan: segments most likely to exceed")
+    p.add_argument("--limit", type=int, default=20, help="rows to show (default 20)")
+    add_zenoh_arguments(p, mode=False)
+    p.set_defaults(func=_operator("plan"))
+    p = sub.add_parser(
+        "import-trc",
+        help="publish a TRC export (CSV: line,segment,t,top6_mm,align10_mm,run_id)",
+        description="Publish every good row of a TRC CSV export as a TrcRecord; bad rows are "
+        "reported with their line numbers (exit code 1 when there were any).",
+    )
+    p.add_argument("file", metavar="FILE.csv")
+    add_zenoh_arguments(p, mode=False)
+    p.set_defaults(func=_operator("import-trc"))
+    p = sub.add_parser("export", help="export states or raised alerts as CSV or GeoJSON")
+    p.add_argument("what", choices=["states", "alerts"])
+    p.add_argument("--format", choices=["csv", "geojson"], default="csv")
+    p.add_argument("--network", metavar="FILE.geojson", help="geometry (default: the demo)")
+    add_zenoh_arguments(p, mode=False)
+    p.set_defaults(func=_operator("export"))
+
     # --- study (services/filtering/study.py) ---------------------------------------------
     def _study_frequency(args: argparse.Namespace) -> int:
         from services.filtering import study

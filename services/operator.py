@@ -1,0 +1,330 @@
+"""Questions an engineer asks the running system: `trackfusion status|state|alerts|plan|
+import-trc|export`. Each opens a short-lived Zenoh session, asks, prints, and closes.
+
+Pure parts (CSV parsing, formatting, GeoJSON building) are plain functions, tested without
+Zenoh; the thin part is ``ask`` (a ``session.get`` on a queryable) and ``main_*``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import sys
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import TextIO
+
+import msgpack
+import zenoh
+
+from schemas import INDICATORS, Alert, SchemaError, SegmentState, TrcRecord, decode, encode, keys
+from services.runtime.config import RuntimeConfig
+
+QUERY_TIMEOUT_S = 5.0
+TRC_COLUMNS = ("line", "segment", "t", "top6_mm", "align10_mm", "run_id")
+
+
+def ask(session: zenoh.Session, selector: str, timeout: float = QUERY_TIMEOUT_S):
+    """(key, payload bytes) of every reply to a query; errors from the queryable raise."""
+    for reply in session.get(selector, timeout=timeout):
+        if reply.ok is None:
+            raise SystemExit(f"{selector}: {reply.err.payload.to_string()}")
+        yield str(reply.ok.key_expr), reply.ok.payload.to_bytes()
+
+
+def _session(conf: RuntimeConfig) -> zenoh.Session:
+    try:
+        return zenoh.open(conf.zenoh_config())
+    except zenoh.ZError as exc:
+        raise SystemExit(f"cannot reach the router ({exc}); is `trackfusion up` running?") from None
+
+
+# --- status ---------------------------------------------------------------------------------
+
+
+def main_status(conf: RuntimeConfig, out: TextIO = sys.stdout) -> int:
+    """Every live service instance (liveliness tokens under ``{ns}/alive/**``)."""
+    with _session(conf) as session:
+        alive = sorted(
+            tuple(str(reply.ok.key_expr).split("/")[2:4])
+            for reply in session.liveliness().get(keys.alive_all(conf.ns), timeout=QUERY_TIMEOUT_S)
+            if reply.ok is not None
+        )
+    if not alive:
+        print(f"no service alive in namespace {conf.ns!r}", file=out)
+        return 1
+    print(f"{'service':14} instance", file=out)
+    for service, instance in alive:
+        print(f"{service:14} {instance}", file=out)
+    return 0
+
+
+# --- state ----------------------------------------------------------------------------------
+
+
+def format_state(state: SegmentState) -> str:
+    """A segment's state as an engineer reads it: estimate, 95 % interval, risk, forecasts."""
+    lines = [f"{state.line}/{state.segment} at {_iso(state.t)} (last TRC {_iso(state.last_trc_t)})"]
+    mean_mm = [math.exp(v) for v in state.mean.array()]
+    low, high = state.ci_low_mm.array(), state.ci_high_mm.array()
+    p = state.p_exceed.array()
+    levels = state.limit_levels
+    for i, name in enumerate(state.indicators):
+        risk = ", ".join(
+            f"P(>{state.limits_mm.array()[k, i]:.1f} mm {level})={p[k, i]:.2f}"
+            for k, level in enumerate(levels)
+        )
+        lines.append(f"  {name:8} {mean_mm[i]:6.2f} mm  95% [{low[i]:.2f}, {high[i]:.2f}]  {risk}")
+    fp = state.forecast_p_exceed.array()
+    for h, days in enumerate(state.horizons_days.array()):
+        parts = [
+            f"{name} [{state.forecast_ci_low_mm.array()[h, i]:.2f}, "
+            f"{state.forecast_ci_high_mm.array()[h, i]:.2f}] P(>{levels[-1]})={fp[h, -1, i]:.2f}"
+            for i, name in enumerate(state.indicators)
+        ]
+        lines.append(f"  in {days:4.0f} d: " + "; ".join(parts))
+    lines.append(
+        f"  W={state.width:.3g}  updates since TRC={state.n_updates}  "
+        f"models: calibration v{state.calibration_version}, "
+        f"posterior {state.posterior_group or '-'} v{state.posterior_version}"
+    )
+    return "\n".join(lines)
+
+
+def query_states(session: zenoh.Session, ns: str, selector: str = "**") -> list[SegmentState]:
+    return [
+        decode(payload, SegmentState)
+        for _, payload in ask(session, f"{keys.q_state_all(ns)[: -len('**')]}{selector}")
+    ]
+
+
+def main_state(conf: RuntimeConfig, segment: str, out: TextIO = sys.stdout) -> int:
+    """`trackfusion state LINE/SEGMENT` (or `LINE/**` for a whole line)."""
+    if segment.count("/") != 1:
+        raise SystemExit(f"state: {segment!r} is not LINE/SEGMENT (e.g. L1/s00042)")
+    with _session(conf) as session:
+        states = query_states(session, conf.ns, segment)
+    if not states:
+        print(f"no state for {segment} (unknown segment, or no TRC record and model yet)", file=out)
+        return 1
+    for state in sorted(states, key=lambda s: (s.line, s.segment)):
+        print(format_state(state), file=out)
+    return 0
+
+
+# --- alerts and plan ------------------------------------------------------------------------
+
+
+def query_alerts(session: zenoh.Session, ns: str) -> list[Alert]:
+    alerts = []
+    for _, payload in ask(session, keys.q_alerts(ns)):
+        for item in msgpack.unpackb(payload):
+            alerts.append(decode(msgpack.packb(item), Alert))
+    return alerts
+
+
+def main_alerts(conf: RuntimeConfig, out: TextIO = sys.stdout) -> int:
+    with _session(conf) as session:
+        alerts = query_alerts(session, conf.ns)
+    if not alerts:
+        print("no alert raised", file=out)
+        return 0
+    for a in sorted(alerts, key=lambda a: (-a.probability, a.line, a.segment)):
+        print(
+            f"{_iso(a.t)}  {a.line}/{a.segment:8} {a.kind:20} {a.indicator:8} "
+            f"{a.level:12} p={a.probability:.2f}  {a.message}",
+            file=out,
+        )
+    return 0
+
+
+def main_plan(conf: RuntimeConfig, limit: int = 20, out: TextIO = sys.stdout) -> int:
+    """The TRC inspection plan: segments ranked by P(exceeding before the next TRC run)."""
+    with _session(conf) as session:
+        replies = list(ask(session, keys.q_plan(conf.ns)))
+    if not replies:
+        raise SystemExit("plan: no answer from the alerting service (is it running?)")
+    plan = msgpack.unpackb(replies[0][1])
+    rows = plan.get("rows", [])[:limit]
+    print(f"{'rank':>4} {'segment':16} {'P(exceed)':>9} {'indicator':9} next TRC", file=out)
+    for rank, row in enumerate(rows, 1):
+        print(
+            f"{rank:4d} {row['line'] + '/' + row['segment']:16} {row['probability']:9.3f} "
+            f"{row.get('indicator', ''):9} {_iso(row.get('next_trc_t'))}",
+            file=out,
+        )
+    return 0
+
+
+# --- import-trc -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RowError:
+    line_no: int
+    reason: str
+
+
+def parse_time(text: str) -> float:
+    """Epoch seconds from a number or an ISO 8601 date-time (UTC when no zone is given)."""
+    text = text.strip()
+    try:
+        return float(text)
+    except ValueError:
+        pass
+    value = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    if value.tzinfo is None:
+        value = value.replace(tzinfo=UTC)
+    return value.timestamp()
+
+
+def parse_trc_csv(text: TextIO) -> Iterator[TrcRecord | RowError]:
+    """TrcRecords of a TRC export, or a RowError (with its file line number) per bad row.
+
+    Columns: line, segment, t (epoch s or ISO 8601), top6_mm, align10_mm, run_id.
+    """
+    reader = csv.DictReader(text)
+    missing = set(TRC_COLUMNS) - set(reader.fieldnames or ())
+    if missing:
+        yield RowError(1, f"header lacks column(s) {sorted(missing)}; need {list(TRC_COLUMNS)}")
+        return
+    for row in reader:
+        line_no = reader.line_num
+        try:
+            yield TrcRecord(
+                line=row["line"].strip(),
+                segment=row["segment"].strip(),
+                t=parse_time(row["t"]),
+                top6_mm=float(row["top6_mm"]),
+                align10_mm=float(row["align10_mm"]),
+                run_id=row["run_id"].strip(),
+            )
+        except (SchemaError, ValueError, TypeError, AttributeError) as exc:
+            yield RowError(line_no, str(exc))
+
+
+def main_import_trc(conf: RuntimeConfig, path: str, out: TextIO = sys.stdout) -> int:
+    """Publish the good rows of a TRC CSV export; report bad rows with their line numbers."""
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SystemExit(f"import-trc: cannot read {path}: {exc}") from None
+    published, errors = 0, []
+    with _session(conf) as session:
+        for item in parse_trc_csv(io.StringIO(text, newline="")):
+            if isinstance(item, RowError):
+                errors.append(item)
+                continue
+            session.put(
+                keys.trc(conf.ns, item.line, item.segment),
+                encode(item),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            published += 1
+    for error in errors:
+        print(f"{path}:{error.line_no}: {error.reason}", file=sys.stderr)
+    print(f"published {published} TRC records, {len(errors)} bad rows", file=out)
+    return 1 if errors else 0
+
+
+# --- export ---------------------------------------------------------------------------------
+
+STATE_COLUMNS = ["line", "segment", "t", "last_trc_t", "n_updates", "width"] + [
+    f"{name}_{what}"
+    for name in INDICATORS
+    for what in ("mm", "ci_low_mm", "ci_high_mm", "p_exceed_intervention")
+]
+ALERT_COLUMNS = ["line", "segment", "t", "kind", "status", "indicator", "level", "probability"]
+
+
+def state_row(state: SegmentState) -> dict:
+    row = {
+        "line": state.line,
+        "segment": state.segment,
+        "t": _iso(state.t),
+        "last_trc_t": _iso(state.last_trc_t),
+        "n_updates": state.n_updates,
+        "width": state.width,
+    }
+    p = state.p_exceed.array()[-1]
+    for i, name in enumerate(state.indicators):
+        row[f"{name}_mm"] = round(math.exp(state.mean.array()[i]), 3)
+        row[f"{name}_ci_low_mm"] = round(float(state.ci_low_mm.array()[i]), 3)
+        row[f"{name}_ci_high_mm"] = round(float(state.ci_high_mm.array()[i]), 3)
+        row[f"{name}_p_exceed_intervention"] = round(float(p[i]), 4)
+    return row
+
+
+def alert_row(alert: Alert) -> dict:
+    row = {name: getattr(alert, name) for name in ALERT_COLUMNS}
+    row["t"] = _iso(alert.t)
+    return row
+
+
+def to_csv(rows: Iterable[dict], columns: list[str]) -> str:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    return buffer.getvalue()
+
+
+def to_geojson(rows: Iterable[dict], geometry: dict[tuple[str, str], list]) -> dict:
+    """A FeatureCollection: each row as the properties of its segment's LineString."""
+    return {
+        "type": "FeatureCollection",
+        "features": [
+            {
+                "type": "Feature",
+                "geometry": {
+                    "type": "LineString",
+                    "coordinates": geometry[(r["line"], r["segment"])],
+                },
+                "properties": r,
+            }
+            for r in rows
+            if (r["line"], r["segment"]) in geometry
+        ],
+    }
+
+
+def segment_geometry(network_path: str | None) -> dict[tuple[str, str], list]:
+    from simulators.run import load_network
+
+    network = load_network(network_path)
+    return {
+        (line.id, seg.id): line.segment_lonlat(seg).tolist()
+        for line in network.lines.values()
+        for seg in line.segments
+    }
+
+
+def main_export(
+    conf: RuntimeConfig,
+    what: str,
+    fmt: str,
+    network_path: str | None = None,
+    out: TextIO = sys.stdout,
+) -> int:
+    with _session(conf) as session:
+        if what == "states":
+            rows, columns = [state_row(s) for s in query_states(session, conf.ns)], STATE_COLUMNS
+        else:
+            rows, columns = [alert_row(a) for a in query_alerts(session, conf.ns)], ALERT_COLUMNS
+    rows.sort(key=lambda r: (r["line"], r["segment"]))
+    if fmt == "csv":
+        out.write(to_csv(rows, columns))
+    else:
+        json.dump(to_geojson(rows, segment_geometry(network_path)), out)
+        out.write("\n")
+    return 0
+
+
+def _iso(t: float | None) -> str:
+    if t is None:
+        return "-"
+    return datetime.fromtimestamp(t, UTC).isoformat(timespec="minutes")
