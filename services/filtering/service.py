@@ -1,0 +1,156 @@
+"""`trackfusion filtering`: the live filter bank per segment on Zenoh (thin adapter).
+
+Subscribes ``{ns}/index/{selector}``, ``{ns}/trc/{selector}``, ``{ns}/maintenance/{selector}``
+and ``{ns}/model/**``; at start asks ``{ns}/model/**`` for the latest models (the calibration
+service's late-joiner queryable) and treats the replies like publications. Every sample goes
+into one bounded queue read by one worker thread, so the tracker is single-threaded and
+sees each instance's inputs in arrival order. Per sample: decode (a malformed payload or
+one disagreeing with its key → dead letter with the reason) → tracker step → commit the
+accepted input to SQLite → ``put`` each changed SegmentState on ``{ns}/state/{line}/{segment}``.
+The queryable ``{ns}/q/state/{selector}`` answers each matching segment's latest state on
+``{ns}/q/state/{line}/{segment}``.
+
+At start the store is replayed (see :mod:`services.filtering.store`) and the rebuilt states
+are published again (a state committed but not yet published when the process died is then
+not lost; a repeated state is harmless to its consumers). Event time only: the wall clock is
+never used for a state.
+
+Options (``services.filtering`` in the config file, overridden by the flags): ``selector``
+(default ``**``), ``db`` (default ``./var/filtering-{instance}.sqlite`` with the configured
+instance id, ``default`` without one, so a restarted process finds its file), ``limits``.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from contextlib import ExitStack
+from pathlib import Path
+
+import zenoh
+
+from schemas import SchemaError, SegmentState, encode, keys
+from services.filtering.store import DEFAULT_DB, PersistentTracker, Store
+from services.filtering.tracker import Tracker
+from services.limits import DEFAULT_LIMITS_FILE, load_limits
+from services.runtime.config import RuntimeConfig
+from services.runtime.service import ServiceRuntime
+
+log = logging.getLogger(__name__)
+
+SERVICE = "filtering"
+INBOX_CAPACITY = 4096  # samples waiting for the worker; a full inbox slows the senders down
+_POLL_S = 0.1  # how often an idle worker (or a blocked callback) looks at the stop event
+
+
+def main(
+    conf: RuntimeConfig,
+    *,
+    selector: str | None = None,
+    db: str | Path | None = None,
+    limits: str | Path | None = None,
+    stop: threading.Event | None = None,
+    handle_signals: bool = True,
+) -> int:
+    """Run one filtering instance until ``stop`` is set or SIGINT/SIGTERM; returns 0."""
+    options = conf.options(SERVICE)
+    selector = selector or options.get("selector") or "**"
+    limits_table = load_limits(limits or options.get("limits") or DEFAULT_LIMITS_FILE)
+    db = db or options.get("db") or DEFAULT_DB.format(instance=conf.instance or "default")
+    with ExitStack() as stack:
+        store = Store(db)
+        stack.callback(store.close)  # after the runtime has joined the worker
+        rt = stack.enter_context(
+            ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop)
+        )
+        node = PersistentTracker(Tracker(limits_table.for_line, limits_table.levels), store)
+        FilteringAdapter(rt, node, selector).start()
+        log.info("filtering %s: selector %s, store %s", rt.instance, selector, store.path)
+        return rt.run()
+    return 0  # unreachable; for type checkers
+
+
+class FilteringAdapter:
+    """Zenoh plumbing around a :class:`PersistentTracker`: inbox, worker, puts, queryable."""
+
+    def __init__(self, rt: ServiceRuntime, node: PersistentTracker, selector: str) -> None:
+        self.rt = rt
+        self.node = node
+        self.selector = selector
+        self.inbox: queue.Queue[tuple[str, bytes]] = queue.Queue(INBOX_CAPACITY)
+        self._latest: dict[tuple[str, str], tuple[str, bytes]] = {}  # -> (q key, payload)
+        self._lock = threading.Lock()
+
+    def start(self) -> None:
+        ns = self.rt.ns
+        for state in self.node.rebuild():
+            self._publish(state)
+        for kind in ("index", "trc", "maintenance"):
+            self.rt.declare_subscriber(keys.segment_keys(ns, kind, self.selector), self._enqueue)
+        self.rt.declare_subscriber(keys.model_all(ns), self._enqueue)
+        q_key = keys.q_state_all(ns).removesuffix("**") + self.selector
+        self.rt.declare_queryable(q_key, self._on_query)
+        self.rt.spawn(self._work, name=f"{SERVICE}:worker")
+        # After subscribing, so a model published meanwhile is not missed either.
+        self.rt.session.get(keys.model_all(ns), self._on_reply)
+
+    # --- Zenoh threads: short, no Zenoh calls except replies ----------------------------
+
+    def _enqueue(self, sample: zenoh.Sample) -> None:
+        item = (str(sample.key_expr), sample.payload.to_bytes())
+        while not self.rt.stopping:
+            try:
+                self.inbox.put(item, timeout=_POLL_S)
+                return
+            except queue.Full:
+                continue
+
+    def _on_reply(self, reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            self._enqueue(reply.ok)
+        else:
+            log.warning("model query: error reply %r", reply.err.payload.to_bytes()[:200])
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        with self._lock:
+            latest = list(self._latest.values())
+        for key, payload in latest:
+            if query.key_expr.intersects(zenoh.KeyExpr(key)):
+                query.reply(key, payload)
+
+    # --- the worker ---------------------------------------------------------------------
+
+    def _work(self) -> None:
+        while True:
+            try:
+                key, payload = self.inbox.get(timeout=_POLL_S)
+            except queue.Empty:
+                if self.rt.stopping:
+                    return
+                continue
+            self._handle(key, payload)
+
+    def _handle(self, key: str, payload: bytes) -> None:
+        try:
+            step = self.node.handle(key, payload)
+        except (SchemaError, ValueError) as e:  # ValueError: a model the core refuses
+            self.rt.deadletters.reject(key, str(e), payload)
+            return
+        if not step.accepted:
+            log.debug("ignored %s: %s", key, step.reason)
+            return
+        for state in step.states:
+            self._publish(state)
+
+    def _publish(self, state: SegmentState) -> None:
+        payload = encode(state)
+        q_key = keys.q_state(self.rt.ns, state.line, state.segment)
+        with self._lock:
+            self._latest[(state.line, state.segment)] = (q_key, payload)
+        # BLOCK: a slow consumer slows the worker down rather than losing states.
+        self.rt.session.put(
+            keys.state(self.rt.ns, state.line, state.segment),
+            payload,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )

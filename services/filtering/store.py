@@ -1,0 +1,234 @@
+"""Persistence of one filtering instance: accepted events and the latest models in SQLite.
+
+The store holds what the tracker needs to rebuild every segment by replay: the raw payload
+of every accepted event (with its kind, key, identity and event time) and the payload of
+the latest Calibration and of the latest DegradationPosterior of each group. Each write is
+its own committed transaction, done *before* the state it leads to is published, so a
+SIGKILL loses nothing that was published (WAL journal; ``synchronous=NORMAL`` is durable
+against a process crash, which is what the design asks for; power loss may drop the last
+transactions: use ``synchronous="FULL"`` for that).
+
+Events older than a segment's latest TRC record can no longer change its state and are
+deleted when that record is stored (:meth:`Store.prune`).
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from schemas import (
+    Calibration,
+    DegradationPosterior,
+    MaintenanceEvent,
+    OnboardIndex,
+    SchemaError,
+    SegmentState,
+    TrcRecord,
+    decode,
+)
+from services.filtering.tracker import (
+    KIND_NAMES,
+    RESTART,
+    EventMessage,
+    ModelMessage,
+    Step,
+    Tracker,
+    event_of,
+)
+
+DEFAULT_DB = "./var/filtering-{instance}.sqlite"
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS events (
+    seq      INTEGER PRIMARY KEY AUTOINCREMENT,
+    line     TEXT NOT NULL,
+    segment  TEXT NOT NULL,
+    kind     TEXT NOT NULL,     -- index, trc, maintenance
+    key      TEXT NOT NULL,     -- key expression it arrived on
+    identity TEXT NOT NULL,     -- JSON of the tracker's identity tuple
+    t        REAL NOT NULL,     -- epoch s of the event (a tamping's assumed time)
+    payload  BLOB NOT NULL,     -- the MessagePack payload as received
+    UNIQUE (line, segment, identity)
+);
+CREATE INDEX IF NOT EXISTS events_segment_t ON events (line, segment, t);
+CREATE TABLE IF NOT EXISTS models (
+    name     TEXT PRIMARY KEY,  -- "calibration" or "degradation/{group}"
+    kind     TEXT NOT NULL,     -- calibration, degradation
+    version  INTEGER NOT NULL,
+    key      TEXT NOT NULL,
+    payload  BLOB NOT NULL
+);
+"""
+
+
+class Store:
+    """One SQLite file (created with its directory if missing); close it, or leave it to the OS.
+
+    Parameters
+    ----------
+    path
+        The database file.
+    synchronous
+        SQLite ``PRAGMA synchronous`` (``NORMAL``: durable against a process crash).
+    """
+
+    def __init__(self, path: str | Path, *, synchronous: str = "NORMAL") -> None:
+        if synchronous.upper() not in {"OFF", "NORMAL", "FULL", "EXTRA"}:
+            raise ValueError(f"synchronous: {synchronous!r} not OFF, NORMAL, FULL or EXTRA")
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # One thread at a time: the service opens it, its single worker uses it, and it is
+        # closed after the worker has been joined.
+        self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
+        self._db.executescript(_SCHEMA)
+
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self) -> Store:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def add_event(
+        self,
+        *,
+        line: str,
+        segment: str,
+        kind: str,
+        key: str,
+        identity: tuple[Any, ...],
+        t: float,
+        payload: bytes,
+    ) -> bool:
+        """Commit one accepted event; False if its identity is already stored."""
+        cur = self._db.execute(
+            "INSERT OR IGNORE INTO events (line, segment, kind, key, identity, t, payload)"
+            " VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (line, segment, kind, key, json.dumps(list(identity)), t, bytes(payload)),
+        )
+        return cur.rowcount == 1
+
+    def prune(self, line: str, segment: str, before_t: float) -> int:
+        """Delete the segment's events older than ``before_t`` (its latest TRC record)."""
+        cur = self._db.execute(
+            "DELETE FROM events WHERE line = ? AND segment = ? AND t < ?",
+            (line, segment, before_t),
+        )
+        return cur.rowcount
+
+    def put_model(self, *, name: str, kind: str, version: int, key: str, payload: bytes) -> None:
+        """Commit the latest model of ``name`` (the caller checked it is newer)."""
+        self._db.execute(
+            "INSERT INTO models (name, kind, version, key, payload) VALUES (?, ?, ?, ?, ?)"
+            " ON CONFLICT (name) DO UPDATE SET kind = excluded.kind,"
+            " version = excluded.version, key = excluded.key, payload = excluded.payload",
+            (name, kind, version, key, bytes(payload)),
+        )
+
+    def models(self) -> Iterator[tuple[str, str, bytes]]:
+        """``(kind, key, payload)`` of every stored model."""
+        yield from self._db.execute("SELECT kind, key, payload FROM models ORDER BY name")
+
+    def events(self) -> Iterator[tuple[str, str, bytes]]:
+        """``(kind, key, payload)`` of every stored event, in the order they were accepted."""
+        yield from self._db.execute("SELECT kind, key, payload FROM events ORDER BY seq")
+
+    def count_events(self) -> int:
+        return self._db.execute("SELECT COUNT(*) FROM events").fetchone()[0]
+
+
+_EVENT_TYPES = {"index": OnboardIndex, "trc": TrcRecord, "maintenance": MaintenanceEvent}
+
+
+def decode_keyed(key: str, payload: bytes) -> EventMessage | ModelMessage | None:
+    """Decode a payload by the kind chunk of its key; None for a model kind we do not use.
+
+    Raises SchemaError when the payload is malformed or disagrees with its key.
+    """
+    parts = str(key).split("/")
+    kind = parts[1] if len(parts) > 1 else ""
+    if kind in _EVENT_TYPES:
+        msg = decode(payload, _EVENT_TYPES[kind])
+        if parts[2:] != [msg.line, msg.segment]:
+            raise SchemaError(
+                f"{type(msg).__name__}: line/segment {msg.line}/{msg.segment} "
+                f"do not match the key {key}"
+            )
+        return msg
+    if parts[1:] == ["model", "calibration"]:
+        return decode(payload, Calibration)
+    if parts[1:3] == ["model", "degradation"]:
+        msg = decode(payload, DegradationPosterior)
+        if parts[3:] != [msg.group]:
+            raise SchemaError(f"DegradationPosterior: group {msg.group} does not match key {key}")
+        return msg
+    if kind == "model":
+        return None
+    raise SchemaError(f"key {key}: not an index, trc, maintenance or model key")
+
+
+class PersistentTracker:
+    """A :class:`Tracker` whose accepted inputs are committed to a :class:`Store` first.
+
+    ``handle(key, payload)`` decodes, steps the tracker and, if the message was accepted,
+    commits it before returning the states to publish. ``rebuild()`` replays the store.
+    """
+
+    def __init__(self, tracker: Tracker, store: Store) -> None:
+        self.tracker = tracker
+        self.store = store
+
+    def handle(self, key: str, payload: bytes) -> Step:
+        msg = decode_keyed(key, payload)
+        if msg is None:
+            return Step(False, "not a model this service uses")
+        step = self.tracker.step(msg)
+        if step.accepted:
+            self._commit(msg, str(key), payload)
+        return step
+
+    def _commit(self, msg: EventMessage | ModelMessage, key: str, payload: bytes) -> None:
+        match msg:
+            case Calibration():
+                self.store.put_model(
+                    name="calibration",
+                    kind="calibration",
+                    version=msg.version,
+                    key=key,
+                    payload=payload,
+                )
+            case DegradationPosterior():
+                self.store.put_model(
+                    name=f"degradation/{msg.group}",
+                    kind="degradation",
+                    version=msg.version,
+                    key=key,
+                    payload=payload,
+                )
+            case _:
+                event = event_of(msg)
+                self.store.add_event(
+                    line=msg.line,
+                    segment=msg.segment,
+                    kind=KIND_NAMES[event.kind],
+                    key=key,
+                    identity=event.identity,
+                    t=event.t_s,
+                    payload=payload,
+                )
+                if event.kind == RESTART:
+                    self.store.prune(msg.line, msg.segment, event.t_s)
+
+    def rebuild(self) -> list[SegmentState]:
+        """Load every stored model and event into the tracker: the publishable states."""
+        models = [decode_keyed(key, payload) for _kind, key, payload in self.store.models()]
+        events = [decode_keyed(key, payload) for _kind, key, payload in self.store.events()]
+        return self.tracker.load([m for m in models if m is not None], events)

@@ -1,0 +1,239 @@
+"""Real processes: `trackfusion router` and `trackfusion filtering`; SIGKILL the filtering
+process mid-run, restart it on the same --db: the final states equal an uninterrupted run."""
+
+from __future__ import annotations
+
+import os
+import queue
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import ExitStack, suppress
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from schemas import (
+    Calibration,
+    DegradationPosterior,
+    MaintenanceEvent,
+    NDArray,
+    OnboardIndex,
+    SegmentState,
+    TrcRecord,
+    decode,
+    encode,
+    keys,
+)
+from services.filtering.tracker import DAY_S, Tracker
+from services.limits import load_limits
+from services.runtime.config import zenoh_config
+
+READY_S = 20.0  # interpreter start + imports on a loaded machine
+WAIT_S = 20.0
+T0 = 1_767_225_600.0
+NS = 50
+SEGMENTS = ("s1", "s2", "s3")
+
+
+class Process:
+    """A `trackfusion …` subprocess in its own process group, stderr to a log file."""
+
+    def __init__(self, stack: ExitStack, log_path: Path, *args: str) -> None:
+        self.log_path = log_path
+        log = stack.enter_context(log_path.open("w"))
+        self.popen = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", *args],
+            stdout=subprocess.DEVNULL,
+            stderr=log,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+        stack.callback(self.kill)
+
+    def signal(self, signum: int) -> None:
+        os.killpg(self.popen.pid, signum)
+
+    def wait(self, timeout: float) -> int:
+        return self.popen.wait(timeout)
+
+    def log(self) -> str:
+        return f"\n--- {self.log_path.name} ---\n{self.log_path.read_text()}"
+
+    def kill(self) -> None:
+        if self.popen.poll() is None:
+            with suppress(ProcessLookupError):
+                os.killpg(self.popen.pid, signal.SIGKILL)
+            self.popen.wait(5)
+
+
+@pytest.fixture
+def stack() -> Iterator[ExitStack]:
+    with ExitStack() as stack:
+        yield stack
+
+
+def models() -> list[Calibration | DegradationPosterior]:
+    rng = np.random.default_rng(7)
+    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((NS, 1)))
+    return [
+        Calibration(
+            version=1,
+            t=T0,
+            indicators=["top6", "align10"],
+            indices=["top6", "align10"],
+            H=NDArray.of([[0.9, 0.05], [0.05, 0.75]]),
+            b=NDArray.of([-0.25, -0.35]),
+            R=NDArray.of([[0.01, 0.002], [0.002, 0.03]]),
+            n_pairs=40,
+            r2=NDArray.of([0.8, 0.7]),
+        ),
+        DegradationPosterior(
+            group="net",
+            version=1,
+            t=T0,
+            indicators=["top6", "align10"],
+            mu=NDArray.of(rng.normal([7e-4, 4e-4], 2e-4, (NS, 2))),
+            sigma=NDArray.of(np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None]),
+            z_plus=NDArray.of(rng.normal(np.log([2.0, 1.8]), 0.05, (NS, 2))),
+            sigma_z_plus=NDArray.of(np.broadcast_to(np.eye(2) * 0.01, (NS, 2, 2))),
+            n_increments=20,
+            n_levels=5,
+        ),
+    ]
+
+
+def history() -> tuple[list, list]:
+    """Two phases of events on three L1 segments; phase 2 has a late index and duplicates."""
+    rng = np.random.default_rng(8)
+    before, after = [], []
+    for seg in SEGMENTS:
+        before.append(
+            TrcRecord(line="L1", segment=seg, t=T0, top6_mm=3.0, align10_mm=2.4, run_id="r0")
+        )
+        for day in range(3, 60, 5):
+            top6, align10 = np.exp(rng.normal([0.8, 0.5], 0.1)).tolist()
+            msg = OnboardIndex(
+                line="L1",
+                segment=seg,
+                train=f"T{day % 3}",
+                unit="u1",
+                t=T0 + day * DAY_S,
+                top6_mm=top6,
+                align10_mm=align10,
+                speed_mps=30.0,
+                coverage=1.0,
+            )
+            (before if day < 30 else after).append(msg)
+        after.append(
+            MaintenanceEvent(
+                line="L1",
+                segment=seg,
+                event_id=f"tamp-{seg}",
+                t_start=T0 + 40 * DAY_S,
+                t_end=T0 + 44 * DAY_S,
+            )
+        )
+    late = after.pop(len(after) // 2)  # arrives after later events of its segment
+    return before, [*after, late, before[2], after[0]]  # plus two duplicates
+
+
+def key_of(ns: str, msg) -> str:
+    match msg:
+        case Calibration():
+            return keys.calibration(ns)
+        case DegradationPosterior():
+            return keys.degradation(ns, msg.group)
+        case TrcRecord():
+            return keys.trc(ns, msg.line, msg.segment)
+        case MaintenanceEvent():
+            return keys.maintenance(ns, msg.line, msg.segment)
+    return keys.index(ns, msg.line, msg.segment)
+
+
+def test_sigkill_and_restart_give_the_uninterrupted_states(
+    stack, tmp_path, free_port, namespace, until_matched, liveliness_events
+):
+    endpoint = f"tcp/127.0.0.1:{free_port}"
+    Process(stack, tmp_path / "router.log", "router", "--listen", endpoint)
+    filtering_args = (
+        *("filtering", "--connect", endpoint, "--ns", namespace, "--instance", "e2e"),
+        *("--db", str(tmp_path / "filtering.sqlite")),
+    )
+    settings = {"connect": {"endpoints": [endpoint], "timeout_ms": int(READY_S * 1000)}}
+    session = stack.enter_context(zenoh.open(zenoh_config(settings)))
+
+    # The test stands in for the calibration service: the latest models on a queryable.
+    model_msgs = models()
+    latest = [(key_of(namespace, m), encode(m)) for m in model_msgs]
+
+    def on_query(query: zenoh.Query) -> None:
+        for key, payload in latest:
+            if query.key_expr.intersects(zenoh.KeyExpr(key)):
+                query.reply(key, payload)
+
+    stack.callback(session.declare_queryable(keys.model_all(namespace), on_query).undeclare)
+    states: queue.Queue[SegmentState] = queue.Queue()
+    subscriber = session.declare_subscriber(
+        keys.segment_keys(namespace, "state"),
+        lambda s: states.put(decode(s.payload.to_bytes(), SegmentState)),
+    )
+    stack.callback(subscriber.undeclare)
+    alive_key = keys.alive(namespace, "filtering", "e2e")
+    alive = liveliness_events(session, alive_key)
+
+    before, after = history()
+    reference = Tracker(*_limits())
+    for msg in model_msgs:
+        reference.step(msg)
+
+    def send_and_wait(messages, proc: Process) -> None:
+        """Publish, then wait until every segment's latest state is the reference's."""
+        for msg in messages:
+            reference.step(msg)
+        want = {seg: encode(reference.state_of("L1", seg)) for seg in SEGMENTS}
+        publishers: dict[str, zenoh.Publisher] = {}
+        for msg in messages:
+            key = key_of(namespace, msg)
+            if key not in publishers:
+                publishers[key] = session.declare_publisher(key)
+                until_matched(publishers[key], READY_S)
+            publishers[key].put(encode(msg))
+        for publisher in publishers.values():
+            publisher.undeclare()
+        got: dict[str, bytes] = {}
+        while got != want:
+            try:
+                state = states.get(timeout=WAIT_S)
+            except queue.Empty:
+                raise AssertionError(f"states never matched{proc.log()}") from None
+            got[state.segment] = encode(state)
+
+    first = Process(stack, tmp_path / "filtering-1.log", *filtering_args)
+    assert alive.get(READY_S) == (zenoh.SampleKind.PUT, alive_key), first.log()
+    send_and_wait(before, first)
+
+    first.signal(signal.SIGKILL)  # mid-run: no chance to close anything
+    assert first.wait(5) == -signal.SIGKILL
+    assert alive.get(WAIT_S) == (zenoh.SampleKind.DELETE, alive_key)
+
+    second = Process(stack, tmp_path / "filtering-2.log", *filtering_args)
+    assert alive.get(READY_S) == (zenoh.SampleKind.PUT, alive_key), second.log()
+    send_and_wait(after, second)
+
+    replies = session.get(keys.q_state_all(namespace), timeout=5)
+    queried = {str(r.ok.key_expr): r.ok.payload.to_bytes() for r in replies if r.ok is not None}
+    assert queried == {
+        keys.q_state(namespace, "L1", seg): encode(reference.state_of("L1", seg))
+        for seg in SEGMENTS
+    }
+    second.signal(signal.SIGTERM)
+    assert second.wait(5) == 0, second.log()
+
+
+def _limits():
+    limits = load_limits()
+    return limits.for_line, limits.levels

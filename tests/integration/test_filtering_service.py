@@ -1,0 +1,245 @@
+"""The filtering service in-process on a real router: models, events, states, queries,
+dead letters and the selector."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import pytest
+import zenoh
+
+from schemas import (
+    Calibration,
+    DeadLetter,
+    DegradationPosterior,
+    NDArray,
+    OnboardIndex,
+    SegmentState,
+    TrcRecord,
+    decode,
+    encode,
+    keys,
+)
+from services.filtering import service
+from services.filtering.tracker import DAY_S, Tracker
+from services.limits import load_limits
+
+T0 = 1_767_225_600.0
+NS = 30
+LIMITS = load_limits()
+
+
+def models() -> list[Calibration | DegradationPosterior]:
+    rng = np.random.default_rng(0)
+    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((NS, 1)))
+    return [
+        Calibration(
+            version=1,
+            t=T0,
+            indicators=["top6", "align10"],
+            indices=["top6", "align10"],
+            H=NDArray.of([[0.9, 0.05], [0.05, 0.75]]),
+            b=NDArray.of([-0.25, -0.35]),
+            R=NDArray.of([[0.01, 0.002], [0.002, 0.03]]),
+            n_pairs=40,
+            r2=NDArray.of([0.8, 0.7]),
+        ),
+        DegradationPosterior(
+            group="net",
+            version=1,
+            t=T0,
+            indicators=["top6", "align10"],
+            mu=NDArray.of(rng.normal([7e-4, 4e-4], 2e-4, (NS, 2))),
+            sigma=NDArray.of(np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None]),
+            z_plus=NDArray.of(np.broadcast_to(np.log([2.0, 1.8]), (NS, 2))),
+            sigma_z_plus=NDArray.of(np.broadcast_to(np.eye(2) * 0.01, (NS, 2, 2))),
+            n_increments=20,
+            n_levels=5,
+        ),
+    ]
+
+
+def model_key(ns: str, msg: Calibration | DegradationPosterior) -> str:
+    if isinstance(msg, Calibration):
+        return keys.calibration(ns)
+    return keys.degradation(ns, msg.group)
+
+
+def events(line: str = "L1", segment: str = "s1") -> list[TrcRecord | OnboardIndex]:
+    out: list[TrcRecord | OnboardIndex] = [
+        TrcRecord(line=line, segment=segment, t=T0, top6_mm=3.0, align10_mm=2.5, run_id="r1")
+    ]
+    for k, (top6, align10) in enumerate([(2.4, 1.7), (2.6, 1.6), (2.5, 1.9)]):
+        out.append(
+            OnboardIndex(
+                line=line,
+                segment=segment,
+                train="T1",
+                unit="u1",
+                t=T0 + (k + 1) * 7 * DAY_S,
+                top6_mm=top6,
+                align10_mm=align10,
+                speed_mps=30.0,
+                coverage=1.0,
+            )
+        )
+    return out
+
+
+def event_key(ns: str, msg: TrcRecord | OnboardIndex) -> str:
+    if isinstance(msg, TrcRecord):
+        return keys.trc(ns, msg.line, msg.segment)
+    return keys.index(ns, msg.line, msg.segment)
+
+
+def expected(messages) -> SegmentState:
+    tracker = Tracker(LIMITS.for_line, LIMITS.levels)
+    states = [s for msg in messages for s in tracker.step(msg).states]
+    return states[-1]
+
+
+@pytest.fixture
+def start_filtering(
+    service_config, tmp_path, liveliness_events, open_session
+) -> Iterator[Callable[..., None]]:
+    """``start_filtering(selector)``: the service in a thread, ready when it returns."""
+    stops: list[tuple[threading.Event, threading.Thread]] = []
+    observer = open_session()
+    alive = liveliness_events(observer, keys.alive_all(service_config.ns))
+
+    def start(selector: str = "**") -> None:
+        stop = threading.Event()
+        thread = threading.Thread(
+            target=service.main,
+            args=(service_config,),
+            kwargs={
+                "selector": selector,
+                "db": tmp_path / "filtering.sqlite",
+                "stop": stop,
+                "handle_signals": False,
+            },
+            name="filtering-under-test",
+        )
+        thread.start()
+        stops.append((stop, thread))
+        key = keys.alive(service_config.ns, service.SERVICE, "test")
+        assert alive.get() == (zenoh.SampleKind.PUT, key)
+
+    try:
+        yield start
+    finally:
+        for stop, thread in stops:
+            stop.set()
+            thread.join(10)
+            assert not thread.is_alive()
+
+
+@pytest.fixture
+def model_queryable(open_session, namespace) -> Iterator[zenoh.Session]:
+    """Stands in for the calibration service: answers the latest models on model/**."""
+    session = open_session()
+    latest = [(model_key(namespace, m), encode(m)) for m in models()]
+
+    def on_query(query: zenoh.Query) -> None:
+        for key, payload in latest:
+            if query.key_expr.intersects(zenoh.KeyExpr(key)):
+                query.reply(key, payload)
+
+    queryable = session.declare_queryable(keys.model_all(namespace), on_query)
+    yield session
+    queryable.undeclare()
+
+
+def put_all(session: zenoh.Session, until_matched, items) -> None:
+    """Put ``(key, payload)`` items, each key's publisher matched first."""
+    publishers: dict[str, zenoh.Publisher] = {}
+    try:
+        for key, payload in items:
+            if key not in publishers:
+                publishers[key] = session.declare_publisher(key)
+                until_matched(publishers[key])
+            publishers[key].put(payload)
+    finally:
+        for publisher in publishers.values():
+            publisher.undeclare()
+
+
+def query_states(session: zenoh.Session, selector: str) -> dict[str, bytes]:
+    replies = session.get(selector, timeout=5)
+    return {str(r.ok.key_expr): r.ok.payload.to_bytes() for r in replies if r.ok is not None}
+
+
+def test_states_from_late_joined_models_and_events_equal_the_core(
+    namespace, open_session, collector, until_matched, model_queryable, start_filtering
+):
+    session = open_session()
+    states = collector(lambda s: (str(s.key_expr), decode(s.payload.to_bytes(), SegmentState)))
+    session.declare_subscriber(keys.segment_keys(namespace, "state"), states)
+    start_filtering()  # gets the models from the queryable at start
+
+    msgs = events()
+    put_all(session, until_matched, [(event_key(namespace, m), encode(m)) for m in msgs])
+
+    received = [states.get() for _ in msgs]
+    key, last = received[-1]
+    assert key == keys.state(namespace, "L1", "s1")
+    assert [s.n_updates for _, s in received] == [0, 1, 2, 3]
+    want = expected([*models(), *msgs])
+    assert encode(last) == encode(want)  # every number, bit for bit
+    assert last.posterior_group == "net" and last.calibration_version == 1
+    assert last.forecast_p_exceed.shape == [3, 2, 2]
+
+    for selector in (keys.q_state_all(namespace), f"{namespace}/q/state/L1/**"):
+        assert query_states(session, selector) == {
+            keys.q_state(namespace, "L1", "s1"): encode(want)
+        }
+    assert query_states(session, f"{namespace}/q/state/L2/**") == {}
+
+
+def test_malformed_payload_is_dead_lettered_and_the_service_goes_on(
+    namespace, open_session, collector, until_matched, start_filtering
+):
+    session = open_session()
+    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
+    session.declare_subscriber(keys.deadletter(namespace, service.SERVICE), letters)
+    states = collector(lambda s: decode(s.payload.to_bytes(), SegmentState))
+    session.declare_subscriber(keys.segment_keys(namespace, "state"), states)
+    start_filtering()
+
+    put_all(session, until_matched, [(model_key(namespace, m), encode(m)) for m in models()])
+    bad_key = keys.index(namespace, "L1", "s1")
+    trc = events()[0]
+    put_all(
+        session,
+        until_matched,
+        [
+            (bad_key, b"\x81\xa1v\x01"),  # a map with only v: fields missing
+            (keys.trc(namespace, "L1", "other"), encode(trc)),  # key disagrees with payload
+            (keys.trc(namespace, "L1", "s1"), encode(trc)),
+        ],
+    )
+    first, second = letters.get(), letters.get()
+    assert first.key == bad_key and first.reason.startswith("OnboardIndex:")
+    assert "do not match the key" in second.reason
+    assert states.get().n_updates == 0  # still serving
+
+
+def test_an_instance_owning_l1_ignores_l2(
+    namespace, open_session, collector, until_matched, model_queryable, start_filtering
+):
+    session = open_session()
+    states = collector(lambda s: decode(s.payload.to_bytes(), SegmentState))
+    session.declare_subscriber(keys.segment_keys(namespace, "state"), states)
+    start_filtering("L1/**")
+
+    l2, l1 = events("L2", "s9")[0], events("L1", "s1")[0]
+    for msg in (l2, l1):
+        # The L2 put has no subscriber to match: put it straight from the session.
+        session.put(event_key(namespace, msg), encode(msg))
+    put_all(session, until_matched, [(event_key(namespace, l1), encode(l1))])  # a duplicate
+    assert states.get().line == "L1"
+    assert set(query_states(session, keys.q_state_all(namespace))) == {
+        keys.q_state(namespace, "L1", "s1")
+    }

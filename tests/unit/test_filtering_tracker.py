@@ -1,0 +1,354 @@
+"""The filtering core (tracker) and its store: lists of messages in, lists of states out."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from schemas import (
+    Calibration,
+    DegradationPosterior,
+    MaintenanceEvent,
+    NDArray,
+    OnboardIndex,
+    SegmentState,
+    TrcRecord,
+    encode,
+    keys,
+)
+from services.filtering.bank import FilterBank, ObservationModel
+from services.filtering.degradation import DegradationParams
+from services.filtering.mixture import forecast, summarize
+from services.filtering.store import PersistentTracker, Store
+from services.filtering.tracker import DAY_S, Tracker
+from services.limits import load_limits
+
+T0 = 1_767_225_600.0  # 2026-01-01 UTC
+NS = 40
+H = np.array([[0.9, 0.05], [0.05, 0.75]])
+B = np.array([-0.25, -0.35])
+R = np.array([[0.01, 0.002], [0.002, 0.03]])
+LIMITS = load_limits()
+
+
+def calibration(version: int = 1, scale: float = 1.0) -> Calibration:
+    return Calibration(
+        version=version,
+        t=T0,
+        indicators=["top6", "align10"],
+        indices=["top6", "align10"],
+        H=NDArray.of(H * scale),
+        b=NDArray.of(B),
+        R=NDArray.of(R),
+        n_pairs=50,
+        r2=NDArray.of([0.8, 0.7]),
+    )
+
+
+def posterior(group: str = "net", version: int = 1, seed: int = 0) -> DegradationPosterior:
+    rng = np.random.default_rng(seed)
+    mu = rng.normal([7e-4, 4e-4], 2e-4, (NS, 2))
+    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((NS, 1)))
+    sigma = np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None, :]
+    z_plus = np.log([2.0, 1.8]) + rng.normal(0, 0.05, (NS, 2))
+    sigma_z_plus = np.broadcast_to(np.eye(2) * 0.01, (NS, 2, 2))
+    return DegradationPosterior(
+        group=group,
+        version=version,
+        t=T0,
+        indicators=["top6", "align10"],
+        mu=NDArray.of(mu),
+        sigma=NDArray.of(sigma),
+        z_plus=NDArray.of(z_plus),
+        sigma_z_plus=NDArray.of(sigma_z_plus),
+        n_increments=30,
+        n_levels=10,
+    )
+
+
+def params_of(post: DegradationPosterior) -> DegradationParams:
+    return DegradationParams(
+        post.mu.array(), post.sigma.array(), post.z_plus.array(), post.sigma_z_plus.array()
+    )
+
+
+def trc(t_days: float, top6: float = 3.0, align10: float = 2.5, line="L1", segment="s1"):
+    return TrcRecord(
+        line=line,
+        segment=segment,
+        t=T0 + t_days * DAY_S,
+        top6_mm=top6,
+        align10_mm=align10,
+        run_id=f"run{t_days:g}",
+    )
+
+
+def index(t_days: float, top6: float, align10: float, line="L1", segment="s1", train="T1"):
+    return OnboardIndex(
+        line=line,
+        segment=segment,
+        train=train,
+        unit="u1",
+        t=T0 + t_days * DAY_S,
+        top6_mm=top6,
+        align10_mm=align10,
+        speed_mps=30.0,
+        coverage=1.0,
+    )
+
+
+def tamping(t_start_days: float, t_end_days: float | None = None, line="L1", segment="s1"):
+    t_end_days = t_start_days if t_end_days is None else t_end_days
+    return MaintenanceEvent(
+        line=line,
+        segment=segment,
+        event_id=f"tamp{t_start_days:g}",
+        t_start=T0 + t_start_days * DAY_S,
+        t_end=T0 + t_end_days * DAY_S,
+    )
+
+
+def history(rng: np.random.Generator, segments=("s1", "s2", "s3")) -> list:
+    """Events of a few segments: TRC records, weekly-ish indices, a known and an interval
+    tamping, and equal-time ties."""
+    events = []
+    for k, seg in enumerate(segments):
+        events.append(trc(0.0, 3.0 + k, 2.5, segment=seg))
+        for week in range(1, 20):
+            top6, align10 = np.exp(rng.normal([0.8, 0.5], 0.1)).tolist()
+            events.append(index(7.0 * week + 0.5 * k, top6, align10, segment=seg))
+        events.append(index(14.0 + 0.5 * k, 2.0, 2.0, segment=seg, train="T2"))  # same t
+        events.append(tamping(60.0, segment=seg) if k % 2 else tamping(58.0, 64.0, segment=seg))
+        events.append(trc(100.0, 2.2, 2.0, segment=seg))
+        events.append(index(100.0, 2.1, 1.9, segment=seg))  # tie with the TRC record
+    return events
+
+
+def new_tracker() -> Tracker:
+    return Tracker(LIMITS.for_line, LIMITS.levels)
+
+
+def run(messages) -> tuple[Tracker, list[SegmentState]]:
+    tracker = new_tracker()
+    out = []
+    for msg in messages:
+        out.extend(tracker.step(msg).states)
+    return tracker, out
+
+
+def assert_same_states(a: Tracker, b: Tracker) -> None:
+    assert a.tracks.keys() == b.tracks.keys()
+    for sid in a.tracks:
+        ta, tb = a.tracks[sid], b.tracks[sid]
+        assert [e.identity for e in ta.log] == [e.identity for e in tb.log]
+        assert (ta.state is None) == (tb.state is None)
+        if ta.state is not None:
+            assert np.array_equal(ta.state.z, tb.state.z)
+            assert np.array_equal(ta.state.P, tb.state.P)
+            assert (ta.state.t_s, ta.state.n_updates, ta.state.nis) == (
+                tb.state.t_s,
+                tb.state.n_updates,
+                tb.state.nis,
+            )
+        sa, sb = a.segment_state(ta), b.segment_state(tb)
+        assert (sa is None) == (sb is None)
+        if sa is not None:
+            assert encode(sa) == encode(sb)  # every field, bit for bit
+
+
+MODELS = [calibration(), posterior()]
+
+
+def test_shuffled_and_duplicated_delivery_give_the_in_order_state():
+    rng = np.random.default_rng(1)
+    events = history(rng)
+    in_order = sorted(events, key=lambda m: getattr(m, "t", getattr(m, "t_start", 0.0)))
+    reference, _ = run(MODELS + in_order)
+    for seed in range(5):
+        shuffled = list(events)
+        np.random.default_rng(seed).shuffle(shuffled)
+        tracker, _ = run(MODELS + shuffled)
+        assert_same_states(reference, tracker)
+        duplicated = shuffled + shuffled[::3]
+        np.random.default_rng(seed + 10).shuffle(duplicated)
+        tracker, _ = run(duplicated[:7] + MODELS + duplicated[7:])  # models arrive late too
+        assert_same_states(reference, tracker)
+
+
+def test_duplicates_and_events_before_the_latest_trc_are_refused():
+    tracker, _ = run([*MODELS, trc(0.0), index(3.0, 2.0, 2.0), trc(10.0)])
+    assert tracker.step(index(3.0, 2.0, 2.0)).reason == "older than the latest TRC record"
+    step = tracker.step(index(12.0, 2.0, 2.0))
+    assert step.accepted and len(step.states) == 1
+    assert tracker.step(index(12.0, 2.0, 2.0)).reason == "duplicate"
+    assert [e.t_s for e in tracker.tracks[("L1", "s1")].log] == [T0 + 10 * DAY_S, T0 + 12 * DAY_S]
+
+
+def test_trc_restart_sets_every_sample_to_the_record():
+    tracker, _ = run([*MODELS, trc(0.0), index(3.0, 2.0, 2.0)])
+    (state,) = tracker.step(trc(20.0, 4.0, 3.0)).states
+    track = tracker.tracks[("L1", "s1")]
+    np.testing.assert_array_equal(track.state.z, np.broadcast_to(np.log([4.0, 3.0]), (NS, 2)))
+    np.testing.assert_array_equal(track.state.P, 0.0)
+    assert state.last_trc_t == T0 + 20 * DAY_S and state.n_updates == 0 and state.nis is None
+    np.testing.assert_allclose(state.ci_low_mm.array(), [4.0, 3.0])
+    np.testing.assert_allclose(state.ci_high_mm.array(), [4.0, 3.0])
+    assert state.width == 0.0
+
+
+def bank_replay(post, steps) -> FilterBank:
+    """The FilterBank core on one segment: steps are (op, t_days, value)."""
+    bank = FilterBank(1, params_of(post))
+    model = ObservationModel(H, B, R)
+    for op, t_days, value in steps:
+        if op == "restart":
+            bank.restart([0], np.log([value]), t_days)
+        elif op == "tamping":
+            bank.predict_to([0], t_days, tamping_age=[0.0])
+        else:
+            bank.observe([0], t_days, np.log([value]), model)
+    return bank
+
+
+@pytest.mark.parametrize("interval", [None, (50.0, 60.0)], ids=["known", "interval"])
+def test_results_equal_the_filter_bank_core(interval):
+    post = posterior()
+    t_tamp = 55.0 if interval is None else 0.5 * sum(interval)
+    tamp = tamping(55.0) if interval is None else tamping(*interval)
+    messages = [trc(0.0, 3.0, 2.5), tamp]
+    steps = [("restart", 0.0, (3.0, 2.5)), ("tamping", t_tamp, None)]
+    rng = np.random.default_rng(3)
+    for day in (4.0, 11.0, 30.0, 54.0, 56.0, 70.0):
+        y = tuple(np.exp(rng.normal([0.8, 0.5], 0.1)).tolist())
+        messages.append(index(day, *y))
+        steps.append(("index", day, y))
+    steps.sort(key=lambda s: s[1])
+    tracker, states = run([calibration(), post, *messages])
+    bank = bank_replay(post, steps)
+    track = tracker.tracks[("L1", "s1")]
+    np.testing.assert_allclose(track.state.z, bank.z[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(track.state.P, bank.P[0], rtol=0, atol=1e-12)
+    assert track.state.t_s == T0 + 70 * DAY_S and bank.t[0] == 70.0
+    # the published summary is the mixture of that bank
+    state = states[-1]
+    limits = LIMITS.for_line("L1")
+    now = summarize(bank.z[0], bank.P[0], limits)
+    ahead = forecast(bank.z[0], bank.P[0], params_of(post), [30.0, 90.0, 180.0])
+    np.testing.assert_allclose(state.mean.array(), now.mean, atol=1e-12)
+    np.testing.assert_allclose(state.cov.array(), now.cov, atol=1e-12)
+    np.testing.assert_allclose(state.ci_high_mm.array(), now.ci_high_mm, rtol=1e-9)
+    np.testing.assert_allclose(state.p_exceed.array(), now.p_exceed, atol=1e-9)
+    np.testing.assert_allclose(state.forecast_mean.array(), ahead.mean, atol=1e-12)
+    np.testing.assert_allclose(state.forecast_ci_low_mm.array(), ahead.ci_low_mm, rtol=1e-9)
+    for level in range(2):
+        fp = forecast(bank.z[0], bank.P[0], params_of(post), [30.0, 90.0, 180.0], limits[level])
+        np.testing.assert_allclose(state.forecast_p_exceed.array()[:, level], fp.p_exceed)
+    assert state.n_updates == 6 and state.last_trc_t == T0
+    assert state.posterior_group == "net" and state.calibration_version == 1
+
+
+def test_tamping_resets_to_the_post_tamping_level():
+    post = posterior()
+    tracker, _ = run([calibration(), post, trc(0.0), index(5.0, 2.0, 2.0), tamping(8.0, 12.0)])
+    track = tracker.tracks[("L1", "s1")]
+    np.testing.assert_array_equal(track.state.z, post.z_plus.array())
+    np.testing.assert_array_equal(track.state.P, post.sigma_z_plus.array())
+    assert track.state.t_s == T0 + 10 * DAY_S  # mid-interval
+    assert track.state.n_updates == 1  # a tamping keeps the count since the TRC record
+
+
+def test_tamping_starts_a_segment_without_trc():
+    post = posterior()
+    tracker, states = run([calibration(), post, index(1.0, 2.0, 2.0), tamping(3.0)])
+    assert len(states) == 1 and states[0].last_trc_t is None and states[0].n_updates == 0
+    step = tracker.step(index(5.0, 2.1, 1.9))
+    assert step.states[0].n_updates == 1
+    bank = bank_replay(post, [("tamping", 3.0, None), ("index", 5.0, (2.1, 1.9))])
+    np.testing.assert_allclose(tracker.tracks[("L1", "s1")].state.z, bank.z[0], atol=1e-12)
+
+
+def test_no_state_without_start_posterior_or_calibration():
+    tracker, states = run([index(1.0, 2.0, 2.0), trc(0.0)])
+    assert states == []  # no posterior
+    assert tracker.step(posterior()).states == ()  # an index but no calibration
+    step = tracker.step(calibration())
+    assert step.accepted and [s.n_updates for s in step.states] == [1]
+    tracker, states = run([posterior(), trc(0.0)])
+    assert [s.calibration_version for s in states] == [0]  # nothing to update: publishable
+    assert run([*MODELS, index(1.0, 2.0, 2.0)])[1] == []  # nothing to start from
+
+
+def test_model_change_reruns_the_segments_from_their_trc_record():
+    rng = np.random.default_rng(2)
+    events = history(rng)
+    old, _ = run([calibration(1), posterior(seed=0), *events])
+    for change, fresh in (
+        ([calibration(2, scale=1.1)], [calibration(2, scale=1.1), posterior(seed=0)]),
+        ([posterior(version=2, seed=5)], [calibration(1), posterior(version=2, seed=5)]),
+        ([posterior("line.L1", seed=6)], [calibration(1), posterior("line.L1", seed=6)]),
+    ):
+        tracker, _ = run([calibration(1), posterior(seed=0), *events])
+        for msg in change:
+            step = tracker.step(msg)
+            assert step.accepted and len(step.states) == 3
+        reference, _ = run([*fresh, *events])
+        for sid, track in tracker.tracks.items():
+            np.testing.assert_array_equal(track.state.z, reference.tracks[sid].state.z)
+            assert not np.array_equal(track.state.z, old.tracks[sid].state.z)
+    step = tracker.step(posterior(version=1, seed=9))
+    assert not step.accepted and step.states == ()
+
+
+def test_most_specific_group_wins():
+    tracker, _ = run([calibration(), posterior("net"), posterior("line.L1", seed=1)])
+    tracker.step(trc(0.0, segment="s1"))
+    tracker.step(trc(0.0, line="L2", segment="s1"))
+    step = tracker.step(posterior("seg.L1.s1", seed=2))
+    assert [s.posterior_group for s in step.states] == ["seg.L1.s1"]
+    assert tracker.state_of("L2", "s1").posterior_group == "net"
+    assert tracker.state_of("L1", "s1").limits_mm.array().tolist() == LIMITS.for_line("L1").tolist()
+
+
+def feed(db, messages) -> PersistentTracker:
+    node = PersistentTracker(new_tracker(), Store(db))
+    for msg in messages:
+        node.handle(*keyed(msg))
+    return node
+
+
+def test_store_rebuilds_identical_states_after_an_unclean_stop(tmp_path):
+    rng = np.random.default_rng(4)
+    events = history(rng)
+    rng.shuffle(events)
+    db = tmp_path / "filtering-test.sqlite"
+    first = feed(db, [calibration(1), posterior(), *events[:40], calibration(2, 1.05)])
+    # No close(): the first connection is simply abandoned, as after a SIGKILL.
+    second = PersistentTracker(new_tracker(), Store(db))
+    states = second.rebuild()
+    assert len(states) == 3
+    assert_same_states(first.tracker, second.tracker)
+    for msg in events[40:]:  # both go on identically
+        first.tracker.step(msg)
+        second.handle(*keyed(msg))
+    assert_same_states(first.tracker, second.tracker)
+    # the TRC records at day 100 pruned everything before them: the store holds the logs
+    rebuilt = PersistentTracker(new_tracker(), Store(db))
+    rebuilt.rebuild()
+    in_logs = sum(len(track.log) for track in first.tracker.tracks.values())
+    assert rebuilt.store.count_events() == in_logs == 3 * 7
+    assert_same_states(first.tracker, rebuilt.tracker)
+    for node in (second, rebuilt):
+        node.store.close()
+
+
+def keyed(msg) -> tuple[str, bytes]:
+    """The key a message is published on (namespace "tf") and its payload."""
+    match msg:
+        case Calibration():
+            key = keys.calibration("tf")
+        case DegradationPosterior():
+            key = keys.degradation("tf", msg.group)
+        case _:
+            kind = {OnboardIndex: "index", TrcRecord: "trc", MaintenanceEvent: "maintenance"}
+            key = keys.segment_keys("tf", kind[type(msg)], f"{msg.line}/{msg.segment}")
+    return key, encode(msg)
