@@ -210,6 +210,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="FILE.geojson", help="default: stdout")
     p.set_defaults(func=_network_generate)
 
+    # --- up (services/stack.py) -------------------------------------------------------------
+    def _up(args: argparse.Namespace) -> int:
+        from services import stack
+        from services.runtime.service import configure_logging
+
+        configure_logging(args.log_level)
+        return stack.main(args.stack, ns=args.ns, listen=args.listen)
+
+    p = sub.add_parser(
+        "up",
+        help="run the whole system: embedded router, services, simulator, viewer",
+        description="Start everything of the stack file with a live status table; Ctrl-C "
+        "stops it all.",
+    )
+    p.add_argument(
+        "--stack",
+        default=str(Path(__file__).resolve().parents[1] / "deploy" / "stack.json5"),
+        help="stack file (default: %(default)s)",
+    )
+    p.add_argument("--ns", help="namespace (stack file's by default)")
+    p.add_argument("--listen", metavar="ENDPOINT", help="router endpoint (stack file's)")
+    p.add_argument("--log-level", default="warning", choices=["debug", "info", "warning"])
+    p.set_defaults(func=_up)
+
     # --- operator commands (services/operator.py) ------------------------------------------
     def _operator(command: str):
         def run(args: argparse.Namespace) -> int:
@@ -347,7 +371,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except BrokenPipeError:  # `trackfusion alerts | head`: the reader has gone, not an error
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":

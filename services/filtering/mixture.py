@@ -114,7 +114,8 @@ def _mixture_quantile(q, m, s):
         la, ha = lo[active], hi[active]
         with np.errstate(divide="ignore", invalid="ignore"):
             newton = xa - (cdf - qa) / pdf
-        inside = (pdf > 0) & (newton > la) & (newton < ha)
+        # Closed bracket: a converged Newton step lands on the end just moved to xa.
+        inside = (pdf > 0) & (newton >= la) & (newton <= ha)
         step = np.where(inside, newton, 0.5 * (la + ha))
         x[active] = step
         done = (np.abs(step - xa) < _QUANTILE_TOL) | (ha - la < _QUANTILE_TOL)
