@@ -1,0 +1,59 @@
+"""deploy/: the compose file and the stack file run the same processes with the same
+settings; every config file there parses."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import json5
+import pytest
+import yaml
+
+from services.stack import load_stack
+
+DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
+WIRING = {"--connect", "--ns"}  # the stack adds these itself
+
+
+def normalised(args) -> tuple[str, ...]:
+    """Arguments without the wiring flags, file paths reduced to their names."""
+    out, skip = [], False
+    for arg in map(str, args):
+        if skip:
+            skip = False
+            continue
+        if arg in WIRING:
+            skip = True
+            continue
+        out.append(Path(arg).name if arg.endswith(".sqlite") else arg)
+    return tuple(out)
+
+
+def test_compose_and_stack_run_the_same_processes():
+    stack = load_stack(DEPLOY / "stack.json5")
+    compose = yaml.safe_load((DEPLOY / "compose.yaml").read_text())["services"]
+    assert "router" in compose
+    in_compose = {
+        name: (svc["command"][0], normalised(svc["command"][1:]))
+        for name, svc in compose.items()
+        if name != "router"
+    }
+    in_stack = {p.name: (p.command, normalised(p.args)) for p in stack.processes}
+    assert in_compose == in_stack
+
+
+def test_compose_router_uses_the_router_config():
+    router = yaml.safe_load((DEPLOY / "compose.yaml").read_text())["services"]["router"]
+    assert router["image"].startswith("eclipse/zenoh:")
+    assert any("router.json5" in volume for volume in router["volumes"])
+
+
+@pytest.mark.parametrize("path", sorted(DEPLOY.glob("*.json5")), ids=lambda p: p.name)
+def test_every_config_file_parses(path):
+    assert isinstance(json5.loads(path.read_text()), dict)
+
+
+def test_systemd_units_run_trackfusion():
+    for unit in (DEPLOY / "systemd").glob("*.service"):
+        text = unit.read_text()
+        assert "ExecStart=/opt/trackfusion/.venv/bin/trackfusion" in text, unit.name
