@@ -365,6 +365,121 @@ def build_parser() -> argparse.ArgumentParser:
     add_zenoh_arguments(p)
     p.set_defaults(func=_alerting)
 
+    # --- ingestion (services/ingestion/service.py) ---------------------------------------
+    def _ingestion(args: argparse.Namespace) -> int:
+        from services.ingestion import service as ingestion
+        from services.runtime.config import config_from_args
+        from services.runtime.service import configure_logging
+
+        configure_logging(args.log_level)
+        return ingestion.main(config_from_args(args), network_path=args.network)
+
+    p = sub.add_parser(
+        "ingestion",
+        help="validate, correct and map-match raw bogie chunks: raw + GPS in, accel out",
+        description="Subscribe to {ns}/raw/** and {ns}/gps/*, publish PositionedChunks on "
+        "{ns}/accel/{train}/{unit}; thresholds in the config file's services.ingestion.",
+    )
+    p.add_argument(
+        "--network",
+        metavar="FILE.geojson",
+        type=Path,
+        default=Path(__file__).resolve().parents[1] / "deploy" / "demo-network.geojson",
+        help="network to map-match on (default: %(default)s)",
+    )
+    add_zenoh_arguments(p)
+    p.set_defaults(func=_ingestion)
+
+    # --- viewer (services/viewer/service.py) -----------------------------------------------
+    def _viewer(args: argparse.Namespace) -> int:
+        import os
+
+        from services.runtime.config import config_from_args
+        from services.runtime.service import configure_logging
+        from services.viewer import service as viewer
+
+        configure_logging(args.log_level)
+        ports = {"web_port": args.web_port, "grpc_port": args.grpc_port}
+        if args.rrd is not None:
+            sink = viewer.Sink("rrd", path=args.rrd, **ports)
+        elif args.web:
+            sink = viewer.Sink("web", **ports)
+        elif args.spawn:
+            sink = viewer.Sink("spawn", **ports)
+        else:  # the environment is read here, at the edge, and passed down
+            sink = viewer.default_sink(os.environ, **ports)
+        return viewer.main(
+            config_from_args(args),
+            args.network,
+            sink,
+            worst_n=args.worst,
+            blueprint_interval_s=args.blueprint_interval,
+        )
+
+    p = sub.add_parser(
+        "viewer",
+        help="log states, indices, TRC records, alerts and trains to a Rerun viewer",
+        description="Subscribe to {ns}/state/**, index/**, trc/**, alert/** and gps/* (dropping "
+        "the oldest when behind) and log them to Rerun on the event_time timeline. Default "
+        "sink: the native viewer when DISPLAY/WAYLAND_DISPLAY is set, else the web viewer "
+        "(its URL is printed on stdout).",
+    )
+    p.add_argument(
+        "--network",
+        metavar="FILE.geojson",
+        type=Path,
+        default=Path(__file__).resolve().parents[1] / "deploy" / "demo-network.geojson",
+        help="the map (default: %(default)s)",
+    )
+    viewer_sink = p.add_mutually_exclusive_group()
+    viewer_sink.add_argument(
+        "--rrd", metavar="FILE", type=Path, help="save the recording to FILE (headless)"
+    )
+    viewer_sink.add_argument(
+        "--web", action="store_true", help="serve the web viewer and print its URL on stdout"
+    )
+    viewer_sink.add_argument("--spawn", action="store_true", help="start the native viewer")
+    p.add_argument("--web-port", type=int, default=9090, help="web viewer HTTP port (%(default)s)")
+    p.add_argument(
+        "--grpc-port", type=int, default=9876, help="Rerun gRPC log stream port (%(default)s)"
+    )
+    p.add_argument(
+        "--worst", type=int, default=3, help="worst segments plotted beside the map (%(default)s)"
+    )
+    p.add_argument(
+        "--blueprint-interval",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help="minimum wall seconds between two layout updates (%(default)s)",
+    )
+    add_zenoh_arguments(p)
+    p.set_defaults(func=_viewer)
+
+    # --- extraction (services/extraction/service.py) -------------------------------------
+    def _extraction(args: argparse.Namespace) -> int:
+        from services.extraction import service as extraction
+        from services.runtime.config import config_from_args
+        from services.runtime.service import configure_logging
+
+        configure_logging(args.log_level)
+        return extraction.main(config_from_args(args), network_path=args.network)
+
+    p = sub.add_parser(
+        "extraction",
+        help="turn positioned bogie accelerations into on-board Top6/Align10 indices",
+        description="Subscribe to {ns}/accel/** (PositionedChunk), publish one OnboardIndex per "
+        "segment pass on {ns}/index/{line}/{segment}.",
+    )
+    p.add_argument(
+        "--network",
+        metavar="FILE",
+        type=Path,
+        help="network GeoJSON with the segment bounds (default: deploy/demo-network.geojson)",
+    )
+    add_zenoh_arguments(p)
+    p.set_defaults(func=_extraction)
+
     return parser
 
 

@@ -68,6 +68,19 @@ def speed_profile(x: np.ndarray, vlim: np.ndarray, accel: float, brake: float) -
     return np.sqrt(np.maximum(bwd, 0.0))
 
 
+MIN_STOP_SPACING_M = 200.0
+
+
+def _stops(stations, length: float) -> np.ndarray:
+    """Termini plus the stations at least MIN_STOP_SPACING_M from the previous stop and the
+    far terminus: two stops a metre apart would leave no room to start and stop between."""
+    kept = [0.0]
+    for s in np.unique(np.asarray(stations, float)):
+        if s - kept[-1] >= MIN_STOP_SPACING_M and length - s >= MIN_STOP_SPACING_M:
+            kept.append(float(s))
+    return np.array([*kept, length])
+
+
 class TrainSimulator:
     """One train on a line with ``units`` bogie units.
 
@@ -125,7 +138,7 @@ class TrainSimulator:
         cfg, length = self.cfg, float(self.line.length_m)
         dx = cfg.grid_m
         x = np.linspace(0.0, length, max(2, round(length / dx) + 1))
-        stations = np.unique(np.r_[0.0, np.asarray(self.line.stations, float), length])
+        stations = _stops(self.line.stations, length)
         line_speed = getattr(self.line, "line_speed_mps", None) or cfg.default_line_speed_mps
         cruise = line_speed * rng.uniform(*cfg.cruise_factor)
         # One temporary speed restriction per line, away from stations when possible.
