@@ -157,6 +157,8 @@ def build_parser() -> argparse.ArgumentParser:
             config_path=args.sim_config,
             units=args.units,
             progress=not args.no_progress and sys.stderr.isatty(),
+            from_day=args.from_day,
+            to_day=args.to_day,
         )
 
     def _speedup(text: str) -> float:
@@ -182,6 +184,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fidelity", choices=["raw", "index"], default="index")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--units", type=int, default=1, help="on-board units per train (raw)")
+    p.add_argument(
+        "--from-day", type=float, default=0.0, help="publish only from this day of the world"
+    )
+    p.add_argument("--to-day", type=float, help="publish only up to this day of the world")
     p.add_argument("--start", default="2026-01-01T00:00:00+00:00", help="ISO start time (UTC)")
     p.add_argument("--truth", metavar="FILE.sqlite", help="write the ground truth here")
     p.add_argument("--sim-config", metavar="FILE.json5", help="default: deploy/simulator.json5")

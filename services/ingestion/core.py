@@ -1,0 +1,776 @@
+"""Ingestion core: RawChunk + GpsFix in, PositionedChunk + rejections out. Pure.
+
+No Zenoh, no clock, no I/O: time is the data's event time. The adapter
+(``services/ingestion/service.py``) feeds one ordered stream of decoded messages through
+:meth:`IngestionCore.step` and publishes what comes out; tests do the same with lists.
+
+The chain, per message:
+
+1. **Validation** beyond the schema (:func:`inspect_chunk`): the channel set holds the six
+   accelerometer channels and ``supply_v``; the sample rate is within ``rate_tolerance`` of
+   the unit's expected rate; every value is finite; the supply voltage is plausible
+   (``supply_min_v``..``supply_max_v``). A failure is a :class:`Rejection` with a reason.
+2. **Sequencing** per (train, unit) (:func:`step_unit`): ``t0`` must agree with ``seq``
+   (``t0 ≈ t0_ref + (seq - seq_ref) * chunk duration`` within ``t0_tolerance_s``);
+   duplicates (same seq) are dropped and counted, not dead-lettered (re-delivery is normal
+   and harmless; the first copy wins); chunks are reordered within a window of
+   ``reorder_chunks`` chunks or ``reorder_s`` of event time; when the window passes a missing
+   seq, the next chunk carries ``gap_before``. A chunk arriving after its slot was declared
+   missing is rejected as ``late``. A seq that jumps backwards while ``t0`` moves forwards
+   is a restarted gateway counter: the unit starts over with ``gap_before``.
+3. **Health and correction** (:func:`inspect_chunk`, vectorised over the chunk): clipping
+   (any ``|a| >= clip_g``), flatline per channel (a share of exactly repeated consecutive
+   values; a held non-zero value), dropout per channel (the same, stuck at exactly 0),
+   supply deviation from 5.0 V; then the ratiometric correction
+   ``a_mps2 = a_g * (supply_nominal_v / V) * 9.80665`` per sample.
+4. **Positioning** per train (:func:`step_train`): every fix with ``fix_quality > 0`` is
+   projected onto the network lines and becomes a knot ``(t, line, chainage, speed, ok)``;
+   fixes without a position (tunnels) become dead-reckoned knots (last speed, direction of
+   travel), trusted for ``dead_reckon_s`` after the last good fix. A chunk is held until a
+   knot at or after its last sample exists (at most ``max_hold_s`` of the train's event
+   time), then goes out with the knots bracketing it.
+
+Map matching keeps **continuity**: a train stays on its line while the fixes are within
+``switch_lateral_m`` of it; only ``switch_fixes`` consecutive fixes farther away, with
+another line clearly fitting (within ``acquire_m``, ``ambiguity_m`` closer than any other),
+move it. Acquisition needs the same clear fit. Two lines 30 m apart (the demo's L1/L3) are
+therefore never confused by a few metres of GPS error. Chainage is projected on a window of
+the current line around the predicted position (no jumps to another part of a curving
+line) and kept monotone in the direction of travel: a backwards step smaller than
+``reverse_m`` (GPS jitter at a standstill) holds the previous chainage; a larger one is a
+reversal (a terminus).
+
+``position_ok`` is False when a bracketing knot is missing, any knot of the chunk is poor
+(no fix and dead reckoning longer than ``dead_reckon_s``; hdop above ``hdop_max``; lateral
+offset above ``lateral_ok_m``; off the line while a switch is pending), knots are more than
+``dead_reckon_s`` apart, or the chunk straddles a line change (rare: the chunk then keeps
+only the knots on the new line).
+
+A chunk of a train that has never been matched to any line cannot be positioned: after
+``max_hold_s`` it is rejected with reason ``unpositioned`` (a dead letter, so it is counted
+and visible, never silently lost).
+"""
+
+from __future__ import annotations
+
+import math
+from bisect import bisect_left, bisect_right
+from collections import deque
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+import numpy as np
+
+from schemas import ACCEL_CHANNELS, SUPPLY_CHANNEL, GpsFix, NDArray, PositionedChunk, RawChunk
+
+G_MPS2 = 9.80665
+CHANNELS = list(ACCEL_CHANNELS)  # output columns (supply_v dropped after the correction)
+_CANONICAL = [*ACCEL_CHANNELS, SUPPLY_CHANNEL]
+
+
+@dataclass(frozen=True)
+class IngestionConfig:
+    """Thresholds of the ingestion core (``services.ingestion`` section of the config file)."""
+
+    rate_hz: float = 2000.0  # expected sample rate of a unit
+    rate_overrides: Mapping[str, float] = field(default_factory=dict)  # "train/unit" -> Hz
+    rate_tolerance: float = 0.01  # relative
+    supply_nominal_v: float = 5.0  # ratiometric reference
+    supply_min_v: float = 2.5  # outside [min, max]: implausible, the chunk is rejected
+    supply_max_v: float = 7.5
+    supply_flag_deviation: float = 0.05  # relative deviation of any sample -> flag "supply"
+    clip_g: float = 15.9  # |a| at or above: clipped (full scale 16 g)
+    flat_fraction: float = 0.05  # share of repeated consecutive values -> flatline/dropout
+    t0_tolerance_s: float = 0.05  # t0 against seq
+    reorder_chunks: int = 5  # reorder window, chunks ...
+    reorder_s: float = 5.0  # ... or event time past the missing chunk's start
+    max_hold_s: float = 10.0  # longest wait for the GPS knot after a chunk
+    dead_reckon_s: float = 3.0  # trust dead reckoning / knot spacing up to this
+    hdop_max: float = 5.0
+    lateral_ok_m: float = 15.0  # a fix farther from its line is a poor match
+    switch_lateral_m: float = 25.0  # "clearly off the current line"
+    switch_fixes: int = 3  # consecutive fixes off the line before a switch
+    acquire_m: float = 15.0  # a line "fits" within this lateral distance ...
+    ambiguity_m: float = 10.0  # ... and this much closer than any other line
+    reverse_m: float = 12.0  # backwards movement that means a reversal, not jitter
+    fuse_gain: float = 0.3  # weight of the projection against the speed prediction
+    fuse_gate_m: float = 20.0  # projections farther from the prediction are taken as is
+    search_m: float = 300.0  # projection window around the predicted chainage
+    knot_keep_s: float = 60.0  # knots kept behind the train's event time
+
+    @classmethod
+    def from_dict(cls, raw: Mapping[str, Any]) -> IngestionConfig:
+        names = {f.name for f in fields(cls)}
+        unknown = set(raw) - names
+        if unknown:
+            raise ValueError(
+                f"unknown ingestion settings {sorted(unknown)}; known: {sorted(names)}"
+            )
+        return cls(**raw)
+
+    def expected_rate(self, train: str, unit: str) -> float:
+        return float(self.rate_overrides.get(f"{train}/{unit}", self.rate_hz))
+
+
+# --- outputs ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """A message the core refuses; the adapter publishes it as a dead letter."""
+
+    reason: str
+    message: RawChunk | GpsFix
+
+
+Output = PositionedChunk | Rejection
+
+
+@dataclass
+class UnitHealth:
+    """Counters of one (train, unit); :meth:`IngestionCore.health` returns a copy."""
+
+    chunks: int = 0  # accepted (validated) chunks
+    samples: int = 0  # accepted sample rows
+    published: int = 0  # PositionedChunks emitted
+    rejected: int = 0  # validation / sequencing rejections
+    duplicates: int = 0
+    late: int = 0
+    missing: int = 0  # seqs declared lost (gaps)
+    restarts: int = 0  # seq counter restarts
+    clipped_samples: int = 0  # values with |a| >= clip_g
+    clipping_chunks: int = 0
+    flatline_chunks: dict[str, int] = field(default_factory=dict)  # by channel
+    dropout_chunks: dict[str, int] = field(default_factory=dict)  # by channel
+    supply_chunks: int = 0  # chunks flagged "supply"
+    supply_min_v: float = math.inf
+    supply_max_v: float = -math.inf
+    last_clip_fraction: float = 0.0
+    last_flags: tuple[str, ...] = ()
+
+    @property
+    def clip_fraction(self) -> float:
+        return self.clipped_samples / max(1, 6 * self.samples)
+
+
+@dataclass
+class TrainStats:
+    """Positioning counters of one train."""
+
+    fixes: int = 0
+    no_fix: int = 0  # fix_quality 0
+    matched: int = 0  # knots from a good match
+    poor: int = 0  # knots marked not ok
+    switches: int = 0  # line changes
+    duplicates: int = 0
+    unpositioned: int = 0
+
+
+# --- chunk inspection (vectorised) ------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Inspected:
+    """A validated, corrected chunk waiting for its neighbours and its position."""
+
+    raw: RawChunk
+    samples: np.ndarray  # (n, 6) float32 m/s^2, supply-corrected, canonical order
+    flags: tuple[str, ...]
+    t_last: float  # epoch s of the last sample
+    duration_s: float  # n / rate
+    clipped: int
+    supply_min_v: float
+    supply_max_v: float
+
+
+def _column_order(channels: list[str]) -> list[int] | None:
+    if channels == _CANONICAL:
+        return None  # the usual case: no gather
+    where = {name: i for i, name in enumerate(channels)}
+    return [where[name] for name in _CANONICAL]
+
+
+def inspect_chunk(chunk: RawChunk, cfg: IngestionConfig) -> Inspected | str:
+    """Validate, check health and correct one chunk; a string is the rejection reason.
+
+    .. math::
+
+        a_{m/s^2}[k] = a_g[k] \\cdot \\frac{V_{nominal}}{V[k]} \\cdot 9.80665
+
+    (the sensor output is ratiometric: proportional to the supply voltage ``V[k]``).
+    """
+    missing = [c for c in _CANONICAL if c not in chunk.channels]
+    if missing:
+        return f"channels: missing {missing} (have {chunk.channels})"
+    expected = cfg.expected_rate(chunk.train, chunk.unit)
+    if abs(chunk.rate_hz - expected) > cfg.rate_tolerance * expected:
+        return (
+            f"rate_hz: {chunk.rate_hz:g} Hz outside {expected:g} Hz "
+            f"± {cfg.rate_tolerance * 100:g} %"
+        )
+    a = chunk.samples.array()
+    n = a.shape[0]
+    if n < 2:
+        return f"samples: {n} rows, need at least 2"
+    order = _column_order(chunk.channels)
+    if order is not None:
+        a = a[:, order]
+    if a.dtype != np.float32:
+        a = a.astype(np.float32)
+    acc, volts = a[:, :6], a[:, 6]
+    # Whole-array reductions over the contiguous block are several times faster than
+    # per-column (axis=0) ones; NaN propagates through max/min, so they check finiteness.
+    top, bottom = float(a.max()), float(a.min())
+    if not (math.isfinite(top) and math.isfinite(bottom)):
+        return "samples: contain NaN or inf"
+    vmin, vmax = float(volts.min()), float(volts.max())
+    if vmin < cfg.supply_min_v or vmax > cfg.supply_max_v:
+        return (
+            f"supply_v: {vmin:.3f}..{vmax:.3f} V outside the plausible "
+            f"{cfg.supply_min_v:g}..{cfg.supply_max_v:g} V"
+        )
+    flags: list[str] = []
+    clipped = 0
+    if top >= cfg.clip_g or bottom <= -cfg.clip_g:
+        clipped = int(np.count_nonzero(np.abs(acc) >= cfg.clip_g))
+        if clipped:
+            flags.append("clipping")
+    # flatline / dropout: exactly repeated consecutive values (MEMS noise makes them
+    # practically impossible in a live float signal); per channel only when there are some
+    same = a[1:] == a[:-1]
+    limit = cfg.flat_fraction * (n - 1)
+    if np.count_nonzero(same) - np.count_nonzero(same[:, 6]) >= limit:
+        repeats = np.count_nonzero(same[:, :6], axis=0)
+        for c in np.flatnonzero(repeats >= limit):
+            # stuck at exactly zero is a dropout (signal lost); at any other value, a flatline
+            if np.count_nonzero(acc[:, c] == 0.0) >= cfg.flat_fraction * n:
+                flags.append(f"dropout:{ACCEL_CHANNELS[c]}")
+            else:
+                flags.append(f"flatline:{ACCEL_CHANNELS[c]}")
+    nominal = cfg.supply_nominal_v
+    if max(nominal - vmin, vmax - nominal) > cfg.supply_flag_deviation * nominal:
+        flags.append("supply")
+    scale = np.float32(nominal * G_MPS2) / volts
+    samples = acc * scale[:, None]
+    return Inspected(
+        raw=chunk,
+        samples=samples,
+        flags=tuple(flags),
+        t_last=chunk.t0 + (n - 1) / chunk.rate_hz,
+        duration_s=n / chunk.rate_hz,
+        clipped=clipped,
+        supply_min_v=vmin,
+        supply_max_v=vmax,
+    )
+
+
+def _account(h: UnitHealth, item: Inspected) -> None:
+    """Count an accepted chunk's samples and findings."""
+    h.chunks += 1
+    h.samples += item.samples.shape[0]
+    if item.clipped:
+        h.clipped_samples += item.clipped
+        h.clipping_chunks += 1
+    h.last_clip_fraction = item.clipped / item.samples.size
+    for flag in item.flags:
+        kind, _, channel = flag.partition(":")
+        if kind == "flatline":
+            h.flatline_chunks[channel] = h.flatline_chunks.get(channel, 0) + 1
+        elif kind == "dropout":
+            h.dropout_chunks[channel] = h.dropout_chunks.get(channel, 0) + 1
+        elif kind == "supply":
+            h.supply_chunks += 1
+    h.supply_min_v = min(h.supply_min_v, item.supply_min_v)
+    h.supply_max_v = max(h.supply_max_v, item.supply_max_v)
+    h.last_flags = item.flags
+
+
+# --- sequencing per (train, unit) ------------------------------------------------------------
+
+
+@dataclass
+class UnitState:
+    """Reorder buffer and sequence bookkeeping of one (train, unit)."""
+
+    health: UnitHealth = field(default_factory=UnitHealth)
+    next_seq: int | None = None  # next seq to release; None before the first release
+    last_t0: float = 0.0  # of the last released chunk
+    last_duration: float = 0.0
+    ref: tuple[int, float, float] | None = None  # (seq, t0, duration) of the highest seq
+    buffer: dict[int, Inspected] = field(default_factory=dict)
+    gap_pending: bool = False
+    lost: deque[int] = field(default_factory=lambda: deque(maxlen=256))  # declared missing
+
+
+def step_unit(
+    state: UnitState, item: Inspected, cfg: IngestionConfig
+) -> tuple[UnitState, list[tuple[Inspected, bool]], str | None]:
+    """Sequence one inspected chunk: ``(state, released [(chunk, gap_before)], rejection)``."""
+    chunk = item.raw
+    seq, h = chunk.seq, state.health
+    released: list[tuple[Inspected, bool]] = []
+    if state.ref is not None:
+        ref_seq, ref_t0, ref_dur = state.ref
+        expected = ref_t0 + (seq - ref_seq) * ref_dur
+        if abs(chunk.t0 - expected) > cfg.t0_tolerance_s:
+            if seq < ref_seq and chunk.t0 > ref_t0 + ref_dur - cfg.t0_tolerance_s:
+                # the gateway's counter restarted: finish the old run, start a new one
+                released += release_unit(state, cfg, force=True)
+                state.next_seq, state.ref, state.gap_pending = seq, None, True
+                state.lost.clear()
+                h.restarts += 1
+            else:
+                h.rejected += 1
+                return (
+                    state,
+                    released,
+                    f"t0: {chunk.t0:.3f} inconsistent with seq {seq} "
+                    f"(expected {expected:.3f} ± {cfg.t0_tolerance_s:g} s from seq {ref_seq})",
+                )
+    if seq in state.buffer or (
+        state.next_seq is not None and seq < state.next_seq and seq not in state.lost
+    ):
+        h.duplicates += 1
+        return state, released, None
+    if state.next_seq is not None and seq < state.next_seq:
+        h.late += 1
+        h.rejected += 1
+        return state, released, f"late: seq {seq} arrived after its gap was reported"
+    state.buffer[seq] = item
+    if state.ref is None or seq > state.ref[0]:
+        state.ref = (seq, chunk.t0, item.duration_s)
+    _account(h, item)
+    released += release_unit(state, cfg)
+    return state, released, None
+
+
+def release_unit(
+    state: UnitState, cfg: IngestionConfig, *, now: float | None = None, force: bool = False
+) -> list[tuple[Inspected, bool]]:
+    """Release what the reorder window allows (everything with ``force``)."""
+    out: list[tuple[Inspected, bool]] = []
+    buffer = state.buffer
+    while buffer:
+        nxt = state.next_seq
+        if nxt is None and 0 in buffer:
+            nxt = state.next_seq = 0  # a counter starts at 0: nothing can come before it
+        if nxt is not None and nxt in buffer:
+            item = buffer.pop(nxt)
+            out.append((item, state.gap_pending))
+            state.gap_pending = False
+            state.next_seq = nxt + 1
+            state.last_t0, state.last_duration = item.raw.t0, item.duration_s
+            continue
+        oldest = min(buffer)
+        newest_t0 = max(state.ref[1] if state.ref else -math.inf, now or -math.inf)
+        waiting_since = (
+            buffer[oldest].raw.t0 if nxt is None else state.last_t0 + state.last_duration
+        )
+        window_passed = (
+            len(buffer) >= cfg.reorder_chunks or newest_t0 - waiting_since >= cfg.reorder_s
+        )
+        if not (force or window_passed):
+            break
+        if nxt is not None:
+            state.lost.extend(range(nxt, oldest))
+            state.health.missing += oldest - nxt
+            state.gap_pending = True
+        state.next_seq = oldest
+    return out
+
+
+# --- positioning per train -------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Knot:
+    t: float
+    line: str
+    chainage_m: float
+    speed_mps: float
+    ok: bool
+
+
+@dataclass(frozen=True)
+class _LineGeometry:
+    id: str
+    length_m: float
+    a: np.ndarray  # (pieces, 2) start points
+    d: np.ndarray  # (pieces, 2) piece vectors
+    dd: np.ndarray  # (pieces,) squared lengths
+    chainage_m: np.ndarray  # (pieces + 1,)
+
+    @classmethod
+    def of(cls, line: Any) -> _LineGeometry:
+        xy = np.asarray(line.xy, dtype=np.float64)
+        d = np.diff(xy, axis=0)
+        return cls(line.id, float(line.length_m), xy[:-1], d, (d * d).sum(axis=1), line.chainage_m)
+
+    def project(self, p: np.ndarray, lo: float = -math.inf, hi: float = math.inf):
+        """``(chainage, lateral)`` of the nearest point of the pieces overlapping [lo, hi].
+
+        Lateral is signed, positive left of increasing chainage (as ``Line.project``).
+        """
+        c = self.chainage_m
+        i0 = 0 if lo == -math.inf else max(0, int(np.searchsorted(c, lo, side="right")) - 1)
+        i1 = len(self.a) if hi == math.inf else max(i0 + 1, int(np.searchsorted(c, hi)))
+        a, d, dd = self.a[i0:i1], self.d[i0:i1], self.dd[i0:i1]
+        q = p - a
+        f = np.clip((q * d).sum(axis=1) / dd, 0.0, 1.0)
+        r = q - f[:, None] * d
+        dist2 = (r * r).sum(axis=1)
+        j = int(dist2.argmin())
+        cross = d[j, 0] * q[j, 1] - d[j, 1] * q[j, 0]
+        chain = float(c[i0 + j] + f[j] * math.sqrt(dd[j]))
+        return chain, math.copysign(math.sqrt(float(dist2[j])), cross)
+
+
+@dataclass
+class TrainState:
+    """Map-matching state and the chunks of one train waiting for their knots."""
+
+    stats: TrainStats = field(default_factory=TrainStats)
+    line: str | None = None
+    direction: int = 0  # +1 / -1 along the chainage, 0 not known yet
+    extreme_m: float = 0.0  # farthest chainage reached in ``direction`` (or the start)
+    off_count: int = 0
+    last_fix_t: float | None = None
+    last_good_t: float | None = None
+    now: float = -math.inf  # newest event time of the train
+    knots: list[Knot] = field(default_factory=list)
+    knot_t: list[float] = field(default_factory=list)
+    pending: list[tuple[Inspected, bool]] = field(default_factory=list)
+    units: list[UnitState] = field(default_factory=list)  # the train's units, for windows
+
+
+class Positioner:
+    """Map matching on a network (lines with ``id``, ``xy``, ``chainage_m``, ``length_m``)."""
+
+    def __init__(self, network: Any, cfg: IngestionConfig) -> None:
+        self.cfg = cfg
+        self.to_xy = network.to_xy
+        self.lines = {line_id: _LineGeometry.of(line) for line_id, line in network.lines.items()}
+
+    def best_line(self, p: np.ndarray, exclude: str | None = None) -> tuple[str, float] | None:
+        """The line that clearly fits ``p`` and its chainage, or None (none or ambiguous)."""
+        cfg = self.cfg
+        fits = sorted(
+            (abs(lat), line_id, chain)
+            for line_id, g in self.lines.items()
+            if line_id != exclude
+            for chain, lat in [g.project(p)]
+        )
+        if not fits or fits[0][0] > cfg.acquire_m:
+            return None
+        if len(fits) > 1 and fits[1][0] - fits[0][0] < cfg.ambiguity_m:
+            return None
+        return fits[0][1], fits[0][2]
+
+    def knot(self, st: TrainState, fix: GpsFix) -> Knot | None:
+        """A knot for one fix (matched or dead-reckoned), updating the matching state."""
+        cfg = self.cfg
+        last = st.knots[-1] if st.knots else None
+        if fix.fix_quality == 0:
+            st.stats.no_fix += 1
+            if st.line is None or last is None or last.line != st.line:
+                return None
+            g = self.lines[st.line]
+            dt = fix.t - last.t
+            chain = min(max(last.chainage_m + st.direction * last.speed_mps * dt, 0.0), g.length_m)
+            ok = st.last_good_t is not None and fix.t - st.last_good_t <= cfg.dead_reckon_s
+            return Knot(fix.t, st.line, chain, last.speed_mps, ok)
+        p = self.to_xy(np.array([fix.lon_deg, fix.lat_deg]))
+        if st.line is None:
+            found = self.best_line(p)
+            if found is None:
+                return None
+            st.line, st.direction, st.extreme_m, st.off_count = found[0], 0, found[1], 0
+            last = None
+        g = self.lines[st.line]
+        if last is not None and last.line == st.line:
+            reach = cfg.search_m + last.speed_mps * (fix.t - last.t) * 1.5
+            chain, lat = g.project(p, last.chainage_m - reach, last.chainage_m + reach)
+            if abs(lat) > cfg.switch_lateral_m:  # lost the thread (long outage): whole line
+                chain, lat = g.project(p)
+        else:
+            chain, lat = g.project(p)
+        off = abs(lat) > cfg.switch_lateral_m
+        if off:
+            st.off_count += 1
+            if st.off_count >= cfg.switch_fixes:
+                found = self.best_line(p, exclude=st.line)
+                if found is not None:
+                    st.stats.switches += 1
+                    st.line, st.direction, st.extreme_m, st.off_count = found[0], 0, found[1], 0
+                    g, last = self.lines[st.line], None
+                    chain, lat = g.project(p)
+                    off = False
+        else:
+            st.off_count = 0
+        chain = self._smooth(st, last, fix, self._monotone(st, chain), chain)
+        if fix.speed_mps is not None:
+            speed = fix.speed_mps
+        elif last is not None and last.line == st.line and fix.t > last.t:
+            speed = abs(chain - last.chainage_m) / (fix.t - last.t)
+        else:
+            speed = 0.0
+        ok = (
+            not off
+            and abs(lat) <= cfg.lateral_ok_m
+            and (fix.hdop is None or fix.hdop <= cfg.hdop_max)
+        )
+        if ok:
+            st.last_good_t = fix.t
+        return Knot(fix.t, st.line, chain, speed, ok)
+
+    def _smooth(
+        self, st: TrainState, last: Knot | None, fix: GpsFix, held: float, measured: float
+    ) -> float:
+        r"""Blend the projection with the chainage predicted from the fix speeds.
+
+        .. math::
+
+            \hat c = c_{k-1} + d\,\tfrac{v_{k-1} + v_k}{2}\,\Delta t, \qquad
+            c_k = \hat c + g\,(c_{meas} - \hat c)
+
+        GPS speed is far less noisy than GPS position, so this cuts the white position
+        noise (to about ``sqrt(g / (2 - g))`` of it) and keeps a standing train still. Off
+        the gate (after an outage, a reversal being detected) the projection is used as is.
+        """
+        cfg = self.cfg
+        if (
+            last is None
+            or last.line != st.line
+            or st.direction == 0
+            or fix.speed_mps is None
+            or fix.t - last.t > cfg.dead_reckon_s
+        ):
+            return held
+        dt = fix.t - last.t
+        pred = last.chainage_m + st.direction * 0.5 * (last.speed_mps + fix.speed_mps) * dt
+        if abs(measured - pred) > cfg.fuse_gate_m:
+            return held
+        fused = pred + cfg.fuse_gain * (measured - pred)
+        if st.direction * (fused - last.chainage_m) < 0:  # never backwards
+            return last.chainage_m
+        return fused
+
+    def _monotone(self, st: TrainState, chain: float) -> float:
+        """Chainage kept monotone in the direction of travel (GPS jitter at a standstill)."""
+        reverse = self.cfg.reverse_m
+        if st.direction == 0:
+            if abs(chain - st.extreme_m) > reverse:
+                st.direction = 1 if chain > st.extreme_m else -1
+                st.extreme_m = chain
+            return chain
+        ahead = st.direction * (chain - st.extreme_m)
+        if ahead >= 0:
+            st.extreme_m = chain
+            return chain
+        if -ahead > reverse:  # a reversal (terminus): follow it
+            st.direction, st.extreme_m = -st.direction, chain
+            return chain
+        return st.extreme_m
+
+
+def step_train(
+    st: TrainState,
+    event: GpsFix | tuple[Inspected, bool] | None,
+    pos: Positioner,
+    *,
+    final: bool = False,
+) -> tuple[TrainState, list[Output]]:
+    """One fix or one released chunk for a train; ``(state, outputs)``.
+
+    ``event`` None with ``final`` releases every held chunk (end of the stream).
+    """
+    out: list[Output] = []
+    cfg = pos.cfg
+    if isinstance(event, GpsFix):
+        fix = event
+        if st.last_fix_t is not None and fix.t <= st.last_fix_t:
+            if fix.t == st.last_fix_t:
+                st.stats.duplicates += 1
+                return st, out
+            return st, [
+                Rejection(f"GpsFix: t {fix.t:.3f} before the previous fix {st.last_fix_t:.3f}", fix)
+            ]
+        st.last_fix_t = fix.t
+        st.now = max(st.now, fix.t)
+        st.stats.fixes += 1
+        knot = pos.knot(st, fix)
+        if knot is not None:
+            st.knots.append(knot)
+            st.knot_t.append(knot.t)
+            if knot.ok:
+                st.stats.matched += 1
+            else:
+                st.stats.poor += 1
+    elif event is not None:
+        item = event[0]
+        st.now = max(st.now, item.t_last)
+        st.pending.append(event)
+    keep: list[tuple[Inspected, bool]] = []
+    for item, gap in st.pending:
+        covered = bool(st.knot_t) and st.knot_t[-1] >= item.t_last
+        if covered or final or st.now - item.t_last > cfg.max_hold_s:
+            out.append(_positioned(st, item, gap, cfg))
+        else:
+            keep.append((item, gap))
+    st.pending = keep
+    horizon = st.now - cfg.knot_keep_s
+    drop = bisect_left(st.knot_t, horizon) - 1  # keep one knot before the horizon
+    if drop > 0:
+        del st.knots[:drop], st.knot_t[:drop]
+    return st, out
+
+
+def _positioned(st: TrainState, item: Inspected, gap_before: bool, cfg: IngestionConfig) -> Output:
+    raw = item.raw
+    if not st.knots:
+        st.stats.unpositioned += 1
+        return Rejection(
+            f"unpositioned: no map-matched GPS position of train {raw.train} around "
+            f"t0 {raw.t0:.3f}",
+            raw,
+        )
+    kt = st.knot_t
+    i0 = bisect_right(kt, raw.t0) - 1
+    i1 = bisect_left(kt, item.t_last)
+    bracketed = i0 >= 0 and i1 < len(kt)
+    knots = st.knots[max(i0, 0) : min(i1, len(kt) - 1) + 1]
+    line = knots[-1].line
+    single_line = all(k.line == line for k in knots)
+    if not single_line:
+        knots = [k for k in knots if k.line == line]
+    t = np.array([k.t for k in knots])
+    gaps_ok = len(t) < 2 or float(np.diff(t).max()) <= cfg.dead_reckon_s
+    ok = bracketed and single_line and gaps_ok and all(k.ok for k in knots)
+    return PositionedChunk(
+        train=raw.train,
+        unit=raw.unit,
+        seq=raw.seq,
+        t0=raw.t0,
+        rate_hz=raw.rate_hz,
+        channels=CHANNELS,
+        samples=NDArray(dtype="f4", shape=list(item.samples.shape), data=item.samples.tobytes()),
+        line=line,
+        knot_t=NDArray.of(t),
+        knot_chainage_m=NDArray.of([k.chainage_m for k in knots]),
+        knot_speed_mps=NDArray.of([k.speed_mps for k in knots]),
+        position_ok=ok,
+        gap_before=gap_before,
+        sensor_flags=list(item.flags),
+    )
+
+
+# --- the whole core --------------------------------------------------------------------------
+
+
+class IngestionCore:
+    """Per-unit sequencing and health, per-train positioning; one ordered event stream.
+
+    Parameters
+    ----------
+    network : simulators.network.Network (or alike)
+        Lines with ``id``, ``xy``, ``chainage_m``, ``length_m`` and ``to_xy(lonlat)``.
+    config : IngestionConfig
+    """
+
+    def __init__(self, network: Any, config: IngestionConfig | None = None) -> None:
+        self.cfg = config or IngestionConfig()
+        self.positioner = Positioner(network, self.cfg)
+        self.units: dict[tuple[str, str], UnitState] = {}
+        self.trains: dict[str, TrainState] = {}
+
+    def step(self, event: RawChunk | GpsFix) -> list[Output]:
+        """One decoded message in arrival order; what it releases comes out."""
+        match event:
+            case RawChunk():
+                return self._on_chunk(event)
+            case GpsFix():
+                return self._on_fix(event)
+        raise TypeError(f"ingestion takes RawChunk or GpsFix, not {type(event).__name__}")
+
+    def run(self, events: Iterable[RawChunk | GpsFix], *, flush: bool = True) -> list[Output]:
+        """Every event through :meth:`step` (then :meth:`flush`): lists in, lists out."""
+        out: list[Output] = []
+        for event in events:
+            out += self.step(event)
+        if flush:
+            out += self.flush()
+        return out
+
+    def flush(self) -> list[Output]:
+        """End of the stream: release every buffered and held chunk (gaps flagged)."""
+        out: list[Output] = []
+        for st in self.trains.values():
+            for unit in st.units:
+                for released in release_unit(unit, self.cfg, force=True):
+                    out += self._to_train(st, released)
+            out += self._count(step_train(st, None, self.positioner, final=True)[1])
+        return out
+
+    def health(self, train: str, unit: str) -> UnitHealth:
+        """A copy of the counters of one unit (zeros for a unit never seen)."""
+        h = self.units.get((train, unit))
+        if h is None:
+            return UnitHealth()
+        h = h.health
+        return replace(
+            h, flatline_chunks=dict(h.flatline_chunks), dropout_chunks=dict(h.dropout_chunks)
+        )
+
+    def train_stats(self, train: str) -> TrainStats:
+        st = self.trains.get(train)
+        return replace(st.stats) if st else TrainStats()
+
+    # --- internals ----------------------------------------------------------------------
+
+    def _train(self, train: str) -> TrainState:
+        st = self.trains.get(train)
+        if st is None:
+            st = self.trains[train] = TrainState()
+        return st
+
+    def _on_chunk(self, chunk: RawChunk) -> list[Output]:
+        key = (chunk.train, chunk.unit)
+        st = self._train(chunk.train)
+        unit = self.units.get(key)
+        if unit is None:
+            unit = self.units[key] = UnitState()
+            st.units.append(unit)
+        inspected = inspect_chunk(chunk, self.cfg)
+        if isinstance(inspected, str):
+            unit.health.rejected += 1
+            return [Rejection(f"RawChunk: {inspected}", chunk)]
+        unit, released, reason = step_unit(unit, inspected, self.cfg)
+        out: list[Output] = [] if reason is None else [Rejection(f"RawChunk: {reason}", chunk)]
+        if reason is None:
+            st.now = max(st.now, inspected.t_last)  # the train's event time moves on
+        for r in released:
+            out += self._to_train(st, r)
+        if not released:  # held chunks of the train may have timed out
+            out += self._count(step_train(st, None, self.positioner)[1])
+        return out
+
+    def _on_fix(self, fix: GpsFix) -> list[Output]:
+        st = self._train(fix.train)
+        out: list[Output] = []
+        # the fix's time also closes the reorder windows of the train's units
+        for unit in st.units:
+            if unit.buffer:
+                for released in release_unit(unit, self.cfg, now=fix.t):
+                    out += self._to_train(st, released)
+        out += self._count(step_train(st, fix, self.positioner)[1])
+        return out
+
+    def _to_train(self, st: TrainState, released: tuple[Inspected, bool]) -> list[Output]:
+        return self._count(step_train(st, released, self.positioner)[1])
+
+    def _count(self, outputs: list[Output]) -> list[Output]:
+        for o in outputs:
+            if isinstance(o, PositionedChunk):
+                self.units[(o.train, o.unit)].health.published += 1
+        return outputs

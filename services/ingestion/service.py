@@ -1,0 +1,146 @@
+"""`trackfusion ingestion`: the thin adapter around :mod:`services.ingestion.core`.
+
+Subscribes ``{ns}/raw/**`` (RawChunk) and ``{ns}/gps/*`` (GpsFix); both subscriptions feed
+ONE bounded queue drained by ONE worker, in arrival order, so the core is single-threaded.
+Payloads are decoded with ``schemas.decode`` (a malformed one is a dead letter with the
+decoder's reason); PositionedChunks go out with ``session.put`` on
+``{ns}/accel/{train}/{unit}`` (congestion control BLOCK: extraction must not lose samples);
+the core's rejections go to ``{ns}/deadletter/ingestion``. When the subscriptions end
+(shutdown), the held chunks are flushed (``position_ok`` False where their knots are
+missing) before the worker exits.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from schemas import GpsFix, PositionedChunk, RawChunk, SchemaError, decode, encode, keys
+from services.ingestion.core import IngestionConfig, IngestionCore, Output, Rejection
+from services.runtime.config import DEPLOY_DIR, RuntimeConfig
+from services.runtime.service import DEFAULT_CAPACITY, ServiceRuntime
+from simulators.network import Network
+
+log = logging.getLogger(__name__)
+
+SERVICE = "ingestion"
+DEFAULT_NETWORK = DEPLOY_DIR / "demo-network.geojson"
+_DONE = object()  # queued by a subscriber's drop callback: that subscription has ended
+
+
+def load_network(path: str | Path) -> Network:
+    """Read the network GeoJSON; SystemExit says what to fix."""
+    try:
+        return Network.from_geojson(Path(path))
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"network {path}: {exc}") from None
+
+
+class IngestionAdapter:
+    """Decode → core → encode → put; one instance per running service."""
+
+    def __init__(self, rt: ServiceRuntime, core: IngestionCore) -> None:
+        self.rt = rt
+        self.core = core
+        self.queue: queue.Queue[Any] = queue.Queue(DEFAULT_CAPACITY)
+        self.published = 0
+
+    def start(self) -> None:
+        ns = self.rt.ns
+        subscriptions = {"raw": keys.raw_all(ns), "gps": keys.gps_all(ns)}
+        for kind, key in subscriptions.items():
+            self.rt.declare_subscriber(key, self._handler(kind))
+        self.rt.spawn(self._work, len(subscriptions), name=f"{SERVICE}:worker")
+
+    def _handler(self, kind: str) -> zenoh.handlers.Callback:
+        def on_sample(sample: zenoh.Sample) -> None:
+            # short: copy out and queue (blocks the receive thread when full: nothing dropped)
+            self.queue.put((kind, str(sample.key_expr), sample.payload.to_bytes()))
+
+        return zenoh.handlers.Callback(on_sample, lambda: self.queue.put(_DONE))
+
+    def _work(self, n_subscriptions: int) -> None:
+        ended = 0
+        while ended < n_subscriptions:  # every subscription undeclared: done
+            item = self.queue.get()
+            if item is _DONE:
+                ended += 1
+                continue
+            kind, key, payload = item
+            try:
+                self.publish(self.handle(kind, key, payload))
+            except SchemaError as e:
+                self.rt.deadletters.reject(key, str(e), payload)
+            except Exception as e:
+                log.exception("%s: error handling %s", SERVICE, key)
+                self.rt.deadletters.reject(key, f"{type(e).__name__}: {e}", payload)
+        self.publish(self.core.flush())
+        log.info(
+            "%s: %d positioned chunks published, %d dead letters",
+            SERVICE,
+            self.published,
+            self.rt.deadletters.total,
+        )
+
+    def handle(self, kind: str, key: str, payload: bytes) -> list[Output]:
+        """One payload through the core; raises SchemaError for a malformed one."""
+        parts = key.split("/")
+        if kind == "raw":
+            chunk = decode(payload, RawChunk)
+            if parts[-2:] != [chunk.train, chunk.unit]:
+                raise SchemaError(
+                    f"RawChunk: key says {'/'.join(parts[-2:])}, "
+                    f"message says {chunk.train}/{chunk.unit}"
+                )
+            return self.core.step(chunk)
+        fix = decode(payload, GpsFix)
+        if parts[-1] != fix.train:
+            raise SchemaError(f"GpsFix: key says {parts[-1]}, message says {fix.train}")
+        return self.core.step(fix)
+
+    def publish(self, outputs: list[Output]) -> None:
+        ns, session = self.rt.ns, self.rt.session
+        for out in outputs:
+            match out:
+                case PositionedChunk():
+                    session.put(
+                        keys.accel(ns, out.train, out.unit),
+                        encode(out),
+                        congestion_control=zenoh.CongestionControl.BLOCK,
+                    )
+                    self.published += 1
+                case Rejection(reason=reason, message=message):
+                    if isinstance(message, RawChunk):
+                        key = keys.raw(ns, message.train, message.unit)
+                    else:
+                        key = keys.gps(ns, message.train)
+                    self.rt.deadletters.reject(key, reason, encode(message)[:256])
+
+
+def main(
+    conf: RuntimeConfig,
+    network_path: str | Path | None = None,
+    *,
+    stop: threading.Event | None = None,
+    handle_signals: bool = True,
+) -> int:
+    """Run the ingestion service until ``stop`` is set or SIGINT/SIGTERM; 0.
+
+    Thresholds come from the config file's ``services.ingestion`` section
+    (:class:`services.ingestion.core.IngestionConfig` field names).
+    """
+    network = load_network(network_path or DEFAULT_NETWORK)
+    try:
+        config = IngestionConfig.from_dict(conf.options(SERVICE))
+    except (TypeError, ValueError) as exc:
+        raise SystemExit(f"services.{SERVICE}: {exc}") from None
+    core = IngestionCore(network, config)
+    log.info("%s: %r", SERVICE, network)
+    with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
+        IngestionAdapter(rt, core).start()
+        return rt.run()

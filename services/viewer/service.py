@@ -1,0 +1,267 @@
+"""`trackfusion viewer`: the thin adapter around :mod:`services.viewer.core`.
+
+Subscribes ``{ns}/state/**``, ``{ns}/index/**``, ``{ns}/trc/**``, ``{ns}/alert/**`` and
+``{ns}/gps/*`` with ``latest_only`` (a Zenoh ``RingChannel`` each: when the viewer falls
+behind, the oldest samples are dropped and the pipeline never waits for it). The runtime's
+per-subscription workers decode (errors become dead letters) and append to one bounded
+inbox, which drops its oldest too; ONE worker thread takes everything queued at once and
+hands it to the core as a batch, so only that thread touches the recording.
+
+Sinks (:class:`Sink`): ``rrd`` writes a recording file, ``web`` serves the gRPC log
+stream and the web viewer and prints the viewer's URL on stdout, ``spawn`` starts the
+native viewer. :func:`default_sink` picks spawn with a display, else web.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+import time
+import uuid
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, TextIO
+from urllib.parse import quote
+
+import rerun as rr
+import zenoh
+
+from schemas import (
+    Alert,
+    GpsFix,
+    Message,
+    OnboardIndex,
+    SchemaError,
+    SegmentState,
+    TrcRecord,
+    decode,
+    keys,
+)
+from services.runtime.config import RuntimeConfig
+from services.runtime.service import ServiceRuntime
+from services.viewer.core import DEFAULT_BLUEPRINT_INTERVAL_S, DEFAULT_WORST_N, ViewerCore
+from simulators.network import DEMO_NETWORK, Network
+
+log = logging.getLogger(__name__)
+
+SERVICE = "viewer"
+APP_ID = "TrackFusion"
+INBOX_CAPACITY = 8192  # messages waiting for the logging worker; the oldest go first
+SUBSCRIPTION_CAPACITY = 1024  # per RingChannel
+DEFAULT_WEB_PORT = 9090
+DEFAULT_GRPC_PORT = 9876
+
+
+@dataclass(frozen=True)
+class Sink:
+    """Where the recording goes: ``rrd`` (``path``), ``web`` or ``spawn``."""
+
+    kind: Literal["rrd", "web", "spawn"]
+    path: Path | None = None
+    web_port: int = DEFAULT_WEB_PORT
+    grpc_port: int = DEFAULT_GRPC_PORT
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("rrd", "web", "spawn"):
+            raise ValueError(f"sink: unknown kind {self.kind!r}")
+        if (self.kind == "rrd") != (self.path is not None):
+            raise ValueError("sink: a path is needed for, and only for, kind 'rrd'")
+
+
+def default_sink(env: Mapping[str, str], **ports: int) -> Sink:
+    """The native viewer where there is a display (``DISPLAY``/``WAYLAND_DISPLAY``), else web."""
+    has_display = bool(env.get("DISPLAY") or env.get("WAYLAND_DISPLAY"))
+    return Sink("spawn" if has_display else "web", **ports)
+
+
+def web_viewer_url(grpc_url: str, web_port: int, host: str = "127.0.0.1") -> str:
+    """The address that opens the web viewer connected to ``grpc_url``."""
+    return f"http://{host}:{web_port}/?url={quote(grpc_url, safe='')}"
+
+
+def open_sink(rec: rr.RecordingStream, sink: Sink, out: TextIO) -> str | None:
+    """Attach ``sink`` to ``rec``; for ``web`` print the viewer's URL on ``out`` and return it."""
+    match sink.kind:
+        case "rrd":
+            assert sink.path is not None
+            sink.path.parent.mkdir(parents=True, exist_ok=True)
+            rec.save(sink.path)
+            log.info("%s: recording to %s", SERVICE, sink.path)
+        case "web":
+            grpc_url = rec.serve_grpc(grpc_port=sink.grpc_port)
+            rr.serve_web_viewer(web_port=sink.web_port, open_browser=False, connect_to=grpc_url)
+            url = web_viewer_url(grpc_url, sink.web_port)
+            print(url, file=out, flush=True)  # the command's output: where to point a browser
+            log.info("%s: web viewer at %s (log stream %s)", SERVICE, url, grpc_url)
+            return url
+        case "spawn":
+            rerun_binary = Path(sys.executable).parent / "rerun"  # the venv's, not PATH's
+            rr.spawn(
+                port=sink.grpc_port,
+                recording=rec,
+                executable_path=str(rerun_binary) if rerun_binary.is_file() else None,
+            )
+    return None
+
+
+class _Inbox:
+    """A bounded deque shared by the subscriptions: never blocks a producer, drops the oldest."""
+
+    def __init__(self, capacity: int) -> None:
+        self._items: deque[Message] = deque(maxlen=capacity)
+        self._cond = threading.Condition()
+        self._closed = False
+        self.dropped = 0
+
+    def put(self, item: Message) -> None:
+        with self._cond:
+            if self._closed:
+                return
+            if len(self._items) == self._items.maxlen:
+                self.dropped += 1
+            self._items.append(item)
+            self._cond.notify()
+
+    def take(self, timeout: float | None) -> list[Message] | None:
+        """Everything queued (possibly nothing after ``timeout``); None once closed and empty."""
+        with self._cond:
+            self._cond.wait_for(lambda: self._items or self._closed, timeout)
+            if not self._items and self._closed:
+                return None
+            items = list(self._items)
+            self._items.clear()
+            return items
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+
+_SUBSCRIPTIONS: dict[str, type[Message]] = {
+    "state": SegmentState,
+    "index": OnboardIndex,
+    "trc": TrcRecord,
+    "alert": Alert,
+    "gps": GpsFix,
+}
+
+
+class ViewerAdapter:
+    """Subscriptions → inbox → one worker → :class:`ViewerCore`."""
+
+    def __init__(
+        self,
+        rt: ServiceRuntime,
+        core: ViewerCore,
+        *,
+        on_logged: Callable[[int], None] | None = None,
+    ) -> None:
+        self.rt = rt
+        self.core = core
+        self.inbox = _Inbox(INBOX_CAPACITY)
+        self._on_logged = on_logged
+        self._worker: threading.Thread | None = None
+
+    def start(self) -> None:
+        ns = self.rt.ns
+        for kind, message_type in _SUBSCRIPTIONS.items():
+            key = keys.gps_all(ns) if kind == "gps" else keys.segment_keys(ns, kind)
+            self.rt.subscribe(
+                key,
+                self._decoder(kind, message_type),
+                capacity=SUBSCRIPTION_CAPACITY,
+                latest_only=True,
+            )
+        self._worker = self.rt.spawn(self._work, name=f"{SERVICE}:rerun")
+
+    def _decoder(self, kind: str, message_type: type[Message]) -> Callable[[zenoh.Sample], None]:
+        def on_sample(sample: zenoh.Sample) -> None:
+            # runs in the runtime's worker for this subscription; SchemaError -> dead letter
+            message = decode(sample.payload.to_bytes(), message_type)
+            _check_key(kind, str(sample.key_expr), message)
+            self.inbox.put(message)
+
+        return on_sample
+
+    def _work(self) -> None:
+        while True:
+            # the timeout lets a pending blueprint change go out when messages stop coming
+            batch = self.inbox.take(timeout=self.core.blueprint_interval_s)
+            if batch is None:
+                break
+            if batch:
+                try:
+                    self.core.log_batch(batch)
+                except Exception:  # a bad batch must not end the viewer
+                    log.exception("%s: logging a batch of %d failed", SERVICE, len(batch))
+                    self.core.handled += len(batch)
+            self.core.maybe_send_blueprint(time.monotonic())
+            if batch and self._on_logged is not None:
+                self._on_logged(self.core.handled)
+        self.core.maybe_send_blueprint(time.monotonic(), force=True)  # the final worst set
+
+    def finish(self) -> None:
+        """Log what is queued, then end the worker (before the recording is closed)."""
+        self.inbox.close()
+        if self._worker is not None:
+            self._worker.join()
+        if self.inbox.dropped:
+            log.warning("%s: dropped %d messages (viewer behind)", SERVICE, self.inbox.dropped)
+
+
+def _check_key(kind: str, key: str, message: Message) -> None:
+    """The key's ids must be the message's (a misrouted message is a dead letter)."""
+    parts = key.split("/")
+    if kind == "gps":
+        if not isinstance(message, GpsFix) or parts[-1] != message.train:
+            raise SchemaError(f"GpsFix: key says train {parts[-1]}, message says {message}")
+        return
+    line, segment = parts[-2], parts[-1]
+    if (line, segment) != (getattr(message, "line", None), getattr(message, "segment", None)):
+        raise SchemaError(
+            f"{type(message).__name__}: key says {line}/{segment}, message says "
+            f"{getattr(message, 'line', '?')}/{getattr(message, 'segment', '?')}"
+        )
+
+
+def main(
+    conf: RuntimeConfig,
+    network_path: str | Path | None,
+    sink: Sink,
+    *,
+    worst_n: int = DEFAULT_WORST_N,
+    blueprint_interval_s: float = DEFAULT_BLUEPRINT_INTERVAL_S,
+    stop: threading.Event | None = None,
+    handle_signals: bool = True,
+    on_logged: Callable[[int], None] | None = None,
+    out: TextIO | None = None,
+) -> int:
+    """Run the viewer until ``stop`` is set or SIGINT/SIGTERM; 0.
+
+    ``on_logged(total)`` is called by the logging worker after every batch (tests wait on
+    it); the recording is flushed and its sink closed before returning.
+    """
+    try:
+        network = Network.from_geojson(Path(network_path or DEMO_NETWORK))
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"viewer: network {network_path or DEMO_NETWORK}: {exc}") from None
+    rec = rr.RecordingStream(APP_ID, recording_id=uuid.uuid4())
+    try:
+        open_sink(rec, sink, out if out is not None else sys.stdout)
+        core = ViewerCore(rec, network, worst_n=worst_n, blueprint_interval_s=blueprint_interval_s)
+        core.start(time.monotonic())
+        with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
+            adapter = ViewerAdapter(rt, core, on_logged=on_logged)
+            adapter.start()
+            try:
+                return rt.run()
+            finally:
+                adapter.finish()
+                log.info("%s: %d messages logged", SERVICE, core.handled)
+    finally:
+        rec.flush(timeout_sec=10.0)
+        rec.disconnect()  # closes the file (with its footer), the gRPC server or connection
