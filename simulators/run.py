@@ -45,8 +45,14 @@ def main_simulate(
     units: int = 1,
     progress: bool = True,
     stop=None,
+    from_day: float = 0.0,
+    to_day: float | None = None,
 ) -> int:
-    """Publish the simulated world on Zenoh (and write its ground truth to ``truth_path``)."""
+    """Publish the simulated world on Zenoh (and write its ground truth to ``truth_path``).
+
+    Only the events in ``[from_day, to_day)`` days of the world are published: a world cut
+    in two such runs publishes exactly what one run would (the world itself is the same).
+    """
     from tqdm import tqdm
 
     from services.runtime.service import ServiceRuntime
@@ -76,10 +82,12 @@ def main_simulate(
     started = time.monotonic()
     with ServiceRuntime("simulator", conf, handle_signals=True, stop_event=stop) as rt:
         rt.announce()
+        lo, hi = start_t + from_day * 86400, start_t + (days if to_day is None else to_day) * 86400
+        events = ((t, m) for t, m in world_events(spec) if lo <= t < hi)
         total = publish(
             rt.session,
             rt.ns,
-            world_events(spec),
+            events,
             speedup=speedup,
             stop=rt.stop_event,
             on_batch=on_batch,

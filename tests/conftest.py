@@ -6,11 +6,17 @@ Every session opened here is closed at teardown; nothing waits with ``time.sleep
 
 from __future__ import annotations
 
+import contextlib
+import os
 import queue
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -165,3 +171,48 @@ def liveliness_events() -> Iterator[Callable[[zenoh.Session, str], Collector]]:
     finally:
         for subscriber in subscribers:
             subscriber.undeclare()
+
+
+class TrackfusionProcess:
+    """A `trackfusion …` subprocess in its own process group, its output to a log file."""
+
+    def __init__(self, log_path: Path, *args: str) -> None:
+        self.log_path = log_path
+        with log_path.open("w") as log:
+            self.popen = subprocess.Popen(
+                [sys.executable, "-m", "services.cli", *args],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,
+            )
+
+    def signal(self, signum: int) -> None:
+        os.killpg(self.popen.pid, signum)
+
+    def wait(self, timeout: float) -> int:
+        return self.popen.wait(timeout)
+
+    def log(self) -> str:
+        return f"\n--- {self.log_path.name} ---\n{self.log_path.read_text()}"
+
+    def kill(self) -> None:
+        if self.popen.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.popen.pid, signal.SIGKILL)
+            self.popen.wait(5)
+
+
+@pytest.fixture
+def spawn(tmp_path: Path) -> Iterator[Callable[..., TrackfusionProcess]]:
+    """Start `trackfusion ARGS…` processes; every one is killed at teardown."""
+    started: list[TrackfusionProcess] = []
+
+    def start(name: str, *args: str) -> TrackfusionProcess:
+        process = TrackfusionProcess(tmp_path / f"{name}-{len(started)}.log", *args)
+        started.append(process)
+        return process
+
+    yield start
+    for process in started:
+        process.kill()
