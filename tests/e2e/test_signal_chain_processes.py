@@ -4,10 +4,12 @@ train fully passed at speed, with its data and position intact, gets an OnboardI
 
 from __future__ import annotations
 
+import signal
+
 import numpy as np
 import zenoh
 
-from schemas import OnboardIndex, decode, keys
+from schemas import DeadLetter, OnboardIndex, decode, keys
 from simulators.network import demo_network
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
@@ -62,6 +64,8 @@ def test_every_segment_passed_at_speed_gets_an_index(
     session = open_session()
     indices = collector(lambda s: decode(s.payload.to_bytes(), OnboardIndex))
     session.declare_subscriber(keys.segment_keys(namespace, "index"), indices)
+    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
+    session.declare_subscriber(keys.deadletter_all(namespace), letters)
     alive = liveliness_events(session, keys.alive_all(namespace))
     wiring = ["--connect", router, "--ns", namespace]
     ingestion = spawn("ingestion", "ingestion", "--instance", "ing", *wiring)
@@ -74,7 +78,7 @@ def test_every_segment_passed_at_speed_gets_an_index(
 
     world = ["--fidelity", "raw", "--trains", "1", "--days", str(SECONDS / 86400)]
     simulate = spawn(
-        "simulate", "simulate", *world, "--speedup", "inf", "--seed", str(SEED), *wiring
+        "simulate", "simulate", *world, "--speedup", "60", "--seed", str(SEED), *wiring
     )
     assert simulate.wait(120) == 0, simulate.log()
 
@@ -84,7 +88,15 @@ def test_every_segment_passed_at_speed_gets_an_index(
             index = indices.get(timeout=30)
         except AssertionError:
             missing = sorted(expected - got)
+            reasons = []
+            while not letters.empty():
+                letter = letters.get()
+                reasons.append(f"{letter.service} {letter.key} {letter.reason}")
+            for process in (ingestion, extraction):
+                process.signal(signal.SIGTERM)  # they log their counters on the way out
+                process.wait(10)
             raise AssertionError(
+                f"dead letters: {reasons}\n"
                 f"no index for {missing}{ingestion.log()[-2000:]}{extraction.log()[-2000:]}"
             ) from None
         assert index.train == "T000" and index.line == "L1"
