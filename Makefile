@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/trackfusion study frequency
+	$(BIN)/trackfusion up
 
 test: $(STAMP)
 	$(BIN)/ruff check .

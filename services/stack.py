@@ -94,6 +94,7 @@ class StatusBoard:
         self.trains: set[str] = set()
         self.raised: set[tuple[str, ...]] = set()
         self.alive: set[tuple[str, str]] = set()
+        self.viewer_url = ""  # the web viewer's address, once the viewer has printed it
 
     def on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -136,6 +137,8 @@ class StatusBoard:
                     f"{spec.name:12} {child.pid if child else '-':>7}  {running:8} {alive}"
                 )
             lines.append("")
+            if self.viewer_url:
+                lines.append(f"viewer: {self.viewer_url}")
             lines.append(
                 f"trains {len(self.trains)}   segments tracked {len(self.segments)}   "
                 f"alerts raised {len(self.raised)}"
@@ -193,6 +196,8 @@ def main(stack_path: str | Path = DEFAULT_STACK, *, out: TextIO = sys.stdout, **
             tty = out.isatty()
             last, last_t = board.snapshot(), time.monotonic()
             while not stop.wait(1.0 if tty else 5.0):
+                if not board.viewer_url:
+                    board.viewer_url = viewer_url(stack.state_dir / "viewer.log")
                 now, now_t = board.snapshot(), time.monotonic()
                 rates = {k: (now[k] - last[k]) / (now_t - last_t) for k in WATCHED}
                 last, last_t = now, now_t
@@ -206,6 +211,15 @@ def main(stack_path: str | Path = DEFAULT_STACK, *, out: TextIO = sys.stdout, **
             signal.signal(sig, handler)
     print("stack stopped", file=out)
     return 0
+
+
+def viewer_url(log_path: Path) -> str:
+    """The web viewer's URL, the first line of the viewer's output that is one."""
+    try:
+        with log_path.open() as log:
+            return next((line.strip() for line in log if line.startswith("http")), "")
+    except OSError:
+        return ""
 
 
 def stop_children(children: dict[str, subprocess.Popen]) -> None:
