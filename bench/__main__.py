@@ -12,6 +12,10 @@ Workloads (DESIGN "Performance targets"):
    scenarios), against its 20 s target.
 4. the simulator's raw-signal generation, in trains simulated in real time per core
    (``bench/simulator.py``), against its target of 200.
+5. ingestion and extraction: raw samples per second per core through each core, per-chunk
+   latency (``bench/ingestion.py``, ``bench/extraction.py``); target >= 12 M through both.
+6. the filtering service over Zenoh: events per second and index-to-state latency
+   (``bench/filtering.py``).
 """
 
 from __future__ import annotations
@@ -165,6 +169,9 @@ def bench_study() -> None:
 
 
 def main() -> None:
+    from bench.extraction import bench_extraction
+    from bench.filtering import bench_filtering_service
+    from bench.ingestion import bench_ingestion
     from bench.simulator import bench_raw_generation
 
     rng = np.random.default_rng(1)
@@ -172,6 +179,9 @@ def main() -> None:
     bench_single_event(rng)
     bench_study()
     bench_raw_generation()
+    bench_ingestion()
+    bench_extraction()
+    bench_filtering_service()
 
 
 if __name__ == "__main__":
