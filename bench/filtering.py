@@ -30,7 +30,6 @@ import zenoh
 from schemas import (
     Calibration,
     DegradationPosterior,
-    NDArray,
     OnboardIndex,
     SegmentState,
     TrcRecord,
@@ -39,6 +38,7 @@ from schemas import (
     keys,
 )
 from services.filtering import service
+from services.filtering.testing import example_models
 from services.filtering.tracker import Tracker
 from services.limits import load_limits
 from services.runtime.config import RuntimeConfig, zenoh_config
@@ -49,33 +49,7 @@ WAIT_S = 120.0
 
 
 def _models(rng: np.random.Generator) -> list[Calibration | DegradationPosterior]:
-    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((NS_SAMPLES, 1)))
-    sigma = np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None]
-    return [
-        Calibration(
-            version=1,
-            t=T0,
-            indicators=["top6", "align10"],
-            indices=["top6", "align10"],
-            H=NDArray.of([[0.9, 0.05], [0.05, 0.75]]),
-            b=NDArray.of([-0.25, -0.35]),
-            R=NDArray.of([[0.01, 0.002], [0.002, 0.03]]),
-            n_pairs=100,
-            r2=NDArray.of([0.8, 0.7]),
-        ),
-        DegradationPosterior(
-            group="net",
-            version=1,
-            t=T0,
-            indicators=["top6", "align10"],
-            mu=NDArray.of(rng.normal([7e-4, 4e-4], 2e-4, (NS_SAMPLES, 2))),
-            sigma=NDArray.of(sigma),
-            z_plus=NDArray.of(np.broadcast_to(np.log([2.0, 1.8]), (NS_SAMPLES, 2))),
-            sigma_z_plus=NDArray.of(np.broadcast_to(np.eye(2) * 0.01, (NS_SAMPLES, 2, 2))),
-            n_increments=100,
-            n_levels=20,
-        ),
-    ]
+    return example_models(NS_SAMPLES, seed=int(rng.integers(2**31)))
 
 
 def _trcs() -> list[TrcRecord]:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable, Iterator
 
-import numpy as np
 import pytest
 import zenoh
 
@@ -14,7 +13,6 @@ from schemas import (
     Calibration,
     DeadLetter,
     DegradationPosterior,
-    NDArray,
     OnboardIndex,
     SegmentState,
     TrcRecord,
@@ -23,6 +21,7 @@ from schemas import (
     keys,
 )
 from services.filtering import service
+from services.filtering.testing import example_models
 from services.filtering.tracker import DAY_S, Tracker
 from services.limits import load_limits
 
@@ -32,33 +31,7 @@ LIMITS = load_limits()
 
 
 def models() -> list[Calibration | DegradationPosterior]:
-    rng = np.random.default_rng(0)
-    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((NS, 1)))
-    return [
-        Calibration(
-            version=1,
-            t=T0,
-            indicators=["top6", "align10"],
-            indices=["top6", "align10"],
-            H=NDArray.of([[0.9, 0.05], [0.05, 0.75]]),
-            b=NDArray.of([-0.25, -0.35]),
-            R=NDArray.of([[0.01, 0.002], [0.002, 0.03]]),
-            n_pairs=40,
-            r2=NDArray.of([0.8, 0.7]),
-        ),
-        DegradationPosterior(
-            group="net",
-            version=1,
-            t=T0,
-            indicators=["top6", "align10"],
-            mu=NDArray.of(rng.normal([7e-4, 4e-4], 2e-4, (NS, 2))),
-            sigma=NDArray.of(np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None]),
-            z_plus=NDArray.of(np.broadcast_to(np.log([2.0, 1.8]), (NS, 2))),
-            sigma_z_plus=NDArray.of(np.broadcast_to(np.eye(2) * 0.01, (NS, 2, 2))),
-            n_increments=20,
-            n_levels=5,
-        ),
-    ]
+    return example_models(NS, seed=0)
 
 
 def model_key(ns: str, msg: Calibration | DegradationPosterior) -> str:
