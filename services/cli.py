@@ -486,6 +486,47 @@ def build_parser() -> argparse.ArgumentParser:
     add_zenoh_arguments(p)
     p.set_defaults(func=_extraction)
 
+    # --- secure-config (services/runtime/security.py) ------------------------------------
+    def _secure_config(args: argparse.Namespace) -> int:
+        from services.runtime import security
+
+        trains = [t.strip() for t in args.trains.split(",") if t.strip()]
+        if not trains:
+            raise SystemExit("--trains: give at least one train id, e.g. --trains T001,T002")
+        command = (
+            f"trackfusion secure-config --trains {','.join(trains)} --ns {args.ns} "
+            f"--certs {args.certs} --listen {args.listen}"
+        )
+        try:
+            text = security.main(args.ns, trains, args.certs, args.listen, command)
+        except ValueError as exc:
+            raise SystemExit(f"secure-config: {exc}") from None
+        sys.stdout.write(text)
+        return 0
+
+    p = sub.add_parser(
+        "secure-config",
+        help="print the TLS + access-control router config for a fleet (JSON5)",
+        description="Print a router configuration that accepts only mutual-TLS clients and "
+        "lets each one (by certificate common name) use only its keys: gateway-{train} its "
+        "own raw and gps keys, each service what it needs. See deploy/SECURITY.md.",
+    )
+    p.add_argument(
+        "--trains", required=True, metavar="T1,T2,…", help="the fleet's train ids, comma-separated"
+    )
+    p.add_argument("--ns", default="tf", help="key namespace (default: %(default)s)")
+    p.add_argument(
+        "--certs",
+        required=True,
+        type=Path,
+        metavar="DIR",
+        help="directory of ca.pem, router.pem and router-key.pem as the router will see it",
+    )
+    p.add_argument(
+        "--listen", default="tls/0.0.0.0:7447", help="TLS endpoint (default: %(default)s)"
+    )
+    p.set_defaults(func=_secure_config)
+
     return parser
 
 
