@@ -281,6 +281,9 @@ class SegmentState(Message, frozen=True, kw_only=True):
         for name in ("forecast_mean", "forecast_ci_low_mm", "forecast_ci_high_mm"):
             check_array(name, getattr(self, name), (h, n))
         check_array("forecast_p_exceed", self.forecast_p_exceed, (h, levels, n))
+        for name in ("p_exceed", "forecast_p_exceed"):
+            p = getattr(self, name).array()
+            check(bool(((p >= 0) & (p <= 1)).all()), f"{name}: probabilities outside [0, 1]")
 
 
 class Alert(Message, frozen=True, kw_only=True):

@@ -48,10 +48,10 @@ class ExtractionAdapter:
     def handle(self, key: str, payload: bytes) -> None:
         chunk = decode(payload, PositionedChunk)
         parts = key.split("/")
-        if parts[-2:] != [chunk.train, chunk.unit]:
+        if parts[1:] != ["accel", chunk.train, chunk.unit]:
             raise SchemaError(
-                f"PositionedChunk: key says {'/'.join(parts[-2:])}, "
-                f"message says {chunk.train}/{chunk.unit}"
+                f"PositionedChunk: key {key} is not {{ns}}/accel/{chunk.train}/{chunk.unit}, "
+                f"as the message's train and unit say"
             )
         for index in self.extractor.process(chunk):
             self.rt.session.put(

@@ -92,10 +92,10 @@ class IngestionAdapter:
         parts = key.split("/")
         if kind == "raw":
             chunk = decode(payload, RawChunk)
-            if parts[-2:] != [chunk.train, chunk.unit]:
+            if parts[1:] != ["raw", chunk.train, chunk.unit]:
                 raise SchemaError(
-                    f"RawChunk: key says {'/'.join(parts[-2:])}, "
-                    f"message says {chunk.train}/{chunk.unit}"
+                    f"RawChunk: key {key} is not {{ns}}/raw/{chunk.train}/{chunk.unit}, "
+                    f"as the message's train and unit say"
                 )
             return self.core.step(chunk)
         fix = decode(payload, GpsFix)

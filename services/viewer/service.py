@@ -217,9 +217,11 @@ def _check_key(kind: str, key: str, message: Message) -> None:
     """The key's ids must be the message's (a misrouted message is a dead letter)."""
     parts = key.split("/")
     if kind == "gps":
-        if not isinstance(message, GpsFix) or parts[-1] != message.train:
-            raise SchemaError(f"GpsFix: key says train {parts[-1]}, message says {message}")
+        if not isinstance(message, GpsFix) or parts[1:] != ["gps", message.train]:
+            raise SchemaError(f"GpsFix: key {key} is not {{ns}}/gps/{{train}} of its train")
         return
+    if len(parts) != 4:
+        raise SchemaError(f"{type(message).__name__}: key {key} is not {{ns}}/{kind}/LINE/SEG")
     line, segment = parts[-2], parts[-1]
     if (line, segment) != (getattr(message, "line", None), getattr(message, "segment", None)):
         raise SchemaError(
