@@ -101,11 +101,11 @@ def index_pass_events(
     for day in range(int(np.ceil(days - 1e-9))):
         day0 = start + day * DAY_S
         t_all, seg_all, meta = [], [], []
-        for line in lines:
+        for line in lines if n else ():  # no service passes: nothing to draw
             rng = stable_rng(seed, "index-passes", line.id, day)
             speed = line.line_speed_mps * rng.uniform(f0, f1, n)
-            last = h1 * 3600 - line.length_m / speed.min() if n else 0.0
-            if n and last < h0 * 3600:
+            last = h1 * 3600 - line.length_m / speed.min()
+            if last < h0 * 3600:
                 raise ValueError(f"line {line.id}: a pass does not fit into service hours")
             slots = np.linspace(h0 * 3600, last, n + 1)[:-1] if n else np.zeros(0)
             dep = day0 + slots + rng.uniform(0, (last - h0 * 3600) / max(n, 1), n)

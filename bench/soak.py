@@ -1,0 +1,623 @@
+"""`make soak`: the whole stack on this machine for a bounded time, under N simulated trains.
+
+Processes (each ``python -m services.cli …`` in its own process group, logs in a temporary
+directory): router → ingestion → extraction → filtering (+ calibration with the initial
+models, alerting; no viewer). This process is only a client of the router that counts and
+times what flows on the bus, and samples CPU and RSS of every process from /proc.
+
+Run (``--fidelity raw``, the default):
+
+1. **prime**: a fast-mode world of the demo network, one service pass per line and day
+   (``simulate --fidelity index --trains 1 --speedup inf``), over the ``--prime-days`` days
+   that end one day before now: TRC records and tampings, so that every segment has a
+   filter started and an on-board index yields a published SegmentState.
+2. **load**: ``simulate --fidelity raw --trains N --speedup 1 --start <now>`` for
+   ``--minutes``; then the fleet is stopped (SIGTERM) and the pipeline drains.
+
+Figures:
+
+- **no loss**: RawChunks published (the simulator's own count) = RawChunks seen on the bus
+  = PositionedChunks out of ingestion; no dead letters.
+- **real time**: the simulator runs at ``--speedup 1``, so event time = wall time − offset;
+  the offset is measured as the smallest ``arrival wall − t0`` of the RawChunks (the
+  simulator publishes a chunk as soon as its ``t0`` is due). Lags (wall − offset − event
+  time) of RawChunk ``t0``, PositionedChunk ``t0`` and of the moment a train left a segment
+  show whether the simulator, ingestion and extraction keep up: bounded, not growing.
+- **latency** train leaves a segment → that segment's state published: an OnboardIndex's
+  ``t`` is when the unit passed the middle of the segment, so the train left it at
+  ``t + (segment length / 2) / speed``; the SegmentState with the same (line, segment, t)
+  arrives at wall ``w``; latency = ``w − (leave time + offset)``. The simulator publishes a
+  chunk at the start of the second it covers; a real gateway can only publish it at its
+  end, so a real deployment adds up to the chunk length (1 s) to this figure.
+- **memory**: RSS and CPU of every process every ``--sample-s``; growth = mean RSS of the
+  last three samples / mean RSS of the first 30 s after ``--warmup-minutes`` − 1.
+
+``--fidelity index`` loads the filtering side alone: ``simulate --fidelity index --trains N
+--speedup X`` from the start of a year; latency is then index arrival → state arrival.
+
+Ctrl-C or SIGTERM stops everything in order (SIGTERM, wait, SIGKILL) and still reports.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime as dt
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from collections import Counter
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import zenoh
+
+from schemas import OnboardIndex, keys
+from services.runtime.config import zenoh_config
+from simulators.network import demo_network
+
+REPO = Path(__file__).resolve().parents[1]
+SERVICES = ("calibration", "filtering", "alerting", "ingestion", "extraction")
+TICK = os.sysconf("SC_CLK_TCK")
+STOP_GRACE_S = 10.0
+# "held in real time": bounds on the lags (s) in the last minute of the load.
+MAX_SIM_LAG_S = 1.0  # p99: the simulator publishes within 1 s of the event time
+# p50: a backlog in ingestion or extraction would push the median lag up without bound; the
+# tail is no measure of keeping up (a chunk in a tunnel waits for the fix after it).
+MAX_PIPE_LAG_S = 2.0
+
+
+class _Head(msgspec.Struct):
+    """The fields of RawChunk/PositionedChunk this process needs (the samples are skipped)."""
+
+    t0: float
+
+
+class _StateHead(msgspec.Struct):
+    line: str
+    segment: str
+    t: float
+
+
+class Probe:
+    """Counts and times what flows on the bus (Zenoh callbacks; short, thread-safe)."""
+
+    def __init__(self, segment_length: dict[tuple[str, str], float]) -> None:
+        self.lock = threading.Lock()
+        self.seg_len = segment_length
+        self.counts: Counter[str] = Counter()
+        self.deadletters: Counter[str] = Counter()
+        self.deadletter_reasons: list[str] = []
+        self.raw: list[tuple[float, float]] = []  # (wall, t0)
+        self.accel: list[tuple[float, float]] = []
+        self.index_leave: list[tuple[float, float]] = []  # (wall, leave event time)
+        self.pending: dict[tuple[str, str, float], tuple[float, float]] = {}  # -> (leave, wall)
+        self.latency: list[tuple[float, float, float]] = []  # (wall, leave, index wall)
+        self.head = msgspec.msgpack.Decoder(_Head)
+        self.state_head = msgspec.msgpack.Decoder(_StateHead)
+        self.index = msgspec.msgpack.Decoder(OnboardIndex)
+        self.measuring = False
+
+    def on_raw(self, sample: zenoh.Sample) -> None:
+        wall = time.time()
+        t0 = self.head.decode(sample.payload.to_bytes()).t0
+        with self.lock:
+            self.counts["raw"] += 1
+            self.raw.append((wall, t0))
+
+    def on_accel(self, sample: zenoh.Sample) -> None:
+        wall = time.time()
+        t0 = self.head.decode(sample.payload.to_bytes()).t0
+        with self.lock:
+            self.counts["accel"] += 1
+            self.accel.append((wall, t0))
+
+    def on_index(self, sample: zenoh.Sample) -> None:
+        wall = time.time()
+        msg = self.index.decode(sample.payload.to_bytes())
+        half = 0.5 * self.seg_len.get((msg.line, msg.segment), 200.0)
+        leave = msg.t + (half / msg.speed_mps if msg.speed_mps > 0 else 0.0)
+        with self.lock:
+            self.counts["index"] += 1
+            if self.measuring:
+                self.index_leave.append((wall, leave))
+                self.pending[(msg.line, msg.segment, msg.t)] = (leave, wall)
+
+    def on_state(self, sample: zenoh.Sample) -> None:
+        wall = time.time()
+        head = self.state_head.decode(sample.payload.to_bytes())
+        with self.lock:
+            self.counts["state"] += 1
+            self.counts["state_since_mark"] += 1
+            hit = self.pending.pop((head.line, head.segment, head.t), None)
+            if hit is not None:
+                self.latency.append((wall, *hit))
+
+    def on_other(self, sample: zenoh.Sample) -> None:
+        parts = str(sample.key_expr).split("/")
+        with self.lock:
+            self.counts[parts[1]] += 1
+            if parts[1] == "deadletter":
+                self.deadletters[parts[2]] += 1
+                if len(self.deadletter_reasons) < 10:
+                    self.deadletter_reasons.append(
+                        sample.payload.to_bytes()[:300].decode("utf-8", "replace")
+                    )
+
+    def snapshot(self) -> Counter[str]:
+        with self.lock:
+            return Counter(self.counts)
+
+
+class Child:
+    """One ``trackfusion`` process in its own process group, output to a log file."""
+
+    def __init__(self, name: str, logdir: Path, args: list[str]) -> None:
+        self.name = name
+        self.log_path = logdir / f"{name}.log"
+        with self.log_path.open("wb") as log:
+            self.popen = subprocess.Popen(
+                [sys.executable, "-m", "services.cli", *args],
+                cwd=REPO,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,
+                env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            )
+        self.cpu0 = cpu_seconds(self.popen.pid)
+
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
+
+    def stop(self, grace: float = STOP_GRACE_S) -> int | None:
+        """SIGTERM, wait ``grace``, then SIGKILL; returns the exit code."""
+        if self.popen.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.pid, signal.SIGTERM)
+            try:
+                self.popen.wait(grace)
+            except subprocess.TimeoutExpired:
+                print(f"{self.name}: no exit {grace} s after SIGTERM, SIGKILL", file=sys.stderr)
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(self.pid, signal.SIGKILL)
+                self.popen.wait(5)
+        return self.popen.returncode
+
+
+def cpu_seconds(pid: int) -> float:
+    """utime + stime of ``pid`` (s), from /proc/{pid}/stat; 0 once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / TICK  # fields 14 and 15 of stat(5)
+
+
+def rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def connect(endpoint: str, stop: threading.Event) -> zenoh.Session:
+    """A client session of the router just started (it takes a moment to listen)."""
+    conf = {"mode": "client", "connect": {"endpoints": [endpoint]}}
+    for _ in range(60):
+        try:
+            return zenoh.open(zenoh_config(conf))
+        except zenoh.ZError:
+            if stop.wait(0.5):
+                break
+    raise RuntimeError(f"no router on {endpoint}")
+
+
+def iso(t: float) -> str:
+    return dt.datetime.fromtimestamp(t, dt.UTC).isoformat()
+
+
+def pct(values, q: float) -> float | None:
+    return round(float(np.percentile(values, q)), 3) if len(values) else None
+
+
+def wait_for(predicate, timeout: float, stop: threading.Event, step: float = 0.5) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        if stop.wait(step):
+            return False
+    return predicate()
+
+
+def quiet(probe: Probe, kinds: tuple[str, ...], quiet_s: float, timeout: float, stop) -> bool:
+    """Wait until the counts of ``kinds`` have not changed for ``quiet_s``."""
+    last, since, end = None, time.monotonic(), time.monotonic() + timeout
+    while time.monotonic() < end and not stop.is_set():
+        now = tuple(probe.snapshot()[k] for k in kinds)
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since >= quiet_s:
+            return True
+        stop.wait(0.5)
+    return False
+
+
+def run(args: argparse.Namespace, trains: int, stop: threading.Event) -> dict:
+    """One soak run with ``trains`` trains; returns its summary."""
+    logdir = Path(tempfile.mkdtemp(prefix=f"tf-soak-{trains}-"))
+    ns = f"soak_{uuid.uuid4().hex[:8]}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    wiring = ["--connect", endpoint, "--ns", ns]
+    network = demo_network(200.0)
+    seg_len = {(s.line, s.id): s.length_m for ln in network.lines.values() for s in ln.segments}
+    probe = Probe(seg_len)
+    children: dict[str, Child] = {}
+    samples: list[dict] = []  # every --sample-s: {wall, name: (rss MB, cpu s)}
+    summary: dict = {"trains": trains, "fidelity": args.fidelity, "logs": str(logdir)}
+    session = None
+    t_load = time.time()
+    print(f"--- soak: {trains} trains, {args.fidelity}, {args.minutes} min; logs {logdir}")
+
+    def sample() -> None:
+        row = {"wall": time.time()}
+        for name, child in [*children.items(), ("soak", None)]:
+            pid = os.getpid() if child is None else child.pid
+            row[name] = (rss_mb(pid), cpu_seconds(pid))
+        samples.append(row)
+
+    def sampler() -> None:
+        while not stop.wait(args.sample_s) and not sampler_done.is_set():
+            sample()
+
+    sampler_done = threading.Event()
+    try:
+        children["router"] = Child("router", logdir, ["router", "--listen", endpoint, "--ns", ns])
+        session = connect(endpoint, stop)
+        alive: set[str] = set()
+        session.liveliness().declare_subscriber(
+            keys.alive_all(ns),
+            lambda s: (
+                alive.add(str(s.key_expr).split("/")[2]) if s.kind == zenoh.SampleKind.PUT else None
+            ),
+            history=True,
+        )
+        session.declare_subscriber(f"{ns}/raw/**", probe.on_raw)
+        session.declare_subscriber(f"{ns}/accel/**", probe.on_accel)
+        session.declare_subscriber(f"{ns}/index/**", probe.on_index)
+        session.declare_subscriber(f"{ns}/state/**", probe.on_state)
+        for kind in ("gps", "trc", "maintenance", "alert", "deadletter", "model"):
+            session.declare_subscriber(f"{ns}/{kind}/**", probe.on_other)
+        db = {name: str(logdir / f"{name}.sqlite") for name in SERVICES}
+        service_args = {
+            "calibration": ["--initial-models", "deploy/initial-models.json5"],
+        }
+        for name in SERVICES:
+            extra = service_args.get(name, [])
+            if name in ("calibration", "filtering", "alerting"):
+                extra = [*extra, "--db", db[name]]
+            children[name] = Child(name, logdir, [name, *extra, "--instance", name, *wiring])
+        if not wait_for(lambda: set(SERVICES) <= alive, 60, stop):
+            raise RuntimeError(f"services not alive within 60 s: {sorted(alive)}")
+        sample()
+        threading.Thread(target=sampler, daemon=True).start()
+
+        now = time.time()
+        if args.fidelity == "raw":
+            # Prime: TRC records and tampings up to a day ago, in fast mode.
+            start = now - (args.prime_days + 1) * 86400
+            prime = Child(
+                "prime",
+                logdir,
+                [
+                    "simulate",
+                    "--fidelity",
+                    "index",
+                    "--trains",
+                    "1",  # 0 crashes: simulators/index_model.py:111 (uniform(0, < 0, 0))
+                    "--days",
+                    str(args.prime_days),
+                    "--start",
+                    iso(start),
+                    "--speedup",
+                    "inf",
+                    "--no-progress",
+                    "--instance",
+                    "prime",
+                    *wiring,
+                ],
+            )
+            t_prime = time.monotonic()
+            while prime.popen.poll() is None and not stop.wait(0.5):
+                pass
+            quiet(probe, ("state", "model"), 3.0, 120, stop)
+            primed = probe.snapshot()
+            summary["prime"] = {
+                "wall_s": round(time.monotonic() - t_prime, 1),
+                "trc": primed["trc"],
+                "maintenance": primed["maintenance"],
+                "states": primed["state"],
+                "segments": len(seg_len),
+            }
+            print(f"primed: {summary['prime']}")
+            fleet_args = ["--fidelity", "raw", "--speedup", str(args.speedup or 1.0)]
+            fleet_args += ["--start", iso(time.time() + 2.0), "--days", "1"]
+        else:
+            fleet_args = ["--fidelity", "index", "--speedup", str(args.speedup or 15000.0)]
+            fleet_args += ["--days", "365"]
+        with probe.lock:
+            probe.measuring = True
+        t_load = time.time()
+        children["fleet"] = Child(
+            "fleet",
+            logdir,
+            [
+                "simulate",
+                *fleet_args,
+                "--trains",
+                str(trains),
+                "--seed",
+                "1",
+                "--no-progress",
+                "--instance",
+                "fleet",
+                *wiring,
+            ],
+        )
+        t_end = time.monotonic() + args.minutes * 60
+        while time.monotonic() < t_end and not stop.wait(min(30.0, t_end - time.monotonic())):
+            counts = probe.snapshot()
+            elapsed = time.time() - t_load
+            print(
+                f"  {elapsed:6.0f} s: raw {counts['raw']} accel {counts['accel']} "
+                f"index {counts['index']} state {counts['state']} "
+                f"deadletters {counts['deadletter']}",
+                flush=True,
+            )
+            if children["fleet"].popen.poll() is not None:
+                print("  the fleet simulator has exited", file=sys.stderr)
+                break
+        t_stop = time.time()
+        children["fleet"].stop()
+        drained = quiet(probe, ("raw", "accel", "index", "state"), 5.0, 60, threading.Event())
+        summary["drained"] = drained
+        summary["load_s"] = round(t_stop - t_load, 1)
+    except KeyboardInterrupt:
+        summary["interrupted"] = True
+        stop.set()
+    finally:
+        ignored = {
+            sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)
+        }
+        try:
+            sampler_done.set()
+            sample()
+            codes = summary.setdefault("exit_codes", {})
+            for name in reversed(list(children)):
+                if name != "router":
+                    codes[name] = children[name].stop()
+            if session is not None:
+                with contextlib.suppress(zenoh.ZError):
+                    session.close()
+            if "router" in children:
+                codes["router"] = children["router"].stop()
+        finally:
+            for sig, handler in ignored.items():
+                signal.signal(sig, handler)
+    summary.update(figures(args, probe, samples, last_json(logdir / "fleet.log"), t_load))
+    if summary.get("interrupted") and "held" in summary:
+        summary["held"]["ok"] = False  # a cut run proves nothing
+    return summary
+
+
+def last_json(log_path: Path) -> dict:
+    """The last JSON line of a log (the simulator's closing count), or {}."""
+    if not log_path.exists():
+        return {}
+    for line in reversed(log_path.read_text(errors="replace").splitlines()):
+        if line.startswith("{"):
+            with contextlib.suppress(ValueError):
+                return json.loads(line)
+    return {}
+
+
+def figures(args, probe: Probe, samples: list[dict], fleet: dict, t_load: float) -> dict:
+    counts = probe.snapshot()
+    published = fleet.get("by_type", {}).get("RawChunk")
+    raw, accel = np.array(probe.raw or [(0, 0)]), np.array(probe.accel or [(0, 0)])
+    out: dict = {
+        "raw_published": published,
+        "raw_on_bus": counts["raw"],
+        "accel_out_of_ingestion": counts["accel"],
+        "gps_on_bus": counts["gps"],
+        "index": counts["index"],
+        "states": counts["state"],
+        "deadletters": dict(probe.deadletters),
+        "deadletter_examples": probe.deadletter_reasons[:3],
+    }
+    if args.fidelity == "raw" and probe.raw:
+        offset = float(np.min(raw[:, 0] - raw[:, 1]))  # wall − event time, chunk on time
+        end_wall = raw[-1, 0]
+
+        def lag(rows: np.ndarray, last_s: float | None = None) -> dict:
+            if not len(rows):
+                return {}
+            rows = rows if last_s is None else rows[rows[:, 0] >= end_wall - last_s]
+            d = rows[:, 0] - offset - rows[:, 1]
+            return {"p50": pct(d, 50), "p99": pct(d, 99), "max": pct(d, 100)}
+
+        leave = np.array(probe.index_leave or [(0, 0)])[: len(probe.index_leave)]
+        out["lag_s"] = {
+            "simulator (raw t0)": lag(raw),
+            "ingestion (accel t0)": lag(accel[: len(probe.accel)]),
+            "extraction (segment left → index)": lag(leave),
+        }
+        out["lag_last_minute_s"] = {
+            "simulator (raw t0)": lag(raw, 60),
+            "ingestion (accel t0)": lag(accel[: len(probe.accel)], 60),
+            "extraction (segment left → index)": lag(leave, 60),
+        }
+        lat = np.array([w - (leave_t + offset) for w, leave_t, _ in probe.latency])
+    else:
+        lat = np.array([w - index_wall for w, _, index_wall in probe.latency])
+    stage = np.array([w - index_wall for w, _, index_wall in probe.latency])
+    out["index_to_state_s"] = {"p50": pct(stage, 50), "p99": pct(stage, 99)}
+    out["latency_s"] = {
+        "matched": len(lat),
+        "indices_without_state": len(probe.pending),
+        "p50": pct(lat, 50),
+        "p90": pct(lat, 90),
+        "p99": pct(lat, 99),
+        "max": pct(lat, 100),
+    }
+    out["processes"] = processes(args, samples)
+    if args.fidelity == "raw":
+        last = out["lag_last_minute_s"]
+        # Nothing silently lost: every RawChunk published reached the bus and came out of
+        # ingestion either positioned or as a dead letter with its reason (a train that
+        # starts in a tunnel has no map match yet: "unpositioned", by design).
+        rejected = probe.deadletters.get("ingestion", 0)
+        accounted = published is not None and published == counts["raw"] == counts["accel"] + (
+            rejected
+        )
+        no_loss = accounted and not probe.deadletters
+        real_time = (
+            (last["simulator (raw t0)"].get("p99") or 0) <= MAX_SIM_LAG_S
+            and (last["ingestion (accel t0)"].get("p50") or 0) <= MAX_PIPE_LAG_S
+            and (last["extraction (segment left → index)"].get("p50") or 0) <= MAX_PIPE_LAG_S
+        )
+        out["held"] = {
+            "all_accounted": accounted,
+            "no_loss": no_loss,
+            "real_time": real_time,
+            "ok": accounted and real_time,
+        }
+    return out
+
+
+def processes(args, samples: list[dict]) -> dict:
+    """Per process: CPU share over the run, RSS at warm-up and at the end, growth."""
+    if len(samples) < 2:
+        return {}
+    t0 = samples[0]["wall"]
+    warm = t0 + args.warmup_minutes * 60
+    out = {}
+    for name in samples[-1]:
+        if name == "wall":
+            continue
+        rows = [(s["wall"], *s[name]) for s in samples if name in s and s[name][0] == s[name][0]]
+        if len(rows) < 2:
+            continue
+        arr = np.array(rows)
+        cpu = (arr[-1, 2] - arr[0, 2]) / max(arr[-1, 0] - arr[0, 0], 1e-9)
+        base = arr[(arr[:, 0] >= warm) & (arr[:, 0] < warm + 30), 1]
+        end = arr[-3:, 1]
+        growth = float(end.mean() / base.mean() - 1) if len(base) else None
+        after = arr[arr[:, 0] >= warm, 1]
+        out[name] = {
+            "cpu_pct": round(100 * cpu, 1),
+            "rss_start_mb": round(float(arr[0, 1]), 1),
+            "rss_warm_mb": round(float(base.mean()), 1) if len(base) else None,
+            "rss_end_mb": round(float(end.mean()), 1),
+            "rss_max_after_warmup_mb": round(float(after.max()), 1) if len(after) else None,
+            "growth_after_warmup_pct": None if growth is None else round(100 * growth, 1),
+        }
+    return out
+
+
+def table(summary: dict) -> str:
+    lines = [f"== {summary['trains']} trains ({summary['fidelity']}), {summary.get('load_s')} s"]
+    lines.append(
+        f"RawChunks published {summary['raw_published']}  on bus {summary['raw_on_bus']}  "
+        f"PositionedChunks {summary['accel_out_of_ingestion']}  indices {summary['index']}  "
+        f"states {summary['states']}  dead letters {summary['deadletters'] or 0}"
+    )
+    for title in ("lag_s", "lag_last_minute_s"):
+        for stage, v in summary.get(title, {}).items():
+            lines.append(f"{title:18} {stage:36} p50 {v.get('p50')}  p99 {v.get('p99')}  "
+                         f"max {v.get('max')}")  # fmt: skip
+    lat = summary["latency_s"]
+    origin = "leave" if summary["fidelity"] == "raw" else "index"
+    lines.append(
+        f"latency {origin}→state  n={lat['matched']}  p50 {lat['p50']}  p90 {lat['p90']}  "
+        f"p99 {lat['p99']}  max {lat['max']}  "
+        f"(indices without state {lat['indices_without_state']})"
+    )
+    lines.append(
+        f"{'process':12} {'cpu %':>6} {'rss0':>7} {'rss warm':>9} {'rss end':>8} {'growth %':>9}"
+    )
+    for name, p in summary.get("processes", {}).items():
+        warm, growth = p["rss_warm_mb"], p["growth_after_warmup_pct"]
+        lines.append(
+            f"{name:12} {p['cpu_pct']:6.1f} {p['rss_start_mb']:7.1f} "
+            f"{'-' if warm is None else warm:>9} "
+            f"{p['rss_end_mb']:8.1f} "
+            f"{'-' if growth is None else growth:>9}"
+        )
+    stage = summary.get("index_to_state_s", {})
+    lines.append(
+        f"latency index → state (filtering alone): p50 {stage.get('p50')}  p99 {stage.get('p99')}"
+    )
+    if "held" in summary:
+        lines.append(f"held: {summary['held']}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.soak", description=__doc__.split("\n")[0])
+    p.add_argument("--minutes", type=float, default=10.0, help="load time (default 10)")
+    p.add_argument(
+        "--trains",
+        default="100",
+        help="trains, or a comma list tried in turn until one holds (e.g. 100,70,50)",
+    )
+    p.add_argument("--fidelity", choices=["raw", "index"], default="raw")
+    p.add_argument("--speedup", type=float, help="default: 1 (raw), 15000 (index)")
+    p.add_argument("--warmup-minutes", type=float, default=2.0)
+    p.add_argument("--sample-s", type=float, default=10.0, help="CPU/RSS sampling period")
+    p.add_argument("--prime-days", type=float, default=20.0, help="TRC history before the load")
+    p.add_argument("--json", metavar="FILE", help="also write the JSON summary here")
+    args = p.parse_args(argv)
+    stop = threading.Event()
+
+    def on_term(*_):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_term)
+    results = []
+    for trains in [int(n) for n in args.trains.split(",")]:
+        summary = run(args, trains, stop)
+        results.append(summary)
+        print(table(summary), flush=True)
+        if stop.is_set() or summary.get("held", {}).get("ok", True):
+            break
+    held = [r["trains"] for r in results if r.get("held", {}).get("ok")]
+    report = {"runs": results, "largest_held": max(held) if held else None}
+    text = json.dumps(report, indent=1, default=str)
+    print(text)
+    if args.json:
+        Path(args.json).write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,160 @@
+"""Scale-out as real processes through a real router: one filtering instance owns the whole
+network (``--selector '**'``), two more split it by key expression (``L1/**`` and
+``L2/**``; a selector is ONE key-expression suffix, so each split instance owns one line of
+a two-line network). A fast-mode simulator run feeds all three at once; when every instance
+is drained, the union of the split instances' states equals the single instance's, byte
+for byte, and the split instances' key sets are disjoint.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import threading
+
+import zenoh
+
+from schemas import MaintenanceEvent, OnboardIndex, SegmentState, TrcRecord, decode, keys
+from services.filtering.tracker import event_of
+from simulators.network import generate_network
+
+WAIT_S = 45.0  # the whole run takes ~15 s on a loaded 2-core machine
+DAYS = 70
+SELECTORS = {"all": "**", "L1": "L1/**", "L2": "L2/**"}
+EVENT_TYPES = {"index": OnboardIndex, "trc": TrcRecord, "maintenance": MaintenanceEvent}
+
+
+class LastEvents:
+    """The newest event time per segment seen on the bus (what a drained filter shows)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.t: dict[tuple[str, str], float] = {}
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        kind = str(sample.key_expr).split("/")[1]
+        event = event_of(decode(sample.payload.to_bytes(), EVENT_TYPES[kind]))
+        sid = (event.message.line, event.message.segment)
+        with self.lock:
+            self.t[sid] = max(self.t.get(sid, event.t_s), event.t_s)
+
+    def snapshot(self) -> dict[tuple[str, str], float]:
+        with self.lock:
+            return dict(self.t)
+
+
+def states_by_instance(session: zenoh.Session, ns: str) -> dict[str, dict[str, bytes]]:
+    """``{replier zid: {q/state key: payload}}`` of every filtering instance."""
+    out: dict[str, dict[str, bytes]] = {}
+    # No consolidation: by default Zenoh keeps one reply per key, and several instances answer.
+    none = zenoh.ConsolidationMode.NONE
+    for reply in session.get(keys.q_state_all(ns), timeout=10.0, consolidation=none):
+        if reply.ok is not None:
+            out.setdefault(str(reply.replier_id.zid), {})[str(reply.ok.key_expr)] = (
+                reply.ok.payload.to_bytes()
+            )
+    return out
+
+
+def lines_of(states: dict[str, bytes]) -> frozenset[str]:
+    return frozenset(key.split("/")[3] for key in states)
+
+
+def settled(
+    session: zenoh.Session, ns: str, last: LastEvents
+) -> tuple[dict[str, bytes], dict[str, dict[str, bytes]]]:
+    """Wait until the three instances are drained (each state at the newest event of its
+    segment) and the split instances' union equals the single instance's states (the
+    models have settled everywhere); returns (single, {line: split instance's states})."""
+    stop = threading.Event()
+    status = "no replies"
+    for _ in range(int(WAIT_S / 0.25)):
+        seen = last.snapshot()
+        replies = list(states_by_instance(session, ns).values())
+        whole = [s for s in replies if lines_of(s) == {"L1", "L2"}]
+        split = {next(iter(lines_of(s))): s for s in replies if len(lines_of(s)) == 1}
+        behind = sum(
+            decode(payload, SegmentState).t != seen.get(tuple(key.split("/")[3:5]))
+            for states in replies
+            for key, payload in states.items()
+        )
+        status = (
+            f"{len(replies)} repliers with {[len(s) for s in replies]} states, "
+            f"{behind} behind the newest event, {len(seen)} segments seen on the bus"
+        )
+        if len(replies) == 3 and len(whole) == 1 and set(split) == {"L1", "L2"} and not behind:
+            union = {**split["L1"], **split["L2"]}
+            if union == whole[0] and len(whole[0]) == len(seen):
+                return whole[0], split
+            status += f"; union differs from the single instance on {len(union)} keys"
+        stop.wait(0.25)  # poll the queryables; the condition, not the clock, ends the wait
+    raise AssertionError(f"not settled within {WAIT_S} s: {status}")
+
+
+def test_split_instances_equal_one_instance(
+    router, namespace, open_session, liveliness_events, spawn, tmp_path
+):
+    network = tmp_path / "net.geojson"
+    network.write_text(json.dumps(generate_network(2, 3.0, seed=5).to_geojson()))
+    wiring = ["--connect", router, "--ns", namespace]
+    session = open_session()
+    last = LastEvents()
+    for kind in EVENT_TYPES:
+        session.declare_subscriber(keys.segment_keys(namespace, kind), last)
+    alive = liveliness_events(session, keys.alive_all(namespace))
+
+    spawn(
+        "calibration",
+        "calibration",
+        "--db",
+        str(tmp_path / "calibration.sqlite"),
+        "--initial-models",
+        "deploy/initial-models.json5",
+        "--instance",
+        "cal",
+        *wiring,
+    )
+    filtering = {
+        name: spawn(
+            f"filtering-{name}",
+            "filtering",
+            "--selector",
+            selector,
+            "--db",
+            str(tmp_path / f"filtering-{name}.sqlite"),
+            "--instance",
+            f"f{name}",
+            *wiring,
+        )
+        for name, selector in SELECTORS.items()
+    }
+    up = set()
+    while len(up) < 1 + len(filtering):
+        kind, key = alive.get(timeout=30)
+        if kind == zenoh.SampleKind.PUT:
+            up.add(key.split("/")[3])
+
+    world = ["--network", str(network), "--days", str(DAYS), "--trains", "2", "--seed", "2"]
+    simulate = spawn(
+        "simulate",
+        "simulate",
+        "--fidelity",
+        "index",
+        *world,
+        "--speedup",
+        "inf",
+        "--no-progress",
+        *wiring,
+    )
+    assert simulate.wait(60) == 0, simulate.log()
+
+    whole, split = settled(session, namespace, last)
+    assert not set(split["L1"]) & set(split["L2"])  # each segment has exactly one owner
+    assert all(key.split("/")[3] == line for line, s in split.items() for key in s)
+    assert {**split["L1"], **split["L2"]} == whole  # byte for byte
+    assert len(whole) >= 25  # both 3 km lines have states (15 segments of 200 m each)
+    states = [decode(p, SegmentState) for p in whole.values()]
+    assert all(s.calibration_version >= 1 for s in states)
+    for process in filtering.values():
+        process.signal(signal.SIGTERM)
+        assert process.wait(10) == 0, process.log()
