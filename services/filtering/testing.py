@@ -1,12 +1,28 @@
-"""Test doubles that ship with the filtering service: plausible models to start it with."""
+"""Test doubles that ship with the filtering service: plausible models to start it with,
+and probes of running instances (the newest events on the bus, every instance's states)."""
 
 from __future__ import annotations
 
-import numpy as np
+import threading
 
-from schemas import INDICATORS, Calibration, DegradationPosterior, NDArray
+import numpy as np
+import zenoh
+
+from schemas import (
+    INDICATORS,
+    Calibration,
+    DegradationPosterior,
+    MaintenanceEvent,
+    NDArray,
+    OnboardIndex,
+    TrcRecord,
+    decode,
+    keys,
+)
+from services.filtering.tracker import event_of
 
 T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
+EVENT_TYPES = {"index": OnboardIndex, "trc": TrcRecord, "maintenance": MaintenanceEvent}
 
 
 def example_models(
@@ -47,3 +63,36 @@ def example_models(
             n_levels=5,
         ),
     ]
+
+
+class LastEvents:
+    """A subscriber callback keeping the newest event time per segment seen on the bus:
+    a drained filtering instance shows exactly these times in its states."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.t: dict[tuple[str, str], float] = {}
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        kind = str(sample.key_expr).split("/")[1]
+        event = event_of(decode(sample.payload.to_bytes(), EVENT_TYPES[kind]))
+        sid = (event.message.line, event.message.segment)
+        with self.lock:
+            self.t[sid] = max(self.t.get(sid, event.t_s), event.t_s)
+
+    def snapshot(self) -> dict[tuple[str, str], float]:
+        with self.lock:
+            return dict(self.t)
+
+
+def states_by_instance(session: zenoh.Session, ns: str) -> dict[str, dict[str, bytes]]:
+    """``{replier zid: {q/state key: payload}}`` of every filtering instance that answers."""
+    out: dict[str, dict[str, bytes]] = {}
+    # No consolidation: by default Zenoh keeps one reply per key, and several instances answer.
+    none = zenoh.ConsolidationMode.NONE
+    for reply in session.get(keys.q_state_all(ns), timeout=10.0, consolidation=none):
+        if reply.ok is not None:
+            out.setdefault(str(reply.replier_id.zid), {})[str(reply.ok.key_expr)] = (
+                reply.ok.payload.to_bytes()
+            )
+    return out

@@ -13,45 +13,12 @@ import threading
 import msgpack
 import zenoh
 
-from schemas import MaintenanceEvent, OnboardIndex, SegmentState, TrcRecord, decode, keys
-from services.filtering.tracker import event_of
+from schemas import SegmentState, decode, keys
+from services.filtering.testing import EVENT_TYPES, LastEvents, states_by_instance
 from simulators.network import generate_network
 
 WAIT_S = 90.0  # a loaded 2-core machine replays the whole half-world within this
 DAYS, HALF = 100, 50
-EVENT_TYPES = {"index": OnboardIndex, "trc": TrcRecord, "maintenance": MaintenanceEvent}
-
-
-class LastEvents:
-    """The newest event time per segment seen on the bus (what a drained filter shows)."""
-
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.t: dict[tuple[str, str], float] = {}
-
-    def __call__(self, sample: zenoh.Sample) -> None:
-        kind = str(sample.key_expr).split("/")[1]
-        event = event_of(decode(sample.payload.to_bytes(), EVENT_TYPES[kind]))
-        sid = (event.message.line, event.message.segment)
-        with self.lock:
-            self.t[sid] = max(self.t.get(sid, event.t_s), event.t_s)
-
-    def snapshot(self) -> dict[tuple[str, str], float]:
-        with self.lock:
-            return dict(self.t)
-
-
-def states_by_instance(session: zenoh.Session, ns: str) -> dict[str, dict[str, bytes]]:
-    """``{replier zid: {q/state key: payload}}`` of every filtering instance."""
-    out: dict[str, dict[str, bytes]] = {}
-    # No consolidation: by default Zenoh keeps one reply per key, and two instances answer.
-    none = zenoh.ConsolidationMode.NONE
-    for reply in session.get(keys.q_state_all(ns), timeout=10.0, consolidation=none):
-        if reply.ok is not None:
-            out.setdefault(str(reply.replier_id.zid), {})[str(reply.ok.key_expr)] = (
-                reply.ok.payload.to_bytes()
-            )
-    return out
 
 
 def disagreement(replies: dict[str, dict[str, bytes]], last: LastEvents) -> str:
