@@ -13,10 +13,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import queue
 import threading
 from pathlib import Path
-from typing import Any
 
 import json5
 import msgspec
@@ -28,14 +26,13 @@ from services.alerting.core import AlertingConfig, AlertingCore
 from services.alerting.store import AlertStore
 from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits
 from services.runtime.config import DEPLOY_DIR, RuntimeConfig
-from services.runtime.service import DEFAULT_CAPACITY, ServiceRuntime
+from services.runtime.service import ServiceRuntime
 
 log = logging.getLogger(__name__)
 
 SERVICE = "alerting"
 DEFAULT_ALERTING_FILE = DEPLOY_DIR / "alerting.json5"
 PLAN_VERSION = 1
-_DONE = object()  # queued by a subscriber's drop callback: that subscription has ended
 
 _list_encoder = msgspec.msgpack.Encoder()
 
@@ -65,7 +62,6 @@ class AlertingAdapter:
         self.core = core
         self.store = store
         self.lock = threading.Lock()  # the worker writes the core, queryables read it
-        self.queue: queue.Queue[Any] = queue.Queue(DEFAULT_CAPACITY)
         self.published = 0
 
     # --- subscriptions: one queue, one worker ------------------------------------------------
@@ -76,34 +72,9 @@ class AlertingAdapter:
             "state": keys.segment_keys(ns, "state"),
             "trc": keys.segment_keys(ns, "trc"),
         }
-        for kind, key in subscriptions.items():
-            self.rt.declare_subscriber(key, self._handler(kind))
+        self.rt.subscribe_in_order(subscriptions, self.handle)
         self.rt.declare_queryable(keys.q_alerts(ns), self.on_query_alerts)
         self.rt.declare_queryable(keys.q_plan(ns), self.on_query_plan)
-        self.rt.spawn(self._work, len(subscriptions), name=f"{SERVICE}:worker")
-
-    def _handler(self, kind: str) -> zenoh.handlers.Callback:
-        def on_sample(sample: zenoh.Sample) -> None:
-            # short: copy out and queue (blocks the receive thread when full: nothing dropped)
-            self.queue.put((kind, str(sample.key_expr), sample.payload.to_bytes()))
-
-        return zenoh.handlers.Callback(on_sample, lambda: self.queue.put(_DONE))
-
-    def _work(self, n_subscriptions: int) -> None:
-        ended = 0
-        while ended < n_subscriptions:  # every subscription undeclared: done
-            item = self.queue.get()
-            if item is _DONE:
-                ended += 1
-                continue
-            kind, key, payload = item
-            try:
-                self.handle(kind, key, payload)
-            except SchemaError as e:
-                self.rt.deadletters.reject(key, str(e), payload)
-            except Exception as e:
-                log.exception("%s: error handling %s", SERVICE, key)
-                self.rt.deadletters.reject(key, f"{type(e).__name__}: {e}", payload)
 
     def handle(self, kind: str, key: str, payload: bytes) -> list[Alert]:
         """One message through the core; publishes and persists what it changes."""

@@ -1,7 +1,7 @@
 """`trackfusion ingestion`: the thin adapter around :mod:`services.ingestion.core`.
 
 Subscribes ``{ns}/raw/**`` (RawChunk) and ``{ns}/gps/*`` (GpsFix); both subscriptions feed
-ONE bounded queue drained by ONE worker, in arrival order, so the core is single-threaded.
+ONE bounded queue drained by ONE worker (order kept per key), so the core is single-threaded.
 Payloads are decoded with ``schemas.decode`` (a malformed one is a dead letter with the
 decoder's reason); PositionedChunks go out with ``session.put`` on
 ``{ns}/accel/{train}/{unit}`` (congestion control BLOCK: extraction must not lose samples);
@@ -13,24 +13,21 @@ missing) before the worker exits.
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 from pathlib import Path
-from typing import Any
 
 import zenoh
 
 from schemas import GpsFix, PositionedChunk, RawChunk, SchemaError, decode, encode, keys
 from services.ingestion.core import IngestionConfig, IngestionCore, Output, Rejection
 from services.runtime.config import DEPLOY_DIR, RuntimeConfig
-from services.runtime.service import DEFAULT_CAPACITY, ServiceRuntime
+from services.runtime.service import ServiceRuntime
 from simulators.network import Network
 
 log = logging.getLogger(__name__)
 
 SERVICE = "ingestion"
 DEFAULT_NETWORK = DEPLOY_DIR / "demo-network.geojson"
-_DONE = object()  # queued by a subscriber's drop callback: that subscription has ended
 
 
 def load_network(path: str | Path) -> Network:
@@ -47,38 +44,18 @@ class IngestionAdapter:
     def __init__(self, rt: ServiceRuntime, core: IngestionCore) -> None:
         self.rt = rt
         self.core = core
-        self.queue: queue.Queue[Any] = queue.Queue(DEFAULT_CAPACITY)
         self.published = 0
 
     def start(self) -> None:
         ns = self.rt.ns
-        subscriptions = {"raw": keys.raw_all(ns), "gps": keys.gps_all(ns)}
-        for kind, key in subscriptions.items():
-            self.rt.declare_subscriber(key, self._handler(kind))
-        self.rt.spawn(self._work, len(subscriptions), name=f"{SERVICE}:worker")
+        self.rt.subscribe_in_order(
+            {"raw": keys.raw_all(ns), "gps": keys.gps_all(ns)},
+            lambda kind, key, payload: self.publish(self.handle(kind, key, payload)),
+            on_end=self._finish,
+        )
 
-    def _handler(self, kind: str) -> zenoh.handlers.Callback:
-        def on_sample(sample: zenoh.Sample) -> None:
-            # short: copy out and queue (blocks the receive thread when full: nothing dropped)
-            self.queue.put((kind, str(sample.key_expr), sample.payload.to_bytes()))
-
-        return zenoh.handlers.Callback(on_sample, lambda: self.queue.put(_DONE))
-
-    def _work(self, n_subscriptions: int) -> None:
-        ended = 0
-        while ended < n_subscriptions:  # every subscription undeclared: done
-            item = self.queue.get()
-            if item is _DONE:
-                ended += 1
-                continue
-            kind, key, payload = item
-            try:
-                self.publish(self.handle(kind, key, payload))
-            except SchemaError as e:
-                self.rt.deadletters.reject(key, str(e), payload)
-            except Exception as e:
-                log.exception("%s: error handling %s", SERVICE, key)
-                self.rt.deadletters.reject(key, f"{type(e).__name__}: {e}", payload)
+    def _finish(self) -> None:
+        """Every subscription has ended: release the held chunks and say what was done."""
         self.publish(self.core.flush())
         log.info(
             "%s: %d positioned chunks published, %d dead letters",

@@ -16,10 +16,11 @@ session. Tests use the same object in-process and call :meth:`ServiceRuntime.sto
 from __future__ import annotations
 
 import logging
+import queue
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from types import FrameType
 from typing import Any, Protocol, Self, TypeVar
 
@@ -196,6 +197,52 @@ class ServiceRuntime:
             log.warning("flushing before close: %s", e)
 
     # --- declarations (all undeclared by close) ------------------------------------------
+
+    def subscribe_in_order(
+        self,
+        subscriptions: Mapping[str, str],
+        handle: Callable[[str, str, bytes], object],
+        *,
+        on_end: Callable[[], None] | None = None,
+        capacity: int = DEFAULT_CAPACITY,
+    ) -> None:
+        """Several subscriptions ``{kind: key expression}`` into ONE bounded queue drained by
+        ONE worker thread calling ``handle(kind, key, payload)``, so a core stays
+        single-threaded. Order is kept per key (each subscription's callback runs on its own
+        Zenoh thread, so not across them). A full queue blocks the receive thread: nothing is
+        dropped. A SchemaError (or any other error) becomes a dead letter and the worker goes
+        on; ``on_end`` runs once every subscription has been undeclared.
+        """
+        inbox: queue.Queue[Any] = queue.Queue(capacity)
+        ended = object()
+
+        def callback(kind: str) -> zenoh.handlers.Callback:
+            def on_sample(sample: zenoh.Sample) -> None:
+                inbox.put((kind, str(sample.key_expr), sample.payload.to_bytes()))
+
+            return zenoh.handlers.Callback(on_sample, lambda: inbox.put(ended))
+
+        def work() -> None:
+            remaining = len(subscriptions)
+            while remaining:
+                item = inbox.get()
+                if item is ended:
+                    remaining -= 1
+                    continue
+                kind, key, payload = item
+                try:
+                    handle(kind, key, payload)
+                except SchemaError as e:
+                    self.deadletters.reject(key, str(e), payload)
+                except Exception as e:
+                    log.exception("%s: error handling %s", self.service, key)
+                    self.deadletters.reject(key, f"{type(e).__name__}: {e}", payload)
+            if on_end is not None:
+                on_end()
+
+        for kind, key in subscriptions.items():
+            self.declare_subscriber(key, callback(kind))
+        self.spawn(work, name=f"{self.service}:worker")
 
     def subscribe(
         self,

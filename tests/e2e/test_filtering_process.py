@@ -3,14 +3,10 @@ process mid-run, restart it on the same --db: the final states equal an uninterr
 
 from __future__ import annotations
 
-import os
 import queue
 import signal
-import subprocess
-import sys
 from collections.abc import Iterator
-from contextlib import ExitStack, suppress
-from pathlib import Path
+from contextlib import ExitStack
 
 import numpy as np
 import pytest
@@ -37,37 +33,6 @@ WAIT_S = 20.0
 T0 = 1_767_225_600.0
 NS = 50
 SEGMENTS = ("s1", "s2", "s3")
-
-
-class Process:
-    """A `trackfusion …` subprocess in its own process group, stderr to a log file."""
-
-    def __init__(self, stack: ExitStack, log_path: Path, *args: str) -> None:
-        self.log_path = log_path
-        log = stack.enter_context(log_path.open("w"))
-        self.popen = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", *args],
-            stdout=subprocess.DEVNULL,
-            stderr=log,
-            stdin=subprocess.DEVNULL,
-            start_new_session=True,
-        )
-        stack.callback(self.kill)
-
-    def signal(self, signum: int) -> None:
-        os.killpg(self.popen.pid, signum)
-
-    def wait(self, timeout: float) -> int:
-        return self.popen.wait(timeout)
-
-    def log(self) -> str:
-        return f"\n--- {self.log_path.name} ---\n{self.log_path.read_text()}"
-
-    def kill(self) -> None:
-        if self.popen.poll() is None:
-            with suppress(ProcessLookupError):
-                os.killpg(self.popen.pid, signal.SIGKILL)
-            self.popen.wait(5)
 
 
 @pytest.fixture
@@ -129,10 +94,10 @@ def key_of(ns: str, msg) -> str:
 
 
 def test_sigkill_and_restart_give_the_uninterrupted_states(
-    stack, tmp_path, free_port, namespace, until_matched, liveliness_events
+    stack, spawn, tmp_path, free_port, namespace, until_matched, liveliness_events
 ):
     endpoint = f"tcp/127.0.0.1:{free_port}"
-    Process(stack, tmp_path / "router.log", "router", "--listen", endpoint)
+    spawn("router", "router", "--listen", endpoint)
     filtering_args = (
         *("filtering", "--connect", endpoint, "--ns", namespace, "--instance", "e2e"),
         *("--db", str(tmp_path / "filtering.sqlite")),
@@ -164,7 +129,7 @@ def test_sigkill_and_restart_give_the_uninterrupted_states(
     for msg in model_msgs:
         reference.step(msg)
 
-    def send_and_wait(messages, proc: Process) -> None:
+    def send_and_wait(messages, proc) -> None:
         """Publish, then wait until every segment's latest state is the reference's."""
         for msg in messages:
             reference.step(msg)
@@ -186,7 +151,7 @@ def test_sigkill_and_restart_give_the_uninterrupted_states(
                 raise AssertionError(f"states never matched{proc.log()}") from None
             got[state.segment] = encode(state)
 
-    first = Process(stack, tmp_path / "filtering-1.log", *filtering_args)
+    first = spawn("filtering", *filtering_args)
     assert alive.get(READY_S) == (zenoh.SampleKind.PUT, alive_key), first.log()
     send_and_wait(before, first)
 
@@ -194,7 +159,7 @@ def test_sigkill_and_restart_give_the_uninterrupted_states(
     assert first.wait(5) == -signal.SIGKILL
     assert alive.get(WAIT_S) == (zenoh.SampleKind.DELETE, alive_key)
 
-    second = Process(stack, tmp_path / "filtering-2.log", *filtering_args)
+    second = spawn("filtering", *filtering_args)
     assert alive.get(READY_S) == (zenoh.SampleKind.PUT, alive_key), second.log()
     send_and_wait(after, second)
 
