@@ -159,6 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
             progress=not args.no_progress and sys.stderr.isatty(),
             from_day=args.from_day,
             to_day=args.to_day,
+            linger_s=args.linger,
         )
 
     def _speedup(text: str) -> float:
@@ -192,6 +193,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--truth", metavar="FILE.sqlite", help="write the ground truth here")
     p.add_argument("--sim-config", metavar="FILE.json5", help="default: deploy/simulator.json5")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument(
+        "--linger",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="stay up S seconds after the last message, serving the per-key caches to "
+        "subscribers that come back (default 0)",
+    )
     add_zenoh_arguments(p)
     p.set_defaults(func=_simulate)
 

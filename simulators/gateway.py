@@ -30,6 +30,7 @@ from schemas import (
     encode,
     keys,
 )
+from services.runtime.delivery import ReliablePublisher
 
 log = logging.getLogger(__name__)
 
@@ -89,18 +90,27 @@ def publish(
     ns: str,
     events: Iterable[tuple[float, list[Message]]],
     *,
+    reliable: ReliablePublisher | None = None,
     speedup: float = math.inf,
     stop: threading.Event | None = None,
     on_batch: Callable[[float, list[Message]], None] | None = None,
 ) -> int:
-    """Put every message of ``events`` on its key; returns how many were published."""
+    """Put every message of ``events`` on its key; returns how many were published.
+
+    With ``reliable``, the event streams (OnboardIndex, TrcRecord, MaintenanceEvent) go
+    through it (cached for subscribers that return, see :mod:`services.runtime.delivery`);
+    raw chunks and GPS fixes are plain puts, as a fleet gateway sends them.
+    """
     stop = stop or threading.Event()
     count = 0
     for t, messages in paced(events, speedup, stop):
         for message in messages:
             key, payload = key_and_payload(ns, message)
-            # BLOCK: a simulated gateway waits for the network rather than dropping data.
-            session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+            if reliable is not None and not isinstance(message, RawChunk | GpsFix):
+                reliable.put(key, payload)
+            else:
+                # BLOCK: a simulated gateway waits for the network rather than dropping data.
+                session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
         count += len(messages)
         if on_batch:
             on_batch(t, messages)

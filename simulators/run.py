@@ -47,11 +47,15 @@ def main_simulate(
     stop=None,
     from_day: float = 0.0,
     to_day: float | None = None,
+    linger_s: float = 0.0,
 ) -> int:
     """Publish the simulated world on Zenoh (and write its ground truth to ``truth_path``).
 
     Only the events in ``[from_day, to_day)`` days of the world are published: a world cut
     in two such runs publishes exactly what one run would (the world itself is the same).
+    The event streams are cached per key (at-least-once, :mod:`services.runtime.delivery`);
+    ``linger_s`` keeps the process and its caches up that long after the last message, so
+    that a subscriber returning meanwhile still gets what it missed (a stop ends it early).
     """
     from tqdm import tqdm
 
@@ -88,10 +92,14 @@ def main_simulate(
             rt.session,
             rt.ns,
             events,
+            reliable=rt.reliable_publisher(),
             speedup=speedup,
             stop=rt.stop_event,
             on_batch=on_batch,
         )
+        if linger_s > 0 and not rt.stopping:
+            log.info("published; lingering %.0f s for returning subscribers", linger_s)
+            rt.wait(linger_s)
     bar.close()
     if truth:
         truth.close(finish=not (stop and stop.is_set()))

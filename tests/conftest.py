@@ -21,6 +21,7 @@ from typing import Any
 
 import pytest
 import zenoh
+from linkproxy import LinkProxy
 
 from services.runtime.config import RuntimeConfig, zenoh_config
 
@@ -33,6 +34,20 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+@pytest.fixture
+def link_proxy() -> Iterator[Callable[[int], LinkProxy]]:
+    """``link_proxy(target_port)``: a :class:`LinkProxy` to cut and restore; closed at teardown."""
+    proxies: list[LinkProxy] = []
+
+    def start(target_port: int) -> LinkProxy:
+        proxies.append(LinkProxy(target_port))
+        return proxies[-1]
+
+    yield start
+    for proxy in proxies:
+        proxy.close()
 
 
 @pytest.fixture

@@ -72,7 +72,7 @@ class AlertingAdapter:
             "state": keys.segment_keys(ns, "state"),
             "trc": keys.segment_keys(ns, "trc"),
         }
-        self.rt.subscribe_in_order(subscriptions, self.handle)
+        self.rt.subscribe_in_order(subscriptions, self.handle, reliable=True)
         self.rt.declare_queryable(keys.q_alerts(ns), self.on_query_alerts)
         self.rt.declare_queryable(keys.q_plan(ns), self.on_query_plan)
 

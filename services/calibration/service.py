@@ -162,13 +162,13 @@ def _serve(rt: ServiceRuntime, core: Calibrator, store: SqliteStore) -> int:
     ns = rt.ns
     latest = _Latest()
     inbox: queue.Queue[Any] = queue.Queue(QUEUE_CAPACITY)
+    models_out = rt.reliable_publisher()  # cached: filtering instances that return get them
 
     def publish(models: list[Model]) -> None:
         for model in models:
             key, payload = model_key(ns, model), encode(model)
             latest.set(key, payload)
-            # models are few and must arrive: block rather than drop under congestion
-            rt.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+            models_out.put(key, payload)
             log.info("published %s version %d", key, model.version)
 
     def enqueue(sample: zenoh.Sample) -> None:
@@ -231,7 +231,7 @@ def _serve(rt: ServiceRuntime, core: Calibrator, store: SqliteStore) -> int:
     rt.declare_queryable(keys.model_all(ns), on_query)
     worker = rt.spawn(work, name=f"{SERVICE}:worker")
     for kind in _KINDS:
-        rt.declare_subscriber(keys.segment_keys(ns, kind), enqueue)
+        rt.declare_subscriber(keys.segment_keys(ns, kind), enqueue, reliable=True)
     try:
         return rt.run()
     finally:

@@ -40,6 +40,7 @@ class ExtractionAdapter:
         self._next_log = time.monotonic() + LOG_EVERY_S
 
     def start(self) -> None:
+        self.indices = self.rt.reliable_publisher()  # at-least-once to calibration, filtering
         self.rt.subscribe(keys.accel_all(self.rt.ns), self.on_sample)  # one worker thread
 
     def on_sample(self, sample: zenoh.Sample) -> None:
@@ -54,11 +55,7 @@ class ExtractionAdapter:
                 f"as the message's train and unit say"
             )
         for index in self.extractor.process(chunk):
-            self.rt.session.put(
-                keys.index(self.rt.ns, index.line, index.segment),
-                encode(index),
-                congestion_control=zenoh.CongestionControl.BLOCK,
-            )
+            self.indices.put(keys.index(self.rt.ns, index.line, index.segment), encode(index))
             self.published += 1
         if time.monotonic() >= self._next_log:
             self._next_log = time.monotonic() + LOG_EVERY_S

@@ -41,6 +41,7 @@ log = logging.getLogger(__name__)
 
 SERVICE = "filtering"
 INBOX_CAPACITY = 4096  # samples waiting for the worker; a full inbox slows the senders down
+STATE_CACHE = 4  # states kept per segment for a returning consumer (the newest decides)
 _POLL_S = 0.1  # how often an idle worker (or a blocked callback) looks at the stop event
 
 
@@ -84,11 +85,13 @@ class FilteringAdapter:
 
     def start(self) -> None:
         ns = self.rt.ns
+        self.states_out = self.rt.reliable_publisher(STATE_CACHE)
         for state in self.node.rebuild():
             self._publish(state)
         for kind in ("index", "trc", "maintenance"):
-            self.rt.declare_subscriber(keys.segment_keys(ns, kind, self.selector), self._enqueue)
-        self.rt.declare_subscriber(keys.model_all(ns), self._enqueue)
+            key = keys.segment_keys(ns, kind, self.selector)
+            self.rt.declare_subscriber(key, self._enqueue, reliable=True)
+        self.rt.declare_subscriber(keys.model_all(ns), self._enqueue, reliable=True)
         q_key = keys.q_state_all(ns).removesuffix("**") + self.selector
         self.rt.declare_queryable(q_key, self._on_query)
         self.rt.spawn(self._work, name=f"{SERVICE}:worker")
@@ -148,9 +151,6 @@ class FilteringAdapter:
         q_key = keys.q_state(self.rt.ns, state.line, state.segment)
         with self._lock:
             self._latest[(state.line, state.segment)] = (q_key, payload)
-        # BLOCK: a slow consumer slows the worker down rather than losing states.
-        self.rt.session.put(
-            keys.state(self.rt.ns, state.line, state.segment),
-            payload,
-            congestion_control=zenoh.CongestionControl.BLOCK,
-        )
+        # cached per segment (alerting restarted gets what it missed); BLOCK: a slow
+        # consumer slows the worker down rather than losing states
+        self.states_out.put(keys.state(self.rt.ns, state.line, state.segment), payload)

@@ -25,7 +25,11 @@ from the router to the remote; a rule's key expression must *include* the messag
 * liveliness token K: ``liveliness_token`` ingress, and ``liveliness_query`` ingress plus
   ``liveliness_token`` egress on K (a service asks for its own token before closing);
 * watch liveliness K: ``declare_liveliness_subscriber`` and ``liveliness_query`` ingress,
-  ``liveliness_token`` egress.
+  ``liveliness_token`` egress;
+* publish or subscribe K, the at-least-once machinery (:mod:`services.runtime.delivery`):
+  tokens, heartbeats, cache queries and their declarations under ``K/@adv/**`` both ways;
+  cached replies carry the sample's own key, so ``reply`` ingress on K for a publisher and
+  egress on K for a subscriber. All of it stays inside the keys the role already has.
 
 ``delete`` is never allowed: no TrackFusion key is ever deleted.
 """
@@ -46,6 +50,17 @@ DEFAULT_LISTEN = "tls/0.0.0.0:7447"
 CA_FILE = "ca.pem"
 ROUTER_CERT_FILE = "router.pem"
 ROUTER_KEY_FILE = "router-key.pem"
+#: What zenoh-ext's advanced publishers and subscribers exchange under ``{key}/@adv/**``.
+ADVANCED_MESSAGES = [
+    "put",
+    "declare_subscriber",
+    "query",
+    "declare_queryable",
+    "reply",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+]
 
 
 @dataclass(frozen=True)
@@ -169,15 +184,20 @@ def _rules(rule_id: str, grant: Grant, ns: str, service: str) -> list[dict[str, 
         }
 
     out: list[dict[str, Any]] = []
+    if grant.publish or grant.subscribe:
+        advanced = sorted(f"{k}/@adv/**" for k in keys((*grant.publish, *grant.subscribe)))
+        out.append(rule("adv-in", "ingress", ADVANCED_MESSAGES, advanced))
+        out.append(rule("adv-out", "egress", ADVANCED_MESSAGES, advanced))
     if grant.publish:
         published = keys(grant.publish)
         out.append(rule("put", "ingress", ["put"], published))
+        out.append(rule("cache-replies", "ingress", ["reply"], published))
         subtrees = sorted({_subtree(ns, k) for k in published})
         out.append(rule("put-matching", "egress", ["declare_subscriber"], subtrees))
     if grant.subscribe:
         subscribed = keys(grant.subscribe)
         out.append(rule("sub", "ingress", ["declare_subscriber"], subscribed))
-        out.append(rule("sub-data", "egress", ["put"], subscribed))
+        out.append(rule("sub-data", "egress", ["put", "reply"], subscribed))
     if grant.query:
         queried = keys(grant.query)
         out.append(rule("query", "ingress", ["query"], queried))

@@ -29,6 +29,11 @@ import zenoh
 from schemas import SchemaError, keys
 from services.runtime.config import RuntimeConfig, default_instance, endpoints, zenoh_config
 from services.runtime.deadletter import DeadLetterPublisher
+from services.runtime.delivery import (
+    DeliverySettings,
+    ReliablePublisher,
+    declare_reliable_subscriber,
+)
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +85,7 @@ class ServiceRuntime:
         self.instance = conf.instance or default_instance()
         self.alive_key = keys.alive(self.ns, service, self.instance)  # checks the chunks
         self.stop_event = stop_event if stop_event is not None else threading.Event()
+        self.delivery = DeliverySettings.from_options(conf.options("delivery"))
         self._handle_signals = handle_signals
         self._connect_timeout = connect_timeout
         self._session: zenoh.Session | None = None
@@ -205,13 +211,15 @@ class ServiceRuntime:
         *,
         on_end: Callable[[], None] | None = None,
         capacity: int = DEFAULT_CAPACITY,
+        reliable: bool = False,
     ) -> None:
         """Several subscriptions ``{kind: key expression}`` into ONE bounded queue drained by
         ONE worker thread calling ``handle(kind, key, payload)``, so a core stays
         single-threaded. Order is kept per key (each subscription's callback runs on its own
         Zenoh thread, so not across them). A full queue blocks the receive thread: nothing is
         dropped. A SchemaError (or any other error) becomes a dead letter and the worker goes
-        on; ``on_end`` runs once every subscription has been undeclared.
+        on; ``on_end`` runs once every subscription has been undeclared. ``reliable``: see
+        :meth:`declare_subscriber`.
         """
         inbox: queue.Queue[Any] = queue.Queue(capacity)
         ended = object()
@@ -241,7 +249,7 @@ class ServiceRuntime:
                 on_end()
 
         for kind, key in subscriptions.items():
-            self.declare_subscriber(key, callback(kind))
+            self.declare_subscriber(key, callback(kind), reliable=reliable)
         self.spawn(work, name=f"{self.service}:worker")
 
     def subscribe(
@@ -273,9 +281,19 @@ class ServiceRuntime:
         )
         return subscriber
 
-    def declare_subscriber(self, key: str, handler: Any = None, **kwargs: Any) -> zenoh.Subscriber:
-        """A plain subscriber (your handler or channel), undeclared first at close."""
-        subscriber = self.session.declare_subscriber(key, handler, **kwargs)
+    def declare_subscriber(
+        self, key: str, handler: Any = None, *, reliable: bool = False, **kwargs: Any
+    ) -> Any:
+        """A subscriber (your handler or channel), undeclared first at close.
+
+        ``reliable``: an advanced subscriber that also gets the cached history of every
+        :meth:`reliable_publisher` on ``key`` and recovers what it missed (see
+        :mod:`services.runtime.delivery`); messages may then arrive more than once.
+        """
+        if reliable:
+            subscriber = declare_reliable_subscriber(self.session, key, handler)
+        else:
+            subscriber = self.session.declare_subscriber(key, handler, **kwargs)
         self._subscribers.append(subscriber)
         return subscriber
 
@@ -286,6 +304,15 @@ class ServiceRuntime:
     def declare_publisher(self, key: str, **kwargs: Any) -> zenoh.Publisher:
         """A long-lived publisher (do not declare one per changing key, see zenoh#1518)."""
         return self.track(self.session.declare_publisher(key, **kwargs))
+
+    def reliable_publisher(self, cache_samples: int | None = None) -> ReliablePublisher:
+        """``put(key, payload)`` with a per-key cache for late and returning subscribers
+        (at-least-once, see :mod:`services.runtime.delivery`); BLOCK congestion control.
+        ``cache_samples`` overrides the configured cache size (messages kept per key)."""
+        settings = self.delivery
+        if cache_samples is not None:
+            settings = DeliverySettings(cache_samples, settings.heartbeat_s)
+        return self.track(ReliablePublisher(self.session, settings))
 
     def track(self, entity: _U) -> _U:
         """Undeclare ``entity`` at close (advanced subscribers, matching listeners, …)."""

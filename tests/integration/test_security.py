@@ -26,6 +26,7 @@ import zenoh
 from services.cli import main as cli_main
 from services.runtime import security
 from services.runtime.config import RuntimeConfig, load_config, zenoh_config
+from services.runtime.delivery import ReliablePublisher, declare_reliable_subscriber
 from services.runtime.service import ServiceRuntime
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
@@ -375,6 +376,39 @@ def test_a_service_runtime_works_under_the_profile(
         letters.wait_for(f"{namespace}/deadletter/extraction")
         # The viewer may not watch liveliness.
         assert [r for r in watcher.liveliness().get(f"{namespace}/alive/**", timeout=1.0)] == []
+
+
+def test_at_least_once_delivery_works_under_the_profile(
+    open_as: Callable[[str], zenoh.Session], namespace: str
+) -> None:
+    """Cached history and its recovery queries are allowed inside a role's own keys:
+    filtering gets the indices extraction published before it subscribed; the viewer,
+    which may not read models, gets none of calibration's cached models."""
+    ns = namespace
+    extraction = ReliablePublisher(open_as("extraction"))
+    models = ReliablePublisher(open_as("calibration"))
+    published = [f"{ns}/index/L1/s{i}" for i in range(3)]
+    for key in published:
+        extraction.put(key, b"index")
+    models.put(f"{ns}/model/calibration", b"model v1")
+    got = Keys()
+    filtering = open_as("filtering")
+    subscribers = [
+        declare_reliable_subscriber(filtering, f"{ns}/index/**", got),
+        declare_reliable_subscriber(filtering, f"{ns}/model/**", got),
+    ]
+    for key in (*published, f"{ns}/model/calibration"):
+        got.wait_for(key)
+    nosy = Keys()
+    viewer = open_as("viewer")
+    subscribers.append(declare_reliable_subscriber(viewer, f"{ns}/model/**", nosy))
+    subscribers.append(declare_reliable_subscriber(viewer, f"{ns}/index/**", nosy))
+    nosy.wait_for(published[0])  # the viewer may read indices, so their history arrives…
+    assert not any("/model/" in key for key in nosy.seen)  # …but never a model
+    for subscriber in subscribers:
+        subscriber.undeclare()
+    extraction.undeclare()
+    models.undeclare()
 
 
 def test_profile_is_json_serialisable_for_any_fleet() -> None:
