@@ -41,7 +41,7 @@ log = logging.getLogger(__name__)
 
 SERVICE = "filtering"
 INBOX_CAPACITY = 4096  # samples waiting for the worker; a full inbox slows the senders down
-STATE_CACHE = 4  # states kept per segment for a returning consumer (the newest decides)
+STATE_CACHE = 16  # states kept per segment for a returning consumer (alerting, viewer)
 _POLL_S = 0.1  # how often an idle worker (or a blocked callback) looks at the stop event
 
 
