@@ -16,6 +16,8 @@ Workloads (DESIGN "Performance targets"):
    latency (``bench/ingestion.py``, ``bench/extraction.py``); target >= 12 M through both.
 6. the filtering service over Zenoh: events per second and index-to-state latency
    (``bench/filtering.py``).
+7. at-least-once delivery: messages per second through cached advanced publishers against
+   plain puts, and a returning subscriber's history fetch (``bench/delivery.py``).
 """
 
 from __future__ import annotations
@@ -169,6 +171,7 @@ def bench_study() -> None:
 
 
 def main() -> None:
+    from bench.delivery import bench_delivery
     from bench.extraction import bench_extraction
     from bench.filtering import bench_filtering_service
     from bench.ingestion import bench_ingestion
@@ -182,6 +185,7 @@ def main() -> None:
     bench_ingestion()
     bench_extraction()
     bench_filtering_service()
+    bench_delivery()
 
 
 if __name__ == "__main__":
