@@ -22,6 +22,7 @@ predict = transition  # the prediction step is exactly the degradation transitio
 # stays below glibc's mmap threshold (128 KiB) and in cache, instead of being mapped and
 # page-faulted afresh by each of the ~100 elementwise operations of an update (3x faster).
 BLOCK_FILTERS = 8192
+_LOG_2PI = float(np.log(2.0 * np.pi))
 
 
 def _check_observation(y, H, b, R, n: int):
@@ -43,7 +44,7 @@ def _check_observation(y, H, b, R, n: int):
     return y, H, b, R
 
 
-def update(z, P, y, H, b, R):
+def update(z, P, y, H, b, R, loglik: bool = False):
     r"""Kalman update of every filter with one on-board observation (paper Eq. 9-12).
 
     .. math::
@@ -58,6 +59,15 @@ def update(z, P, y, H, b, R):
         P^+ = (I - K H) P (I - K H)^T + K R K^T, \qquad
         \nu = (y - H \hat z - b)^T S^{-1} (y - H \hat z - b).
 
+    With ``loglik``, also the log-likelihood of the observation under each filter's
+    one-step prediction, the term of the prediction error decomposition that the
+    filtering core accumulates into the mixture weights (``mixture.weights_from_log``):
+
+    .. math::
+
+        \log \mathcal N(y - H \hat z - b; 0, S) = -\tfrac12 \left(\nu + \ln |S|
+        + m \ln 2\pi\right).
+
     Parameters
     ----------
     z : array_like, shape (..., Ns, n)
@@ -68,6 +78,8 @@ def update(z, P, y, H, b, R):
     b : array_like, shape (m,)
     R : array_like, shape (m, m)
         Positive definite.
+    loglik : bool
+        Also return the log-likelihood.
 
     Returns
     -------
@@ -75,6 +87,8 @@ def update(z, P, y, H, b, R):
     P_post : ndarray, shape (..., Ns, n, n)
     nis : ndarray, shape (..., Ns)
         Normalised innovation squared :math:`\nu`.
+    loglik : ndarray, shape (..., Ns)
+        Only with ``loglik``: :math:`\log \mathcal N(y - H \hat z - b; 0, S)`.
     """
     z = as_finite("z", z, min_ndim=2)
     P = as_finite("P", P, min_ndim=3)
@@ -86,18 +100,26 @@ def update(z, P, y, H, b, R):
         np.broadcast_shapes(y.shape[:-1], z.shape[:-2])
     except ValueError:
         raise ValueError(f"y: shape {y.shape} does not broadcast to {z.shape[:-2]}") from None
-    return update_unchecked(z, P, y, H, b, R)
+    return update_unchecked(z, P, y, H, b, R, loglik)
 
 
-def update_unchecked(z, P, y, H, b, R):
+def update_unchecked(z, P, y, H, b, R, loglik: bool = False):
     """:func:`update` without validation; dispatches to closed-form 2x2 algebra if n = m = 2."""
     if H.shape == (2, 2):
-        return _update_2x2(z, P, y, H, b, R)
-    return _update_general(z, P, y, H, b, R)
+        z_post, P_post, nis, logdet = _update_2x2(z, P, y, H, b, R, loglik)
+    else:
+        z_post, P_post, nis, logdet = _update_general(z, P, y, H, b, R, loglik)
+    if not loglik:
+        return z_post, P_post, nis
+    # -(nis + ln|S| + m ln 2 pi) / 2, in place on the fresh ln|S| array
+    logdet += nis
+    logdet += H.shape[0] * _LOG_2PI
+    logdet *= -0.5
+    return z_post, P_post, nis, logdet
 
 
-def _update_general(z, P, y, H, b, R):
-    """Any n, m via batched solves."""
+def _update_general(z, P, y, H, b, R, logdet: bool = False):
+    """Any n, m via batched solves; returns ``(z, P, nis, ln |S| or None)``."""
     innovation = y[..., None, :] - z @ H.T - b  # (..., Ns, m)
     PHt = P @ H.T  # (..., Ns, n, m)
     S = H @ PHt + R
@@ -108,7 +130,7 @@ def _update_general(z, P, y, H, b, R):
     P_post = A @ P @ np.swapaxes(A, -1, -2) + K @ R @ np.swapaxes(K, -1, -2)
     P_post = 0.5 * (P_post + np.swapaxes(P_post, -1, -2))
     nis = (innovation * np.linalg.solve(S, innovation[..., None])[..., 0]).sum(-1)
-    return z_post, P_post, nis
+    return z_post, P_post, nis, np.linalg.slogdet(S)[1] if logdet else None
 
 
 _COEFFS_2X2: dict = {}
@@ -181,7 +203,7 @@ def _work_2x2(n: int):
     return work
 
 
-def _update_2x2(z, P, y, H, b, R):
+def _update_2x2(z, P, y, H, b, R, logdet: bool = False):
     r"""n = m = 2 in closed form, on stacked component rows: one numpy call per step.
 
     With the 3 distinct entries of the symmetric P, per filter,
@@ -208,6 +230,7 @@ def _update_2x2(z, P, y, H, b, R):
 
     Assumes P and R symmetric (``update`` checks it, the bank maintains it); the output P is
     exactly symmetric, which is what the final symmetrisation of the general path does.
+    Returns ``(z, P, nis, ln det S or None)`` (``ln det S`` only with ``logdet``).
     """
     lin, kmap, neg_hb = _coeffs_2x2(H, b, R)
     ns = z.shape[-2]
@@ -238,6 +261,7 @@ def _update_2x2(z, P, y, H, b, R):
     np.multiply(vv, x[10:14], vv)
     nis = _ONES4 @ vv
     np.divide(nis, det, nis)
+    log_det = np.log(det).reshape(lead + (ns,)) if logdet else None  # det is scratch
     np.multiply(k[:4].reshape(2, 2, n), v, zk[:4].reshape(2, 2, n))  # k_ij v_j
     z_post = zk[:6].T @ _Z_POST
     # Joseph form: P+_ij = sum_l (C_il K_jl + B_il A_jl), B = A P, C = K R
@@ -254,6 +278,7 @@ def _update_2x2(z, P, y, H, b, R):
         z_post.reshape(lead + (ns, 2)),
         P_post.reshape(lead + (ns, 2, 2)),
         nis.reshape(lead + (ns,)),
+        log_det,
     )
 
 
@@ -296,7 +321,7 @@ def _contiguous(rows: np.ndarray) -> np.ndarray | slice:
 
 
 class FilterBank:
-    """State of ``S`` segments x ``Ns`` posterior samples, advanced one event per segment.
+    r"""State of ``S`` segments x ``Ns`` posterior samples, advanced one event per segment.
 
     Each method takes ``idx``, an array of distinct segment indices, and applies one event
     to each listed segment in one vectorised call (in blocks of ``BLOCK_FILTERS`` filters).
@@ -313,6 +338,11 @@ class FilterBank:
     P : ndarray, shape (S, Ns, n, n)
     t : ndarray, shape (S,)
         Day of each segment's last event; NaN (and NaN state) before its first restart.
+    log_w : ndarray, shape (S, Ns)
+        Log-likelihood of each segment's on-board observations since its last restart under
+        each sample, :math:`\sum_k \log \mathcal N(\nu_{jk}; 0, S_{jk})`: the
+        unnormalised log mixture weights (``mixture.weights_from_log``). 0 (equal weights)
+        after a restart, or when a tamping starts a segment without state.
     params : DegradationParams
     """
 
@@ -321,6 +351,7 @@ class FilterBank:
         self.z = np.full((n_segments, params.ns, params.n), np.nan)
         self.P = np.full((n_segments, params.ns, params.n, params.n), np.nan)
         self.t = np.full(n_segments, np.nan)
+        self.log_w = np.zeros((n_segments, params.ns))
         if params.mu.ndim > 2 and params.mu.shape[:-2] != (n_segments,):
             raise ValueError(f"params: leading shape {params.mu.shape[:-2]} != ({n_segments},)")
 
@@ -346,7 +377,7 @@ class FilterBank:
         return [slice(i, i + step) for i in range(0, k, step)]
 
     def restart(self, idx, z_trc, t) -> None:
-        """TRC record at day ``t``: every sample gets ``z = z_trc`` (shape (k, n)), ``P = 0``."""
+        """TRC record at day ``t``: every sample gets ``z = z_trc`` (k, n), ``P = 0``, log_w 0."""
         idx = self._idx(idx)
         z_trc = as_finite("z_trc", z_trc)
         if z_trc.shape != (len(idx), self.z.shape[-1]):
@@ -354,6 +385,7 @@ class FilterBank:
         self.t[idx] = self._time(idx, t)
         self.z[idx] = z_trc[:, None, :]
         self.P[idx] = 0.0
+        self.log_w[idx] = 0.0
 
     def _prepare_predict(self, idx, t, tamping_age):
         """Checked (t, dt, tamping_age) of a prediction to day ``t``; may reset unstarted rows."""
@@ -367,6 +399,7 @@ class FilterBank:
             age = np.broadcast_to(np.asarray(tamping_age, dtype=np.float64), idx.shape)
             dt = np.where(unstarted, age, dt)
             self.z[idx[unstarted]], self.P[idx[unstarted]] = 0.0, 0.0
+            self.log_w[idx[unstarted]] = 0.0
             if np.isnan(dt).any():
                 raise ValueError("idx: segment without state (no TRC restart or tamping yet)")
         return t, dt, check_tamping_age(tamping_age, dt)
@@ -397,7 +430,10 @@ class FilterBank:
         return y
 
     def update(self, idx, y, model: ObservationModel) -> np.ndarray:
-        """On-board observation ``y`` (k, m) at each segment's current time; returns NIS (k, Ns)."""
+        """On-board observation ``y`` (k, m) at each segment's current time; returns NIS (k, Ns).
+
+        Adds each sample's log-likelihood of ``y`` to :attr:`log_w`.
+        """
         idx = self._idx(idx)
         if np.isnan(self.t[idx]).any():
             raise ValueError("idx: segment without state (no TRC restart or tamping yet)")
@@ -405,9 +441,10 @@ class FilterBank:
         nis = np.empty((len(idx), self.z.shape[1]))
         for block in self._blocks(len(idx)):
             rows = _contiguous(idx[block])
-            self.z[rows], self.P[rows], nis[block] = update_unchecked(
-                self.z[rows], self.P[rows], y[block], model.H, model.b, model.R
+            self.z[rows], self.P[rows], nis[block], loglik = update_unchecked(
+                self.z[rows], self.P[rows], y[block], model.H, model.b, model.R, loglik=True
             )
+            self.log_w[rows] += loglik
         return nis
 
     def observe(self, idx, t, y, model: ObservationModel, tamping_age=None) -> np.ndarray:
@@ -426,9 +463,10 @@ class FilterBank:
             z, P = transition_unchecked(
                 self.z[rows], self.P[rows], self.params.take(rows), dt[block], age
             )
-            self.z[rows], self.P[rows], nis[block] = update_unchecked(
-                z, P, y[block], model.H, model.b, model.R
+            self.z[rows], self.P[rows], nis[block], loglik = update_unchecked(
+                z, P, y[block], model.H, model.b, model.R, loglik=True
             )
+            self.log_w[rows] += loglik
         self.t[idx] = t
         return nis
 
@@ -446,19 +484,23 @@ class FilterBank:
             rows[name][idx] = getattr(params, name)
         self.params = DegradationParams(**rows)
 
-    def get_state(self, idx) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Copies of ``(z, P, t)`` of segments ``idx``."""
+    def get_state(self, idx) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Copies of ``(z, P, t, log_w)`` of segments ``idx``."""
         idx = self._idx(idx)
-        return self.z[idx].copy(), self.P[idx].copy(), self.t[idx].copy()
+        return self.z[idx].copy(), self.P[idx].copy(), self.t[idx].copy(), self.log_w[idx].copy()
 
-    def set_state(self, idx, z, P, t) -> None:
-        """Restore ``(z, P, t)`` of segments ``idx``, e.g. from :meth:`get_state`."""
+    def set_state(self, idx, z, P, t, log_w=0.0) -> None:
+        """Restore ``(z, P, t, log_w)`` of segments ``idx``, e.g. from :meth:`get_state`.
+
+        ``log_w`` defaults to equal weights.
+        """
         idx = self._idx(idx)
-        self.z[idx], self.P[idx], self.t[idx] = z, P, t
+        self.z[idx], self.P[idx], self.t[idx], self.log_w[idx] = z, P, t, log_w
 
     def copy(self) -> FilterBank:
         """Independent snapshot of the whole bank (params are immutable and shared)."""
         other = object.__new__(FilterBank)
         other.params = self.params
         other.z, other.P, other.t = self.z.copy(), self.P.copy(), self.t.copy()
+        other.log_w = self.log_w.copy()
         return other

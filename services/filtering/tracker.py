@@ -25,7 +25,21 @@ change it:
     each sample; the next event then degrades from there (Eq. 7-8 with the tamping age).
     A tamping also starts a state on a segment without any TRC record yet.
   * ``OnboardIndex``: predict to ``t`` and update with ``y = ln [top6_mm, align10_mm]``
-    (Eq. 9-12, Joseph form).
+    (Eq. 9-12, Joseph form), and add each sample's log-likelihood of ``y`` to its log
+    weight (below).
+
+- **Mixture weights** (a departure from Eq. 13's equal weights ``1 / Ns``): the posterior
+  samples ``j`` are the segment's line (or network) pooled degradation posterior, so a
+  segment degrading faster than its pool would be forecast with the pool's drift. Each
+  state therefore carries ``log_w[j] = sum_k log N(nu_jk; 0, S_jk)`` over its on-board
+  updates since the last TRC restart (innovation ``nu``, innovation covariance ``S`` of
+  sample ``j``; the Kalman prediction error decomposition of the likelihood of the
+  segment's own data), and the summaries weight sample ``j`` by
+  ``w_j ∝ exp(log_w[j])`` (``mixture.weights_from_log``): Bayes' rule on the equally
+  likely samples. A TRC restart resets ``log_w`` to 0 (equal weights), a tamping keeps it
+  (the data still speak for the segment's parameters), a tamping that starts a state
+  starts it at 0. ``log_w`` is part of the fold, so it is as deterministic as ``z, P``
+  and is rebuilt by the same replay (nothing extra is stored).
 
 - **Not publishable yet** (events are kept, no state is output): no TRC record or tamping
   to start from, no degradation posterior for the segment, or an on-board index in the log
@@ -36,8 +50,10 @@ change it:
   then ``net``. A model with a version not newer than the one held is ignored. A new
   calibration re-runs every segment, a new posterior the segments that now use its group.
 - ``nis`` is the mean over samples of the per-sample NIS of the last update since the start
-  of the state (a tamping keeps it; a TRC restart clears it to None); ``n_updates`` counts
-  the updates since the last TRC record (or since the tamping that started the state).
+  of the state (a tamping keeps it; a TRC restart clears it to None), weighted by the
+  mixture weights before that update (the predictive distribution the index is checked
+  against); ``n_updates`` counts the updates since the last TRC record (or since the
+  tamping that started the state).
 
 :class:`Tracker` keeps the per-segment tracks in a dict and the models; its :meth:`step`
 returns a :class:`Step` (accepted or not, why, and the SegmentStates to publish).
@@ -64,7 +80,7 @@ from schemas import (
 )
 from services.filtering.bank import ObservationModel, update_unchecked
 from services.filtering.degradation import DegradationParams, transition_unchecked
-from services.filtering.mixture import MixtureSummary, summarize
+from services.filtering.mixture import MixtureSummary, summarize, weights_from_log
 
 DAY_S = 86400.0
 HORIZONS_DAYS = (30.0, 90.0, 180.0)
@@ -171,12 +187,22 @@ class Filtered:
     last_trc_t: float | None
     n_updates: int
     nis: float | None
+    log_w: np.ndarray  # (Ns,) log-likelihood of the on-board data since the TRC restart
 
 
 def apply_event(
     state: Filtered | None, event: Event, params: DegradationParams, obs: ObservationModel | None
 ) -> Filtered | None:
-    """One step of the fold (paper Eq. 2, 7-12), vectorised over the ``Ns`` samples.
+    r"""One step of the fold (paper Eq. 2, 7-12), vectorised over the ``Ns`` samples.
+
+    An index also adds each sample's log-likelihood of it to the log weights,
+
+    .. math::
+
+        \log w_j \mathrel{+}= \log \mathcal N(\nu_j; 0, S_j), \qquad
+        \nu_j = y - H \hat z^j_{k|k-1} - b, \quad S_j = H P^j_{k|k-1} H^T + R,
+
+    which a TRC restart resets to 0 (equal weights).
 
     Returns None while nothing has started the state (an index before any start).
     ``obs`` must not be None for an index on a started state (the caller checks it).
@@ -184,20 +210,23 @@ def apply_event(
     ns, n = params.ns, params.n
     if event.kind == RESTART:
         z = np.broadcast_to(event.value, (ns, n)).copy()
-        return Filtered(z, np.zeros((ns, n, n)), event.t_s, event.t_s, 0, None)
+        return Filtered(z, np.zeros((ns, n, n)), event.t_s, event.t_s, 0, None, np.zeros(ns))
     if state is None:
         if event.kind == INDEX:
             return None
         z, P = np.zeros((ns, n)), np.zeros((ns, n, n))
-        state = Filtered(z, P, event.t_s, None, 0, None)
+        state = Filtered(z, P, event.t_s, None, 0, None, np.zeros(ns))
     dt = (event.t_s - state.t_s) / DAY_S
     if event.kind == TAMPING:
         z, P = transition_unchecked(state.z, state.P, params, dt, 0.0)
         return replace(state, z=z, P=P, t_s=event.t_s)
     assert obs is not None
     z, P = transition_unchecked(state.z, state.P, params, dt)
-    z, P, nis = update_unchecked(z, P, event.value, obs.H, obs.b, obs.R)
-    return Filtered(z, P, event.t_s, state.last_trc_t, state.n_updates + 1, float(nis.mean()))
+    z, P, nis, loglik = update_unchecked(z, P, event.value, obs.H, obs.b, obs.R, loglik=True)
+    nis_mean = float(weights_from_log(state.log_w) @ nis)
+    return Filtered(
+        z, P, event.t_s, state.last_trc_t, state.n_updates + 1, nis_mean, state.log_w + loglik
+    )
 
 
 @dataclass(frozen=True)
@@ -361,6 +390,11 @@ class Tracker:
         return None if track is None else self.segment_state(track)
 
 
+def state_weights(state: Filtered) -> np.ndarray:
+    """Normalised mixture weights (Ns,) of a state (``mixture.weights_from_log``)."""
+    return weights_from_log(state.log_w)
+
+
 def summarize_state(
     line: str,
     segment: str,
@@ -371,14 +405,18 @@ def summarize_state(
     horizons_days: np.ndarray,
     **versions: Any,
 ) -> SegmentState:
-    """Mixture summary, exceedance and forecasts of one filter bank (paper Eq. 13-14)."""
+    """Mixture summary, exceedance and forecasts of one filter bank (paper Eq. 13-14).
+
+    The mixture weights are :func:`state_weights` (the likelihood of the segment's on-board
+    data since its TRC restart), the same now and at every forecast horizon.
+    """
     limits = np.asarray(limits_mm, dtype=np.float64)  # (L, n)
     # "Now" and the forecasts (Eq. 2 without updates, as mixture.forecast) in one summary
     # call: row 0 is now, rows 1.. the horizons; limits (L, 1, n) give p_exceed (L, 1+h, n).
     # One call instead of two halves the cost, which is almost all in the quantile search.
     h = np.concatenate(([0.0], horizons_days))
     z_all, P_all = transition_unchecked(state.z[None], state.P[None], params, h)
-    both = summarize(z_all, P_all, limits[:, None, :])
+    both = summarize(z_all, P_all, limits[:, None, :], weights=state_weights(state))
     now, ahead = _rows(both, 0), _rows(both, slice(1, None))
     return SegmentState(
         line=line,

@@ -66,19 +66,24 @@ def test_exceedance_per_indicator_and_level(core):
     assert "Align10 likely above alert limit 5.0 mm" in out[1].message
 
 
-@pytest.mark.parametrize("kind", ["exceedance", "predicted_exceedance"])
-def test_hysteresis_prevents_flapping(core, kind):
+@pytest.mark.parametrize(
+    ("kind", "raise_at", "clear_at"),
+    [("exceedance", 0.5, 0.3), ("predicted_exceedance", 0.3, 0.18)],  # the defaults
+)
+def test_hysteresis_prevents_flapping(core, kind, raise_at, clear_at):
     def state(i: int, p: float) -> SegmentState:
         if kind == "exceedance":
             return make_state(T0 + i * DAY_S, p_exceed=p_top6(1, p))
         return make_state(T0 + i * DAY_S, forecast=forecast_top6(0.0, p, p))
 
-    sequence = [0.45, 0.55] * 10 + [0.45, 0.31, 0.35, 0.29, 0.55]
+    below, above = raise_at - 0.05, raise_at + 0.05
+    sequence = [below, above] * 10 + [below, clear_at + 0.01, clear_at + 0.05]
+    sequence += [clear_at - 0.01, above]
     out = [a for i, p in enumerate(sequence) for a in core.on_state(state(i, p))]
     assert [(a.kind, a.status) for a in out] == [
-        (kind, "raised"),  # at the first 0.55
-        (kind, "cleared"),  # only at 0.29 <= 0.3
-        (kind, "raised"),  # the last 0.55
+        (kind, "raised"),  # at the first value above raise
+        (kind, "cleared"),  # only at or below clear
+        (kind, "raised"),  # the last value above raise
     ]
     assert out[0].t == T0 + 1 * DAY_S and out[1].t == T0 + 23 * DAY_S
 
@@ -103,11 +108,11 @@ def test_approximates_probabilities_when_state_limits_differ(core):
 
 @pytest.mark.parametrize(
     ("forecast", "horizon", "p"),
-    [((0.2, 0.6, 0.9), 90.0, 0.6), ((0.7, 0.8, 0.9), 30.0, 0.7), ((0.1, 0.3, 0.95), None, None)],
+    [((0.2, 0.6, 0.9), 90.0, 0.6), ((0.4, 0.8, 0.9), 30.0, 0.4), ((0.1, 0.25, 0.95), None, None)],
 )
 def test_predicted_exceedance_reports_first_horizon_within(core, forecast, horizon, p):
     out = core.on_state(make_state(T0, forecast=forecast_top6(*forecast)))
-    if horizon is None:  # above threshold only at 180 days, beyond within_days = 90
+    if horizon is None:  # above raise (0.3) only at 180 days, beyond within_days = 90
         assert out == []
         return
     assert summary(out) == [("predicted_exceedance", "raised", "top6", "intervention")]
@@ -115,7 +120,8 @@ def test_predicted_exceedance_reports_first_horizon_within(core, forecast, horiz
     assert out[0].message == (
         f"Top6 likely above intervention limit 8.0 mm within {horizon:g} days (p={p:.2f})"
     )
-    cleared = core.on_state(make_state(T0 + DAY_S, forecast=forecast_top6(0.1, 0.2, 0.9)))
+    assert core.on_state(make_state(T0 + DAY_S, forecast=forecast_top6(0.1, 0.2, 0.9))) == []
+    cleared = core.on_state(make_state(T0 + 2 * DAY_S, forecast=forecast_top6(0.1, 0.15, 0.9)))
     assert summary(cleared) == [("predicted_exceedance", "cleared", "top6", "intervention")]
 
 

@@ -98,7 +98,7 @@ def test_2x2_fast_path_equals_general(lead):
     y, H, b = rng.normal(size=lead + (2,)), rng.normal(size=(2, 2)), rng.normal(size=2)
     R = random_spd(rng, (), 2, 0.1)
     fast_and_general = zip(
-        _update_2x2(z, P, y, H, b, R), _update_general(z, P, y, H, b, R), strict=True
+        _update_2x2(z, P, y, H, b, R, True), _update_general(z, P, y, H, b, R, True), strict=True
     )
     for fast, general in fast_and_general:
         assert fast.shape == general.shape
@@ -112,13 +112,13 @@ def test_2x2_fast_path_large_batches_fresh_outputs(lead):
     z, P = rng.normal(size=lead + (200, 2)), random_spd(rng, lead + (200,), 2, 0.05)
     y, H, b = rng.normal(size=lead + (2,)), rng.normal(size=(2, 2)), rng.normal(size=2)
     R = random_spd(rng, (), 2, 0.1)
-    first = _update_2x2(z, P, y, H, b, R)
+    first = _update_2x2(z, P, y, H, b, R, True)
     kept = [a.copy() for a in first]
-    _update_2x2(z[..., ::-1, :], P[..., ::-1, :, :], -y, H, b, R)  # same sizes, other data
+    _update_2x2(z[..., ::-1, :], P[..., ::-1, :, :], -y, H, b, R, True)  # same sizes, other data
     for a, b_ in zip(first, kept, strict=True):
         np.testing.assert_array_equal(a, b_)
     np.testing.assert_array_equal(first[1], np.swapaxes(first[1], -1, -2))
-    for fast, general in zip(first, _update_general(z, P, y, H, b, R), strict=True):
+    for fast, general in zip(first, _update_general(z, P, y, H, b, R, True), strict=True):
         np.testing.assert_allclose(fast, general, rtol=1e-12, atol=1e-12)
 
 

@@ -16,11 +16,16 @@ from schemas import (
     encode,
     keys,
 )
-from services.filtering.bank import FilterBank, ObservationModel
+from services.filtering.bank import FilterBank, ObservationModel, update
 from services.filtering.degradation import DegradationParams
-from services.filtering.mixture import forecast, summarize
+from services.filtering.mixture import (
+    effective_sample_size,
+    forecast,
+    summarize,
+    weights_from_log,
+)
 from services.filtering.store import PersistentTracker, Store
-from services.filtering.tracker import DAY_S, Tracker
+from services.filtering.tracker import DAY_S, Tracker, state_weights
 from services.limits import load_limits
 
 T0 = 1_767_225_600.0  # 2026-01-01 UTC
@@ -145,6 +150,7 @@ def assert_same_states(a: Tracker, b: Tracker) -> None:
         if ta.state is not None:
             assert np.array_equal(ta.state.z, tb.state.z)
             assert np.array_equal(ta.state.P, tb.state.P)
+            assert np.array_equal(ta.state.log_w, tb.state.log_w)
             assert (ta.state.t_s, ta.state.n_updates, ta.state.nis) == (
                 tb.state.t_s,
                 tb.state.n_updates,
@@ -228,12 +234,15 @@ def test_results_equal_the_filter_bank_core(interval):
     track = tracker.tracks[("L1", "s1")]
     np.testing.assert_allclose(track.state.z, bank.z[0], rtol=0, atol=1e-12)
     np.testing.assert_allclose(track.state.P, bank.P[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(track.state.log_w, bank.log_w[0], rtol=1e-12)
     assert track.state.t_s == T0 + 70 * DAY_S and bank.t[0] == 70.0
-    # the published summary is the mixture of that bank
+    # the published summary is the mixture of that bank, weighted by its likelihoods
     state = states[-1]
     limits = LIMITS.for_line("L1")
-    now = summarize(bank.z[0], bank.P[0], limits)
-    ahead = forecast(bank.z[0], bank.P[0], params_of(post), [30.0, 90.0, 180.0])
+    w = weights_from_log(bank.log_w[0])
+    assert w.std() > 0  # the weights are not equal: this checks the weighting
+    now = summarize(bank.z[0], bank.P[0], limits, weights=w)
+    ahead = forecast(bank.z[0], bank.P[0], params_of(post), [30.0, 90.0, 180.0], weights=w)
     np.testing.assert_allclose(state.mean.array(), now.mean, atol=1e-12)
     np.testing.assert_allclose(state.cov.array(), now.cov, atol=1e-12)
     np.testing.assert_allclose(state.ci_high_mm.array(), now.ci_high_mm, rtol=1e-9)
@@ -241,7 +250,9 @@ def test_results_equal_the_filter_bank_core(interval):
     np.testing.assert_allclose(state.forecast_mean.array(), ahead.mean, atol=1e-12)
     np.testing.assert_allclose(state.forecast_ci_low_mm.array(), ahead.ci_low_mm, rtol=1e-9)
     for level in range(2):
-        fp = forecast(bank.z[0], bank.P[0], params_of(post), [30.0, 90.0, 180.0], limits[level])
+        fp = forecast(
+            bank.z[0], bank.P[0], params_of(post), [30.0, 90.0, 180.0], limits[level], weights=w
+        )
         np.testing.assert_allclose(state.forecast_p_exceed.array()[:, level], fp.p_exceed)
     assert state.n_updates == 6 and state.last_trc_t == T0
     assert state.posterior_group == "net" and state.calibration_version == 1
@@ -352,3 +363,75 @@ def keyed(msg) -> tuple[str, bytes]:
             kind = {OnboardIndex: "index", TrcRecord: "trc", MaintenanceEvent: "maintenance"}
             key = keys.segment_keys("tf", kind[type(msg)], f"{msg.line}/{msg.segment}")
     return key, encode(msg)
+
+
+# --- mixture weights: the likelihood of the segment's own on-board data -------------------
+
+
+def test_no_onboard_data_means_equal_weights():
+    tracker, states = run([*MODELS, trc(0.0), tamping(30.0)])
+    state = tracker.tracks[("L1", "s1")].state
+    np.testing.assert_array_equal(state.log_w, np.zeros(NS))
+    np.testing.assert_array_equal(state_weights(state), np.full(NS, 1 / NS))
+    equal = summarize(state.z, state.P, LIMITS.for_line("L1"))  # the paper's 1 / Ns
+    np.testing.assert_allclose(states[-1].mean.array(), equal.mean, atol=1e-14)
+    np.testing.assert_allclose(states[-1].ci_high_mm.array(), equal.ci_high_mm, rtol=1e-12)
+    np.testing.assert_allclose(states[-1].p_exceed.array(), equal.p_exceed, atol=1e-14)
+    # a tamping that starts a segment starts it with equal weights too
+    tracker, _ = run([*MODELS, index(1.0, 2.0, 2.0), tamping(3.0)])
+    np.testing.assert_array_equal(tracker.tracks[("L1", "s1")].state.log_w, 0.0)
+
+
+def test_trc_restart_resets_and_tamping_keeps_the_weights():
+    tracker, _ = run([*MODELS, trc(0.0), index(3.0, 2.0, 2.0), index(9.0, 2.6, 2.0)])
+    before = tracker.tracks[("L1", "s1")].state.log_w.copy()
+    assert np.ptp(before) > 0
+    tracker.step(tamping(10.0))
+    np.testing.assert_array_equal(tracker.tracks[("L1", "s1")].state.log_w, before)
+    tracker.step(trc(20.0))
+    np.testing.assert_array_equal(tracker.tracks[("L1", "s1")].state.log_w, 0.0)
+
+
+def test_fold_with_weights_is_deterministic_under_late_and_duplicate_events():
+    rng = np.random.default_rng(12)
+    events = history(rng)
+    in_order = sorted(events, key=lambda m: getattr(m, "t", getattr(m, "t_start", 0.0)))
+    reference, _ = run(MODELS + in_order)
+    for track in reference.tracks.values():
+        assert effective_sample_size(state_weights(track.state)) < NS - 1  # weights in play
+    for seed in range(3):
+        late = list(events)
+        np.random.default_rng(seed).shuffle(late)
+        late = late + late[::4]  # duplicates, arriving after everything else
+        tracker, _ = run(late[:5] + MODELS + late[5:])
+        assert_same_states(reference, tracker)  # log_w and the published states, bit for bit
+    # one more step on the current state equals a replay of the whole log
+    tracker, _ = run(MODELS + in_order[:-1])
+    tracker.step(in_order[-1])
+    assert_same_states(reference, tracker)
+
+
+def test_nis_is_weighted_by_the_predictive_weights():
+    post = posterior()
+    tracker, _ = run([calibration(), post, trc(0.0), index(5.0, 2.0, 2.0), index(9.0, 2.4, 2.0)])
+    first = tracker.tracks[("L1", "s1")].state
+    tracker.step(index(40.0, 2.6, 2.1))
+    state = tracker.tracks[("L1", "s1")].state
+    z = first.z + post.mu.array() * 31.0
+    P = first.P + post.sigma.array() * 31.0
+    _, _, nis = update(z, P, np.log([2.6, 2.1]), H, B, R)
+    np.testing.assert_allclose(state.nis, weights_from_log(first.log_w) @ nis, rtol=1e-12)
+    assert abs(state.nis - nis.mean()) > 1e-6  # not the equal-weight mean
+
+
+def test_store_rebuild_restores_the_weights(tmp_path):
+    rng = np.random.default_rng(13)
+    events = history(rng)[:30]
+    db = tmp_path / "filtering-weights.sqlite"
+    first = feed(db, [*MODELS, *events])
+    second = PersistentTracker(new_tracker(), Store(db))  # after a SIGKILL: replay the store
+    second.rebuild()
+    assert_same_states(first.tracker, second.tracker)
+    for track in second.tracker.tracks.values():
+        assert np.ptp(track.state.log_w) > 0
+    second.store.close()
