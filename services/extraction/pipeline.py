@@ -39,7 +39,11 @@ memory is bounded by a few seconds of samples and one segment of versine samples
 
 A segment's OnboardIndex is emitted once the versine of both indicators has passed the
 segment's far end, i.e. when the unit is ``L/2 + v tau`` beyond it (the chord and the
-filter's delay): the margin the filters need, no more.
+filter's delay): the margin the filters need, no more. It comes out of the very chunk that
+holds the first sample that far (plus the FIR's 10 ms), whatever the chunking
+(``tests/unit/test_extraction_latency.py``). ``tau`` is clamped at 0 and is 0 at every
+speed of the demo network: below the band's centre frequency the band-pass's phase is a
+lead, not a delay, so the margin is the Align10 chord's half, 5 m (0.2 s at 25 m/s).
 
 Validity, per sample and rail: ``position_ok`` of its chunk; at least ``settle_s`` after
 a reset (gap, start, line change); the rail's channel not flagged (``flatline:`` or

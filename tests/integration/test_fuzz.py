@@ -980,11 +980,15 @@ class Run:
 
     def assert_alive(self) -> None:
         assert self.thread.is_alive(), f"{self.spec.name} has stopped"
-        tokens = [
-            str(r.ok.key_expr)
-            for r in self.session.liveliness().get(self.alive_key, timeout=TIMEOUT_S)
-            if r.ok is not None
-        ]
+        tokens: list[str] = []
+        for _ in range(6):  # an unanswered query on a loaded 2-core machine is not a dead token
+            tokens = [
+                str(r.ok.key_expr)
+                for r in self.session.liveliness().get(self.alive_key, timeout=TIMEOUT_S)
+                if r.ok is not None
+            ]
+            if tokens:
+                break
         assert tokens == [self.alive_key], f"{self.spec.name}: liveliness token gone"
 
 

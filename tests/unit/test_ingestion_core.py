@@ -88,13 +88,27 @@ def test_every_chunk_comes_out_positioned_and_bracketed():
     chunks = positioned(out)
     assert rejections(out) == []
     assert [c.seq for c in chunks] == list(range(400))
-    for c in chunks[:-1]:  # the last one has no fix after it (flushed)
+    # the last one too: its tail is dead-reckoned from the last fix, as every chunk's is
+    for c in chunks:
         kt = c.knot_t.array()
         assert c.position_ok and c.line == "L3" and not c.gap_before
         assert kt[0] <= c.t0 and kt[-1] >= c.t0 + (N - 1) / 2000.0
         assert c.channels == list(ACCEL_CHANNELS) and c.samples.shape == [N, 6]
-    assert not chunks[-1].position_ok
     assert [c.seq for c in positioned(IngestionCore(network()).run(events))] == list(range(400))
+
+
+def test_without_dead_reckoning_chunks_wait_for_the_fix_after_them():
+    """``extrapolate_s = 0`` is the previous behaviour: a chunk waits for a knot at or after
+    its last sample; the last one, flushed without it, is not bracketed (position not ok)."""
+    _, events, _ = l3_run()
+    core = IngestionCore(network(), IngestionConfig(extrapolate_s=0.0))
+    assert positioned(core.step(events[0])) == []  # chunk 0 [T0, T0 + 1)
+    assert positioned(core.step(events[1])) == []  # fix T0: not after its last sample
+    assert positioned(core.step(events[2])) == []  # chunk 1
+    assert [c.seq for c in positioned(core.step(events[3]))] == [0]  # fix T0 + 1
+    chunks = positioned(core.run(events[4:]))
+    assert [c.seq for c in chunks] == list(range(1, 400))
+    assert all(c.position_ok for c in chunks[:-1]) and not chunks[-1].position_ok
 
 
 def test_parallel_lines_train_on_l3_stays_on_l3_within_metres_of_truth():
@@ -274,10 +288,28 @@ def test_duplicates_and_reordering_give_the_in_order_output():
     assert rejections(got) == []
 
     def by_seq(outputs):
-        return [encode(c) for c in sorted(positioned(outputs), key=lambda c: c.seq)]
+        return sorted(positioned(outputs), key=lambda c: c.seq)
 
-    assert by_seq(got) == by_seq(want)
+    # Samples, order, gaps: the same. Positions: a chunk goes out with what is known when
+    # it is released (a reordered chunk waits for its predecessor, by when more fixes are
+    # in), so they agree within the dead reckoning's error, not to the bit.
+    for a, b in zip(by_seq(got), by_seq(want), strict=True):
+        same_knots = {f: getattr(b, f) for f in ("knot_t", "knot_chainage_m", "knot_speed_mps")}
+        assert encode(msgspec.structs.replace(a, **same_knots)) == encode(b)
+        t = a.t0 + np.arange(0, N, 100) / 2000.0
+        assert np.abs(_chainage_at(a, t) - _chainage_at(b, t)).max() < 3.0  # m
     assert core.health("T1", "u0").duplicates == 4
+    # without dead reckoning, positions only ever come from the fixes around a chunk
+    hold = IngestionConfig(extrapolate_s=0.0)
+    got, want = (
+        IngestionCore(network(), hold).run(shuffled),
+        IngestionCore(network(), hold).run(events),
+    )
+    assert [encode(c) for c in by_seq(got)] == [encode(c) for c in by_seq(want)]
+
+
+def _chainage_at(c: PositionedChunk, t: np.ndarray) -> np.ndarray:
+    return np.interp(t, c.knot_t.array(), c.knot_chainage_m.array())
 
 
 def test_missing_chunk_flags_gap_on_the_next():
