@@ -194,9 +194,8 @@ class LineProfile:
         """Segment statistic per channel of an extended shape, over the segment's samples."""
         out = np.empty(4)
         for c, chord in enumerate(_CHORDS_M):
-            h = half_chord_samples(self.spacing_m, chord)
-            v = chord_versine(ext[c], self.spacing_m, chord)  # v[j] at ext index j + h
-            out[c] = segment_statistic(v[self.hm - h : ext.shape[1] - self.hm - h])
+            own = ext[c, self.hm : ext.shape[1] - self.hm]  # the segment's own samples
+            out[c] = segment_statistic(chord_versine(own, self.spacing_m, chord))
         return out
 
     def segment_profile(self, k: int) -> tuple[np.ndarray, np.ndarray, slice]:

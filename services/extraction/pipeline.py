@@ -34,16 +34,17 @@ memory is bounded by a few seconds of samples and one segment of versine samples
    symmetric, so each grid point gets the same versine in either direction.
 4. **Chord versine** (6 m on the vertical channels, 10 m on the lateral ones) and **the
    segment statistic** (both from :mod:`services.extraction.versine`) over the versine
-   samples whose chord centre lies in the segment's ``[start, end)``, per rail (left,
+   samples whose whole chord lies in the segment (centres in ``[start + L/2, end - L/2)``,
+   the shared statistic's support), per rail (left,
    right accelerometer), then ``min(left, right)`` per indicator, in mm.
 
 A segment's OnboardIndex is emitted once the versine of both indicators has passed the
-segment's far end, i.e. when the unit is ``L/2 + v tau`` beyond it (the chord and the
-filter's delay): the margin the filters need, no more. It comes out of the very chunk that
-holds the first sample that far (plus the FIR's 10 ms), whatever the chunking
-(``tests/unit/test_extraction_latency.py``). ``tau`` is clamped at 0 and is 0 at every
-speed of the demo network: below the band's centre frequency the band-pass's phase is a
-lead, not a delay, so the margin is the Align10 chord's half, 5 m (0.2 s at 25 m/s).
+last chord centre of the segment (``end - L/2``), i.e. when the unit reaches the segment's
+end (plus ``v tau``, the filter's delay, and one grid step): nothing past the end is
+needed. It comes out of the very chunk that holds that sample (plus the FIR's 10 ms),
+whatever the chunking (``tests/unit/test_extraction_latency.py``). ``tau`` is clamped at 0
+and is 0 at every speed of the demo network: below the band's centre frequency the
+band-pass's phase is a lead, not a delay.
 
 Validity, per sample and rail: ``position_ok`` of its chunk; at least ``settle_s`` after
 a reset (gap, start, line change); the rail's channel not flagged (``flatline:`` or
@@ -208,11 +209,12 @@ class LineSegments:
         if not (np.all(self.ends > self.starts) and np.all(self.starts[1:] >= self.ends[:-1])):
             raise ValueError(f"line {self.line}: segments must be increasing and not overlap")
 
-    def locate(self, x: np.ndarray) -> np.ndarray:
-        """Segment index of each chainage, -1 outside every segment."""
+    def locate(self, x: np.ndarray, inset_m: float = 0.0) -> np.ndarray:
+        """Segment index of each chainage in ``[start + inset, end - inset)``, else -1."""
         k = np.searchsorted(self.starts, x, side="right") - 1
         kc = np.clip(k, 0, len(self.ids) - 1)
-        return np.where((k >= 0) & (x < self.ends[kc]), kc, -1)
+        inside = (x >= self.starts[kc] + inset_m) & (x < self.ends[kc] - inset_m)
+        return np.where((k >= 0) & inside, kc, -1)
 
 
 class SegmentTable:
@@ -458,7 +460,7 @@ class _IndicatorChain:
         x = (self.direction * self.cfg.spacing_m) * grid[0, cen]
         tv = grid[1:3, cen]
         flags = gok[2:, cen]
-        seg = line.locate(x)
+        seg = line.locate(x, h * self.cfg.spacing_m)  # whole chord inside the segment
         out = []
         # split the centres into runs of one segment (usually one or two per chunk)
         bounds = [0, *(np.flatnonzero(seg[1:] != seg[:-1]) + 1).tolist(), seg.size]
@@ -487,8 +489,9 @@ class _IndicatorChain:
         if acc is None:
             return []
         cfg, dx = self.cfg, self.cfg.spacing_m
-        n_expected = math.ceil(line.ends[acc.k] / dx - 1e-9) - math.ceil(
-            line.starts[acc.k] / dx - 1e-9
+        inset = self.h * dx
+        n_expected = math.ceil((line.ends[acc.k] - inset) / dx - 1e-9) - math.ceil(
+            (line.starts[acc.k] + inset) / dx - 1e-9
         )
         values = np.concatenate(acc.values, axis=1)
         valid = np.concatenate(acc.valid, axis=1)

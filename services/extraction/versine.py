@@ -71,8 +71,12 @@ def segment_statistic(versine, axis: int = -1) -> np.ndarray | float:
 
         s = \\sqrt{\\frac{1}{N} \\sum_{i=1}^{N} (v_i - \\bar v)^2}
 
-    over the ``N`` versine samples whose chord centre lies in the segment (population
-    standard deviation, ``ddof = 0``). EN 13848-6 rates longitudinal level and alignment
+    over the ``N`` versine samples whose whole chord lies in the segment, i.e. chord
+    centres in ``[start + L/2, end - L/2)``: ``segment_statistic(chord_versine(p_seg, dx,
+    L))`` of the segment's own profile samples ``p_seg`` (population standard deviation,
+    ``ddof = 0``). A segment's value thus depends on its own track only, and an on-board
+    unit has it as soon as it reaches the segment's end (not half a chord later).
+    EN 13848-6 rates longitudinal level and alignment
     quality by standard deviations over 200 m; the standard deviation is preferred to
     the peak because it is stable under resampling, noise and short artefacts, and its
     log is close to Gaussian (paper Fig. 3). It is linear in the profile's amplitude,

@@ -87,8 +87,8 @@ def test_segment_statistic_equals_exp_z_exactly_for_both_indicators_and_rails():
         _, p, inner = lp.segment_profile(k)
         for c, chord in enumerate((TOP_CHORD_M, TOP_CHORD_M, ALIGN_CHORD_M, ALIGN_CHORD_M)):
             h = half_chord_samples(lp.spacing_m, chord)
-            v = chord_versine(p[c], lp.spacing_m, chord)[inner.start - h : inner.stop - h]
-            assert v.size == inner.stop - inner.start
+            v = chord_versine(p[c, inner], lp.spacing_m, chord)  # whole chords inside
+            assert v.size == inner.stop - inner.start - 2 * h
             assert segment_statistic(v) == pytest.approx(np.exp(z[k, c // 2]), rel=1e-9)
     # A tamping (new epoch) draws a fresh shape, still scaled exactly.
     before = lp.segment_profile(3)[1].copy()
