@@ -34,6 +34,7 @@ from scipy import fft
 
 from services.extraction.versine import (
     ALIGN_CHORD_M,
+    END_GUARD_M,
     TOP_CHORD_M,
     chord_versine,
     half_chord_samples,
@@ -136,6 +137,7 @@ class LineProfile:
         self.spectrum = spectrum or TrackSpectrum()
         self.independent_ratio = independent_ratio
         self.hm = round(margin_m / spacing_m)  # margin in samples
+        self.guard = round(END_GUARD_M / spacing_m)  # the statistic's end guard in samples
         # Line grid x_i = x0 + i dx covers [first start - margin, last end + margin].
         self.x0 = bounds[0, 0] - self.hm * spacing_m
         edges = np.round((np.r_[bounds[:, 0], bounds[-1, 1]] - self.x0) / spacing_m).astype(int)
@@ -194,7 +196,8 @@ class LineProfile:
         """Segment statistic per channel of an extended shape, over the segment's samples."""
         out = np.empty(4)
         for c, chord in enumerate(_CHORDS_M):
-            own = ext[c, self.hm : ext.shape[1] - self.hm]  # the segment's own samples
+            g = self.hm + self.guard  # the segment's own samples, less the end guard
+            own = ext[c, g : ext.shape[1] - g]
             out[c] = segment_statistic(chord_versine(own, self.spacing_m, chord))
         return out
 

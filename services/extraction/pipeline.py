@@ -34,14 +34,15 @@ memory is bounded by a few seconds of samples and one segment of versine samples
    symmetric, so each grid point gets the same versine in either direction.
 4. **Chord versine** (6 m on the vertical channels, 10 m on the lateral ones) and **the
    segment statistic** (both from :mod:`services.extraction.versine`) over the versine
-   samples whose whole chord lies in the segment (centres in ``[start + L/2, end - L/2)``,
-   the shared statistic's support), per rail (left,
+   samples whose whole chord lies in the segment at least ``END_GUARD_M`` (1 m) from its
+   ends (the shared statistic's support), per rail (left,
    right accelerometer), then ``min(left, right)`` per indicator, in mm.
 
 A segment's OnboardIndex is emitted once the versine of both indicators has passed the
-last chord centre of the segment (``end - L/2``), i.e. when the unit reaches the segment's
-end (plus ``v tau``, the filter's delay, and one grid step): nothing past the end is
-needed. It comes out of the very chunk that holds that sample (plus the FIR's 10 ms),
+last chord centre of the segment (``end - L/2 - guard``), i.e. when the unit is the 1 m
+guard short of the segment's end (plus ``v tau``, the filter's delay, and one grid step):
+nothing past the end is needed. It comes out of the very chunk that holds that sample
+(plus the FIR's 10 ms),
 whatever the chunking (``tests/unit/test_extraction_latency.py``). ``tau`` is clamped at 0
 and is 0 at every speed of the demo network: below the band's centre frequency the
 band-pass's phase is a lead, not a delay.
@@ -89,6 +90,7 @@ from services.extraction.versine import (
     chord_versine,
     half_chord_samples,
     segment_statistic,
+    statistic_inset_m,
 )
 
 __all__ = [
@@ -328,6 +330,7 @@ class _IndicatorChain:
         self.delay_lambda = cfg.delay_wavelength_chords * chord_m
         self.settle_s = cfg.settle_cycles / self.low_hz
         self.h = half_chord_samples(cfg.spacing_m, chord_m)
+        self.inset_m = statistic_inset_m(chord_m)
         self.reset(-math.inf)
 
     def reset(self, t_start: float) -> None:
@@ -460,7 +463,7 @@ class _IndicatorChain:
         x = (self.direction * self.cfg.spacing_m) * grid[0, cen]
         tv = grid[1:3, cen]
         flags = gok[2:, cen]
-        seg = line.locate(x, h * self.cfg.spacing_m)  # whole chord inside the segment
+        seg = line.locate(x, self.inset_m)  # the statistic's chord centres only
         out = []
         # split the centres into runs of one segment (usually one or two per chunk)
         bounds = [0, *(np.flatnonzero(seg[1:] != seg[:-1]) + 1).tolist(), seg.size]
@@ -489,7 +492,7 @@ class _IndicatorChain:
         if acc is None:
             return []
         cfg, dx = self.cfg, self.cfg.spacing_m
-        inset = self.h * dx
+        inset = self.inset_m
         n_expected = math.ceil((line.ends[acc.k] - inset) / dx - 1e-9) - math.ceil(
             (line.starts[acc.k] + inset) / dx - 1e-9
         )

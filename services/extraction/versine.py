@@ -14,6 +14,17 @@ import numpy as np
 
 TOP_CHORD_M = 6.0  # Top6: longitudinal level, vertical profile, 6 m chord
 ALIGN_CHORD_M = 10.0  # Align10: alignment, lateral profile, 10 m chord
+#: The statistic leaves this much of each segment end out: a chord that close to a boundary
+#: may straddle it once positions are off by a metre (GPS, dead reckoning), and an
+#: on-board unit then has the segment's value a little before it reaches the end — within
+#: the same ~1 s raw chunk — rather than in the next chunk (at 40 m/s the decimation FIR's
+#: 10 ms and one 0.25 m grid step take 0.65 m).
+END_GUARD_M = 1.0
+
+
+def statistic_inset_m(chord_m: float) -> float:
+    """How far inside each segment end the statistic's chord centres start: ``L/2 + guard``."""
+    return chord_m / 2.0 + END_GUARD_M
 
 
 def half_chord_samples(spacing_m: float, chord_m: float) -> int:
@@ -71,11 +82,13 @@ def segment_statistic(versine, axis: int = -1) -> np.ndarray | float:
 
         s = \\sqrt{\\frac{1}{N} \\sum_{i=1}^{N} (v_i - \\bar v)^2}
 
-    over the ``N`` versine samples whose whole chord lies in the segment, i.e. chord
-    centres in ``[start + L/2, end - L/2)``: ``segment_statistic(chord_versine(p_seg, dx,
-    L))`` of the segment's own profile samples ``p_seg`` (population standard deviation,
-    ``ddof = 0``). A segment's value thus depends on its own track only, and an on-board
-    unit has it as soon as it reaches the segment's end (not half a chord later).
+    over the ``N`` versine samples whose whole chord lies in the segment at least
+    ``END_GUARD_M`` from its ends, i.e. chord centres in ``[start + L/2 + g, end - L/2 -
+    g)`` (:func:`statistic_inset_m`): ``segment_statistic(chord_versine(p_seg, dx, L))``
+    of the segment's own profile samples less the guard, ``p_seg`` (population standard
+    deviation, ``ddof = 0``). A segment's value thus depends on its own track only, and an
+    on-board unit has it just before it reaches the segment's end (not half a chord
+    after).
     EN 13848-6 rates longitudinal level and alignment
     quality by standard deviations over 200 m; the standard deviation is preferred to
     the peak because it is stable under resampling, noise and short artefacts, and its

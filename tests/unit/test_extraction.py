@@ -128,8 +128,10 @@ def test_min_left_right_rejects_one_rail_burst():
     both, _ = run(_both_rails_burst())
     assert [i.segment for i in burst] == [i.segment for i in clean]
     for a, b in zip(clean, burst, strict=True):
-        assert b.top6_mm == pytest.approx(a.top6_mm, rel=1e-6)
-        assert b.align10_mm == pytest.approx(a.align10_mm, rel=1e-6)
+        # 1e-5: what is left of the burst's filter transient after settle_s (~5e-6 on the
+        # next segment's left rail) may still make that rail the smaller one
+        assert b.top6_mm == pytest.approx(a.top6_mm, rel=1e-5)
+        assert b.align10_mm == pytest.approx(a.align10_mm, rel=1e-5)
     hit = {i.segment: i for i in both}
     assert hit["s00002"].top6_mm > 1.2 * clean[1].top6_mm  # the burst is not small
 

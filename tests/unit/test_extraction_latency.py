@@ -1,7 +1,6 @@
 """When the extraction publishes a segment's index: as soon as the unit's samples reach the
-segment's end (the statistic's chords lie inside the segment, so nothing past the end is
-needed but one grid step and the decimation FIR's 10 ms), and no later, whatever the
-chunking."""
+last chord of the statistic, 1 m (END_GUARD_M) short of the segment's end (plus one grid
+step and the decimation FIR's 10 ms), and no later, whatever the chunking."""
 
 from __future__ import annotations
 
@@ -10,7 +9,7 @@ import pytest
 
 from schemas import ACCEL_CHANNELS, NDArray, PositionedChunk
 from services.extraction.pipeline import ExtractionConfig, LineSegments, SegmentTable, UnitPipeline
-from services.extraction.versine import ALIGN_CHORD_M
+from services.extraction.versine import END_GUARD_M
 
 FS = 2000
 G = 9.80665
@@ -80,8 +79,8 @@ def test_an_index_is_published_once_the_unit_reaches_the_segment_end():
         end = 200.0 * (int(seg[1:]) + 1)
         # where the unit was at the last output sample of the piece that emitted it
         past = X0 + V * (t_emit - 1 / FS - fir_delay) - end
-        assert 0.0 <= past < V * 0.02 + 0.25, seg
-        assert past < ALIGN_CHORD_M / 2  # no longer waits for the chord past the end
+        assert -END_GUARD_M <= past < -END_GUARD_M + V * 0.02 + 0.25, seg
+        assert past < 0  # before the unit reaches the end: never the chunk after it
 
 
 def test_one_second_chunks_publish_with_the_chunk_holding_that_sample():

@@ -10,6 +10,7 @@ from scipy import signal
 
 from services.extraction.versine import (
     ALIGN_CHORD_M,
+    END_GUARD_M,
     TOP_CHORD_M,
     chord_versine,
     half_chord_samples,
@@ -87,8 +88,9 @@ def test_segment_statistic_equals_exp_z_exactly_for_both_indicators_and_rails():
         _, p, inner = lp.segment_profile(k)
         for c, chord in enumerate((TOP_CHORD_M, TOP_CHORD_M, ALIGN_CHORD_M, ALIGN_CHORD_M)):
             h = half_chord_samples(lp.spacing_m, chord)
-            v = chord_versine(p[c, inner], lp.spacing_m, chord)  # whole chords inside
-            assert v.size == inner.stop - inner.start - 2 * h
+            g = round(END_GUARD_M / lp.spacing_m)  # whole chords, 1 m inside the ends
+            v = chord_versine(p[c, inner.start + g : inner.stop - g], lp.spacing_m, chord)
+            assert v.size == inner.stop - inner.start - 2 * (h + g)
             assert segment_statistic(v) == pytest.approx(np.exp(z[k, c // 2]), rel=1e-9)
     # A tamping (new epoch) draws a fresh shape, still scaled exactly.
     before = lp.segment_profile(3)[1].copy()
