@@ -22,13 +22,12 @@ import time
 
 import numpy as np
 
-from schemas import GpsFix, NDArray, PositionedChunk, RawChunk, decode, encode
+from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode
 from services.ingestion.core import IngestionCore
 from simulators.gateway import key_and_payload
 from simulators.network import demo_network
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
-from simulators.world import CHANNELS
 
 TARGET_SAMPLES_PER_S = 12e6  # DESIGN: ingestion + extraction, per core
 T0 = 1_767_225_600.0
@@ -59,18 +58,9 @@ def make_payloads(trains: int, seconds: int, seed: int = 1) -> list[tuple[str, b
     out: list[tuple[str, bytes]] = []
     for k in range(seconds):
         for sim in sims:
-            t0, x, _ = sim.chunk(k)
-            chunk = RawChunk(
-                train=sim.train_id,
-                unit="u0",
-                seq=k,
-                t0=t0,
-                rate_hz=sim.fs_hz,
-                channels=CHANNELS,
-                samples=NDArray.of(x, "f4"),
-            )
+            chunk = sim.raw_chunk(k)[0]
             out.append(("raw", key_and_payload("tf", chunk)[1]))
-            for fix in sim.gps_fixes(t0, t0 + 1.0):
+            for fix in sim.gps_fixes(chunk.t0, chunk.t0 + 1.0):
                 out.append(("gps", key_and_payload("tf", fix)[1]))
     return out
 

@@ -29,9 +29,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas.messages import GpsFix
+from schemas import ACCEL_CHANNELS, SUPPLY_CHANNEL, NDArray
+from schemas.messages import GpsFix, RawChunk
 from simulators.bogie import BogiePhysics, BogieUnit, Kinematics
 from simulators.profile import LineProfile, line_rng
+
+RAW_CHANNELS = [*ACCEL_CHANNELS, SUPPLY_CHANNEL]  # the columns of a RawChunk's samples
 
 _ROUTE_TAG, _GPS_TAG, _TSR_TAG = 0x524F5554, 0x47505321, 0x54535221
 EARTH_RADIUS_M = 6_371_000.0
@@ -220,6 +223,21 @@ class TrainSimulator:
         t = t0 + np.arange(self.n_chunk) / self.fs_hz
         samples, dropped = bogie.chunk(seq, self.kinematics(t, unit))
         return t0, samples, dropped
+
+    def raw_chunk(self, seq: int, unit: int = 0) -> tuple[RawChunk, bool]:
+        """Chunk ``seq`` of a unit as its gateway sends it, and whether it was lost
+        (``dropped``: a gateway skips it; tests may keep it)."""
+        t0, samples, dropped = self.chunk(seq, unit)
+        chunk = RawChunk(
+            train=self.train_id,
+            unit=f"u{unit}",
+            seq=seq,
+            t0=t0,
+            rate_hz=self.fs_hz,
+            channels=RAW_CHANNELS,
+            samples=NDArray.of(samples, "f4"),
+        )
+        return chunk, dropped
 
     def in_tunnel(self, chainage) -> np.ndarray:
         """Whether each chainage lies in a tunnel."""

@@ -16,7 +16,7 @@ import heapq
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 
-from schemas import ACCEL_CHANNELS, SUPPLY_CHANNEL, Message, NDArray, RawChunk
+from schemas import Message
 from simulators.index_model import index_pass_events
 from simulators.network import Network
 from simulators.profile import LineProfile
@@ -25,7 +25,6 @@ from simulators.trc import trc_events
 from simulators.truth import Truth, truth_events
 
 DAY_S = 86_400.0
-CHANNELS = [*ACCEL_CHANNELS, SUPPLY_CHANNEL]
 
 
 @dataclass(frozen=True)
@@ -88,20 +87,9 @@ def raw_train_events(spec: WorldSpec) -> Iterator[tuple[float, list[Message]]]:
         messages: list[Message] = []
         for train in trains:
             for unit in range(spec.units):
-                t0, samples, dropped = train.chunk(k, unit)
-                if dropped:  # the gateway lost it: its seq is skipped, ingestion sees a gap
-                    continue
-                messages.append(
-                    RawChunk(
-                        train=train.train_id,
-                        unit=f"u{unit}",
-                        seq=k,
-                        t0=t0,
-                        rate_hz=train.fs_hz,
-                        channels=CHANNELS,
-                        samples=NDArray.of(samples, "f4"),
-                    )
-                )
+                chunk, dropped = train.raw_chunk(k, unit)
+                if not dropped:  # a lost chunk's seq is skipped: ingestion sees a gap
+                    messages.append(chunk)
             messages.extend(train.gps_fixes(t, t + 1.0))
         yield t, messages
 

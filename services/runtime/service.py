@@ -15,6 +15,7 @@ session. Tests use the same object in-process and call :meth:`ServiceRuntime.sto
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
 import signal
@@ -311,7 +312,7 @@ class ServiceRuntime:
         ``cache_samples`` overrides the configured cache size (messages kept per key)."""
         settings = self.delivery
         if cache_samples is not None:
-            settings = DeliverySettings(cache_samples, settings.heartbeat_s)
+            settings = dataclasses.replace(settings, cache_samples=cache_samples)
         return self.track(ReliablePublisher(self.session, settings))
 
     def track(self, entity: _U) -> _U:

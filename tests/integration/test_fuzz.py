@@ -91,8 +91,7 @@ from services.viewer.testing import rrd_contents
 from simulators.gateway import key_and_payload
 from simulators.network import DEMO_NETWORK, demo_network
 from simulators.profile import LineProfile
-from simulators.train import TrainSimulator
-from simulators.world import CHANNELS
+from simulators.train import RAW_CHANNELS, TrainSimulator
 
 N_BAD = int(os.environ.get("TF_FUZZ_N", "10000"))  # bad messages per service
 SEED = int(os.environ.get("TF_FUZZ_SEED", "7"))
@@ -146,20 +145,8 @@ def simulated(seconds: int, phase_s: float = 300.0) -> list[RawChunk | GpsFix]:
     sim = TrainSimulator("T7", line, profile, 1, start_t=T0, phase_s=phase_s)
     messages: list[RawChunk | GpsFix] = []
     for k in range(seconds):
-        t0, x, _ = sim.chunk(k)
-        samples = NDArray.of(x, "f4")
-        messages.append(
-            RawChunk(
-                train="T7",
-                unit="u0",
-                seq=k,
-                t0=t0,
-                rate_hz=2000.0,
-                channels=CHANNELS,
-                samples=samples,
-            )  # fmt: skip
-        )
-        messages += sim.gps_fixes(t0, t0 + 1.0)
+        chunk = sim.raw_chunk(k)[0]
+        messages += [chunk, *sim.gps_fixes(chunk.t0, chunk.t0 + 1.0)]
     return messages
 
 
@@ -190,7 +177,7 @@ def ingestion_spec(ns: str) -> Spec:
                     {"rate_hz": 500.0},  # refused by the core: not the unit's rate
                     {"channels": []},
                     {"channels": ["left_z"] * 7},  # duplicates
-                    {"channels": [*CHANNELS[:6], "volts"]},  # no supply_v: the core refuses
+                    {"channels": [*RAW_CHANNELS[:6], "volts"]},  # no supply_v: the core refuses
                     {"train": ""},
                     {"unit": "u 0"},
                     {"train": "T*"},

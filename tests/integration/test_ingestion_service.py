@@ -12,14 +12,13 @@ import msgpack
 import numpy as np
 import zenoh
 
-from schemas import DeadLetter, NDArray, PositionedChunk, RawChunk, decode, keys
+from schemas import DeadLetter, PositionedChunk, decode, keys
 from services.ingestion import service as ingestion
 from services.runtime.config import RuntimeConfig
 from simulators.gateway import key_and_payload
 from simulators.network import demo_network
 from simulators.profile import LineProfile
-from simulators.train import TrainSimulator
-from simulators.world import CHANNELS
+from simulators.train import RAW_CHANNELS, TrainSimulator
 
 PUT = zenoh.SampleKind.PUT
 TIMEOUT_S = 5.0
@@ -56,19 +55,8 @@ def simulated(seconds: int):
     sim = TrainSimulator("T7", line, profile, 1, start_t=T0, phase_s=150.0)
     messages = []
     for k in range(seconds):
-        t0, x, _ = sim.chunk(k)
-        messages.append(
-            RawChunk(
-                train="T7",
-                unit="u0",
-                seq=k,
-                t0=t0,
-                rate_hz=2000.0,
-                channels=CHANNELS,
-                samples=NDArray.of(x, "f4"),
-            )
-        )
-        messages += sim.gps_fixes(t0, t0 + 1.0)
+        chunk = sim.raw_chunk(k)[0]
+        messages += [chunk, *sim.gps_fixes(chunk.t0, chunk.t0 + 1.0)]
     return messages
 
 
@@ -97,7 +85,7 @@ def test_raw_and_gps_in_positioned_chunks_out(
     chunks = [c for _, c in got]
     assert [c.seq for c in chunks] == [0, 1, 2]
     for c in chunks:
-        assert c.line == "L3" and c.position_ok and c.channels == CHANNELS[:6]
+        assert c.line == "L3" and c.position_ok and c.channels == RAW_CHANNELS[:6]
         assert c.samples.shape == [2000, 6]
         assert abs(float(c.samples.array()[:, [0, 3]].mean()) - 9.80665) < 0.3
         kt = c.knot_t.array()

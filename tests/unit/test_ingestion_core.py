@@ -19,8 +19,7 @@ from services.ingestion.core import (
 )
 from simulators.network import demo_network
 from simulators.profile import LineProfile
-from simulators.train import TrainSimulator
-from simulators.world import CHANNELS
+from simulators.train import RAW_CHANNELS, TrainSimulator
 
 T0 = 1_767_225_600.0
 N = 2000  # samples per 1 s chunk at 2000 Hz
@@ -45,7 +44,7 @@ def chunk(seq: int, *, train="T1", unit="u0", t0=None, samples=None, **kw) -> Ra
         seq=seq,
         t0=T0 + seq if t0 is None else t0,
         rate_hz=2000.0,
-        channels=CHANNELS,
+        channels=RAW_CHANNELS,
         samples=NDArray.of(samples, "f4"),
     )
     return RawChunk(**(fields | kw))
@@ -212,7 +211,7 @@ def _low_supply(c: RawChunk) -> RawChunk:
 BAD = {
     "rate": (lambda c: msgspec.structs.replace(c, rate_hz=1000.0), "rate_hz"),
     "channels": (
-        lambda c: msgspec.structs.replace(c, channels=[*CHANNELS[:5], "x7", CHANNELS[6]]),
+        lambda c: msgspec.structs.replace(c, channels=[*RAW_CHANNELS[:5], "x7", RAW_CHANNELS[6]]),
         "channels: missing ['right_x']",
     ),
     "nan": (_with_nan, "NaN"),
@@ -415,7 +414,7 @@ def test_channels_in_another_order_are_put_in_canonical_order():
     c = chunk(0)
     shuffled = msgspec.structs.replace(
         c,
-        channels=[CHANNELS[i] for i in order],
+        channels=[RAW_CHANNELS[i] for i in order],
         samples=NDArray.of(c.samples.array()[:, order], "f4"),
     )
     _, events = train_on("L3", 2)

@@ -17,8 +17,7 @@ from services.extraction.pipeline import Extractor, SegmentTable
 from services.ingestion.core import IngestionConfig, IngestionCore
 from simulators.network import demo_network
 from simulators.profile import LineProfile
-from simulators.train import TrainSimulator
-from simulators.world import CHANNELS
+from simulators.train import RAW_CHANNELS, TrainSimulator
 
 T0 = 1_767_225_600.0
 N = 2000
@@ -42,7 +41,7 @@ def quiet_chunk(seq: int, train: str = "T1") -> RawChunk:
         seq=seq,
         t0=T0 + seq,
         rate_hz=2000.0,
-        channels=CHANNELS,
+        channels=RAW_CHANNELS,
         samples=NDArray.of(samples, "f4"),
     )
 
@@ -59,21 +58,7 @@ def l3_train(seconds: int = 300, bogie: bool = False):
     sim = TrainSimulator("T1", line, profile, 1, start_t=T0, phase_s=0.0)
     events: list[RawChunk | GpsFix] = []
     for k in range(seconds):
-        if bogie:
-            t0, x, _ = sim.chunk(k)
-            events.append(
-                RawChunk(
-                    train="T1",
-                    unit="u0",
-                    seq=k,
-                    t0=t0,
-                    rate_hz=2000.0,
-                    channels=CHANNELS,
-                    samples=NDArray.of(x, "f4"),
-                )
-            )
-        else:
-            events.append(quiet_chunk(k))
+        events.append(sim.raw_chunk(k)[0] if bogie else quiet_chunk(k))
         events += sim.gps_fixes(T0 + k, T0 + k + 1)
     return sim, events
 

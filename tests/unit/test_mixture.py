@@ -94,15 +94,20 @@ def test_credibility_width_of_diagonal(diag, w):
     np.testing.assert_allclose(credibility_width(np.stack([P, 2 * P])), [w, 2 * w], rtol=1e-12)
 
 
-def test_forecast_per_segment_params_has_horizon_axis():
-    rng = np.random.default_rng(5)
-    S, ns = 3, 4
-    params = DegradationParams(
+def random_params(rng: np.random.Generator, S: int, ns: int) -> DegradationParams:
+    """Per-segment parameters of ``S`` segments x ``ns`` samples, random drifts."""
+    return DegradationParams(
         mu=rng.normal(0.002, 0.001, (S, ns, 2)),
         sigma=np.broadcast_to(1e-4 * np.eye(2), (S, ns, 2, 2)),
         z_plus=np.ones((S, ns, 2)),
         sigma_z_plus=np.broadcast_to(0.01 * np.eye(2), (S, ns, 2, 2)),
     )
+
+
+def test_forecast_per_segment_params_has_horizon_axis():
+    rng = np.random.default_rng(5)
+    S, ns = 3, 4
+    params = random_params(rng, S, ns)
     z, P = rng.normal(1, 0.2, (S, ns, 2)), np.zeros((S, ns, 2, 2))
     fc = forecast(z, P, params, [30.0, 90.0, 180.0], limits_mm=[4.0, 4.0])
     assert fc.mean.shape == (3, S, 2) and fc.cov.shape == (3, S, 2, 2) and fc.width.shape == (3, S)
@@ -133,3 +138,19 @@ PARAMS = DegradationParams(np.zeros((2, 2)), P, np.zeros((2, 2)), P)
 def test_bad_input_raises_naming_argument(name, call):
     with pytest.raises(ValueError, match=rf"^{name}:"):
         call()
+
+
+def test_weighted_forecast_and_batches():
+    rng = np.random.default_rng(9)
+    S, ns = 3, 5
+    params = random_params(rng, S, ns)
+    z, P = rng.normal(1, 0.2, (S, ns, 2)), np.zeros((S, ns, 2, 2))
+    w = rng.dirichlet(np.ones(ns), S)
+    fc = forecast(z, P, params, [30.0, 90.0], limits_mm=[4.0, 4.0], weights=w)
+    np.testing.assert_allclose(fc.mean[1], np.einsum("sj,sji->si", w, z + 90 * params.mu))
+    for seg in range(S):
+        one = summarize(
+            z[seg] + 30 * params.mu[seg], 30 * params.sigma[seg], [4.0, 4.0], weights=w[seg]
+        )
+        np.testing.assert_allclose(fc.ci_high[0, seg], one.ci_high, atol=1e-12)
+        np.testing.assert_allclose(fc.p_exceed[0, seg], one.p_exceed, atol=1e-14)

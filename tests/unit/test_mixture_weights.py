@@ -117,27 +117,6 @@ def test_weighted_point_masses_give_the_weighted_empirical_quantile():
     np.testing.assert_allclose(s.mean, [0.01 + 1.8 + 0.24])
 
 
-def test_weighted_forecast_and_batches():
-    rng = np.random.default_rng(9)
-    S, ns = 3, 5
-    params = DegradationParams(
-        mu=rng.normal(0.002, 0.001, (S, ns, 2)),
-        sigma=np.broadcast_to(1e-4 * np.eye(2), (S, ns, 2, 2)),
-        z_plus=np.ones((S, ns, 2)),
-        sigma_z_plus=np.broadcast_to(0.01 * np.eye(2), (S, ns, 2, 2)),
-    )
-    z, P = rng.normal(1, 0.2, (S, ns, 2)), np.zeros((S, ns, 2, 2))
-    w = rng.dirichlet(np.ones(ns), S)
-    fc = forecast(z, P, params, [30.0, 90.0], limits_mm=[4.0, 4.0], weights=w)
-    np.testing.assert_allclose(fc.mean[1], np.einsum("sj,sji->si", w, z + 90 * params.mu))
-    for seg in range(S):
-        one = summarize(
-            z[seg] + 30 * params.mu[seg], 30 * params.sigma[seg], [4.0, 4.0], weights=w[seg]
-        )
-        np.testing.assert_allclose(fc.ci_high[0, seg], one.ci_high, atol=1e-12)
-        np.testing.assert_allclose(fc.p_exceed[0, seg], one.p_exceed, atol=1e-14)
-
-
 @pytest.mark.parametrize(
     "weights", [[0.5, 0.6], [-0.1, 1.1], [1.0, np.nan], [[0.5, 0.5, 0.0]], [[1.0], [0.0]]]
 )
