@@ -36,7 +36,11 @@ class DeadLetterPublisher:
         self.counts: dict[str, int] = {}
         self._clock = clock  # wall clock on purpose: a rejected payload has no trusted time
         self._lock = threading.Lock()
-        self._publisher: zenoh.Publisher | None = session.declare_publisher(self.key)
+        # BLOCK, like every data path: a rejection's letter is its only record for the
+        # sender, so a busy router slows the service down rather than dropping it
+        self._publisher: zenoh.Publisher | None = session.declare_publisher(
+            self.key, congestion_control=zenoh.CongestionControl.BLOCK
+        )
 
     def reject(
         self,
