@@ -2,7 +2,8 @@
 
 Subscribes ``{ns}/index/{selector}``, ``{ns}/trc/{selector}``, ``{ns}/maintenance/{selector}``
 and ``{ns}/model/**``; at start asks ``{ns}/model/**`` for the latest models (the calibration
-service's late-joiner queryable) and treats the replies like publications. Every sample goes
+service's late-joiner queryable) and queues the replies like publications before it declares
+itself ready. Every sample goes
 into one bounded queue read by one worker thread, so the tracker is single-threaded and
 sees each instance's inputs in arrival order. Per sample: decode (a malformed payload or
 one disagreeing with its key → dead letter with the reason) → tracker step → commit the
@@ -42,6 +43,9 @@ log = logging.getLogger(__name__)
 SERVICE = "filtering"
 INBOX_CAPACITY = 4096  # samples waiting for the worker; a full inbox slows the senders down
 STATE_CACHE = 16  # states kept per segment for a returning consumer (alerting, viewer)
+MODEL_QUERY_TIMEOUT_S = (
+    10.0  # the start-up query for the latest models (ends sooner when all reply)
+)
 _POLL_S = 0.1  # how often an idle worker (or a blocked callback) looks at the stop event
 
 
@@ -95,8 +99,11 @@ class FilteringAdapter:
         q_key = keys.q_state_all(ns).removesuffix("**") + self.selector
         self.rt.declare_queryable(q_key, self._on_query)
         self.rt.spawn(self._work, name=f"{SERVICE}:worker")
-        # After subscribing, so a model published meanwhile is not missed either.
-        self.rt.session.get(keys.model_all(ns), self._on_reply)
+        # After subscribing, so a model published meanwhile is not missed either; and
+        # before the liveliness token (ready), so the latest models are queued ahead of
+        # any event a producer sends once it sees this instance ready.
+        for reply in self.rt.session.get(keys.model_all(ns), timeout=MODEL_QUERY_TIMEOUT_S):
+            self._on_reply(reply)
 
     # --- Zenoh threads: short, no Zenoh calls except replies ----------------------------
 
