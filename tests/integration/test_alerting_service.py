@@ -57,14 +57,21 @@ def test_state_raises_alert_queryables_answer_and_restart_keeps_it(
     client = open_session()
     alerts = collector(lambda s: (str(s.key_expr), decode(s.payload.to_bytes(), Alert)))
     client.declare_subscriber(keys.segment_keys(ns, "alert"), alerts)
+    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
+    client.declare_subscriber(keys.deadletter(ns, alerting.SERVICE), letters)
     state_pub = client.declare_publisher(keys.state(ns, "L1", "s1"))
+    trc_pub = client.declare_publisher(keys.trc(ns, "L1", "s1"))
 
     with running(service_config, db, client, liveliness_events):
         until_matched(state_pub)
-        client.put(
-            keys.trc(ns, "L1", "s1"),
-            encode(TrcRecord(line="L1", segment="s1", t=T0, top6_mm=3, align10_mm=2, run_id="r1")),
+        until_matched(trc_pub)
+        trc_pub.put(
+            encode(TrcRecord(line="L1", segment="s1", t=T0, top6_mm=3, align10_mm=2, run_id="r1"))
         )
+        # Order holds per key, not across the trc and state subscriptions: a rejected record
+        # behind the run on its key is dead-lettered only after the one worker has handled it.
+        trc_pub.put(b"not msgpack")
+        assert letters.get().reason
         state_pub.put(encode(make_state(T0 + DAY_S, p_exceed=p_top6(1, 0.72))))
 
         key, alert = alerts.get()
