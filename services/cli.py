@@ -258,34 +258,58 @@ def build_parser() -> argparse.ArgumentParser:
             conf = config_from_args(args)
             match command:
                 case "status":
-                    return operator.main_status(conf)
+                    return operator.main_status(conf, args.timeout)
                 case "state":
-                    return operator.main_state(conf, args.segment)
+                    return operator.main_state(conf, args.segment, args.timeout)
                 case "alerts":
-                    return operator.main_alerts(conf)
+                    return operator.main_alerts(conf, args.timeout)
                 case "plan":
-                    return operator.main_plan(conf, args.limit)
+                    return operator.main_plan(conf, args.limit, args.timeout)
                 case "import-trc":
                     return operator.main_import_trc(conf, args.file)
                 case "export":
-                    return operator.main_export(conf, args.what, args.format, args.network)
+                    return operator.main_export(
+                        conf, args.what, args.format, args.network, args.timeout
+                    )
             raise AssertionError(command)
 
         return run
 
+    def _seconds(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = float("nan")
+        if not value > 0 or value == float("inf"):
+            raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+        return value
+
+    def add_timeout_argument(p: argparse.ArgumentParser) -> None:
+        p.add_argument(
+            "--timeout",
+            type=_seconds,
+            default=10.0,  # services.operator.QUERY_TIMEOUT_S, not imported for --help's speed
+            metavar="S",
+            help="seconds to wait for the whole answer (default: %(default)g)",
+        )
+
     p = sub.add_parser("status", help="which services are alive (liveliness tokens)")
     add_zenoh_arguments(p, mode=False)
+    add_timeout_argument(p)
     p.set_defaults(func=_operator("status"))
     p = sub.add_parser("state", help="state and forecast of a segment (LINE/SEGMENT)")
     p.add_argument("segment", metavar="LINE/SEGMENT", help="e.g. L1/s00042, or L1/** for a line")
     add_zenoh_arguments(p, mode=False)
+    add_timeout_argument(p)
     p.set_defaults(func=_operator("state"))
     p = sub.add_parser("alerts", help="the alerts raised now")
     add_zenoh_arguments(p, mode=False)
+    add_timeout_argument(p)
     p.set_defaults(func=_operator("alerts"))
     p = sub.add_parser("plan", help="the TRC inspection plan: segments most likely to exceed")
     p.add_argument("--limit", type=int, default=20, help="rows to show (default 20)")
     add_zenoh_arguments(p, mode=False)
+    add_timeout_argument(p)
     p.set_defaults(func=_operator("plan"))
     p = sub.add_parser(
         "import-trc",
@@ -301,6 +325,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=["csv", "geojson"], default="csv")
     p.add_argument("--network", metavar="FILE.geojson", help="geometry (default: the demo)")
     add_zenoh_arguments(p, mode=False)
+    add_timeout_argument(p)
     p.set_defaults(func=_operator("export"))
 
     # --- study (services/filtering/study.py) ---------------------------------------------

@@ -24,7 +24,7 @@ import zenoh
 from schemas import INDICATORS, Alert, SchemaError, SegmentState, TrcRecord, decode, encode, keys
 from services.runtime.config import RuntimeConfig
 
-QUERY_TIMEOUT_S = 5.0
+QUERY_TIMEOUT_S = 10.0  # `--timeout`: a service catching up on a backlog answers late
 TRC_COLUMNS = ("line", "segment", "t", "top6_mm", "align10_mm", "run_id")
 
 
@@ -32,7 +32,14 @@ def ask(session: zenoh.Session, selector: str, timeout: float = QUERY_TIMEOUT_S)
     """(key, payload bytes) of every reply to a query; errors from the queryable raise."""
     for reply in session.get(selector, timeout=timeout):
         if reply.ok is None:
-            raise SystemExit(f"{selector}: {reply.err.payload.to_string()}")
+            reason = reply.err.payload.to_string()
+            if reason == "Timeout":  # Zenoh's own error when the answer is incomplete
+                raise SystemExit(
+                    f"{selector}: no complete answer within {timeout:g} s. A service that is "
+                    "catching up on a backlog answers only after the events queued ahead of "
+                    "the question: try again, or give a larger --timeout."
+                )
+            raise SystemExit(f"{selector}: {reason}")
         yield str(reply.ok.key_expr), reply.ok.payload.to_bytes()
 
 
@@ -46,12 +53,14 @@ def _session(conf: RuntimeConfig) -> zenoh.Session:
 # --- status ---------------------------------------------------------------------------------
 
 
-def main_status(conf: RuntimeConfig, out: TextIO = sys.stdout) -> int:
+def main_status(
+    conf: RuntimeConfig, timeout: float = QUERY_TIMEOUT_S, out: TextIO = sys.stdout
+) -> int:
     """Every live service instance (liveliness tokens under ``{ns}/alive/**``)."""
     with _session(conf) as session:
         alive = sorted(
             tuple(str(reply.ok.key_expr).split("/")[2:4])
-            for reply in session.liveliness().get(keys.alive_all(conf.ns), timeout=QUERY_TIMEOUT_S)
+            for reply in session.liveliness().get(keys.alive_all(conf.ns), timeout=timeout)
             if reply.ok is not None
         )
     if not alive:
@@ -95,19 +104,21 @@ def format_state(state: SegmentState) -> str:
     return "\n".join(lines)
 
 
-def query_states(session: zenoh.Session, ns: str, selector: str = "**") -> list[SegmentState]:
-    return [
-        decode(payload, SegmentState)
-        for _, payload in ask(session, f"{keys.q_state_all(ns)[: -len('**')]}{selector}")
-    ]
+def query_states(
+    session: zenoh.Session, ns: str, selector: str = "**", timeout: float = QUERY_TIMEOUT_S
+) -> list[SegmentState]:
+    selector = f"{keys.q_state_all(ns)[: -len('**')]}{selector}"
+    return [decode(payload, SegmentState) for _, payload in ask(session, selector, timeout)]
 
 
-def main_state(conf: RuntimeConfig, segment: str, out: TextIO = sys.stdout) -> int:
+def main_state(
+    conf: RuntimeConfig, segment: str, timeout: float = QUERY_TIMEOUT_S, out: TextIO = sys.stdout
+) -> int:
     """`trackfusion state LINE/SEGMENT` (or `LINE/**` for a whole line)."""
     if segment.count("/") != 1:
         raise SystemExit(f"state: {segment!r} is not LINE/SEGMENT (e.g. L1/s00042)")
     with _session(conf) as session:
-        states = query_states(session, conf.ns, segment)
+        states = query_states(session, conf.ns, segment, timeout)
     if not states:
         print(f"no state for {segment} (unknown segment, or no TRC record and model yet)", file=out)
         return 1
@@ -119,17 +130,19 @@ def main_state(conf: RuntimeConfig, segment: str, out: TextIO = sys.stdout) -> i
 # --- alerts and plan ------------------------------------------------------------------------
 
 
-def query_alerts(session: zenoh.Session, ns: str) -> list[Alert]:
+def query_alerts(session: zenoh.Session, ns: str, timeout: float = QUERY_TIMEOUT_S) -> list[Alert]:
     alerts = []
-    for _, payload in ask(session, keys.q_alerts(ns)):
+    for _, payload in ask(session, keys.q_alerts(ns), timeout):
         for item in msgpack.unpackb(payload):
             alerts.append(decode(msgpack.packb(item), Alert))
     return alerts
 
 
-def main_alerts(conf: RuntimeConfig, out: TextIO = sys.stdout) -> int:
+def main_alerts(
+    conf: RuntimeConfig, timeout: float = QUERY_TIMEOUT_S, out: TextIO = sys.stdout
+) -> int:
     with _session(conf) as session:
-        alerts = query_alerts(session, conf.ns)
+        alerts = query_alerts(session, conf.ns, timeout)
     if not alerts:
         print("no alert raised", file=out)
         return 0
@@ -142,10 +155,15 @@ def main_alerts(conf: RuntimeConfig, out: TextIO = sys.stdout) -> int:
     return 0
 
 
-def main_plan(conf: RuntimeConfig, limit: int = 20, out: TextIO = sys.stdout) -> int:
+def main_plan(
+    conf: RuntimeConfig,
+    limit: int = 20,
+    timeout: float = QUERY_TIMEOUT_S,
+    out: TextIO = sys.stdout,
+) -> int:
     """The TRC inspection plan: segments ranked by P(exceeding before the next TRC run)."""
     with _session(conf) as session:
-        replies = list(ask(session, keys.q_plan(conf.ns)))
+        replies = list(ask(session, keys.q_plan(conf.ns), timeout))
     if not replies:
         raise SystemExit("plan: no answer from the alerting service (is it running?)")
     plan = msgpack.unpackb(replies[0][1])
@@ -308,13 +326,16 @@ def main_export(
     what: str,
     fmt: str,
     network_path: str | None = None,
+    timeout: float = QUERY_TIMEOUT_S,
     out: TextIO = sys.stdout,
 ) -> int:
     with _session(conf) as session:
         if what == "states":
-            rows, columns = [state_row(s) for s in query_states(session, conf.ns)], STATE_COLUMNS
+            states = query_states(session, conf.ns, timeout=timeout)
+            rows, columns = [state_row(s) for s in states], STATE_COLUMNS
         else:
-            rows, columns = [alert_row(a) for a in query_alerts(session, conf.ns)], ALERT_COLUMNS
+            alerts = query_alerts(session, conf.ns, timeout)
+            rows, columns = [alert_row(a) for a in alerts], ALERT_COLUMNS
     rows.sort(key=lambda r: (r["line"], r["segment"]))
     if fmt == "csv":
         out.write(to_csv(rows, columns))

@@ -19,7 +19,7 @@ from services.runtime.config import zenoh_config
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args], capture_output=True, text=True, timeout=60
+        [sys.executable, "-m", "services.cli", *args], capture_output=True, text=True, timeout=120
     )
 
 
@@ -66,7 +66,9 @@ def test_up_runs_the_stack_and_answers_every_command(
         first = states.get(timeout=60)  # a TRC run and the initial models make states
         line, segment = str(first.key_expr).split("/")[2:4]
 
-        wiring = ("--connect", endpoint, "--ns", namespace)
+        # The simulator outruns filtering on purpose: a query waits behind the queued events
+        # (under load, more than the default 10 s), so the commands get a longer bound.
+        wiring = ("--connect", endpoint, "--ns", namespace, "--timeout", "60")
         status = run_cli("status", *wiring)
         assert status.returncode == 0 and "filtering" in status.stdout, status.stderr
         state = run_cli("state", f"{line}/{segment}", *wiring)
