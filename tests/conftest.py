@@ -26,6 +26,7 @@ from linkproxy import LinkProxy
 from services.runtime.config import RuntimeConfig, zenoh_config
 
 TIMEOUT_S = 5.0  # upper bound of every wait; tests normally go on in milliseconds
+STOP_GRACE_S = 15.0  # teardown: SIGTERM, then SIGKILL; `up` gives its children 5 s of it
 
 
 @pytest.fixture
@@ -211,16 +212,23 @@ class TrackfusionProcess:
     def log(self) -> str:
         return f"\n--- {self.log_path.name} ---\n{self.log_path.read_text()}"
 
-    def kill(self) -> None:
+    def stop(self) -> None:
+        """SIGTERM, then SIGKILL after a grace period. `up` must be asked: it stops its
+        children, which run in sessions of their own that a SIGKILL to it would orphan."""
         if self.popen.poll() is None:
             with contextlib.suppress(ProcessLookupError):
-                os.killpg(self.popen.pid, signal.SIGKILL)
-            self.popen.wait(5)
+                os.killpg(self.popen.pid, signal.SIGTERM)
+            try:
+                self.popen.wait(STOP_GRACE_S)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(self.popen.pid, signal.SIGKILL)
+                self.popen.wait(5)
 
 
 @pytest.fixture
 def spawn(tmp_path: Path) -> Iterator[Callable[..., TrackfusionProcess]]:
-    """Start `trackfusion ARGS…` processes; every one is killed at teardown."""
+    """Start `trackfusion ARGS…` processes; every one still running is stopped at teardown."""
     started: list[TrackfusionProcess] = []
 
     def start(name: str, *args: str) -> TrackfusionProcess:
@@ -230,4 +238,4 @@ def spawn(tmp_path: Path) -> Iterator[Callable[..., TrackfusionProcess]]:
 
     yield start
     for process in started:
-        process.kill()
+        process.stop()
