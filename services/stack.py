@@ -2,12 +2,21 @@
 
 An embedded Zenoh router (this process), every service and simulator of the stack file as
 a child process connected to it, and a live status table: services alive (liveliness
-tokens), trains seen, messages per second, segments tracked, alerts raised. Ctrl-C (or
-SIGTERM) stops the children (SIGTERM, SIGKILL after 5 s) and then the router.
+tokens), trains seen, messages per second, segments tracked, alerts raised.
+
+``up`` supervises its children: a process that exits is started again (per its ``restart``
+policy), and so is one whose liveliness token has been missing for ``token_missing_s``
+after it was first seen (SIGTERM, SIGKILL after the grace period), with an exponential
+backoff. The board flags stalled flows (indices arriving but no state published, GPS but
+no index) and is written each second to ``{state_dir}/health.json`` for programs to read.
+Supervision runs on ``time.monotonic()``: it is about wall time, not event time.
+Ctrl-C (or SIGTERM) stops the children (SIGTERM, SIGKILL after 5 s) and then the router.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
 import logging
 import os
 import signal
@@ -16,21 +25,28 @@ import sys
 import threading
 import time
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field, fields
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO
 
 import json5
 import zenoh
 
 from schemas import Alert, SchemaError, decode, keys
-from services.runtime.config import zenoh_config
+from services.runtime.config import default_instance, zenoh_config
 
 log = logging.getLogger(__name__)
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_STACK = REPO / "deploy" / "stack.json5"
-STOP_GRACE_S = 5.0
 WATCHED = ("state", "index", "alert", "gps", "trc", "maintenance", "deadletter")
+RESTART_POLICIES = ("always", "on-failure", "never")
+TICK_S = 0.5  # supervision step
+REFRESH_S = 1.0  # health file and rates (the board on a terminal; every 5 s otherwise)
+HEALTH_FILE = "health.json"
+# Environment of `up` that must not reach the children: a child would talk to the
+# systemd notify socket of `up`'s unit as if it were the unit's main process.
+NOT_INHERITED = ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID")
 
 
 @dataclass(frozen=True)
@@ -38,6 +54,33 @@ class ProcessSpec:
     name: str  # also what `trackfusion status` lists it as (its --instance)
     command: str  # trackfusion subcommand
     args: tuple[str, ...]
+    # "always": start again whatever the exit code; "on-failure": unless it exits 0 (the
+    # default of `simulate`, which finishes its world); "never": leave it stopped.
+    restart: str = "always"
+
+    @property
+    def instance(self) -> str | None:
+        """The ``--instance`` it is given, if any (its liveliness token's last chunk)."""
+        args = list(self.args)
+        for i, arg in enumerate(args):
+            if arg == "--instance" and i + 1 < len(args):
+                return args[i + 1]
+            if arg.startswith("--instance="):
+                return arg.split("=", 1)[1]
+        return None
+
+
+@dataclass(frozen=True)
+class Supervision:
+    """Thresholds of the supervision (seconds of wall time); the stack file's ``supervision``."""
+
+    token_missing_s: float = 15.0  # token gone this long after it was first seen: restart
+    backoff_initial_s: float = 1.0  # first restart delay, doubled on each quick failure…
+    backoff_max_s: float = 60.0  # …up to this
+    backoff_reset_s: float = 180.0  # a run this long resets the delay to the first one
+    stop_grace_s: float = 5.0  # SIGTERM, then SIGKILL after this
+    stalled_state_s: float = 30.0  # indices arriving, no state published this long: stalled
+    stalled_index_s: float = 60.0  # GPS arriving, no index this long: stalled
 
 
 @dataclass(frozen=True)
@@ -46,21 +89,37 @@ class Stack:
     listen: str
     state_dir: Path
     processes: tuple[ProcessSpec, ...]
+    supervision: Supervision = field(default_factory=Supervision)
+
+
+def _process_spec(raw: dict[str, Any]) -> ProcessSpec:
+    command = raw.get("command", raw["name"])
+    restart = raw.get("restart", "on-failure" if command == "simulate" else "always")
+    if restart not in RESTART_POLICIES:
+        raise ValueError(f"{raw['name']}: restart must be one of {RESTART_POLICIES}")
+    return ProcessSpec(raw["name"], command, tuple(map(str, raw.get("args", []))), restart)
+
+
+def _supervision(raw: dict[str, Any]) -> Supervision:
+    unknown = set(raw) - {f.name for f in fields(Supervision)}
+    if unknown:
+        raise ValueError(f"supervision: unknown settings {sorted(unknown)}")
+    settings = Supervision(**{k: float(v) for k, v in raw.items()})
+    if any(v <= 0 for v in asdict(settings).values()):
+        raise ValueError(f"supervision: every setting must be > 0, got {raw}")
+    return settings
 
 
 def load_stack(path: str | Path = DEFAULT_STACK, *, ns: str | None = None, listen=None) -> Stack:
     """Read a stack file; SystemExit saying what to fix when it is malformed."""
     try:
         raw = json5.loads(Path(path).read_text())
-        processes = tuple(
-            ProcessSpec(p["name"], p.get("command", p["name"]), tuple(map(str, p.get("args", []))))
-            for p in raw["processes"]
-        )
         stack = Stack(
             ns=ns or raw.get("ns", keys.DEFAULT_NS),
             listen=listen or raw["router"]["listen"],
             state_dir=REPO / raw.get("state_dir", "var"),
-            processes=processes,
+            processes=tuple(_process_spec(p) for p in raw["processes"]),
+            supervision=_supervision(raw.get("supervision", {})),
         )
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise SystemExit(f"{path}: not a valid stack file ({type(exc).__name__}: {exc})") from None
@@ -82,6 +141,229 @@ def command_line(stack: Stack, spec: ProcessSpec) -> list[str]:
         stack.ns,
         *spec.args,
     ]
+
+
+def backoff_s(failures: int, settings: Supervision) -> float:
+    """Delay before a restart after ``failures`` quick failures in a row: 1, 2, 4 … 60 s."""
+    return min(settings.backoff_initial_s * 2.0 ** min(failures, 32), settings.backoff_max_s)
+
+
+def exit_text(code: int | None) -> str:
+    if code is None:
+        return "-"
+    if code < 0:
+        with contextlib.suppress(ValueError):
+            return signal.Signals(-code).name
+    return str(code)
+
+
+def duration_text(seconds: float | None) -> str:
+    if seconds is None:
+        return "-"
+    s = int(seconds)
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} m {s % 60:02d} s"
+    return f"{s // 3600} h {s % 3600 // 60:02d} m"
+
+
+class Child:
+    """One process of the stack across its runs: started, exited, stopped, started again.
+
+    Only the main loop of `up` touches it (no lock): :meth:`step` once per tick.
+    """
+
+    def __init__(self, stack: Stack, spec: ProcessSpec, env: dict[str, str]) -> None:
+        self.stack, self.spec, self.env = stack, spec, env
+        self.settings = stack.supervision
+        self.log_path = stack.state_dir / f"{spec.name}.log"
+        self.popen: subprocess.Popen | None = None
+        self.started_at: float | None = None  # monotonic, of the current run
+        self.restarts = 0
+        self.failures = 0  # quick failures in a row: the backoff exponent
+        self.last_exit: int | None = None
+        self.next_start: float | None = None  # monotonic, while waiting to start again
+        self.kill_at: float | None = None  # SIGKILL deadline while stopping it ourselves
+        self.reason = ""  # why it is (being) restarted
+        self.token_seen = False  # its token has been seen during this run
+        self.token_missing_since: float | None = None
+        self.finished = False  # ended and its policy says leave it
+
+    @property
+    def instance(self) -> str | None:
+        """The last key chunk of its token: its --instance, else the runtime's default."""
+        if self.spec.instance is not None:
+            return self.spec.instance
+        if self.popen is None:
+            return None
+        host = default_instance().rsplit("-", 1)[0]  # the runtime's {hostname}-{pid}
+        return f"{host}-{self.popen.pid}"
+
+    @property
+    def running(self) -> bool:
+        return self.popen is not None and self.popen.poll() is None
+
+    def start(self, now: float) -> None:
+        if self.restarts:
+            line = f"{datetime.now(UTC).isoformat(timespec='seconds')} restarted by up: "
+            with self.log_path.open("a") as log_file:
+                print(line + self.reason, file=log_file)
+        with self.log_path.open("ab") as log_file:
+            self.popen = subprocess.Popen(
+                command_line(self.stack, self.spec),
+                cwd=REPO,
+                stdout=log_file,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,  # Ctrl-C reaches us; we stop them in order
+                env=self.env,
+            )
+        self.started_at, self.next_start, self.kill_at = now, None, None
+        self.token_seen, self.token_missing_since = False, None
+
+    def terminate(self, now: float) -> None:
+        """SIGTERM (and SIGCONT, so that a stopped process gets it); SIGKILL comes later."""
+        if not self.running:
+            return
+        assert self.popen is not None
+        with contextlib.suppress(ProcessLookupError):
+            self.popen.send_signal(signal.SIGTERM)
+            self.popen.send_signal(signal.SIGCONT)
+        self.kill_at = now + self.settings.stop_grace_s
+
+    def kill(self) -> None:
+        """SIGKILL to its whole process group (it runs in a session of its own)."""
+        assert self.popen is not None
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(self.popen.pid, signal.SIGKILL)
+        with contextlib.suppress(ProcessLookupError):
+            self.popen.kill()
+
+    def step(self, now: float, alive: set[str]) -> None:
+        """Start, restart, kill or leave it, given the instances whose token is present."""
+        if self.finished:
+            return
+        if self.popen is None or self.next_start is not None:
+            if self.next_start is None or now >= self.next_start:
+                if self.popen is not None:
+                    self.restarts += 1
+                    log.warning("%s: restart %d (%s)", self.spec.name, self.restarts, self.reason)
+                self.start(now)
+            return
+        code = self.popen.poll()
+        if code is None:
+            if self.kill_at is not None:
+                if now >= self.kill_at:
+                    log.warning(
+                        "%s did not stop within %.0f s: killing it",
+                        self.spec.name,
+                        self.settings.stop_grace_s,
+                    )
+                    self.kill()
+                    self.kill_at = now + self.settings.stop_grace_s
+                return
+            self._watch_token(now, alive)
+            return
+        self._ended(now, code)
+
+    def _watch_token(self, now: float, alive: set[str]) -> None:
+        if self.instance in alive:
+            self.token_seen, self.token_missing_since = True, None
+            return
+        if not self.token_seen:
+            return  # still starting: supervision of the token begins once it is seen
+        if self.token_missing_since is None:
+            self.token_missing_since = now
+            log.info("%s: liveliness token %s gone", self.spec.name, self.instance)
+        missing_s = now - self.token_missing_since
+        if missing_s > self.settings.token_missing_s and self.spec.restart != "never":
+            self.reason = f"liveliness token missing for {missing_s:.0f} s"
+            log.warning("%s: %s; stopping it to start it again", self.spec.name, self.reason)
+            self.terminate(now)
+
+    def _ended(self, now: float, code: int) -> None:
+        self.last_exit = code
+        assert self.started_at is not None
+        ran_s = now - self.started_at
+        if self.kill_at is not None:  # we stopped it: the reason is already set
+            self.kill_at = None
+        elif self.spec.restart == "never" or (self.spec.restart == "on-failure" and code == 0):
+            self.finished = True
+            log.info("%s exited with %s after %.0f s", self.spec.name, exit_text(code), ran_s)
+            return
+        else:
+            self.reason = f"exited with {exit_text(code)} after {ran_s:.0f} s"
+        if ran_s >= self.settings.backoff_reset_s:
+            self.failures = 0
+        delay = backoff_s(self.failures, self.settings)
+        self.failures += 1
+        self.next_start = now + delay
+        log.warning("%s %s; starting it again in %.0f s", self.spec.name, self.reason, delay)
+
+    def health(self, now: float, alive: set[str]) -> dict[str, Any]:
+        running = self.running and self.next_start is None
+        if self.finished:
+            state = "finished" if self.last_exit == 0 else "failed"
+        elif self.next_start is not None:
+            state = "waiting"
+        elif self.kill_at is not None:
+            state = "stopping"
+        else:
+            state = "running" if running else "starting"
+        return {
+            "pid": self.popen.pid if self.popen else None,
+            "running": running,
+            "state": state,
+            "alive": running and self.instance in alive,
+            "restarts": self.restarts,
+            "uptime_s": round(now - self.started_at, 1) if running and self.started_at else None,
+            "last_exit": self.last_exit,
+            "last_restart_reason": self.reason or None,
+            "next_start_in_s": (
+                round(max(0.0, self.next_start - now), 1) if self.next_start is not None else None
+            ),
+            "restart": self.spec.restart,
+        }
+
+
+@dataclass
+class Flow:
+    """Messages of ``source`` arriving and none of ``result``: stalled after ``after_s``.
+
+    Fed from message counts once per tick (the callbacks only count), so its times are
+    the ticks' and good to half a second.
+    """
+
+    source: str
+    result: str
+    after_s: float
+    last_source: float | None = None  # when source messages last arrived
+    waiting_since: float | None = None  # first source message after the last result
+
+    def update(self, now: float, source_arrived: bool, result_arrived: bool) -> None:
+        if source_arrived:
+            self.last_source = now
+            if self.waiting_since is None:
+                self.waiting_since = now
+        if result_arrived:
+            self.waiting_since = None
+
+    def stalled(self, now: float) -> bool:
+        return (
+            self.waiting_since is not None
+            and self.last_source is not None
+            and now - self.waiting_since >= self.after_s
+            and now - self.last_source <= self.after_s
+        )
+
+    def text(self, now: float) -> str:
+        assert self.waiting_since is not None
+        verb = "published" if self.result == "state" else "made"
+        return (
+            f"{self.source} arriving but no {self.result} {verb} "
+            f"for {now - self.waiting_since:.0f} s"
+        )
 
 
 class StatusBoard:
@@ -124,33 +406,152 @@ class StatusBoard:
             else:
                 self.alive.discard((service, instance))
 
-    def render(self, stack: Stack, children: dict[str, subprocess.Popen], rates: dict) -> str:
+    def alive_instances(self) -> set[str]:
         with self.lock:
-            alive_instances = {instance for _, instance in self.alive}
-            lines = [f"TrackFusion stack  ns={stack.ns}  router={stack.listen}", ""]
-            lines.append(f"{'process':12} {'pid':>7}  {'running':8} alive")
-            for spec in stack.processes:
-                child = children.get(spec.name)
-                running = "yes" if child and child.poll() is None else f"exit {child.returncode}"
-                alive = "yes" if spec.name in alive_instances else "-"
-                lines.append(
-                    f"{spec.name:12} {child.pid if child else '-':>7}  {running:8} {alive}"
-                )
-            lines.append("")
-            if self.viewer_url:
-                lines.append(f"viewer: {self.viewer_url}")
-            lines.append(
-                f"trains {len(self.trains)}   segments tracked {len(self.segments)}   "
-                f"alerts raised {len(self.raised)}"
-            )
-            lines.append(
-                "messages/s  " + "  ".join(f"{kind} {rates.get(kind, 0.0):.0f}" for kind in WATCHED)
-            )
-        return "\n".join(lines)
+            return {instance for _, instance in self.alive}
 
     def snapshot(self) -> Counter[str]:
         with self.lock:
             return Counter(self.counts)
+
+    def totals(self) -> tuple[int, int, int]:
+        with self.lock:
+            return len(self.trains), len(self.segments), len(self.raised)
+
+
+class Supervisor:
+    """The children, the flows and the health summary; driven by :meth:`tick`."""
+
+    def __init__(self, stack: Stack, board: StatusBoard) -> None:
+        self.stack, self.board = stack, board
+        env = {k: v for k, v in os.environ.items() if k not in NOT_INHERITED}
+        env["PYTHONUNBUFFERED"] = "1"
+        self.children = {spec.name: Child(stack, spec, env) for spec in stack.processes}
+        s = stack.supervision
+        self.flows = (
+            Flow("index", "state", s.stalled_state_s),
+            Flow("gps", "index", s.stalled_index_s),
+        )
+        self.started = time.monotonic()
+        self.counts = board.snapshot()
+        self.rates: dict[str, float] = {kind: 0.0 for kind in WATCHED}
+        self.rates_at = self.started
+        self._rate_base = self.counts
+
+    def tick(self, now: float) -> None:
+        alive = self.board.alive_instances()
+        for child in self.children.values():
+            child.step(now, alive)
+        counts = self.board.snapshot()
+        for flow in self.flows:
+            flow.update(
+                now,
+                counts[flow.source] > self.counts[flow.source],
+                counts[flow.result] > self.counts[flow.result],
+            )
+        if now - self.rates_at >= REFRESH_S:
+            dt = now - self.rates_at
+            self.rates = {k: (counts[k] - self._rate_base[k]) / dt for k in WATCHED}
+            self.rates_at, self._rate_base = now, counts
+        self.counts = counts
+
+    def stalled(self, now: float) -> list[str]:
+        return [flow.text(now) for flow in self.flows if flow.stalled(now)]
+
+    def health(self, now: float, *, running: bool = True) -> dict[str, Any]:
+        """The machine-readable board (README, "Health file")."""
+        alive = self.board.alive_instances()
+        processes = {name: c.health(now, alive) for name, c in self.children.items()}
+        stalled = self.stalled(now)
+        trains, segments, raised = self.board.totals()
+        return {
+            "written_at": round(time.time(), 3),  # wall clock: how fresh this file is
+            "up": {
+                "pid": os.getpid(),
+                "running": running,
+                "uptime_s": round(now - self.started, 1),
+            },
+            "ns": self.stack.ns,
+            "router": self.stack.listen,
+            "processes": processes,
+            "rates": {k: round(v, 1) for k, v in self.rates.items()},
+            "counts": {k: self.counts[k] for k in WATCHED},
+            "flows": [
+                {
+                    "source": f.source,
+                    "result": f.result,
+                    "after_s": f.after_s,
+                    "stalled": f.stalled(now),
+                    "waiting_s": (
+                        round(now - f.waiting_since, 1) if f.waiting_since is not None else None
+                    ),
+                }
+                for f in self.flows
+            ],
+            "stalled": stalled,
+            "trains": trains,
+            "segments": segments,
+            "alerts_raised": raised,
+            "viewer_url": self.board.viewer_url or None,
+            "healthy": running
+            and not stalled
+            and all(p["alive"] or p["state"] == "finished" for p in processes.values()),
+        }
+
+    def write_health(self, health: dict[str, Any]) -> None:
+        """Replace ``{state_dir}/health.json`` at once (readers never see half a file)."""
+        path = self.stack.state_dir / HEALTH_FILE
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(health, indent=1) + "\n")
+        os.replace(tmp, path)
+
+    def render(self, health: dict[str, Any]) -> str:
+        lines = [f"TrackFusion stack  ns={self.stack.ns}  router={self.stack.listen}", ""]
+        lines.append(
+            f"{'process':12} {'pid':>7}  {'running':14} {'alive':5} {'restarts':>8}  "
+            f"{'uptime':>10}  last exit"
+        )
+        for name, p in health["processes"].items():
+            if p["state"] == "waiting":
+                running = f"again in {p['next_start_in_s']:.0f} s"
+            else:
+                running = {"running": "yes", "starting": "no"}.get(p["state"], p["state"])
+            lines.append(
+                f"{name:12} {p['pid'] or '-':>7}  {running:14} {'yes' if p['alive'] else '-':5} "
+                f"{p['restarts']:>8}  {duration_text(p['uptime_s']):>10}  "
+                f"{exit_text(p['last_exit'])}"
+            )
+        lines.append("")
+        for text in health["stalled"]:
+            lines.append(f"STALLED: {text}")
+        if health["viewer_url"]:
+            lines.append(f"viewer: {health['viewer_url']}")
+        lines.append(
+            f"trains {health['trains']}   segments tracked {health['segments']}   "
+            f"alerts raised {health['alerts_raised']}"
+        )
+        lines.append("messages/s  " + "  ".join(f"{k} {v:.0f}" for k, v in health["rates"].items()))
+        return "\n".join(lines)
+
+    def stop(self) -> None:
+        """SIGTERM every child, then SIGKILL whatever is still running after the grace period."""
+        now = time.monotonic()
+        for child in self.children.values():
+            child.terminate(now)
+        deadline = now + self.stack.supervision.stop_grace_s
+        for name, child in self.children.items():
+            if child.popen is None:
+                continue
+            try:
+                child.popen.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning(
+                    "%s did not stop within %.0f s: killing it",
+                    name,
+                    self.stack.supervision.stop_grace_s,
+                )
+                child.kill()
+                child.popen.wait()
 
 
 def main(stack_path: str | Path = DEFAULT_STACK, *, out: TextIO = sys.stdout, **overrides) -> int:
@@ -161,8 +562,8 @@ def main(stack_path: str | Path = DEFAULT_STACK, *, out: TextIO = sys.stdout, **
         sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)
     }
     router_conf = zenoh_config({"mode": "router", "listen": {"endpoints": [stack.listen]}})
-    children: dict[str, subprocess.Popen] = {}
     board = StatusBoard()
+    supervisor = Supervisor(stack, board)
     try:
         try:
             session = zenoh.open(router_conf)
@@ -180,33 +581,34 @@ def main(stack_path: str | Path = DEFAULT_STACK, *, out: TextIO = sys.stdout, **
                     keys.alive_all(stack.ns), board.on_alive, history=True
                 )
             )
-            env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-            for spec in stack.processes:
-                log_path = stack.state_dir / f"{spec.name}.log"
-                with log_path.open("ab") as log_file:
-                    children[spec.name] = subprocess.Popen(
-                        command_line(stack, spec),
-                        cwd=REPO,
-                        stdout=log_file,
-                        stderr=subprocess.STDOUT,
-                        start_new_session=True,  # Ctrl-C reaches us; we stop them in order
-                        env=env,
-                    )
-            print(f"started {len(children)} processes; logs in {stack.state_dir}/", file=out)
+            supervisor.tick(time.monotonic())  # starts every process
+            print(
+                f"started {len(supervisor.children)} processes; logs in {stack.state_dir}/",
+                file=out,
+            )
             tty = out.isatty()
-            last, last_t = board.snapshot(), time.monotonic()
-            while not stop.wait(1.0 if tty else 5.0):
+            refreshes = 0
+            next_refresh = time.monotonic() + REFRESH_S
+            while not stop.wait(TICK_S):
+                now = time.monotonic()
+                supervisor.tick(now)
+                if now < next_refresh:
+                    continue
+                next_refresh = now + REFRESH_S
                 if not board.viewer_url:
                     board.viewer_url = viewer_url(stack.state_dir / "viewer.log")
-                now, now_t = board.snapshot(), time.monotonic()
-                rates = {k: (now[k] - last[k]) / (now_t - last_t) for k in WATCHED}
-                last, last_t = now, now_t
-                text = board.render(stack, children, rates)
-                print(("\x1b[H\x1b[J" if tty else "\n") + text, file=out, flush=True)
+                health = supervisor.health(now)
+                supervisor.write_health(health)
+                refreshes += 1
+                if tty or refreshes % 5 == 0:
+                    text = supervisor.render(health)
+                    print(("\x1b[H\x1b[J" if tty else "\n") + text, file=out, flush=True)
             for sub in declared:
                 sub.undeclare()
     finally:
-        stop_children(children)
+        supervisor.stop()
+        with contextlib.suppress(OSError):
+            supervisor.write_health(supervisor.health(time.monotonic(), running=False))
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     print("stack stopped", file=out)
@@ -220,18 +622,3 @@ def viewer_url(log_path: Path) -> str:
             return next((line.strip() for line in log if line.startswith("http")), "")
     except OSError:
         return ""
-
-
-def stop_children(children: dict[str, subprocess.Popen]) -> None:
-    """SIGTERM every child, then SIGKILL whatever is still running after the grace period."""
-    for child in children.values():
-        if child.poll() is None:
-            child.send_signal(signal.SIGTERM)
-    deadline = time.monotonic() + STOP_GRACE_S
-    for name, child in children.items():
-        try:
-            child.wait(max(0.0, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            log.warning("%s did not stop within %.0f s: killing it", name, STOP_GRACE_S)
-            child.kill()
-            child.wait()
