@@ -3,6 +3,7 @@ settings; every config file there parses."""
 
 from __future__ import annotations
 
+import configparser
 from pathlib import Path
 
 import json5
@@ -57,3 +58,30 @@ def test_systemd_units_run_trackfusion():
     for unit in (DEPLOY / "systemd").glob("*.service"):
         text = unit.read_text()
         assert "ExecStart=/opt/trackfusion/.venv/bin/trackfusion" in text, unit.name
+
+
+def unit(name: str) -> configparser.ConfigParser:
+    """A systemd unit file's sections and keys (case kept; a repeated key: the last)."""
+    parser = configparser.ConfigParser(strict=False, interpolation=None)
+    parser.optionxform = str  # type: ignore[method-assign]
+    parser.read_string((DEPLOY / "systemd" / name).read_text())
+    return parser
+
+
+def test_service_unit_is_supervised_by_systemd():
+    """READY and WATCHDOG come from the runtime (services/runtime/systemd.py); a silent
+    watchdog or a failure restarts it with a delay; a crash loop is bounded."""
+    service = unit("trackfusion@.service")["Service"]
+    assert service["Type"] == "notify"
+    assert service["NotifyAccess"] == "main"
+    assert 10 <= int(service["WatchdogSec"].removesuffix("s")) <= 300
+    assert service["Restart"] in {"always", "on-failure"}
+    assert float(service["RestartSec"]) > 0
+    limits = unit("trackfusion@.service")["Unit"]
+    assert int(limits["StartLimitIntervalSec"]) > 0 and int(limits["StartLimitBurst"]) > 1
+
+
+def test_router_unit_always_restarts():
+    router = unit("trackfusion-router.service")
+    assert router["Service"]["Restart"] == "always"
+    assert float(router["Service"]["RestartSec"]) > 0
