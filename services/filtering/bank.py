@@ -135,8 +135,6 @@ def _update_general(z, P, y, H, b, R, logdet: bool = False):
 
 _COEFFS_2X2: dict = {}
 _WORK_2X2 = threading.local()
-_ONES4 = np.ones(4)
-_ONES4.flags.writeable = False
 # z_post = z + K v from the rows (k00 v0, k01 v1, k10 v0, k11 v1, z0, z1)
 _Z_POST = np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0], [1.0, 0.0], [0.0, 1.0]])
 _Z_POST.flags.writeable = False
@@ -242,6 +240,22 @@ def _update_2x2(z, P, y, H, b, R, logdet: bool = False):
         P = np.broadcast_to(P, shape + (2, 2))
         y = np.broadcast_to(y, lead + (2,))
     n = z.size // 2
+    if n == 1:
+        # One filter: numpy would hand the products below to BLAS gemv instead of gemm,
+        # whose roundings differ; two copies keep the one-filter result bit-identical to
+        # that filter's in any batch.
+        twice = _update_2x2(
+            np.concatenate([z.reshape(1, 2)] * 2),
+            np.concatenate([P.reshape(1, 2, 2)] * 2),
+            y.reshape(2),
+            H,
+            b,
+            R,
+            logdet,
+        )
+        return tuple(
+            None if a is None else a[:1].reshape(lead + (ns,) + a.shape[1:]) for a in twice
+        )
     p, x, q, k, g, t, zk, vv = _work_2x2(n)
     np.copyto(p[:4], P.reshape(n, 4).T)
     np.matmul(lin, p, x)
@@ -259,7 +273,12 @@ def _update_2x2(z, P, y, H, b, R, logdet: bool = False):
     vv3 = vv.reshape(2, 2, n)
     np.multiply(v[:, None], v, vv3)
     np.multiply(vv, x[10:14], vv)
-    nis = _ONES4 @ vv
+    # Three adds in a fixed order rather than ``ones @ vv``: BLAS gemv sums a column in an
+    # order that depends on its position in the batch, and a filter's numbers must not
+    # depend on which other filters share the call (the tracker's batched re-run).
+    nis = vv[0] + vv[1]
+    nis += vv[2]
+    nis += vv[3]
     np.divide(nis, det, nis)
     log_det = np.log(det).reshape(lead + (ns,)) if logdet else None  # det is scratch
     np.multiply(k[:4].reshape(2, 2, n), v, zk[:4].reshape(2, 2, n))  # k_ij v_j

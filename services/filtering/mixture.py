@@ -243,20 +243,48 @@ def summarize(z, P, limits_mm=None, level: float = 0.95, weights=None) -> Mixtur
     log_limits = _check_limits(limits_mm, z.shape[-1])
     if not 0 < level < 1:
         raise ValueError(f"level: {level} not in (0, 1)")
+    return _summarize(z, P, log_limits, level, w)
+
+
+def summarize_unchecked(z, P, limits_mm=None, level: float = 0.95, weights=None):
+    """:func:`summarize` without the checks of ``z``, ``P`` and ``weights``.
+
+    For callers holding trusted filter states (the tracker): the eigenvalue check of every
+    ``P`` costs as much as the moments. Same numbers as :func:`summarize`, bit for bit.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    P = np.asarray(P, dtype=np.float64)
+    w = None
+    if weights is not None:
+        weights = np.asarray(weights, dtype=np.float64)
+        w = np.broadcast_to(weights, np.broadcast_shapes(weights.shape, z.shape[:-1]))
+    return _summarize(z, P, _check_limits(limits_mm, z.shape[-1]), level, w)
+
+
+def _summarize(z, P, log_limits, level: float, w) -> MixtureSummary:
+    """:func:`summarize` on checked inputs.
+
+    Every sum over the samples is a sum over the last axis of a contiguous array, so a
+    mixture's numbers depend on its own components only, never on the batch around it
+    (the tracker's batched re-run must equal its one-segment steps bit for bit; einsum's
+    order of summation depends on the shapes).
+    """
+    m = np.ascontiguousarray(np.swapaxes(z, -1, -2))  # (..., n, Ns): a mixture per marginal
     if w is None:
         mean = z.mean(-2)
         dev = z - mean[..., None, :]
         cov = P.mean(-3) + np.einsum("...si,...sj->...ij", dev, dev) / z.shape[-2]
     else:
-        mean = np.einsum("...s,...si->...i", w, z)
-        dev = z - mean[..., None, :]
-        cov = np.einsum("...s,...sij->...ij", w, P) + np.einsum(
-            "...s,...si,...sj->...ij", w, dev, dev
-        )
+        mean = (m * w[..., None, :]).sum(-1)
+        devt = m - mean[..., None]
+        wij = w[..., None, None, :]
+        cov = (np.ascontiguousarray(np.moveaxis(P, -3, -1)) * wij).sum(-1) + (
+            devt[..., :, None, :] * devt[..., None, :, :] * wij
+        ).sum(-1)
         w = w[..., None, :]  # (..., 1, Ns): the same weights for every marginal
-    m = np.swapaxes(z, -1, -2)  # (..., n, Ns): one mixture per marginal
     # PSD was checked up to round-off, so a variance of -1e-18 is a point mass, not an error.
-    s = np.sqrt(np.maximum(np.swapaxes(np.diagonal(P, axis1=-2, axis2=-1), -1, -2), 0.0))
+    var = np.ascontiguousarray(np.swapaxes(np.diagonal(P, axis1=-2, axis2=-1), -1, -2))
+    s = np.sqrt(np.maximum(var, 0.0))
     q = np.array([0.5 * (1 - level), 0.5 * (1 + level)]).reshape((2,) + (1,) * (m.ndim - 1))
     ci_low, ci_high = _mixture_quantile(q, m, s, w)
     p_exceed = None
