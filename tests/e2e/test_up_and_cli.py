@@ -93,3 +93,7 @@ def test_up_runs_the_stack_and_answers_every_command(
     assert "stack stopped" in up.log_path.read_text()
     for name in ("calibration", "filtering", "alerting", "simulator"):
         assert (state_dir / f"{name}.log").exists()
+    health = json.loads((state_dir / "health.json").read_text())  # the last one, on stopping
+    assert not health["up"]["running"]
+    assert set(health["processes"]) == {"calibration", "filtering", "alerting", "simulator"}
+    assert all(p["restarts"] == 0 for p in health["processes"].values()), health
