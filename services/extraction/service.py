@@ -16,8 +16,6 @@ import threading
 import time
 from pathlib import Path
 
-import zenoh
-
 from schemas import PositionedChunk, SchemaError, decode, encode, keys
 from services.extraction.pipeline import ExtractionConfig, Extractor, SegmentTable
 from services.runtime.config import DEPLOY_DIR, RuntimeConfig
@@ -41,10 +39,10 @@ class ExtractionAdapter:
 
     def start(self) -> None:
         self.indices = self.rt.reliable_publisher()  # at-least-once to calibration, filtering
-        self.rt.subscribe(keys.accel_all(self.rt.ns), self.on_sample)  # one worker thread
-
-    def on_sample(self, sample: zenoh.Sample) -> None:
-        self.handle(str(sample.key_expr), sample.payload.to_bytes())
+        self.rt.subscribe_in_order(
+            {"accel": keys.accel_all(self.rt.ns)},
+            lambda _kind, key, payload: self.handle(key, payload),
+        )
 
     def handle(self, key: str, payload: bytes) -> None:
         chunk = decode(payload, PositionedChunk)

@@ -3,11 +3,16 @@
 Subscribes ``{ns}/index/{selector}``, ``{ns}/trc/{selector}``, ``{ns}/maintenance/{selector}``
 and ``{ns}/model/**``; at start asks ``{ns}/model/**`` for the latest models (the calibration
 service's late-joiner queryable) and queues the replies like publications before it declares
-itself ready. Every sample goes
-into one bounded queue read by one worker thread, so the tracker is single-threaded and
-sees each instance's inputs in arrival order. Per sample: decode (a malformed payload or
-one disagreeing with its key → dead letter with the reason) → tracker step → commit the
-accepted input to SQLite → ``put`` each changed SegmentState on ``{ns}/state/{line}/{segment}``.
+itself ready. Every sample goes into the runtime's inbox (which never blocks Zenoh, see
+:mod:`services.runtime.inbox`), read by one worker thread, so the tracker is single-threaded.
+The worker takes what is queued (up to ``BATCH`` messages; one when the instance keeps up)
+and hands it to :meth:`PersistentTracker.handle_batch`: decode (a malformed payload or one
+disagreeing with its key → dead letter with the reason), model updates of the batch first
+and coalesced (only the newest version of each model counts, the affected segments re-run
+once), then the events in arrival order, all accepted inputs committed to SQLite in one
+transaction → ``put`` the latest changed SegmentState of each segment on
+``{ns}/state/{line}/{segment}``. Under a backlog a segment's intermediate states within one
+batch are therefore not published, only its newest; its final state is the same.
 The queryable ``{ns}/q/state/{selector}`` answers each matching segment's latest state on
 ``{ns}/q/state/{line}/{segment}``.
 
@@ -24,14 +29,14 @@ instance id, ``default`` without one, so a restarted process finds its file), ``
 from __future__ import annotations
 
 import logging
-import queue
+import sqlite3
 import threading
 from contextlib import ExitStack
 from pathlib import Path
 
 import zenoh
 
-from schemas import SchemaError, SegmentState, encode, keys
+from schemas import SegmentState, encode, keys
 from services.filtering.store import DEFAULT_DB, PersistentTracker, Store
 from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_limits
@@ -41,12 +46,12 @@ from services.runtime.service import ServiceRuntime
 log = logging.getLogger(__name__)
 
 SERVICE = "filtering"
-INBOX_CAPACITY = 4096  # samples waiting for the worker; a full inbox slows the senders down
+BATCH = 1024  # queued messages handled in one store transaction (when there is a backlog)
+EXIT_STORE_FAILED = 74  # EX_IOERR
 STATE_CACHE = 16  # states kept per segment for a returning consumer (alerting, viewer)
 MODEL_QUERY_TIMEOUT_S = (
     10.0  # the start-up query for the latest models (ends sooner when all reply)
 )
-_POLL_S = 0.1  # how often an idle worker (or a blocked callback) looks at the stop event
 
 
 def main(
@@ -83,7 +88,6 @@ class FilteringAdapter:
         self.rt = rt
         self.node = node
         self.selector = selector
-        self.inbox: queue.Queue[tuple[str, bytes]] = queue.Queue(INBOX_CAPACITY)
         self._latest: dict[tuple[str, str], tuple[str, bytes]] = {}  # -> (q key, payload)
         self._lock = threading.Lock()
 
@@ -92,35 +96,26 @@ class FilteringAdapter:
         self.states_out = self.rt.reliable_publisher(STATE_CACHE)
         for state in self.node.rebuild():
             self._publish(state)
-        for kind in ("index", "trc", "maintenance"):
-            key = keys.segment_keys(ns, kind, self.selector)
-            self.rt.declare_subscriber(key, self._enqueue, reliable=True)
-        self.rt.declare_subscriber(keys.model_all(ns), self._enqueue, reliable=True)
+        subscriptions = {
+            kind: keys.segment_keys(ns, kind, self.selector)
+            for kind in ("index", "trc", "maintenance")
+        }
+        subscriptions["model"] = keys.model_all(ns)
+        self.inbox = self.rt.subscribe_batches(
+            subscriptions, self._handle_batch, max_batch=BATCH, reliable=True
+        )
         q_key = keys.q_state_all(ns).removesuffix("**") + self.selector
         self.rt.declare_queryable(q_key, self._on_query)
-        self.rt.spawn(self._work, name=f"{SERVICE}:worker")
         # After subscribing, so a model published meanwhile is not missed either; and
         # before the liveliness token (ready), so the latest models are queued ahead of
         # any event a producer sends once it sees this instance ready.
         for reply in self.rt.session.get(keys.model_all(ns), timeout=MODEL_QUERY_TIMEOUT_S):
-            self._on_reply(reply)
+            if reply.ok is not None:
+                self.inbox.put("model", str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+            else:
+                log.warning("model query: error reply %r", reply.err.payload.to_bytes()[:200])
 
     # --- Zenoh threads: short, no Zenoh calls except replies ----------------------------
-
-    def _enqueue(self, sample: zenoh.Sample) -> None:
-        item = (str(sample.key_expr), sample.payload.to_bytes())
-        while not self.rt.stopping:
-            try:
-                self.inbox.put(item, timeout=_POLL_S)
-                return
-            except queue.Full:
-                continue
-
-    def _on_reply(self, reply: zenoh.Reply) -> None:
-        if reply.ok is not None:
-            self._enqueue(reply.ok)
-        else:
-            log.warning("model query: error reply %r", reply.err.payload.to_bytes()[:200])
 
     def _on_query(self, query: zenoh.Query) -> None:
         with self._lock:
@@ -131,26 +126,20 @@ class FilteringAdapter:
 
     # --- the worker ---------------------------------------------------------------------
 
-    def _work(self) -> None:
-        while True:
-            try:
-                key, payload = self.inbox.get(timeout=_POLL_S)
-            except queue.Empty:
-                if self.rt.stopping:
-                    return
-                continue
-            self._handle(key, payload)
-
-    def _handle(self, key: str, payload: bytes) -> None:
+    def _handle_batch(self, batch: list[tuple[str, str, bytes]]) -> None:
+        """What is queued, in one store transaction; then the changed states are published."""
         try:
-            step = self.node.handle(key, payload)
-        except (SchemaError, ValueError) as e:  # ValueError: a model the core refuses
-            self.rt.deadletters.reject(key, str(e), payload)
+            done = self.node.handle_batch((key, payload) for _kind, key, payload in batch)
+        except sqlite3.Error:
+            # the store failed (disk full, file removed): what the tracker holds is no longer
+            # what is persisted; stop so that a restart rebuilds it from the store
+            log.exception("filtering: the store refused a batch; stopping")
+            self.rt.exit_code = EXIT_STORE_FAILED
+            self.rt.stop()
             return
-        if not step.accepted:
-            log.debug("ignored %s: %s", key, step.reason)
-            return
-        for state in step.states:
+        for key, reason, payload in done.rejected:
+            self.rt.deadletters.reject(key, reason, payload)
+        for state in done.states:
             self._publish(state)
 
     def _publish(self, state: SegmentState) -> None:

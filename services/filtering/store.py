@@ -15,8 +15,11 @@ deleted when that record is stored (:meth:`Store.prune`).
 from __future__ import annotations
 
 import json
+import logging
 import sqlite3
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +42,8 @@ from services.filtering.tracker import (
     Tracker,
     event_of,
 )
+
+log = logging.getLogger(__name__)
 
 DEFAULT_DB = "./var/filtering-{instance}.sqlite"
 
@@ -96,6 +101,17 @@ class Store:
 
     def __exit__(self, *_exc: object) -> None:
         self.close()
+
+    @contextmanager
+    def transaction(self) -> Iterator[None]:
+        """Every write inside the block is committed at its end, at once (or none on error)."""
+        self._db.execute("BEGIN")
+        try:
+            yield
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        self._db.execute("COMMIT")
 
     def add_event(
         self,
@@ -175,6 +191,19 @@ def decode_keyed(key: str, payload: bytes) -> EventMessage | ModelMessage | None
     raise SchemaError(f"key {key}: not an index, trc, maintenance or model key")
 
 
+@dataclass(frozen=True)
+class BatchResult:
+    """What a batch did: the newest changed state of each segment, and what was refused."""
+
+    states: tuple[SegmentState, ...]
+    rejected: tuple[tuple[str, str, bytes], ...]  # (key, reason, payload): dead letters
+    accepted: int
+
+
+def _model_name(msg: ModelMessage) -> str:
+    return "calibration" if isinstance(msg, Calibration) else f"degradation/{msg.group}"
+
+
 class PersistentTracker:
     """A :class:`Tracker` whose accepted inputs are committed to a :class:`Store` first.
 
@@ -194,6 +223,57 @@ class PersistentTracker:
         if step.accepted:
             self._commit(msg, str(key), payload)
         return step
+
+    def handle_batch(self, items: Iterable[tuple[str, bytes]]) -> BatchResult:
+        """Several ``(key, payload)`` in one store transaction.
+
+        Model messages go first and are coalesced: of several versions of one model only
+        the newest is applied, and the segments they affect are re-run once. Then the
+        events in the order given. Everything accepted is committed at the end, before the
+        caller publishes the states; a payload that does not decode, or that the core
+        refuses (a model that fails validation), is returned in ``rejected`` with the
+        reason. A store error (``sqlite3.Error``) propagates: nothing of the batch is then
+        persisted, and the caller must not go on with this tracker.
+        """
+        rejected: list[tuple[str, str, bytes]] = []
+        newest: dict[str, tuple[ModelMessage, str, bytes]] = {}
+        events: list[tuple[EventMessage, str, bytes]] = []
+        for key, payload in items:
+            try:
+                msg = decode_keyed(key, payload)
+            except SchemaError as e:
+                rejected.append((key, str(e), payload))
+                continue
+            if msg is None:
+                continue
+            if isinstance(msg, Calibration | DegradationPosterior):
+                name = _model_name(msg)
+                held = newest.get(name)
+                if held is None or msg.version > held[0].version:
+                    newest[name] = (msg, key, payload)
+            else:
+                events.append((msg, key, payload))
+        states: dict[tuple[str, str], SegmentState] = {}
+        accepted = 0
+        with self.store.transaction():
+            for msg, key, payload in [*newest.values(), *events]:
+                try:
+                    step = self.tracker.step(msg)
+                except ValueError as e:  # a model (or event) the core refuses
+                    rejected.append((key, str(e), payload))
+                    continue
+                except Exception as e:  # a bug: the letter says what, the batch goes on
+                    log.exception("error stepping %s", key)
+                    rejected.append((key, f"{type(e).__name__}: {e}", payload))
+                    continue
+                if not step.accepted:
+                    continue
+                accepted += 1
+                self._commit(msg, key, payload)
+                for state in step.states:
+                    states.pop((state.line, state.segment), None)  # keep the newest, last
+                    states[(state.line, state.segment)] = state
+        return BatchResult(tuple(states.values()), tuple(rejected), accepted)
 
     def _commit(self, msg: EventMessage | ModelMessage, key: str, payload: bytes) -> None:
         match msg:

@@ -11,8 +11,6 @@ import sys
 import threading
 from typing import TextIO
 
-import zenoh
-
 from schemas import DeadLetter, SchemaError, decode, keys
 from services.runtime.config import RuntimeConfig
 from services.runtime.service import ServiceRuntime
@@ -37,16 +35,16 @@ def main(
     """Print dead letters to ``out`` (stdout) until ``stop`` is set or SIGINT/SIGTERM; 0."""
     out = out or sys.stdout
 
-    def on_sample(sample: zenoh.Sample) -> None:
+    def on_letter(_kind: str, key: str, payload: bytes) -> None:
         try:
-            letter = decode(sample.payload.to_bytes(), DeadLetter)
+            letter = decode(payload, DeadLetter)
         except SchemaError as e:
             # never dead-letter a dead letter: that would loop through our own subscription
-            log.warning("undecodable dead letter on %s: %s", sample.key_expr, e)
+            log.warning("undecodable dead letter on %s: %s", key, e)
             return
         out.write(format_line(letter) + "\n")
         out.flush()
 
     with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
-        rt.subscribe(keys.deadletter_all(rt.ns), on_sample, dead_letter_errors=False)
+        rt.subscribe_in_order({"deadletter": keys.deadletter_all(rt.ns)}, on_letter)
         return rt.run()

@@ -4,7 +4,7 @@
 
     def main(conf: RuntimeConfig) -> int:
         with ServiceRuntime("filtering", conf, handle_signals=True) as rt:
-            rt.subscribe(keys.segment_keys(rt.ns, "index"), on_index)  # worker thread
+            rt.subscribe_in_order({"index": keys.segment_keys(rt.ns, "index")}, on_index)
             rt.declare_queryable(keys.q_alerts(rt.ns), on_query)
             return rt.run()  # liveliness token = ready; waits for SIGINT/SIGTERM/stop()
 
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import queue
 import signal
 import threading
 import time
@@ -28,6 +27,7 @@ from typing import Any, Protocol, Self, TypeVar
 import zenoh
 
 from schemas import SchemaError, keys
+from services.runtime import systemd
 from services.runtime.config import RuntimeConfig, default_instance, endpoints, zenoh_config
 from services.runtime.deadletter import DeadLetterPublisher
 from services.runtime.delivery import (
@@ -35,14 +35,21 @@ from services.runtime.delivery import (
     ReliablePublisher,
     declare_reliable_subscriber,
 )
+from services.runtime.inbox import DEFAULT_MEMORY_BYTES, Inbox, Item
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CAPACITY = 1024  # samples buffered per subscription before the receive thread blocks
+DEFAULT_CAPACITY = 1024  # samples a latest-only subscription holds (the oldest are dropped)
 JOIN_TIMEOUT_S = 2.0  # per worker at shutdown; the whole stop must stay well under 5 s
+DRAIN_S = 1.5  # at a stop, a worker goes on with its queued items for at most this long
 CONNECT_TIMEOUT_S = 30.0  # how long to keep retrying the first connection at startup
 FLUSH_TIMEOUT_S = 2.0  # at most this long waiting for the router's answer at close
 _RETRY_S = 0.5
+HEALTH_INTERVAL_S = 5.0  # how often a service checks that the router still holds its token
+DEAF_AFTER_S = 15.0  # token not seen at the router for this long: the session is lost
+HUNG_AFTER_S = 300.0  # a worker on one batch for longer stops feeding the systemd watchdog
+EXIT_SESSION_LOST = 75  # EX_TEMPFAIL: a supervisor should restart the process
+_IDLE_POLL_S = 1.0  # an idle worker wakes this often (watchdog bookkeeping, stop)
 
 
 class _Undeclarable(Protocol):
@@ -79,6 +86,8 @@ class ServiceRuntime:
         handle_signals: bool = False,
         connect_timeout: float = CONNECT_TIMEOUT_S,
         stop_event: threading.Event | None = None,
+        health_interval_s: float = HEALTH_INTERVAL_S,
+        deaf_after_s: float = DEAF_AFTER_S,
     ) -> None:
         self.service = service
         self.conf = conf
@@ -87,14 +96,19 @@ class ServiceRuntime:
         self.alive_key = keys.alive(self.ns, service, self.instance)  # checks the chunks
         self.stop_event = stop_event if stop_event is not None else threading.Event()
         self.delivery = DeliverySettings.from_options(conf.options("delivery"))
+        self.exit_code = 0  # what run() returns; EXIT_SESSION_LOST when the session is lost
         self._handle_signals = handle_signals
         self._connect_timeout = connect_timeout
+        self._health_interval_s = health_interval_s
+        self._deaf_after_s = deaf_after_s
         self._session: zenoh.Session | None = None
         self._deadletters: DeadLetterPublisher | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._subscribers: list[_Undeclarable] = []
         self._declared: list[_Undeclarable] = []
+        self._inboxes: list[Inbox] = []
         self._threads: list[threading.Thread] = []
+        self._busy_since: dict[str, float] = {}  # worker name -> monotonic start of its batch
         self._previous_handlers: dict[int, Any] = {}
 
     # --- lifecycle ---------------------------------------------------------------------
@@ -142,31 +156,37 @@ class ServiceRuntime:
         if self._token is None:
             self._token = self.session.liveliness().declare_token(self.alive_key)
             log.info("alive: %s", self.alive_key)
+            systemd.notify("READY=1")
+            self.spawn(self._watch_health, name=f"{self.service}:health")
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block until :meth:`stop` (or a signal); True if stopped, False on timeout."""
         return self.stop_event.wait(timeout)
 
     def run(self) -> int:
-        """Announce, wait for the stop event, return exit code 0 (leave the block to close)."""
+        """Announce, wait for the stop event, return the exit code (leave the block to close):
+        0 after a stop, :data:`EXIT_SESSION_LOST` when the session was found deaf."""
         self.announce()
         self.wait()
         log.info("%s/%s stopping", self.service, self.instance)
-        return 0
+        return self.exit_code
 
     def close(self) -> None:
         """Stop workers, undeclare everything, close the session. Idempotent."""
         self.stop_event.set()
         started = time.monotonic()
-        for sub in reversed(self._subscribers):  # ends the workers' channel iteration
+        for sub in reversed(self._subscribers):
             _undeclare(sub)
         self._subscribers.clear()
+        for inbox in self._inboxes:  # workers take what is queued, then end
+            inbox.close()
         for thread in self._threads:
             if thread is not threading.current_thread():
                 thread.join(JOIN_TIMEOUT_S)
                 if thread.is_alive():
                     log.warning("worker %s did not stop within %.1f s", thread.name, JOIN_TIMEOUT_S)
         self._threads.clear()
+        self._inboxes.clear()
         for entity in reversed(self._declared):
             _undeclare(entity)
         self._declared.clear()
@@ -211,47 +231,116 @@ class ServiceRuntime:
         handle: Callable[[str, str, bytes], object],
         *,
         on_end: Callable[[], None] | None = None,
-        capacity: int = DEFAULT_CAPACITY,
         reliable: bool = False,
-    ) -> None:
-        """Several subscriptions ``{kind: key expression}`` into ONE bounded queue drained by
+        memory_bytes: int = DEFAULT_MEMORY_BYTES,
+    ) -> Inbox:
+        """Several subscriptions ``{kind: key expression}`` into ONE :class:`Inbox` drained by
         ONE worker thread calling ``handle(kind, key, payload)``, so a core stays
-        single-threaded. Order is kept per key (each subscription's callback runs on its own
-        Zenoh thread, so not across them). A full queue blocks the receive thread: nothing is
-        dropped. A SchemaError (or any other error) becomes a dead letter and the worker goes
-        on; ``on_end`` runs once every subscription has been undeclared. ``reliable``: see
-        :meth:`declare_subscriber`.
+        single-threaded. A SchemaError (or any other error) becomes a dead letter and the
+        worker goes on. See :meth:`subscribe_batches`."""
+
+        def handle_batch(batch: list[Item]) -> None:
+            for kind, key, payload in batch:
+                self.guarded(handle, kind, key, payload)
+
+        return self.subscribe_batches(
+            subscriptions,
+            handle_batch,
+            max_batch=1,
+            on_end=on_end,
+            reliable=reliable,
+            memory_bytes=memory_bytes,
+        )
+
+    def subscribe_batches(
+        self,
+        subscriptions: Mapping[str, str],
+        handle_batch: Callable[[list[Item]], object],
+        *,
+        max_batch: int = 1024,
+        on_end: Callable[[], None] | None = None,
+        on_idle: Callable[[], None] | None = None,
+        idle_s: float = _IDLE_POLL_S,
+        reliable: bool = False,
+        memory_bytes: int = DEFAULT_MEMORY_BYTES,
+    ) -> Inbox:
+        """Subscriptions ``{kind: key expression}`` → one :class:`Inbox` → one worker thread
+        calling ``handle_batch([(kind, key, payload), …])`` with what is queued (up to
+        ``max_batch`` items, in arrival order; order is kept per key, not across keys, since
+        Zenoh calls each subscription's callback on its own thread).
+
+        The Zenoh callbacks only append to the inbox, which never waits for the worker (it
+        spills to disk beyond ``memory_bytes``): a slow worker cannot stall the session, so
+        the session keeps its lease and nothing is dropped under any backlog. The worker is
+        what is slow, and its backlog is visible in the inbox's stats. ``handle_batch``
+        must turn bad items into dead letters itself (:meth:`guarded`); an exception that
+        escapes it is logged and the worker goes on. ``on_idle`` runs when nothing arrived
+        for ``idle_s``; ``on_end`` once the subscriptions are undeclared and the inbox is
+        drained. ``reliable``: see :meth:`declare_subscriber`. Returns the inbox (a start-up
+        query may put its replies into it).
         """
-        inbox: queue.Queue[Any] = queue.Queue(capacity)
-        ended = object()
+        inbox = Inbox(memory_bytes=memory_bytes)
+        self._inboxes.append(inbox)
+        name = f"{self.service}:worker" + (
+            f"{len(self._inboxes)}" if len(self._inboxes) > 1 else ""
+        )
 
-        def callback(kind: str) -> zenoh.handlers.Callback:
+        def callback(kind: str) -> Callable[[zenoh.Sample], None]:
             def on_sample(sample: zenoh.Sample) -> None:
-                inbox.put((kind, str(sample.key_expr), sample.payload.to_bytes()))
+                inbox.put(kind, str(sample.key_expr), sample.payload.to_bytes())
 
-            return zenoh.handlers.Callback(on_sample, lambda: inbox.put(ended))
+            return on_sample
 
         def work() -> None:
-            remaining = len(subscriptions)
-            while remaining:
-                item = inbox.get()
-                if item is ended:
-                    remaining -= 1
+            stopping_since = None
+            while True:
+                batch = inbox.take(max_batch, timeout=idle_s)
+                if batch is None:
+                    break
+                if self.stopping:  # drain what is queued, but not past the stop's deadline
+                    stopping_since = stopping_since or time.monotonic()
+                    if time.monotonic() - stopping_since > DRAIN_S:
+                        log.warning(
+                            "%s: stopping with %d queued items not handled",
+                            self.service, len(inbox) + len(batch),
+                        )  # fmt: skip
+                        break
+                if not batch:
+                    if on_idle is not None:
+                        self.guarded(on_idle)
                     continue
-                kind, key, payload = item
+                self._busy_since[name] = time.monotonic()
                 try:
-                    handle(kind, key, payload)
-                except SchemaError as e:
-                    self.deadletters.reject(key, str(e), payload)
-                except Exception as e:
-                    log.exception("%s: error handling %s", self.service, key)
-                    self.deadletters.reject(key, f"{type(e).__name__}: {e}", payload)
+                    handle_batch(batch)
+                except Exception:
+                    log.exception("%s: error handling a batch of %d", self.service, len(batch))
+                finally:
+                    self._busy_since.pop(name, None)
             if on_end is not None:
                 on_end()
 
         for kind, key in subscriptions.items():
             self.declare_subscriber(key, callback(kind), reliable=reliable)
-        self.spawn(work, name=f"{self.service}:worker")
+        self.spawn(work, name=name)
+        return inbox
+
+    def guarded(self, handle: Callable[..., object], *args: Any) -> Any:
+        """``handle(*args)``; an exception becomes a dead letter (when ``args`` are
+        ``(kind, key, payload)``) or a log line, never the end of the worker. A SchemaError's
+        message is the letter's reason; any other error is a bug and is logged with its
+        traceback."""
+        try:
+            return handle(*args)
+        except SchemaError as e:
+            if len(args) == 3:
+                self.deadletters.reject(args[1], str(e), args[2])
+            else:
+                log.warning("%s: %s", self.service, e)
+        except Exception as e:
+            log.exception("%s: error in %s", self.service, getattr(handle, "__name__", handle))
+            if len(args) == 3:
+                self.deadletters.reject(args[1], f"{type(e).__name__}: {e}", args[2])
+        return None
 
     def subscribe(
         self,
@@ -259,23 +348,14 @@ class ServiceRuntime:
         on_sample: Callable[[zenoh.Sample], None],
         *,
         capacity: int = DEFAULT_CAPACITY,
-        latest_only: bool = False,
         dead_letter_errors: bool = True,
     ) -> zenoh.Subscriber:
-        """Subscribe to ``key`` and call ``on_sample`` in a worker thread, never in Zenoh's.
-
-        The subscription is buffered in a ``FifoChannel(capacity)`` (nothing dropped; a full
-        buffer slows the sender down) or, with ``latest_only``, a ``RingChannel(capacity)``
-        that drops the oldest (for displays). An exception from ``on_sample`` becomes a dead
-        letter (``SchemaError``: its message is the reason) unless ``dead_letter_errors`` is
-        False; the worker keeps going either way.
-        """
-        channel: Any = (
-            zenoh.handlers.RingChannel(capacity)
-            if latest_only
-            else zenoh.handlers.FifoChannel(capacity)
-        )
-        subscriber = self.session.declare_subscriber(key, channel)
+        """A latest-only subscription for displays: a Zenoh ``RingChannel(capacity)`` that
+        drops the oldest sample when full (never blocks the session), read by a worker
+        thread calling ``on_sample``. Streams where nothing may be lost use
+        :meth:`subscribe_in_order` or :meth:`subscribe_batches`. An exception from
+        ``on_sample`` becomes a dead letter unless ``dead_letter_errors`` is False."""
+        subscriber = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(capacity))
         self._subscribers.append(subscriber)
         self.spawn(
             self._consume, subscriber, on_sample, dead_letter_errors, name=f"{self.service}:{key}"
@@ -368,6 +448,51 @@ class ServiceRuntime:
                 if dead_letter_errors:
                     self.deadletters.reject_sample(sample, f"{type(e).__name__}: {e}")
 
+    def _watch_health(self) -> None:
+        """Every ``health_interval_s``: ask the router for this service's own liveliness token.
+
+        A session whose link was closed (a router restart, a cut link, a lease that expired)
+        reconnects and re-declares by itself; one that did not is deaf: no token at the
+        router, no subscriptions, yet nothing fails locally. When the token has not been seen
+        for ``deaf_after_s``, the process stops with :data:`EXIT_SESSION_LOST` so that its
+        supervisor (``trackfusion up``, systemd) restarts it. While healthy and no worker has
+        been stuck on one batch for ``HUNG_AFTER_S``, it feeds the systemd watchdog.
+        """
+        last_seen = time.monotonic()
+        while not self.stop_event.wait(self._health_interval_s):
+            if self._token_at_router():
+                last_seen = time.monotonic()
+            elif time.monotonic() - last_seen >= self._deaf_after_s:
+                log.error(
+                    "%s/%s: the router has not held this service's token %s for %.0f s: the "
+                    "session is lost; exiting with %d so that the supervisor restarts it",
+                    self.service, self.instance, self.alive_key,
+                    time.monotonic() - last_seen, EXIT_SESSION_LOST,
+                )  # fmt: skip
+                self.exit_code = EXIT_SESSION_LOST
+                self.stop()
+                return
+            else:
+                log.warning("%s: own liveliness token not seen at the router", self.service)
+            now = time.monotonic()
+            hung = [n for n, t in list(self._busy_since.items()) if now - t > HUNG_AFTER_S]
+            if hung:
+                log.error(
+                    "%s: %s busy on one batch for over %.0f s", self.service, hung, HUNG_AFTER_S
+                )
+            else:
+                systemd.ping_watchdog()
+
+    def _token_at_router(self) -> bool:
+        try:
+            replies = self.session.liveliness().get(
+                self.alive_key, timeout=min(self._health_interval_s, 5.0)
+            )
+            return any(r.ok is not None and str(r.ok.key_expr) == self.alive_key for r in replies)
+        except zenoh.ZError as e:
+            log.warning("%s: liveliness query failed: %s", self.service, e)
+            return False
+
     def _guard(self, target: Callable[..., object], *args: Any) -> None:
         try:
             target(*args)
@@ -411,7 +536,7 @@ def _undeclare(entity: _Undeclarable) -> None:
     try:
         entity.undeclare()
     except zenoh.ZError as e:
-        log.warning("undeclare %r: %s", entity, e)
+        log.warning("undeclare %s: %s", type(entity).__name__, e)
 
 
 def configure_logging(level: str = "info") -> None:

@@ -117,13 +117,13 @@ def test_subscribe_worker_dead_letters_bad_input_and_keeps_going(
     observer.declare_subscriber(keys.deadletter_all(service_config.ns), letters)
     good = collector()
 
-    def on_sample(sample: zenoh.Sample) -> None:
-        if sample.payload.to_bytes() == b"boom":
+    def on_item(_kind: str, _key: str, payload: bytes) -> None:
+        if payload == b"boom":
             raise ZeroDivisionError("boom")
-        good(decode(sample.payload.to_bytes(), DeadLetter))  # SchemaError on garbage
+        good(decode(payload, DeadLetter))  # SchemaError on garbage
 
     with ServiceRuntime("probe", service_config) as rt:
-        rt.subscribe(f"{rt.ns}/in/**", on_sample)
+        rt.subscribe_in_order({"in": f"{rt.ns}/in/**"}, on_item)
         publisher = observer.declare_publisher(f"{rt.ns}/in/a")
         until_matched(publisher)
         until_matched(rt.deadletters.publisher)

@@ -1,0 +1,193 @@
+"""The one inbox of a service: Zenoh callbacks → one FIFO → one worker, never blocking Zenoh.
+
+Why it exists. A Zenoh callback runs on the session's receive thread. If it blocks (a full
+bounded queue waiting for a slow worker), the session stops reading its link; the router's
+queue towards it fills, the router waits ``wait_before_close`` (5 s by default) for room
+for a BLOCK message and then **closes the link**, dropping everything queued on it. That is
+how a filtering instance lost 90 % of a flood without a trace, and how it went deaf during
+`make run` (see README, "Reliability model"). So :meth:`Inbox.put` never waits on the
+worker: it appends to memory while the backlog is small and, beyond ``memory_bytes``,
+appends to a spill file on local disk (an anonymous temporary file, gone with the
+process), which the worker reads back in order once memory has drained. Back-pressure is
+therefore disk, not the network: the session keeps its lease under any backlog, and nothing
+is dropped. What is in the inbox when the process dies is lost like any in-flight message;
+the at-least-once streams recover it from their publishers' caches.
+
+Order: FIFO over every ``put``; Zenoh calls each subscription's callback on its own thread,
+so order holds per key, not across keys.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import tempfile
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+Item = tuple[str, str, bytes]  # (kind, key, payload)
+
+DEFAULT_MEMORY_BYTES = 64 << 20  # backlog held in memory before it spills to disk
+_HEADER = struct.Struct("<III")  # lengths of kind, key, payload
+_READ_CHUNK = 1 << 20
+_REFILL_BYTES = 1 << 20  # read back from the spill file per refill (under the lock)
+
+
+@dataclass(frozen=True)
+class InboxStats:
+    """Counters of an inbox since it was made (for the log, the bench and the health line)."""
+
+    received: int  # items put
+    taken: int  # items handed to the worker
+    spilled: int  # items that went through the spill file
+    depth: int  # items waiting (memory + spill)
+    memory_bytes: int  # payload bytes waiting in memory
+    spill_bytes: int  # bytes waiting in the spill file
+    max_put_s: float  # the longest time a callback spent in put()
+
+
+class Inbox:
+    """A FIFO of ``(kind, key, payload)`` with a memory budget and an on-disk overflow.
+
+    Parameters
+    ----------
+    memory_bytes
+        Payload bytes held in memory; the rest of a backlog goes to the spill file.
+    """
+
+    def __init__(self, *, memory_bytes: int = DEFAULT_MEMORY_BYTES) -> None:
+        if memory_bytes < 1:
+            raise ValueError(f"memory_bytes must be >= 1, got {memory_bytes}")
+        self._memory_budget = memory_bytes
+        self._items: deque[Item] = deque()
+        self._memory = 0
+        self._cond = threading.Condition()
+        self._closed = False
+        self._spill_fd: int | None = None
+        self._spill_read = 0  # file offsets of the next record to read / write
+        self._spill_write = 0
+        self._spill_items = 0
+        self._received = self._taken = self._spilled = 0
+        self._max_put_s = 0.0
+
+    # --- the callback side ---------------------------------------------------------------
+
+    def put(self, kind: str, key: str, payload: bytes) -> None:
+        """Append one item; O(1) in memory, one ``pwrite`` when spilling; never waits."""
+        started = time.perf_counter()
+        with self._cond:
+            if self._closed:
+                return
+            self._received += 1
+            size = len(payload) + len(key)
+            if self._spill_items == 0 and self._memory + size <= self._memory_budget:
+                self._items.append((kind, key, payload))
+                self._memory += size
+            else:  # keep FIFO: once spilling, everything goes behind the spilled items
+                self._spill(kind, key, payload)
+            self._cond.notify()
+            elapsed = time.perf_counter() - started
+            if elapsed > self._max_put_s:
+                self._max_put_s = elapsed
+
+    def close(self) -> None:
+        """No more items; the worker takes what is left, then :meth:`take` returns None."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    # --- the worker side -----------------------------------------------------------------
+
+    def take(self, max_items: int = 1, timeout: float | None = None) -> list[Item] | None:
+        """Up to ``max_items`` items in order; [] on timeout; None once closed and empty."""
+        with self._cond:
+            deadline = None if timeout is None else time.monotonic() + timeout
+            while not self._items and self._spill_items == 0:
+                if self._closed:
+                    self._release_spill()
+                    return None
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return []
+                self._cond.wait(remaining)
+            if not self._items:
+                self._refill()
+            batch = []
+            while self._items and len(batch) < max_items:
+                item = self._items.popleft()
+                self._memory -= len(item[2]) + len(item[1])
+                batch.append(item)
+            self._taken += len(batch)
+            return batch
+
+    def stats(self) -> InboxStats:
+        with self._cond:
+            return InboxStats(
+                received=self._received,
+                taken=self._taken,
+                spilled=self._spilled,
+                depth=len(self._items) + self._spill_items,
+                memory_bytes=self._memory,
+                spill_bytes=self._spill_write - self._spill_read,
+                max_put_s=self._max_put_s,
+            )
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._items) + self._spill_items
+
+    # --- the spill file (under the lock) ---------------------------------------------------
+
+    def _spill(self, kind: str, key: str, payload: bytes) -> None:
+        if self._spill_fd is None:
+            fd, path = tempfile.mkstemp(prefix="trackfusion-inbox-")
+            os.unlink(path)  # anonymous: gone with the process
+            self._spill_fd = fd
+        k, q = kind.encode(), key.encode()
+        record = _HEADER.pack(len(k), len(q), len(payload)) + k + q + payload
+        os.pwrite(self._spill_fd, record, self._spill_write)
+        self._spill_write += len(record)
+        self._spill_items += 1
+        self._spilled += 1
+
+    def _refill(self) -> None:
+        """Move spilled items back to memory: a slice small enough that the lock is held
+        briefly (puts wait on it), at least one item."""
+        assert self._spill_fd is not None
+        budget = max(1, min(self._memory_budget // 2, _REFILL_BYTES))
+        buf, at = b"", 0  # bytes read from the file's read offset, and the next record in it
+        while self._spill_items and self._memory < budget:
+            if len(buf) - at < _HEADER.size:
+                buf = buf[at:] + os.pread(
+                    self._spill_fd, _READ_CHUNK, self._spill_read + len(buf) - at
+                )
+                at = 0
+            lk, lq, lp = _HEADER.unpack_from(buf, at)
+            end = at + _HEADER.size + lk + lq + lp
+            if len(buf) < end:
+                buf = buf[at:] + os.pread(
+                    self._spill_fd,
+                    max(_READ_CHUNK, end - len(buf)),
+                    self._spill_read + len(buf) - at,
+                )
+                end -= at
+                at = 0
+            start = at + _HEADER.size
+            kind = buf[start : start + lk].decode()
+            key = buf[start + lk : start + lk + lq].decode()
+            payload = buf[start + lk + lq : end]
+            self._items.append((kind, key, payload))
+            self._memory += len(payload) + len(key)
+            self._spill_read += end - at
+            self._spill_items -= 1
+            at = end
+        if self._spill_items == 0:  # drained: start the file again from its beginning
+            self._spill_read = self._spill_write = 0
+            os.ftruncate(self._spill_fd, 0)
+
+    def _release_spill(self) -> None:
+        if self._spill_fd is not None:
+            os.close(self._spill_fd)
+            self._spill_fd = None
