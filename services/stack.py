@@ -302,22 +302,24 @@ class Child:
         log.warning("%s %s; starting it again in %.0f s", self.spec.name, self.reason, delay)
 
     def health(self, now: float, alive: set[str]) -> dict[str, Any]:
-        running = self.running and self.next_start is None
-        if self.finished:
+        running = self.running
+        if running:
+            state = "stopping" if self.kill_at is not None else "running"
+            if state == "running" and not self.token_seen:
+                state = "starting"  # no token yet
+        elif self.finished:
             state = "finished" if self.last_exit == 0 else "failed"
-        elif self.next_start is not None:
-            state = "waiting"
-        elif self.kill_at is not None:
-            state = "stopping"
         else:
-            state = "running" if running else "starting"
+            state = "waiting" if self.next_start is not None else "exited"  # till the next tick
         return {
             "pid": self.popen.pid if self.popen else None,
             "running": running,
             "state": state,
             "alive": running and self.instance in alive,
             "restarts": self.restarts,
-            "uptime_s": round(now - self.started_at, 1) if running and self.started_at else None,
+            "uptime_s": (
+                round(now - self.started_at, 1) if running and self.started_at is not None else None
+            ),
             "last_exit": self.last_exit,
             "last_restart_reason": self.reason or None,
             "next_start_in_s": (
@@ -515,7 +517,7 @@ class Supervisor:
             if p["state"] == "waiting":
                 running = f"again in {p['next_start_in_s']:.0f} s"
             else:
-                running = {"running": "yes", "starting": "no"}.get(p["state"], p["state"])
+                running = {"running": "yes", "starting": "yes"}.get(p["state"], p["state"])
             lines.append(
                 f"{name:12} {p['pid'] or '-':>7}  {running:14} {'yes' if p['alive'] else '-':5} "
                 f"{p['restarts']:>8}  {duration_text(p['uptime_s']):>10}  "

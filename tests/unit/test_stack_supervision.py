@@ -163,3 +163,32 @@ def test_a_flow_that_stopped_arriving_is_not_stalled():
     assert not flow.stalled(61.0)  # nothing arriving: nothing stuck
     flow.update(62.0, source_arrived=False, result_arrived=False)
     assert "no index made for" in flow.text(62.0)
+
+
+def test_health_of_a_child_through_its_runs(tmp_path, monkeypatch):
+    started: list[FakeProcess] = []
+    monkeypatch.setattr(
+        "services.stack.subprocess.Popen",
+        lambda *a, **kw: started.append(FakeProcess(43)) or started[-1],
+    )
+    child = running_child(tmp_path, "on-failure")
+    assert child.health(1.0, alive=set())["state"] == "starting"
+    child.step(1.0, alive={"svc"})
+    health = child.health(3.0, alive={"svc"})
+    assert (health["state"], health["alive"], health["uptime_s"]) == ("running", True, 3.0)
+    child.popen.returncode = -signal.SIGKILL
+    child.step(4.0, alive=set())
+    health = child.health(4.5, alive=set())
+    assert (health["state"], health["running"], health["next_start_in_s"]) == (
+        "waiting",
+        False,
+        0.5,
+    )
+    assert health["last_restart_reason"] == "exited with SIGKILL after 4 s"
+    child.step(5.0, alive=set())
+    assert child.popen is started[0] and child.restarts == 1
+    assert "restarted by up: exited with SIGKILL after 4 s" in (tmp_path / "svc.log").read_text()
+    child.popen.returncode = 0
+    child.step(6.0, alive=set())
+    health = child.health(6.0, alive=set())
+    assert (health["state"], health["last_exit"], health["uptime_s"]) == ("finished", 0, None)
