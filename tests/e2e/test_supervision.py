@@ -147,9 +147,13 @@ def test_a_finished_simulator_is_left_alone_and_a_failing_one_is_restarted(up):
         ],
         backoff_initial_s=0.5,
     )
-    # The broken one exits 1 and is started again; by its second exit, the world (started
-    # at the same moment, with the same imports) has finished long since.
-    health = stack.until(lambda h: h["processes"]["broken"]["restarts"] >= 2, timeout=90)
+    finished = stack.until(lambda h: h["processes"]["world"]["state"] == "finished", timeout=90)
+    # Three more seconds (six times the restart delay) and the broken one's second restart.
+    then = finished["up"]["uptime_s"] + 3
+    health = stack.until(
+        lambda h: h["up"]["uptime_s"] >= then and h["processes"]["broken"]["restarts"] >= 2,
+        timeout=90,
+    )
     world, broken = health["processes"]["world"], health["processes"]["broken"]
     assert world["state"] == "finished" and world["last_exit"] == 0, world
     assert world["restarts"] == 0 and not world["running"]
