@@ -369,7 +369,8 @@ class Flow:
 
 
 class StatusBoard:
-    """Counts what flows on the bus (fed by subscriber callbacks; cheap and thread-safe)."""
+    """Counts what flows on the bus, fed by subscriber callbacks that only count under a
+    lock (and keep alert payloads for the main loop); thread-safe."""
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
@@ -377,24 +378,33 @@ class StatusBoard:
         self.segments: set[str] = set()
         self.trains: set[str] = set()
         self.raised: set[tuple[str, ...]] = set()
+        self.alerts: list[bytes] = []  # payloads not decoded yet
         self.alive: set[tuple[str, str]] = set()
         self.viewer_url = ""  # the web viewer's address, once the viewer has printed it
 
     def on_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        parts = key.split("/")
+        parts = str(sample.key_expr).split("/")
+        payload = sample.payload.to_bytes() if parts[1] == "alert" else b""
         with self.lock:
             self.counts[parts[1]] += 1
             if parts[1] == "state":
                 self.segments.add("/".join(parts[2:4]))
             elif parts[1] == "gps":
                 self.trains.add(parts[2])
-            elif parts[1] == "alert":
-                try:
-                    alert = decode(sample.payload.to_bytes(), Alert)
-                except SchemaError:
-                    return  # the alerting service's problem; its dead letters say so
-                ident = (alert.line, alert.segment, alert.kind, alert.indicator, alert.level)
+            elif payload:
+                self.alerts.append(payload)  # decoded by the main loop, off the Zenoh thread
+
+    def take_alerts(self) -> None:
+        """Decode the alerts received since the last call into the set of raised alerts."""
+        with self.lock:
+            payloads, self.alerts = self.alerts, []
+        for payload in payloads:
+            try:
+                alert = decode(payload, Alert)
+            except SchemaError:
+                continue  # the alerting service's problem; its dead letters say so
+            ident = (alert.line, alert.segment, alert.kind, alert.indicator, alert.level)
+            with self.lock:
                 if alert.status == "raised":
                     self.raised.add(ident)
                 else:
@@ -441,6 +451,7 @@ class Supervisor:
         self._rate_base = self.counts
 
     def tick(self, now: float) -> None:
+        self.board.take_alerts()
         alive = self.board.alive_instances()
         for child in self.children.values():
             child.step(now, alive)

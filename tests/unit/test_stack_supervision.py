@@ -9,7 +9,17 @@ from pathlib import Path
 import json5
 import pytest
 
-from services.stack import Child, Flow, ProcessSpec, Stack, Supervision, backoff_s, load_stack
+from schemas import Alert, encode
+from services.stack import (
+    Child,
+    Flow,
+    ProcessSpec,
+    Stack,
+    StatusBoard,
+    Supervision,
+    backoff_s,
+    load_stack,
+)
 
 
 class FakeProcess:
@@ -192,3 +202,38 @@ def test_health_of_a_child_through_its_runs(tmp_path, monkeypatch):
     child.step(6.0, alive=set())
     health = child.health(6.0, alive=set())
     assert (health["state"], health["last_exit"], health["uptime_s"]) == ("finished", 0, None)
+
+
+class FakeSample:
+    """What :meth:`StatusBoard.on_sample` reads of a ``zenoh.Sample``."""
+
+    def __init__(self, key: str, payload: bytes = b"") -> None:
+        self.key_expr, self._payload = key, payload
+        self.payload = self
+
+    def to_bytes(self) -> bytes:
+        return self._payload
+
+
+def test_the_board_counts_in_callbacks_and_decodes_alerts_later():
+    board = StatusBoard()
+
+    def alert(status: str) -> FakeSample:
+        message = Alert(line="L1", segment="s1", t=0.0, kind="stale", status=status, indicator="")
+        return FakeSample("ns/alert/L1/s1", encode(message))
+
+    for sample in (
+        FakeSample("ns/state/L1/s1"),
+        FakeSample("ns/state/L1/s2"),
+        FakeSample("ns/gps/T7"),
+        alert("raised"),
+        FakeSample("ns/alert/L1/s2", b"not an alert"),
+    ):
+        board.on_sample(sample)  # type: ignore[arg-type]
+    assert board.totals() == (1, 2, 0)  # alerts wait for the main loop
+    board.take_alerts()
+    assert board.totals() == (1, 2, 1)
+    board.on_sample(alert("cleared"))  # type: ignore[arg-type]
+    board.take_alerts()
+    assert board.totals() == (1, 2, 0)
+    assert board.snapshot() == {"state": 2, "gps": 1, "alert": 3}
