@@ -611,7 +611,10 @@ def main(stack_path: str | Path = DEFAULT_STACK, *, out: TextIO = sys.stdout, **
                 if not board.viewer_url:
                     board.viewer_url = viewer_url(stack.state_dir / "viewer.log")
                 health = supervisor.health(now)
-                supervisor.write_health(health)
+                try:
+                    supervisor.write_health(health)
+                except OSError as exc:  # a full disk must not stop the supervision
+                    log.warning("cannot write %s: %s", HEALTH_FILE, exc)
                 refreshes += 1
                 if tty or refreshes % 5 == 0:
                     text = supervisor.render(health)
