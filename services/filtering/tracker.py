@@ -62,14 +62,15 @@ returns a :class:`Step` (accepted or not, why, and the SegmentStates to publish)
 from __future__ import annotations
 
 import bisect
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field, fields, replace
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from schemas import (
     INDICATORS,
+    ONBOARD_INDICES,
     Calibration,
     DegradationPosterior,
     MaintenanceEvent,
@@ -78,14 +79,20 @@ from schemas import (
     SegmentState,
     TrcRecord,
 )
-from services.filtering.bank import ObservationModel, update_unchecked
+from services.filtering.bank import (
+    BLOCK_FILTERS,
+    ObservationModel,
+    _contiguous,
+    update_unchecked,
+)
 from services.filtering.degradation import DegradationParams, transition_unchecked
-from services.filtering.mixture import MixtureSummary, summarize, weights_from_log
+from services.filtering.mixture import summarize_unchecked, weights_from_log
 
 DAY_S = 86400.0
 HORIZONS_DAYS = (30.0, 90.0, 180.0)
 RESTART, TAMPING, INDEX = 0, 1, 2  # kind priority at equal times
 KIND_NAMES = {RESTART: "trc", TAMPING: "maintenance", INDEX: "index"}
+SUMMARY_SEGMENTS = 32  # segments per batched summary: its temporaries stay in cache
 
 SegmentId = tuple[str, str]  # (line, segment)
 EventMessage = OnboardIndex | TrcRecord | MaintenanceEvent
@@ -149,32 +156,96 @@ class Models:
         return None
 
 
-def with_model(models: Models, msg: ModelMessage) -> Models | None:
-    """``models`` with ``msg`` in it, or None if ``msg`` is not newer than the one held."""
+def model_name(msg: ModelMessage) -> str:
+    """The name a model is versioned under: ``calibration`` or ``degradation/{group}``."""
     match msg:
         case Calibration():
-            held = models.calibration
-            if held is not None and msg.version <= held.version:
-                return None
-            if tuple(msg.indicators) != INDICATORS:
-                raise ValueError(f"Calibration: indicators {msg.indicators} != {INDICATORS}")
-            observation = ObservationModel(msg.H.array(), msg.b.array(), msg.R.array())
-            return replace(models, calibration=msg, observation=observation)
+            return "calibration"
         case DegradationPosterior():
-            held_p = models.posteriors.get(msg.group)
-            if held_p is not None and msg.version <= held_p.version:
-                return None
-            if tuple(msg.indicators) != INDICATORS:
-                raise ValueError(f"DegradationPosterior: indicators {msg.indicators}")
-            params = DegradationParams(
-                msg.mu.array(), msg.sigma.array(), msg.z_plus.array(), msg.sigma_z_plus.array()
-            )
-            return replace(
-                models,
-                posteriors={**models.posteriors, msg.group: msg},
-                params={**models.params, msg.group: params},
-            )
+            return f"degradation/{msg.group}"
     raise TypeError(f"not a model: {type(msg).__name__}")
+
+
+def _field(kind: str, name: str, value, shape: tuple[int | None, ...]) -> np.ndarray:
+    """A model field as float64 of ``shape`` (None: any extent >= 1), or ValueError naming it."""
+    try:
+        arr = np.asarray(value.array(), dtype=np.float64)
+    except (AttributeError, TypeError, ValueError) as exc:
+        raise ValueError(f"{kind}.{name}: not a numeric array ({exc})") from None
+    if arr.ndim != len(shape) or any(
+        got < 1 if want is None else got != want for want, got in zip(shape, arr.shape, strict=True)
+    ):
+        want_s = ", ".join("Ns" if w is None else str(w) for w in shape)
+        raise ValueError(f"{kind}.{name}: shape {arr.shape}, expected ({want_s})")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{kind}.{name}: contains NaN or inf")
+    return arr
+
+
+def parse_model(msg: ModelMessage) -> ObservationModel | DegradationParams:
+    """The core's form of a model message, checked completely; ValueError naming the field.
+
+    Everything the fold and the summaries use is checked here, before a model may replace
+    the one held: the state and index names and order, every array's exact shape, finite
+    values, ``R`` symmetric positive definite (right after a TRC restart ``S = R``), the
+    posterior covariances ``Sigma`` and ``Sigma_z+`` symmetric positive semi-definite, and
+    a version >= 1.
+    """
+    kind = type(msg).__name__
+    if not isinstance(msg, Calibration | DegradationPosterior):
+        raise TypeError(f"not a model: {kind}")
+    if not isinstance(msg.version, int) or msg.version < 1:
+        raise ValueError(f"{kind}.version: {msg.version!r}, expected an integer >= 1")
+    if tuple(msg.indicators) != INDICATORS:
+        raise ValueError(f"{kind}.indicators: {list(msg.indicators)} != {list(INDICATORS)}")
+    n = len(INDICATORS)
+    if isinstance(msg, Calibration):
+        if tuple(msg.indices) != ONBOARD_INDICES:
+            raise ValueError(f"{kind}.indices: {list(msg.indices)} != {list(ONBOARD_INDICES)}")
+        m = len(ONBOARD_INDICES)
+        H = _field(kind, "H", msg.H, (m, n))
+        b = _field(kind, "b", msg.b, (m,))
+        R = _field(kind, "R", msg.R, (m, m))
+        try:
+            return ObservationModel(H, b, R)
+        except ValueError as exc:  # "R: not positive definite" and the like
+            raise ValueError(f"{kind}.{exc}") from None
+    mu = _field(kind, "mu", msg.mu, (None, n))
+    ns = mu.shape[0]
+    arrays = {
+        "mu": mu,
+        "sigma": _field(kind, "sigma", msg.sigma, (ns, n, n)),
+        "z_plus": _field(kind, "z_plus", msg.z_plus, (ns, n)),
+        "sigma_z_plus": _field(kind, "sigma_z_plus", msg.sigma_z_plus, (ns, n, n)),
+    }
+    try:
+        return DegradationParams(**arrays)
+    except ValueError as exc:  # "sigma: not positive semi-definite" and the like
+        raise ValueError(f"{kind}.{exc}") from None
+
+
+def _with_parsed(models: Models, msg: ModelMessage, parsed) -> Models:
+    if isinstance(msg, Calibration):
+        return replace(models, calibration=msg, observation=parsed)
+    return replace(
+        models,
+        posteriors={**models.posteriors, msg.group: msg},
+        params={**models.params, msg.group: parsed},
+    )
+
+
+def held_version(models: Models, msg: ModelMessage) -> int | None:
+    """The version of the model held under ``msg``'s name, None if none is held."""
+    held = models.calibration if isinstance(msg, Calibration) else models.posteriors.get(msg.group)
+    return None if held is None else held.version
+
+
+def with_model(models: Models, msg: ModelMessage) -> Models | None:
+    """``models`` with ``msg`` in it, None if not newer than the one held; ValueError if invalid."""
+    held = held_version(models, msg)
+    if held is not None and msg.version <= held:
+        return None
+    return _with_parsed(models, msg, parse_model(msg))
 
 
 @dataclass(frozen=True)
@@ -188,6 +259,185 @@ class Filtered:
     n_updates: int
     nis: float | None
     log_w: np.ndarray  # (Ns,) log-likelihood of the on-board data since the TRC restart
+
+
+class _Banks:
+    r"""The filter banks of ``S`` segments (one sample count ``Ns``) as stacked arrays.
+
+    The fold of many segments at once: :meth:`restart`, :meth:`tamping` and :meth:`index`
+    apply one event to each of the listed rows in one vectorised call, in blocks of about
+    ``BLOCK_FILTERS`` filters. Every operation is elementwise over segments and samples, or
+    a sum over the samples of one segment, so a segment's numbers do not depend on the
+    other rows of the call: a batch of one is the live, one-event step, and a re-run of
+    thousands of segments gives the same bits (``update_unchecked`` is written so).
+    """
+
+    def __init__(self, starts: Sequence[Filtered | None], ns: int, n: int) -> None:
+        size = len(starts)
+        self.z = np.zeros((size, ns, n))
+        self.P = np.zeros((size, ns, n, n))
+        self.log_w = np.zeros((size, ns))
+        self.t_s = np.zeros(size)
+        self.last_trc_t = np.full(size, np.nan)  # NaN: None
+        self.n_updates = np.zeros(size, dtype=np.int64)
+        self.nis = np.full(size, np.nan)  # NaN: None
+        self.started = np.zeros(size, dtype=bool)
+        for row, state in enumerate(starts):
+            if state is None:
+                continue
+            self.z[row], self.P[row], self.log_w[row] = state.z, state.P, state.log_w
+            self.t_s[row], self.n_updates[row] = state.t_s, state.n_updates
+            self.last_trc_t[row] = np.nan if state.last_trc_t is None else state.last_trc_t
+            self.nis[row] = np.nan if state.nis is None else state.nis
+            self.started[row] = True
+        self._block = max(1, BLOCK_FILTERS // max(ns, 1))
+
+    def state(self, row: int) -> Filtered | None:
+        """Row ``row`` as a :class:`Filtered` (views of the stacked arrays), None if unstarted."""
+        if not self.started[row]:
+            return None
+        last_trc_t, nis = float(self.last_trc_t[row]), float(self.nis[row])
+        return Filtered(
+            self.z[row],
+            self.P[row],
+            float(self.t_s[row]),
+            None if np.isnan(last_trc_t) else last_trc_t,
+            int(self.n_updates[row]),
+            None if np.isnan(nis) else nis,
+            self.log_w[row],
+        )
+
+    def _blocks(self, rows: np.ndarray):
+        """``(part, rows)`` in blocks; ``part`` indexes ``rows``; consecutive rows as a slice."""
+        for first in range(0, len(rows), self._block):
+            part = slice(first, first + self._block)
+            yield part, _contiguous(rows[part])
+
+    def restart(self, rows: np.ndarray, t_s: np.ndarray, z: np.ndarray) -> None:
+        """TRC record: every sample at ``z`` (k, n), ``P = 0``, equal weights, no NIS."""
+        self.z[rows] = z[:, None, :]
+        self.P[rows] = 0.0
+        self.log_w[rows] = 0.0
+        self.t_s[rows] = self.last_trc_t[rows] = t_s
+        self.n_updates[rows] = 0
+        self.nis[rows] = np.nan
+        self.started[rows] = True
+
+    def tamping(self, rows: np.ndarray, t_s: np.ndarray, params) -> None:
+        r"""Tamping at ``t_s``: the transition with tamping age 0 (Eq. 2), a reset to
+
+        .. math:: \hat z = z^+ + \mu \cdot 0, \qquad P = \Sigma_{z^+} + \Sigma \cdot 0.
+
+        A row without state starts here (``z = P = 0`` first, never used) with equal
+        weights; a started row keeps its weights, update count and NIS.
+        """
+        fresh = rows[~self.started[rows]]
+        if len(fresh):
+            self.z[fresh], self.P[fresh], self.log_w[fresh] = 0.0, 0.0, 0.0
+            self.t_s[fresh] = t_s[~self.started[rows]]
+            self.last_trc_t[fresh], self.n_updates[fresh], self.nis[fresh] = np.nan, 0, np.nan
+            self.started[fresh] = True
+        for part, sel in self._blocks(rows):
+            dt = (t_s[part] - self.t_s[sel]) / DAY_S
+            self.z[sel], self.P[sel] = transition_unchecked(
+                self.z[sel], self.P[sel], params(sel), dt, 0.0
+            )
+        self.t_s[rows] = t_s
+
+    def index(self, rows, t_s, y, params, obs: ObservationModel) -> None:
+        r"""On-board index ``y`` (k, m) at ``t_s`` on started rows (paper Eq. 7-12).
+
+        Predict over :math:`\Delta t` days, update in Joseph form, and add each sample's
+        log-likelihood to its log weight; the NIS is the mean over samples weighted by
+        the weights before the update,
+
+        .. math::
+
+            \overline{\nu} = \sum_j w_j \nu_j, \quad
+            w_j \propto \exp(\log w_j), \qquad
+            \log w_j \mathrel{+}= \log \mathcal N(\nu_j; 0, S_j).
+        """
+        for part, sel in self._blocks(rows):
+            dt = (t_s[part] - self.t_s[sel]) / DAY_S
+            z, P = transition_unchecked(self.z[sel], self.P[sel], params(sel), dt)
+            z, P, nis, loglik = update_unchecked(z, P, y[part], obs.H, obs.b, obs.R, loglik=True)
+            # a sum over the last axis, not ``w @ nis``: BLAS dot's order depends on the call
+            self.nis[sel] = (weights_from_log(self.log_w[sel]) * nis).sum(-1)
+            self.z[sel], self.P[sel] = z, P
+            self.log_w[sel] += loglik
+            self.n_updates[sel] += 1
+        self.t_s[rows] = t_s
+
+
+def _params_of(params: Sequence[DegradationParams]):
+    """``rows -> DegradationParams`` of those rows: shared if every row has the same."""
+    first = params[0]
+    if all(p is first for p in params):
+        return lambda rows: first
+    unique: dict[int, int] = {}
+    for p in params:
+        unique.setdefault(id(p), len(unique))
+    groups = {id(p): p for p in params}
+    stack = DegradationParams.__new__(DegradationParams)
+    for name in ("mu", "sigma", "z_plus", "sigma_z_plus"):
+        object.__setattr__(stack, name, np.stack([getattr(groups[k], name) for k in unique]))
+    row_group = np.array([unique[id(p)] for p in params])
+    return lambda rows: stack.take(row_group[rows])
+
+
+def fold_many(
+    starts: Sequence[Filtered | None],
+    logs: Sequence[Sequence[Event]],
+    params: Sequence[DegradationParams],
+    obs: ObservationModel | None,
+) -> list[Filtered | None]:
+    """Fold each ``logs[i]`` from ``starts[i]`` with ``params[i]``, all segments at once.
+
+    One vectorised step per event position ``k``: the segments are ordered by decreasing
+    log length, so those still holding a k-th event are a prefix, and split by the kind of
+    that event. Bit-identical to folding each segment alone (see :class:`_Banks`). Every
+    ``params[i]`` must have the same ``(Ns, n)``; ``obs`` must not be None if an index
+    follows a start (the caller checks it, see :func:`_publishable`).
+    """
+    size = len(logs)
+    if size == 0:
+        return []
+    ns, n = params[0].ns, params[0].n
+    order = sorted(range(size), key=lambda i: -len(logs[i]))
+    depth = len(logs[order[0]])
+    kinds = np.full((size, depth), -1, dtype=np.int8)
+    times = np.zeros((size, depth))
+    values = np.zeros((size, depth, n))
+    for row, i in enumerate(order):
+        log = logs[i]
+        kinds[row, : len(log)] = [e.kind for e in log]
+        times[row, : len(log)] = [e.t_s for e in log]
+        for k, e in enumerate(log):
+            if e.value is not None:
+                values[row, k] = e.value
+    banks = _Banks([starts[i] for i in order], ns, n)
+    rows_params = _params_of([params[i] for i in order])
+    lengths = np.array([len(logs[i]) for i in order])
+    for k in range(depth):
+        active = int(np.count_nonzero(lengths > k))
+        kind = kinds[:active, k]
+        for code in (RESTART, TAMPING, INDEX):
+            rows = np.flatnonzero(kind == code)
+            if code == INDEX:
+                rows = rows[banks.started[rows]]  # an index before any start is skipped
+            if len(rows) == 0:
+                continue
+            if code == RESTART:
+                banks.restart(rows, times[rows, k], values[rows, k])
+            elif code == TAMPING:
+                banks.tamping(rows, times[rows, k], rows_params)
+            else:
+                assert obs is not None
+                banks.index(rows, times[rows, k], values[rows, k], rows_params, obs)
+    out: list[Filtered | None] = [None] * size
+    for row, i in enumerate(order):
+        out[i] = banks.state(row)
+    return out
 
 
 def apply_event(
@@ -206,27 +456,9 @@ def apply_event(
 
     Returns None while nothing has started the state (an index before any start).
     ``obs`` must not be None for an index on a started state (the caller checks it).
+    :func:`fold_many` with one segment and one event, so it gives the re-run's bits.
     """
-    ns, n = params.ns, params.n
-    if event.kind == RESTART:
-        z = np.broadcast_to(event.value, (ns, n)).copy()
-        return Filtered(z, np.zeros((ns, n, n)), event.t_s, event.t_s, 0, None, np.zeros(ns))
-    if state is None:
-        if event.kind == INDEX:
-            return None
-        z, P = np.zeros((ns, n)), np.zeros((ns, n, n))
-        state = Filtered(z, P, event.t_s, None, 0, None, np.zeros(ns))
-    dt = (event.t_s - state.t_s) / DAY_S
-    if event.kind == TAMPING:
-        z, P = transition_unchecked(state.z, state.P, params, dt, 0.0)
-        return replace(state, z=z, P=P, t_s=event.t_s)
-    assert obs is not None
-    z, P = transition_unchecked(state.z, state.P, params, dt)
-    z, P, nis, loglik = update_unchecked(z, P, event.value, obs.H, obs.b, obs.R, loglik=True)
-    nis_mean = float(weights_from_log(state.log_w) @ nis)
-    return Filtered(
-        z, P, event.t_s, state.last_trc_t, state.n_updates + 1, nis_mean, state.log_w + loglik
-    )
+    return fold_many([state], [(event,)], [params], obs)[0]
 
 
 @dataclass(frozen=True)
@@ -241,24 +473,60 @@ class Track:
     group: str | None = None  # posterior group of ``state``
 
 
-def _fold(track: Track, models: Models, events: Iterable[Event], start: Filtered | None):
+def _publishable(log: Sequence[Event], obs: ObservationModel | None, started=False) -> bool:
+    """False if the fold of ``log`` (from a started state if ``started``) needs an update
+    without a calibration."""
+    if obs is not None:
+        return True
+    for event in log:
+        if event.kind != INDEX:
+            started = True
+        elif started:
+            return False
+    return True
+
+
+def _fold(track: Track, models: Models, events: Sequence[Event], start: Filtered | None):
     """Fold ``events`` from ``start``; (state, group) or (None, group) if not publishable."""
     group = models.group_for(track.line, track.segment)
     if group is None:
         return None, group
-    params, obs = models.params[group], models.observation
-    state = start
-    for event in events:
-        if event.kind == INDEX and obs is None and state is not None:
-            return None, group  # an update to make without a calibration
-        state = apply_event(state, event, params, obs)
-    return state, group
+    obs = models.observation
+    if not _publishable(events, obs, started=start is not None):
+        return None, group
+    return fold_many([start], [events], [models.params[group]], obs)[0], group
+
+
+def replay_many(tracks: Sequence[Track], models: Models) -> list[Track]:
+    """The tracks with their states recomputed from the start of their logs, in one pass.
+
+    Segments of every posterior group go through one :func:`fold_many` per sample count
+    ``Ns``; a segment without a group, or needing an update without a calibration, gets
+    no state. Bit-identical to :func:`replay` of each track.
+    """
+    out = list(tracks)
+    jobs: dict[int, list[tuple[int, str]]] = {}
+    for i, track in enumerate(tracks):
+        group = models.group_for(track.line, track.segment)
+        if group is None or not _publishable(track.log, models.observation):
+            out[i] = replace(track, state=None, group=group)
+        else:
+            jobs.setdefault(models.params[group].ns, []).append((i, group))
+    for job in jobs.values():
+        states = fold_many(
+            [None] * len(job),
+            [tracks[i].log for i, _ in job],
+            [models.params[group] for _, group in job],
+            models.observation,
+        )
+        for (i, group), state in zip(job, states, strict=True):
+            out[i] = replace(tracks[i], state=state, group=group)
+    return out
 
 
 def replay(track: Track, models: Models) -> Track:
     """The track with its state recomputed from the start of its log."""
-    state, group = _fold(track, models, track.log, None)
-    return replace(track, state=state, group=group)
+    return replay_many([track], models)[0]
 
 
 def add_event(track: Track, event: Event) -> tuple[Track, str]:
@@ -299,6 +567,22 @@ class Step:
     states: tuple[SegmentState, ...] = ()
 
 
+@dataclass(frozen=True)
+class ModelUpdate:
+    """What :meth:`Tracker.update_models` did with each model message, and the new states.
+
+    ``accepted``: applied (the newest version per model name); ``ignored``: not newer than
+    the one held or superseded by a newer one in the same update, with why; ``refused``:
+    invalid (the reason names the field) or its re-run failed; ``states``: the re-run
+    segments' publishable states.
+    """
+
+    accepted: list[ModelMessage] = field(default_factory=list)
+    ignored: list[tuple[ModelMessage, str]] = field(default_factory=list)
+    refused: list[tuple[ModelMessage, str]] = field(default_factory=list)
+    states: tuple[SegmentState, ...] = ()
+
+
 class Tracker:
     """Every segment's :class:`Track` (dict by ``(line, segment)``) and the models.
 
@@ -325,13 +609,18 @@ class Tracker:
         self.horizons_days = np.asarray(tuple(horizons_days), dtype=np.float64)
 
     def step(self, msg: EventMessage | ModelMessage) -> Step:
-        """Apply one decoded message; the returned states are the segments it changed."""
+        """Apply one decoded message; the returned states are the segments it changed.
+
+        A model is :meth:`update_models` of that one message; an invalid one raises
+        ValueError with the reason (the service turns it into a dead letter).
+        """
         if isinstance(msg, Calibration | DegradationPosterior):
-            models = with_model(self.models, msg)
-            if models is None:
-                return Step(False, "version not newer than the one held")
-            self.models = models
-            return Step(True, "", tuple(self._rerun(self._affected(msg))))
+            update = self.update_models([msg])
+            if update.refused:
+                raise ValueError(update.refused[0][1])
+            if update.ignored:
+                return Step(False, update.ignored[0][1])
+            return Step(True, "", update.states)
         event = event_of(msg)
         sid = (msg.line, msg.segment)
         track = self.tracks.get(sid) or Track(msg.line, msg.segment)
@@ -342,48 +631,122 @@ class Tracker:
         out = self.segment_state(track)
         return Step(True, "", () if out is None else (out,))
 
+    def update_models(self, msgs: Sequence[ModelMessage]) -> ModelUpdate:
+        """Apply several model messages at once, re-running each affected segment once.
+
+        Keeps the newest version per model name (``calibration``,
+        ``degradation/{group}``) among the valid messages newer than the one held, checks
+        each completely (:func:`parse_model`) before anything is replaced, then re-runs the
+        union of the segments they affect in one batched pass (:func:`replay_many`). The
+        swap is atomic: if the re-run fails, the models and tracks stay as they were and
+        the messages are refused with the reason (one by one if there were several, so
+        that a good one still applies). Same final states as stepping the messages one by
+        one, in any order.
+        """
+        ignored: list[tuple[ModelMessage, str]] = []
+        refused: list[tuple[ModelMessage, str]] = []
+        newest: dict[str, tuple[ModelMessage, Any]] = {}
+        for msg in msgs:
+            name = model_name(msg)
+            held = held_version(self.models, msg)
+            if held is not None and msg.version <= held:
+                ignored.append((msg, "version not newer than the one held"))
+                continue
+            try:
+                parsed = parse_model(msg)
+            except ValueError as exc:
+                refused.append((msg, str(exc)))
+                continue
+            previous = newest.get(name)
+            if previous is not None:
+                if msg.version <= previous[0].version:
+                    why = f"superseded by version {previous[0].version} in the same update"
+                    ignored.append((msg, why))
+                    continue
+                why = f"superseded by version {msg.version} in the same update"
+                ignored.append((previous[0], why))
+            newest[name] = (msg, parsed)
+        if not newest:
+            return ModelUpdate([], ignored, refused)
+        models = self.models
+        for msg, parsed in newest.values():
+            models = _with_parsed(models, msg, parsed)
+        calibrated = any(isinstance(msg, Calibration) for msg, _ in newest.values())
+        groups = {msg.group for msg, _ in newest.values() if isinstance(msg, DegradationPosterior)}
+        affected = [sid for sid in self.tracks if calibrated or models.group_for(*sid) in groups]
+        accepted = [msg for msg in msgs if newest.get(model_name(msg), (None,))[0] is msg]
+        try:
+            tracks, states = self._rerun(models, affected)
+        except (ValueError, ArithmeticError) as exc:
+            if len(accepted) == 1:
+                refused.append((accepted[0], f"re-run with this model failed: {exc}"))
+                return ModelUpdate([], ignored, refused)
+            one_by_one = [self.update_models([msg]) for msg in accepted]
+            return ModelUpdate(
+                [m for u in one_by_one for m in u.accepted],
+                ignored + [m for u in one_by_one for m in u.ignored],
+                refused + [m for u in one_by_one for m in u.refused],
+                tuple(state for u in one_by_one for state in u.states),
+            )
+        self.models = models
+        self.tracks.update(tracks)
+        return ModelUpdate(accepted, ignored, refused, states)
+
     def load(self, models: Iterable[ModelMessage], events: Iterable[EventMessage]) -> list:
-        """Rebuild from stored models and events (any order): the publishable states."""
-        for msg in models:
-            self.models = with_model(self.models, msg) or self.models
+        """Rebuild from stored models and events (any order): the publishable states.
+
+        A stored model that is no longer valid is skipped (:meth:`update_models` says why),
+        so that it cannot stop a restart.
+        """
         for msg in events:
             sid = (msg.line, msg.segment)
             track = self.tracks.get(sid) or Track(msg.line, msg.segment)
             self.tracks[sid] = add_event(track, event_of(msg))[0]
-        return self._rerun(self.tracks)
+        self.update_models(list(models))
+        tracks, states = self._rerun(self.models, list(self.tracks))
+        self.tracks.update(tracks)
+        return list(states)
 
-    def _affected(self, msg: ModelMessage) -> list[SegmentId]:
-        if isinstance(msg, Calibration):
-            return list(self.tracks)
-        return [sid for sid in self.tracks if self.models.group_for(*sid) == msg.group]
+    def _rerun(
+        self, models: Models, sids: Sequence[SegmentId]
+    ) -> tuple[dict[SegmentId, Track], tuple[SegmentState, ...]]:
+        """Re-run ``sids`` with ``models`` in one batch; nothing is changed in place."""
+        tracks = replay_many([self.tracks[sid] for sid in sids], models)
+        states = self.segment_states(tracks, models)
+        return dict(zip(sids, tracks, strict=True)), tuple(s for s in states if s is not None)
 
-    def _rerun(self, sids: Iterable[SegmentId]) -> list[SegmentState]:
-        states = []
-        for sid in list(sids):
-            track = replay(self.tracks[sid], self.models)
-            self.tracks[sid] = track
-            out = self.segment_state(track)
-            if out is not None:
-                states.append(out)
-        return states
+    def segment_states(
+        self, tracks: Sequence[Track], models: Models | None = None
+    ) -> list[SegmentState | None]:
+        """The SegmentState messages of tracks (None if not publishable), in batches."""
+        models = self.models if models is None else models
+        out: list[SegmentState | None] = [None] * len(tracks)
+        jobs: dict[int, list[int]] = {}
+        for i, track in enumerate(tracks):
+            if track.state is not None and track.group is not None:
+                jobs.setdefault(track.state.z.shape[0], []).append(i)
+        limits: dict[str, np.ndarray] = {}
+        for job in jobs.values():
+            for first in range(0, len(job), SUMMARY_SEGMENTS):
+                chunk = job[first : first + SUMMARY_SEGMENTS]
+                for line in {tracks[i].line for i in chunk} - limits.keys():
+                    limits[line] = np.asarray(self._limits_mm(line), dtype=np.float64)
+                states = summarize_states(
+                    [tracks[i] for i in chunk],
+                    [models.params[tracks[i].group] for i in chunk],
+                    [limits[tracks[i].line] for i in chunk],
+                    self.limit_levels,
+                    self.horizons_days,
+                    calibration_version=(models.calibration.version if models.calibration else 0),
+                    posterior_versions=[models.posteriors[tracks[i].group].version for i in chunk],
+                )
+                for i, state in zip(chunk, states, strict=True):
+                    out[i] = state
+        return out
 
     def segment_state(self, track: Track) -> SegmentState | None:
         """The SegmentState message of a track (None if not publishable)."""
-        state = track.state
-        if state is None or track.group is None:
-            return None
-        return summarize_state(
-            track.line,
-            track.segment,
-            state,
-            self.models.params[track.group],
-            self._limits_mm(track.line),
-            self.limit_levels,
-            self.horizons_days,
-            calibration_version=self.models.calibration.version if self.models.calibration else 0,
-            posterior_version=self.models.posteriors[track.group].version,
-            posterior_group=track.group,
-        )
+        return self.segment_states([track])[0]
 
     def state_of(self, line: str, segment: str) -> SegmentState | None:
         track = self.tracks.get((line, segment))
@@ -393,6 +756,85 @@ class Tracker:
 def state_weights(state: Filtered) -> np.ndarray:
     """Normalised mixture weights (Ns,) of a state (``mixture.weights_from_log``)."""
     return weights_from_log(state.log_w)
+
+
+def _stacked(params: Sequence[DegradationParams]) -> DegradationParams:
+    """Per-row parameters ``(S, 1, Ns, ...)`` (a horizon axis to broadcast), or the shared one."""
+    first = params[0]
+    if all(p is first for p in params):
+        return first
+    rows = DegradationParams.__new__(DegradationParams)
+    for name in ("mu", "sigma", "z_plus", "sigma_z_plus"):
+        stack = np.stack([getattr(p, name) for p in params])[:, None]
+        object.__setattr__(rows, name, stack)
+    return rows
+
+
+def summarize_states(
+    tracks: Sequence[Track],
+    params: Sequence[DegradationParams],
+    limits_mm: Sequence[np.ndarray],
+    limit_levels: list[str],
+    horizons_days: np.ndarray,
+    *,
+    calibration_version: int,
+    posterior_versions: Sequence[int],
+) -> list[SegmentState]:
+    r"""Mixture summaries, exceedances and forecasts of many filter banks (Eq. 13-14).
+
+    Every track must have a state, with the same ``Ns``. Each summary is the mixture of
+    its ``Ns`` filters with the weights :func:`state_weights` (the likelihood of the
+    segment's on-board data since its TRC restart), now and at each horizon :math:`h`
+    without data in between (Eq. 2):
+
+    .. math::
+
+        \hat z^j(h) = \hat z^j + \mu_j h, \qquad P^j(h) = P^j + \Sigma_j h.
+
+    All segments and horizons go through one :func:`mixture.summarize_unchecked` call
+    (row 0 of the horizon axis is now), whose quantile search is most of the cost; a
+    segment's numbers do not depend on the others in the call, so a batch gives the bits
+    of :func:`summarize_state`.
+    """
+    state_list = [track.state for track in tracks]
+    z = np.stack([state.z for state in state_list])[:, None]  # (S, 1, Ns, n)
+    P = np.stack([state.P for state in state_list])[:, None]
+    w = weights_from_log(np.stack([state.log_w for state in state_list]))[:, None]
+    h = np.concatenate(([0.0], horizons_days))
+    z_all, P_all = transition_unchecked(z, P, _stacked(params), h)  # (S, 1 + h, Ns, n)
+    limits = np.stack(limits_mm, axis=1)[:, :, None, :]  # (L, S, 1, n)
+    both = summarize_unchecked(z_all, P_all, limits, weights=w)
+    p_exceed = both.p_exceed  # (L, S, 1 + h, n)
+    out = []
+    for row, (track, state) in enumerate(zip(tracks, state_list, strict=True)):
+        out.append(
+            SegmentState(
+                line=track.line,
+                segment=track.segment,
+                t=state.t_s,
+                indicators=list(INDICATORS),
+                mean=NDArray.of(both.mean[row, 0]),
+                cov=NDArray.of(both.cov[row, 0]),
+                ci_low_mm=NDArray.of(both.ci_low_mm[row, 0]),
+                ci_high_mm=NDArray.of(both.ci_high_mm[row, 0]),
+                width=float(both.width[row, 0]),
+                limit_levels=list(limit_levels),
+                limits_mm=NDArray.of(limits_mm[row]),
+                p_exceed=NDArray.of(p_exceed[:, row, 0]),
+                horizons_days=NDArray.of(horizons_days),
+                forecast_mean=NDArray.of(both.mean[row, 1:]),
+                forecast_ci_low_mm=NDArray.of(both.ci_low_mm[row, 1:]),
+                forecast_ci_high_mm=NDArray.of(both.ci_high_mm[row, 1:]),
+                forecast_p_exceed=NDArray.of(np.swapaxes(p_exceed[:, row, 1:], 0, 1)),
+                last_trc_t=state.last_trc_t,
+                n_updates=state.n_updates,
+                nis=state.nis,
+                calibration_version=calibration_version,
+                posterior_version=posterior_versions[row],
+                posterior_group=track.group,
+            )
+        )
+    return out
 
 
 def summarize_state(
@@ -405,46 +847,15 @@ def summarize_state(
     horizons_days: np.ndarray,
     **versions: Any,
 ) -> SegmentState:
-    """Mixture summary, exceedance and forecasts of one filter bank (paper Eq. 13-14).
-
-    The mixture weights are :func:`state_weights` (the likelihood of the segment's on-board
-    data since its TRC restart), the same now and at every forecast horizon.
-    """
-    limits = np.asarray(limits_mm, dtype=np.float64)  # (L, n)
-    # "Now" and the forecasts (Eq. 2 without updates, as mixture.forecast) in one summary
-    # call: row 0 is now, rows 1.. the horizons; limits (L, 1, n) give p_exceed (L, 1+h, n).
-    # One call instead of two halves the cost, which is almost all in the quantile search.
-    h = np.concatenate(([0.0], horizons_days))
-    z_all, P_all = transition_unchecked(state.z[None], state.P[None], params, h)
-    both = summarize(z_all, P_all, limits[:, None, :], weights=state_weights(state))
-    now, ahead = _rows(both, 0), _rows(both, slice(1, None))
-    return SegmentState(
-        line=line,
-        segment=segment,
-        t=state.t_s,
-        indicators=list(INDICATORS),
-        mean=NDArray.of(now.mean),
-        cov=NDArray.of(now.cov),
-        ci_low_mm=NDArray.of(now.ci_low_mm),
-        ci_high_mm=NDArray.of(now.ci_high_mm),
-        width=float(now.width),
-        limit_levels=list(limit_levels),
-        limits_mm=NDArray.of(limits),
-        p_exceed=NDArray.of(now.p_exceed),
-        horizons_days=NDArray.of(horizons_days),
-        forecast_mean=NDArray.of(ahead.mean),
-        forecast_ci_low_mm=NDArray.of(ahead.ci_low_mm),
-        forecast_ci_high_mm=NDArray.of(ahead.ci_high_mm),
-        forecast_p_exceed=NDArray.of(np.swapaxes(ahead.p_exceed, 0, 1)),  # (h, L, n)
-        last_trc_t=state.last_trc_t,
-        n_updates=state.n_updates,
-        nis=state.nis,
-        **versions,
+    """:func:`summarize_states` of one filter bank (paper Eq. 13-14)."""
+    track = Track(line, segment, state=state, group=versions.get("posterior_group", ""))
+    (out,) = summarize_states(
+        [track],
+        [params],
+        [np.asarray(limits_mm, dtype=np.float64)],
+        limit_levels,
+        horizons_days,
+        calibration_version=versions.get("calibration_version", 0),
+        posterior_versions=[versions.get("posterior_version", 0)],
     )
-
-
-def _rows(summary: MixtureSummary, rows) -> MixtureSummary:
-    """Rows of the horizon axis of every field (second axis of p_exceed, first elsewhere)."""
-    parts = {f.name: getattr(summary, f.name)[rows] for f in fields(summary)}
-    parts["p_exceed"] = summary.p_exceed[:, rows]
-    return MixtureSummary(**parts)
+    return out

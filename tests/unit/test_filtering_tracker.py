@@ -50,13 +50,15 @@ def calibration(version: int = 1, scale: float = 1.0) -> Calibration:
     )
 
 
-def posterior(group: str = "net", version: int = 1, seed: int = 0) -> DegradationPosterior:
+def posterior(
+    group: str = "net", version: int = 1, seed: int = 0, ns: int = NS
+) -> DegradationPosterior:
     rng = np.random.default_rng(seed)
-    mu = rng.normal([7e-4, 4e-4], 2e-4, (NS, 2))
-    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((NS, 1)))
+    mu = rng.normal([7e-4, 4e-4], 2e-4, (ns, 2))
+    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((ns, 1)))
     sigma = np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None, :]
-    z_plus = np.log([2.0, 1.8]) + rng.normal(0, 0.05, (NS, 2))
-    sigma_z_plus = np.broadcast_to(np.eye(2) * 0.01, (NS, 2, 2))
+    z_plus = np.log([2.0, 1.8]) + rng.normal(0, 0.05, (ns, 2))
+    sigma_z_plus = np.broadcast_to(np.eye(2) * 0.01, (ns, 2, 2))
     return DegradationPosterior(
         group=group,
         version=version,
