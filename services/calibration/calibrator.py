@@ -80,7 +80,7 @@ import logging
 import math
 from collections import Counter, deque
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -103,7 +103,7 @@ from services.calibration.posterior import (
     posterior_drift_diffusion,
     sample_degradation_posterior,
 )
-from services.calibration.regression import CalibrationError, fit_observation
+from services.calibration.regression import CalibrationError, ObservationFit, fit_observation
 
 __all__ = [
     "CALIBRATION_KEY",
@@ -115,8 +115,10 @@ __all__ = [
     "Model",
     "Pair",
     "StoredState",
+    "calibration_change",
     "initial_models",
     "mean_loglik",
+    "posterior_change",
 ]
 
 log = logging.getLogger(__name__)
@@ -149,6 +151,8 @@ class CalibratorConfig:
     max_level_age_days: float | None = 120.0  # older post-tamping levels are not used
     samples: int = 200  # Ns
     seed: int = 0
+    material_se: float = 1.0  # publication rule: a change is material beyond this many SEs
+    min_publish_interval_days: float = 1.0  # event time between two versions of one model
     drift_prior: NIWPrior | None = None  # None: NIWPrior.default_drift
     level_prior: NIWPrior | None = None  # None: NIWPrior.default_level
 
@@ -167,6 +171,11 @@ class CalibratorConfig:
             raise ValueError(f"seed: must be >= 0, got {self.seed}")
         if self.segment_min_increments < 1 or self.min_increments < 1 or self.min_levels < 1:
             raise ValueError("segment_min_increments, min_increments, min_levels must be >= 1")
+        if not self.material_se >= 0 or not self.min_publish_interval_days >= 0:
+            raise ValueError(
+                "material_se and min_publish_interval_days: must be >= 0, got "
+                f"{self.material_se}, {self.min_publish_interval_days}"
+            )
 
 
 @dataclass(frozen=True)
@@ -184,12 +193,18 @@ class Pair:
 
 @dataclass(frozen=True)
 class ModelEntry:
-    """A current model as stored: ``key`` is ``"calibration"`` or the posterior's group."""
+    """A model as stored: ``key`` is ``"calibration"`` or the posterior's group.
+
+    A model in force carries the event time it was published at (None for an initial model,
+    or one stored before publication times were kept: the next version is not rate-limited);
+    a held candidate (accepted, not published) carries None.
+    """
 
     key: str
     message: Model
     fingerprint: str = ""  # of the posterior's inputs; "" for the calibration
     prior: bool = False  # an initial model (no data behind it)
+    published_at: float | None = None  # epoch s of event time
 
 
 @dataclass
@@ -201,7 +216,8 @@ class StoredState:
     pending: list[OnboardIndex] = field(default_factory=list)  # unpaired, in arrival order
     pairs: list[Pair] = field(default_factory=list)  # in arrival order
     quarantined: list[Pair] = field(default_factory=list)  # left out of fits
-    models: list[ModelEntry] = field(default_factory=list)
+    models: list[ModelEntry] = field(default_factory=list)  # in force (published)
+    held: list[ModelEntry] = field(default_factory=list)  # accepted, not (yet) published
     meta: dict[str, Any] = field(default_factory=dict)
 
 
@@ -215,7 +231,8 @@ class Changes:
     pending_removed: list[str] = field(default_factory=list)  # index ids
     pairs: list[Pair] = field(default_factory=list)
     quarantined: list[str] = field(default_factory=list)  # index ids of pairs set aside
-    models: list[ModelEntry] = field(default_factory=list)
+    models: list[ModelEntry] = field(default_factory=list)  # published, in order
+    held: dict[str, ModelEntry | None] = field(default_factory=dict)  # key -> now; None: gone
     meta: dict[str, Any] | None = None  # the whole meta when it changed
 
     def __bool__(self) -> bool:
@@ -227,6 +244,7 @@ class Changes:
             or self.pairs
             or self.quarantined
             or self.models
+            or self.held
             or self.meta is not None
         )
 
@@ -256,6 +274,70 @@ def mean_loglik(H, b, R, Z, Y) -> float:
     logdet = 2.0 * np.log(np.diag(L)).sum()
     m = R.shape[0]
     return float(-0.5 * (m * math.log(2 * math.pi) + logdet + (w**2).sum(axis=0).mean()))
+
+
+Change = tuple[float, str]  # (largest move in standard errors, what moved)
+
+
+def _largest_move(moves: Iterable[tuple[str, Any, Any, Any]]) -> Change:
+    """The largest ``|new - old| / se`` over named arrays, and where it is."""
+    best: Change = (0.0, "nothing")
+    for name, new, old, se in moves:
+        new, old, se = (np.asarray(a, dtype=np.float64) for a in (new, old, se))
+        d = np.abs(new - old)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(d > 0, d / se, 0.0)  # a zero se: any move is infinitely many
+        i = np.unravel_index(int(np.argmax(z)), z.shape) if z.size else ()
+        if z.size and z[i] > best[0]:
+            where = f"[{','.join(str(k) for k in i)}]" if i else ""
+            best = (
+                float(z[i]),
+                f"{name}{where} {float(old[i]):.4g} -> {float(new[i]):.4g} "
+                f"({float(z[i]):.2f} SE of {float(se[i]):.3g})",
+            )
+    return best
+
+
+def calibration_change(fit: ObservationFit, old: Calibration) -> Change:
+    r"""How far the fit ``fit`` moved from the model ``old``, in the fit's standard errors.
+
+    .. math::
+
+        \max\Big(\max_{ij}\frac{|H_{ij} - H^{old}_{ij}|}{\operatorname{se}(H_{ij})},\
+        \max_i\frac{|b_i - b^{old}_i|}{\operatorname{se}(b_i)},\
+        \max_{ij}\frac{|R_{ij} - R^{old}_{ij}|}{\operatorname{se}(R_{ij})}\Big)
+
+    with the least-squares standard errors of :func:`fit_observation` (for ``R``, its
+    sampling error: relative :math:`\sqrt{2/(N - n - 1)}` on the diagonal).
+    """
+    return _largest_move(
+        [
+            ("H", fit.H, old.H.array(), fit.se_H),
+            ("b", fit.b, old.b.array(), fit.se_b),
+            ("R", fit.R, old.R.array(), fit.se_R),
+        ]
+    )
+
+
+def posterior_change(new: DegradationPosterior, old: DegradationPosterior) -> Change:
+    r"""How far the posterior ``new`` moved from ``old``, in posterior standard deviations.
+
+    For each parameter :math:`\theta` of :math:`(\boldsymbol\mu, \boldsymbol\Sigma,
+    \mathbf z^+, \boldsymbol\Sigma_{z^+})`, element by element, the move of the posterior mean
+    over the posterior sd, both from the draws the filter runs on:
+
+    .. math::
+
+        \max_\theta \frac{|\bar\theta_{new} - \bar\theta_{old}|}{\operatorname{sd}(\theta_{new})}
+
+    (the draws of two versions come from different seeds, so the Monte Carlo part of a move is
+    about :math:`\sqrt{2/N_s}` sd: 0.1 sd at Ns = 200).
+    """
+    moves = []
+    for name in ("mu", "sigma", "z_plus", "sigma_z_plus"):
+        a_new, a_old = getattr(new, name).array(), getattr(old, name).array()
+        moves.append((name, a_new.mean(axis=0), a_old.mean(axis=0), a_new.std(axis=0)))
+    return _largest_move(moves)
 
 
 def group_rng(seed: int, group: str, version: int) -> np.random.Generator:
@@ -383,7 +465,10 @@ class Calibrator:
         self._pairs: list[Pair] = []
         self._quarantined: list[Pair] = []
         self._paired: set[str] = set()
-        self._models: dict[str, ModelEntry] = {}
+        self._models: dict[str, ModelEntry] = {}  # in force: published
+        self._held: dict[str, ModelEntry] = {}  # newest accepted, not published (yet)
+        self._material: set[str] = set()  # held keys that differ materially from in force
+        self._now = -math.inf  # event time: the newest event's (epoch s)
         self._refused: dict[str, str] = {}  # group -> fingerprint whose build failed
         self._increments: dict[Segment, SegmentIncrements] = {}
         self._dirty: set[Segment] = set()
@@ -409,6 +494,11 @@ class Calibrator:
             self._paired.add(pair.index_id)
         for entry in state.models:
             self._models[entry.key] = entry
+        for entry in state.held:
+            self._held[entry.key] = entry
+        self._material = set(state.meta.get("material", [])) & set(self._held)
+        now = state.meta.get("now")
+        self._now = -math.inf if now is None else float(now)
         self._attempt_at = int(state.meta.get("attempt_at", 0))
         self.stats.update(state.meta.get("stats", {}))
         self.rejections.extend(state.meta.get("rejections", []))
@@ -419,6 +509,8 @@ class Calibrator:
     def _meta(self) -> dict[str, Any]:
         return {
             "attempt_at": self._attempt_at,
+            "now": self._now if math.isfinite(self._now) else None,
+            "material": sorted(self._material),
             "stats": dict(self.stats),
             "rejections": list(self.rejections),
         }
@@ -454,9 +546,25 @@ class Calibrator:
         }
 
     def models(self) -> list[Model]:
-        """The current models: the Calibration (if any) first, then posteriors by group."""
+        """The models in force: the Calibration (if any) first, then posteriors by group."""
         cal = self.calibration
         return ([cal] if cal is not None else []) + list(self.posteriors.values())
+
+    @property
+    def held(self) -> dict[str, Model]:
+        """Accepted models not published (yet), by key: an immaterial change, or a material
+        one waiting for the rate limit."""
+        return {k: e.message for k, e in sorted(self._held.items())}
+
+    @property
+    def published_at(self) -> dict[str, float | None]:
+        """Event time (epoch s) each model in force was published at (None: initial model)."""
+        return {k: e.published_at for k, e in sorted(self._models.items())}
+
+    @property
+    def now(self) -> float:
+        """Event time as the core knows it: the newest event's (epoch s; -inf before any)."""
+        return self._now
 
     def n_pending(self) -> int:
         return sum(len(p) for p in self._pending.values())
@@ -471,6 +579,9 @@ class Calibrator:
 
     def ingest(self, event: Event) -> bool:
         """Take one event; False if it was a duplicate or otherwise not used."""
+        t = event.t_end if isinstance(event, MaintenanceEvent) else getattr(event, "t", None)
+        if t is not None and t > self._now:
+            self._now = t
         match event:
             case TrcRecord():
                 return self._ingest_trc(event)
@@ -605,26 +716,76 @@ class Calibrator:
     # --- models ------------------------------------------------------------------------------
 
     def flush(self) -> list[Model]:
-        """Fit or rebuild what the new data calls for; the models that changed, in order."""
-        out: list[Model] = []
-        cal = self._maybe_fit()
-        if cal is not None:
-            out.append(cal)
+        """Fit or rebuild what the new data calls for, then publish what the publication
+        rule lets through; the models published, the Calibration first, then by group."""
+        self._maybe_fit()
         if self._dirty:
             self._update_increments()
             self._dirty.clear()
-            out.extend(self._rebuild_posteriors())
-        return out
+            self._rebuild_posteriors()
+        return self._publish_due()
 
     def _set_model(self, entry: ModelEntry) -> None:
         self._models[entry.key] = entry
         self._changes.models.append(entry)
 
+    def _current(self, key: str) -> ModelEntry | None:
+        """The newest accepted model of ``key``: held if any, else the one in force."""
+        return self._held.get(key) or self._models.get(key)
+
+    def _next_version(self, key: str) -> int:
+        in_force = self._models.get(key)
+        return in_force.message.version + 1 if in_force is not None else 1
+
+    def _due(self, key: str) -> bool:
+        """Whether the rate limit lets a new version of ``key`` out now."""
+        in_force = self._models.get(key)
+        if in_force is None or in_force.published_at is None:
+            return True
+        return self._now >= in_force.published_at + self.config.min_publish_interval_days * DAY_S
+
+    def _hold(self, entry: ModelEntry, change: Change | None) -> None:
+        """Keep an accepted model; mark it for publication if it differs materially from the
+        one in force (``change`` None: there is none)."""
+        key = entry.key
+        self._held[key] = entry
+        self._changes.held[key] = entry
+        if change is None or change[0] > self.config.material_se:
+            self._material.add(key)
+            if not self._due(key):
+                self.stats["publications_delayed"] += 1
+                log.info(
+                    "%s version %d held by the rate limit: %s",
+                    key,
+                    entry.message.version,
+                    "new" if change is None else change[1],
+                )
+        else:
+            self._material.discard(key)
+            self.stats["changes_immaterial"] += 1
+            log.debug("%s: change not material, not published: %s", key, change[1])
+
+    def _publish_due(self) -> list[Model]:
+        out: list[Model] = []
+        at = self._now if math.isfinite(self._now) else None
+        for key in sorted(self._material, key=lambda k: (k != CALIBRATION_KEY, k)):
+            if not self._due(key):
+                continue
+            entry = replace(self._held.pop(key), published_at=at)
+            self._material.discard(key)
+            self._changes.held[key] = None
+            self._set_model(entry)
+            kind = "calibrations" if key == CALIBRATION_KEY else "posteriors"
+            self.stats[f"{kind}_published"] += 1
+            out.append(entry.message)
+        return out
+
     def _maybe_fit(self) -> Calibration | None:
+        """Fit when due; the accepted candidate (held until :meth:`_publish_due`), or None."""
         cfg, n = self.config, len(self._pairs)
         if n < cfg.min_pairs:
             return None
-        current = self._models.get(CALIBRATION_KEY)
+        current = self._current(CALIBRATION_KEY)
         fitted = current is not None and not current.prior
         if fitted and n - self._attempt_at < cfg.refit_every:
             return None
@@ -645,7 +806,8 @@ class Calibrator:
             reason = self._worse(old, fit, Z[: old.n_pairs], Y[: old.n_pairs])
             if reason is not None:
                 self.stats["fits_rejected"] += 1
-                msg = f"refit on {n} pairs rejected against version {old.version}: {reason}"
+                held = "" if current is self._models.get(CALIBRATION_KEY) else " (held)"
+                msg = f"refit on {n} pairs rejected against version {old.version}{held}: {reason}"
                 self.rejections.append(msg)
                 log.warning("%s; %d new pairs quarantined", msg, n - old.n_pairs)
                 new = self._pairs[old.n_pairs :]
@@ -655,7 +817,8 @@ class Calibrator:
                 self.stats["pairs_quarantined"] += len(new)
                 self._attempt_at = old.n_pairs
                 return None
-        version = current.message.version + 1 if current is not None else 1
+        in_force = self._models.get(CALIBRATION_KEY)
+        version = self._next_version(CALIBRATION_KEY)
         cal = Calibration(
             version=version,
             t=max(p.t for p in self._pairs),
@@ -668,8 +831,17 @@ class Calibrator:
             r2=_arr(fit.r2),
         )
         self.stats["fits_accepted"] += 1
-        self._set_model(ModelEntry(CALIBRATION_KEY, cal))
-        log.info("calibration version %d on %d pairs, R² %s", version, n, np.round(fit.r2, 3))
+        change = None
+        if in_force is not None:
+            change = calibration_change(fit, in_force.message)  # type: ignore[arg-type]
+        log.info(
+            "calibration fit on %d pairs accepted, R² %s; against version %s in force: %s",
+            n,
+            np.round(fit.r2, 3),
+            None if in_force is None else in_force.message.version,
+            "none" if change is None else change[1],
+        )
+        self._hold(ModelEntry(CALIBRATION_KEY, cal), change)
         return cal
 
     def _worse(self, old: Calibration, fit, Z: np.ndarray, Y: np.ndarray) -> str | None:
@@ -771,16 +943,16 @@ class Calibrator:
             h.update(repr(a.shape).encode())
         return h.hexdigest()
 
-    def _rebuild_posteriors(self) -> list[DegradationPosterior]:
+    def _rebuild_posteriors(self) -> None:
         if not self._increments:
-            return []
-        out = []
+            return
         for group, g in sorted(self._group_inputs().items()):
             fp = self._fingerprint(group, g)
-            entry = self._models.get(group)
+            entry = self._current(group)
             if (entry is not None and entry.fingerprint == fp) or self._refused.get(group) == fp:
                 continue
-            version = entry.message.version + 1 if entry is not None else 1
+            in_force = self._models.get(group)
+            version = self._next_version(group)
             try:
                 post = self._build(group, g, version)
             except CalibrationError as e:
@@ -789,10 +961,11 @@ class Calibrator:
                 log.info("posterior %s not rebuilt: %s", group, e)
                 continue
             self._refused.pop(group, None)
-            self._set_model(ModelEntry(group, post, fingerprint=fp))
             self.stats["posteriors_built"] += 1
-            out.append(post)
-        return out
+            change = None
+            if in_force is not None:
+                change = posterior_change(post, in_force.message)  # type: ignore[arg-type]
+            self._hold(ModelEntry(group, post, fingerprint=fp), change)
 
     def _build(self, group: str, g: _GroupInput, version: int) -> DegradationPosterior:
         cfg = self.config

@@ -56,6 +56,13 @@ class ObservationFit:
         indicators; large = nearly collinear, H badly determined).
     z_min, z_max : ndarray, shape (n,)
         Range of the calibration data; predictions outside it are extrapolations.
+    se_H : ndarray, shape (m, n)
+        Least-squares standard error of each element of ``H``.
+    se_b : ndarray, shape (m,)
+        Least-squares standard error of each element of ``b``.
+    se_R : ndarray, shape (m, m)
+        Sampling standard error of each element of ``R`` (Wishart, ``N - n - 1`` degrees of
+        freedom); on the diagonal, ``R_ii sqrt(2 / (N - n - 1))``.
     """
 
     H: np.ndarray
@@ -67,6 +74,9 @@ class ObservationFit:
     condition: float
     z_min: np.ndarray
     z_max: np.ndarray
+    se_H: np.ndarray
+    se_b: np.ndarray
+    se_R: np.ndarray
 
     def predict(self, z) -> np.ndarray:
         """Mean on-board indices ``H z + b`` for ``z`` of shape (..., n)."""
@@ -85,6 +95,17 @@ def fit_observation(
         \tilde{\mathbf{H}} = (\tilde{\mathbf{Z}}^T\tilde{\mathbf{Z}})^{-1}
         \tilde{\mathbf{Z}}^T\mathbf{Y} = \begin{bmatrix}\mathbf{H}^T\\ \mathbf{b}\end{bmatrix},
         \quad \mathbf{R} = \frac{1}{N}\mathbf{E}^T\mathbf{E}
+
+    Standard errors (what the calibration service's publication rule measures a change
+    against), with :math:`\mathbf S = \mathbf E^T\mathbf E/(N - n - 1)` and
+    :math:`\mathbf G = (\mathbf Z_c^T\mathbf Z_c)^{-1}` on the centred indicators:
+
+    .. math::
+
+        \operatorname{se}(H_{ij}) = \sqrt{S_{ii} G_{jj}},\quad
+        \operatorname{se}(b_i) = \sqrt{S_{ii}\,(1/N + \bar{\mathbf z}^T\mathbf G
+        \bar{\mathbf z})},\quad
+        \operatorname{se}(R_{ij}) = \sqrt{(R_{ij}^2 + R_{ii}R_{jj})/(N - n - 1)}
 
     The normal equations are never formed: the slopes come from an SVD least squares solve
     on the centred data and :math:`\mathbf{b} = \bar{\mathbf{y}} - \mathbf{H}\bar{\mathbf{z}}`,
@@ -170,6 +191,13 @@ def fit_observation(
             f"{what}; need noisy, non-duplicated on-board indices"
         )
     r2 = 1.0 - np.diag(R) / var_y
+    dof = N - n - 1
+    s_ii = np.diag(E.T @ E) / dof
+    _, sv_c, vt = np.linalg.svd(Zc, full_matrices=False)
+    G = (vt.T / sv_c**2) @ vt  # (Zc^T Zc)^-1 without forming it
+    se_H = np.sqrt(np.outer(s_ii, np.diag(G)))
+    se_b = np.sqrt(s_ii * (1.0 / N + zbar @ G @ zbar))
+    se_R = np.sqrt((R**2 + np.outer(np.diag(R), np.diag(R))) / dof)
     return ObservationFit(
         H=H,
         b=b,
@@ -180,4 +208,7 @@ def fit_observation(
         condition=cond,
         z_min=Z.min(axis=0),
         z_max=Z.max(axis=0),
+        se_H=se_H,
+        se_b=se_b,
+        se_R=se_R,
     )

@@ -2,7 +2,9 @@
 
 :class:`SqliteStore` (stdlib ``sqlite3``, one file per instance) and :class:`MemoryStore` (the
 test double) both ``apply(changes)`` atomically and ``load()`` a :class:`StoredState` that
-:class:`Calibrator` continues from. Messages are kept as their wire bytes and floats as SQLite
+:class:`Calibrator` continues from: the models in force with the event time each was published
+at (``models.published_at``, the rate limit's bookkeeping), and the accepted models not
+published yet (``held``). Messages are kept as their wire bytes and floats as SQLite
 REALs (IEEE doubles), so a restart gives back bit-identical models.
 """
 
@@ -46,6 +48,10 @@ CREATE TABLE IF NOT EXISTS pairs (
     quarantined INTEGER NOT NULL DEFAULT 0
 );
 CREATE TABLE IF NOT EXISTS models (
+    key TEXT PRIMARY KEY, payload BLOB NOT NULL, fingerprint TEXT NOT NULL, prior INTEGER NOT NULL,
+    published_at REAL
+);
+CREATE TABLE IF NOT EXISTS held (
     key TEXT PRIMARY KEY, payload BLOB NOT NULL, fingerprint TEXT NOT NULL, prior INTEGER NOT NULL
 );
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -72,6 +78,9 @@ class MemoryStore:
         models = {e.key: e for e in s.models}
         models.update({e.key: e for e in changes.models})
         s.models = list(models.values())
+        held = {e.key: e for e in s.held}
+        held.update(changes.held)
+        s.held = [e for e in held.values() if e is not None]
         if changes.meta is not None:
             s.meta = copy.deepcopy(changes.meta)
 
@@ -93,6 +102,9 @@ class SqliteStore:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")  # durable against a killed process
         self._db.executescript(_SCHEMA)
+        columns = {row[1] for row in self._db.execute("PRAGMA table_info(models)")}
+        if "published_at" not in columns:  # a file from before publication times were kept
+            self._db.execute("ALTER TABLE models ADD COLUMN published_at REAL")
 
     def apply(self, changes: Changes) -> None:
         if not changes:
@@ -125,8 +137,24 @@ class SqliteStore:
                 [(i,) for i in changes.quarantined],
             )
             db.executemany(
-                "INSERT OR REPLACE INTO models VALUES (?, ?, ?, ?)",
-                [(e.key, encode(e.message), e.fingerprint, int(e.prior)) for e in changes.models],
+                "INSERT OR REPLACE INTO models (key, payload, fingerprint, prior, published_at) "
+                "VALUES (?, ?, ?, ?, ?)",
+                [
+                    (e.key, encode(e.message), e.fingerprint, int(e.prior), e.published_at)
+                    for e in changes.models
+                ],
+            )
+            db.executemany(
+                "INSERT OR REPLACE INTO held VALUES (?, ?, ?, ?)",
+                [
+                    (e.key, encode(e.message), e.fingerprint, int(e.prior))
+                    for e in changes.held.values()
+                    if e is not None
+                ],
+            )
+            db.executemany(
+                "DELETE FROM held WHERE key = ?",
+                [(k,) for k, e in changes.held.items() if e is None],
             )
             if changes.meta is not None:
                 db.execute(
@@ -156,11 +184,18 @@ class SqliteStore:
         ):
             pair = Pair(line, segment, run_id, iid, t, (z0, z1), (y0, y1))
             (state.quarantined if out else state.pairs).append(pair)
-        for key, payload, fingerprint, prior in db.execute(
-            "SELECT key, payload, fingerprint, prior FROM models ORDER BY key"
+        for key, payload, fingerprint, prior, at in db.execute(
+            "SELECT key, payload, fingerprint, prior, published_at FROM models ORDER BY key"
         ):
             kind = Calibration if key == CALIBRATION_KEY else DegradationPosterior
-            state.models.append(ModelEntry(key, decode(payload, kind), fingerprint, bool(prior)))
+            state.models.append(
+                ModelEntry(key, decode(payload, kind), fingerprint, bool(prior), at)
+            )
+        for key, payload, fingerprint, prior in db.execute(
+            "SELECT key, payload, fingerprint, prior FROM held ORDER BY key"
+        ):
+            kind = Calibration if key == CALIBRATION_KEY else DegradationPosterior
+            state.held.append(ModelEntry(key, decode(payload, kind), fingerprint, bool(prior)))
         row = db.execute("SELECT value FROM meta WHERE key = 'state'").fetchone()
         if row is not None:
             state.meta = json.loads(row[0])

@@ -134,7 +134,16 @@ def test_models_from_data_late_joiners_dead_letters_and_restart(
 ):
     ns = service_config.ns
     settings = service.Settings(
-        core=CalibratorConfig(min_pairs=30, refit_every=20, samples=50, seed=7),
+        # every accepted change published at once (the publication rule has its unit tests):
+        # the test waits for the fit on all pairs and the posterior on all increments
+        core=CalibratorConfig(
+            min_pairs=30,
+            refit_every=20,
+            samples=50,
+            seed=7,
+            material_se=0.0,
+            min_publish_interval_days=0.0,
+        ),
         db=tmp_path / "calibration.sqlite",
     )
     client = open_session()

@@ -3,6 +3,7 @@ lists out; persistence through the in-memory and the SQLite store."""
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import json5
@@ -13,10 +14,13 @@ from schemas import Calibration, DegradationPosterior, MaintenanceEvent, Onboard
 from services.calibration.calibrator import (
     Calibrator,
     CalibratorConfig,
+    calibration_change,
     group_rng,
     initial_models,
     mean_loglik,
+    posterior_change,
 )
+from services.calibration.regression import fit_observation
 from services.calibration.store import MemoryStore, SqliteStore
 
 DAY = 86400.0
@@ -27,6 +31,8 @@ R = np.array([[0.010, 0.002], [0.002, 0.030]])
 MU = np.array([1.0e-3, 5.0e-4])  # ln mm / day
 SIGMA = np.array([[1.0e-4, 2.8e-5], [2.8e-5, 4.9e-5]])
 REPO = Path(__file__).resolve().parents[2]
+# the publication rule off: every accepted change is published at once (tests of the fits)
+EVERY_CHANGE = {"material_se": 0.0, "min_publish_interval_days": 0.0}
 
 
 def trc(line, seg, run, t, z):
@@ -151,7 +157,7 @@ def test_time_pairing_off_low_quality_and_the_waiting_window():
 
 def test_first_fit_at_min_pairs_then_refit_cadence_and_versions():
     rng = np.random.default_rng(1)
-    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10))
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, **EVERY_CHANGE))
     assert core.step(campaign(29, rng)) == []
     (cal,) = core.step(campaign(1, rng, start=29))
     assert isinstance(cal, Calibration) and (cal.version, cal.n_pairs) == (1, 30)
@@ -169,7 +175,7 @@ def test_first_fit_at_min_pairs_then_refit_cadence_and_versions():
 
 def test_worse_refit_is_rejected_with_a_reason_and_a_better_one_accepted():
     rng = np.random.default_rng(2)
-    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10))
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, **EVERY_CHANGE))
     (cal,) = core.step(campaign(30, rng))
     # a faulty unit: on-board indices unrelated to the TRC values
     garbage = campaign(15, rng, start=30, H=np.zeros((2, 2)), B=np.zeros(2), R=0.5 * np.eye(2))
@@ -279,7 +285,7 @@ def test_levels_from_prior_when_no_tamping_and_deterministic_samples():
 def test_tamping_interval_mid_rule_and_rebuild_on_maintenance():
     rng = np.random.default_rng(8)
     events = histories(rng, lines=("L1",), segs=3, records=6, tamp_every=99)
-    core = Calibrator(CalibratorConfig(samples=20, min_increments=4))
+    core = Calibrator(CalibratorConfig(samples=20, min_increments=4, **EVERY_CHANGE))
     first = {m.group: m for m in core.step(events)}
     assert first["net"].n_increments == 15
     s0 = sorted((e for e in events if e.segment == "s0"), key=lambda e: e.t)
@@ -320,3 +326,141 @@ def test_restart_from_store_gives_identical_models(kind, tmp_path):
     # and both continue identically
     assert restored.step(more) == core.step(more) != []
     store.close()
+
+
+# ---------------------------------------------------------------- publication rule
+
+
+def day_batch(n_pairs, rng, day, *, start, t0=T0, **kw):
+    """``campaign`` pairs from event day ``day`` after ``t0`` on (one pair a minute)."""
+    return campaign(n_pairs, rng, start=start, t0=t0 + day * DAY - start * 60.0, **kw)
+
+
+def waiting_index(day, t0=T0):
+    """An event that only moves event time: an index waiting for a TRC record that never comes."""
+    return index("L9", "w", t0 + day * DAY, np.log([2.0, 1.5]), run=f"none{day}")
+
+
+_day_batch, _waiting_index = day_batch, waiting_index
+
+
+def test_refits_within_their_standard_errors_publish_no_version():
+    rng = np.random.default_rng(21)
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10))
+    (cal,) = core.step(day_batch(1000, rng, 0, start=0))  # first fit: nothing in force
+    assert (cal.version, cal.n_pairs) == (1, 1000)
+    for k in range(5):  # a refit a day, each on 10 more pairs of the same model
+        assert core.step(day_batch(10, rng, 2 + k, start=1000 + 10 * k)) == []
+    assert core.stats["fits_accepted"] == 6 and core.stats["changes_immaterial"] == 5
+    assert core.calibration == cal  # still in force
+    held = core.held["calibration"]
+    assert (held.version, held.n_pairs) == (2, 1050)  # accumulated, not published
+    # the held fit is the swap rule's reference: a faulty burst is judged against it and only
+    # the burst is quarantined, not the good pairs since the version in force
+    garbage = day_batch(10, rng, 8, start=2000, H=np.zeros((2, 2)), B=np.zeros(2), R=np.eye(2))
+    assert core.step(garbage) == []
+    assert "rejected against version 2 (held)" in core.rejections[-1]
+    assert len(core.pairs) == 1050 and len(core.quarantined) == 10
+
+
+def test_a_shift_beyond_the_standard_error_publishes_a_version():
+    rng = np.random.default_rng(22)
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10))
+    (cal,) = core.step(day_batch(1000, rng, 0, start=0))
+    (cal2,) = core.step(day_batch(300, rng, 2, start=1000, B=B + [0.15, 0.0]))  # a biased unit
+    assert (cal2.version, cal2.n_pairs) == (2, 1300) and core.held == {}
+    assert cal2.b.array()[0] - cal.b.array()[0] > 0.02
+    Z = np.array([p.z for p in core.pairs])
+    Y = np.array([p.y for p in core.pairs])
+    fit = fit_observation(Z, Y)
+    assert calibration_change(fit, cal)[0] > 1.0  # the largest move (here R[0,0], inflated)
+    assert abs(fit.b[0] - cal.b.array()[0]) > fit.se_b[0]  # and the bias itself
+
+
+def test_two_material_changes_within_a_day_publish_once_then_when_event_time_passes():
+    rng = np.random.default_rng(23)
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, tolerance_days=None))
+    (v1,) = core.step(day_batch(1000, rng, 0, start=0))
+    (v2,) = core.step(day_batch(300, rng, 2, start=1000, B=B + [0.15, 0.0]))
+    published = core.published_at["calibration"]
+    assert published == core.now == max(p.t for p in core.pairs)
+    # a second material change 0.3 day later: accepted, held by the rate limit
+    assert core.step(day_batch(300, rng, 2.3, start=1300, B=B + [0.0, 0.15])) == []
+    held = core.held["calibration"]
+    assert held.version == 3 and held.n_pairs == 1600
+    assert core.stats["publications_delayed"] == 1 and core.calibration == v2
+    # event time moves on without any refit: still within the day, then past it
+    assert core.step([waiting_index(3.1)]) == []  # v2 came out at day 2.21 (its last pair)
+    (v3,) = core.step([waiting_index(3.3)])
+    assert v3 == held and core.held == {} and core.published_at["calibration"] == core.now
+    assert core.stats["fits_accepted"] == 3 and core.stats["calibrations_published"] == 3
+    assert [v1.version, v2.version, v3.version] == [1, 2, 3]
+
+
+@pytest.mark.parametrize("kind", ["memory", "sqlite"])
+def test_restart_keeps_the_version_in_force_and_its_publication_time(kind, tmp_path):
+    def open_store():
+        return MemoryStore() if kind == "memory" else SqliteStore(tmp_path / "c.sqlite")
+
+    rng = np.random.default_rng(24)
+    cfg = CalibratorConfig(min_pairs=30, refit_every=10, tolerance_days=None, samples=30)
+    day_batch = functools.partial(_day_batch, t0=T0 + 1000 * DAY)  # after the histories
+    waiting_index = functools.partial(_waiting_index, t0=T0 + 1000 * DAY)
+    store = open_store()
+    core = Calibrator(cfg, store.load())
+    for events in (
+        histories(rng) + day_batch(1000, rng, 0, start=0),
+        day_batch(300, rng, 2, start=1000, B=B + [0.15, 0.0]),
+        day_batch(300, rng, 2.3, start=1300, B=B + [0.0, 0.15]),  # held by the rate limit
+    ):
+        core.step(events)
+        store.apply(core.drain_changes())
+    assert set(core.held) == {"calibration"}
+    if kind == "sqlite":
+        store.close()
+        store = open_store()
+    restored = Calibrator(cfg, store.load())
+    assert restored.models() == core.models() and restored.held == core.held
+    assert restored.published_at == core.published_at and restored.now == core.now
+    assert restored.step([]) == []
+    # the held version comes out on both when event time passes the day, not before
+    for day, n in ((3.1, 0), (3.3, 1)):
+        out = core.step([waiting_index(day)])
+        assert restored.step([waiting_index(day)]) == out and len(out) == n
+        store.apply(restored.drain_changes())
+    assert out[0].version == 3
+    reopened = Calibrator(cfg, store.load())
+    assert reopened.held == {} and reopened.published_at == core.published_at
+    store.close()
+
+
+def test_posterior_moves_within_its_sd_publish_no_version_a_shift_does():
+    rng = np.random.default_rng(25)
+    core = Calibrator(CalibratorConfig(samples=200, segment_min_increments=99))
+    events = histories(rng, segs=6, records=8, tamp_every=99)
+    first = {m.group: m for m in core.step(events)}
+    assert set(first) == {"net", "line.L1", "line.L2"}
+    last = {
+        (e.line, e.segment): e
+        for e in sorted(events, key=lambda e: e.t)
+        if isinstance(e, TrcRecord)
+    }
+    t_new = max(e.t for e in last.values()) + 60 * DAY
+
+    def next_record(line, seg, run, drift):
+        rec = last[(line, seg)]
+        dt = (t_new - rec.t) / DAY
+        z = np.log([rec.top6_mm, rec.align10_mm]) + drift * dt
+        return trc(line, seg, run, t_new, z)
+
+    # one more increment of one segment at the usual drift: every group moves < 1 sd
+    assert core.step([next_record("L1", "s0", "n1", MU)]) == []
+    assert set(core.held) == {"net", "line.L1"} and core.stats["changes_immaterial"] == 2
+    for g in ("net", "line.L1"):
+        assert posterior_change(core.held[g], core.posteriors[g])[0] < 1.0
+    # a day later, L2 degrading eight times faster: its line and the network move
+    t_new += DAY
+    out = core.step([next_record("L2", f"s{s}", "n2", 8 * MU) for s in range(6)])
+    assert sorted((p.group, p.version) for p in out) == [("line.L2", 2), ("net", 2)]
+    assert posterior_change(out[0], first["line.L2"])[0] > 1.0
+    assert set(core.held) == {"line.L1"}  # still immaterial, still accumulated
