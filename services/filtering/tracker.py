@@ -643,6 +643,33 @@ class Tracker:
         that a good one still applies). Same final states as stepping the messages one by
         one, in any order.
         """
+        models, newest, ignored, refused = self._newest_models(msgs)
+        if not newest:
+            return ModelUpdate([], ignored, refused)
+        calibrated = any(isinstance(msg, Calibration) for msg in newest.values())
+        groups = {msg.group for msg in newest.values() if isinstance(msg, DegradationPosterior)}
+        affected = [sid for sid in self.tracks if calibrated or models.group_for(*sid) in groups]
+        accepted = [msg for msg in msgs if newest.get(model_name(msg)) is msg]
+        try:
+            tracks, states = self._rerun(models, affected)
+        except (ValueError, ArithmeticError) as exc:
+            if len(accepted) == 1:
+                refused.append((accepted[0], f"re-run with this model failed: {exc}"))
+                return ModelUpdate([], ignored, refused)
+            one_by_one = [self.update_models([msg]) for msg in accepted]
+            return ModelUpdate(
+                [m for u in one_by_one for m in u.accepted],
+                ignored + [m for u in one_by_one for m in u.ignored],
+                refused + [m for u in one_by_one for m in u.refused],
+                tuple(state for u in one_by_one for state in u.states),
+            )
+        self.models = models
+        self.tracks.update(tracks)
+        return ModelUpdate(accepted, ignored, refused, states)
+
+    def _newest_models(self, msgs: Iterable[ModelMessage]):
+        """``(models, newest, ignored, refused)``: the held models with the newest valid
+        message per name applied (``newest`` by name), and the messages left out, with why."""
         ignored: list[tuple[ModelMessage, str]] = []
         refused: list[tuple[ModelMessage, str]] = []
         newest: dict[str, tuple[ModelMessage, Any]] = {}
@@ -666,31 +693,10 @@ class Tracker:
                 why = f"superseded by version {msg.version} in the same update"
                 ignored.append((previous[0], why))
             newest[name] = (msg, parsed)
-        if not newest:
-            return ModelUpdate([], ignored, refused)
         models = self.models
         for msg, parsed in newest.values():
             models = _with_parsed(models, msg, parsed)
-        calibrated = any(isinstance(msg, Calibration) for msg, _ in newest.values())
-        groups = {msg.group for msg, _ in newest.values() if isinstance(msg, DegradationPosterior)}
-        affected = [sid for sid in self.tracks if calibrated or models.group_for(*sid) in groups]
-        accepted = [msg for msg in msgs if newest.get(model_name(msg), (None,))[0] is msg]
-        try:
-            tracks, states = self._rerun(models, affected)
-        except (ValueError, ArithmeticError) as exc:
-            if len(accepted) == 1:
-                refused.append((accepted[0], f"re-run with this model failed: {exc}"))
-                return ModelUpdate([], ignored, refused)
-            one_by_one = [self.update_models([msg]) for msg in accepted]
-            return ModelUpdate(
-                [m for u in one_by_one for m in u.accepted],
-                ignored + [m for u in one_by_one for m in u.ignored],
-                refused + [m for u in one_by_one for m in u.refused],
-                tuple(state for u in one_by_one for state in u.states),
-            )
-        self.models = models
-        self.tracks.update(tracks)
-        return ModelUpdate(accepted, ignored, refused, states)
+        return models, {name: msg for name, (msg, _) in newest.items()}, ignored, refused
 
     def load(self, models: Iterable[ModelMessage], events: Iterable[EventMessage]) -> list:
         """Rebuild from stored models and events (any order): the publishable states.
@@ -702,8 +708,9 @@ class Tracker:
             sid = (msg.line, msg.segment)
             track = self.tracks.get(sid) or Track(msg.line, msg.segment)
             self.tracks[sid] = add_event(track, event_of(msg))[0]
-        self.update_models(list(models))
-        tracks, states = self._rerun(self.models, list(self.tracks))
+        models_in, *_ = self._newest_models(models)
+        tracks, states = self._rerun(models_in, list(self.tracks))
+        self.models = models_in
         self.tracks.update(tracks)
         return list(states)
 
