@@ -18,6 +18,8 @@ Workloads (DESIGN "Performance targets"):
    (``bench/filtering.py``).
 7. at-least-once delivery: messages per second through cached advanced publishers against
    plain puts, and a returning subscriber's history fetch (``bench/delivery.py``).
+8. the filtering core's model-change re-run: events replayed per second, summaries included,
+   against the filter bank alone and the one-segment-at-a-time re-run (``bench/rerun.py``).
 """
 
 from __future__ import annotations
@@ -175,11 +177,13 @@ def main() -> None:
     from bench.extraction import bench_extraction
     from bench.filtering import bench_filtering_service
     from bench.ingestion import bench_ingestion
+    from bench.rerun import bench_rerun
     from bench.simulator import bench_raw_generation
 
     rng = np.random.default_rng(1)
     bench_replay(rng)
     bench_single_event(rng)
+    bench_rerun()
     bench_study()
     bench_raw_generation()
     bench_ingestion()
