@@ -186,16 +186,27 @@ def _mixture_quantile(q, m, s, w=None):
             rank = np.argmax(cum >= q[points_only, None] - 1e-12, -1)
         atom = np.take_along_axis(order, rank[:, None], -1)
         x[points_only] = np.take_along_axis(m[points_only], atom, -1)[:, 0]
+    some_points = (s == 0).any(-1)
     active = np.flatnonzero(~points_only)
     for _ in range(_MAX_ITERATIONS):
         if active.size == 0:
             break
-        xa, ma, sa, qa = x[active], m[active], s[active], q[active]
-        wa = None if w is None else w[active]
-        point = sa == 0
-        u = (xa[:, None] - ma) / np.where(point, 1.0, sa)
-        cdf = _mix(np.where(point, xa[:, None] >= ma, ndtr(u)), wa)
-        pdf = np.where(point, 0.0, np.exp(-0.5 * u * u) / (_SQRT_2PI * np.where(point, 1.0, sa)))
+        xa, qa = x[active], q[active]
+        if active.size == len(x):  # every mixture: views, not gathered copies
+            ma, sa, wa = m, s, w
+        else:
+            ma, sa, wa = m[active], s[active], None if w is None else w[active]
+        if some_points[active].any():
+            point = sa == 0
+            u = (xa[:, None] - ma) / np.where(point, 1.0, sa)
+            cdf = _mix(np.where(point, xa[:, None] >= ma, ndtr(u)), wa)
+            pdf = np.where(
+                point, 0.0, np.exp(-0.5 * u * u) / (_SQRT_2PI * np.where(point, 1.0, sa))
+            )
+        else:  # no point mass (the usual case): the same numbers without the masks
+            u = (xa[:, None] - ma) / sa
+            cdf = _mix(ndtr(u), wa)
+            pdf = np.exp(-0.5 * u * u) / (_SQRT_2PI * sa)
         pdf = _mix(pdf, wa)
         below = cdf < qa
         lo[active] = np.where(below, xa, lo[active])
