@@ -145,6 +145,9 @@ def _marginal_cdf(x, m, s, upper=False, w=None):
     components are point masses: an exact step, no division by zero.
     """
     point = s == 0
+    if not point.any():  # the same numbers without the masks
+        u = (x - m) / s
+        return _mix_probability(ndtr(-u) if upper else ndtr(u), w)
     u = (x - m) / np.where(point, 1.0, s)
     if upper:
         return _mix_probability(np.where(point, x < m, ndtr(-u)), w)

@@ -344,7 +344,7 @@ class _Banks:
             )
         self.t_s[rows] = t_s
 
-    def index(self, rows, t_s, y, params, obs: ObservationModel) -> None:
+    def index(self, rows, t_s, y, params, obs: ObservationModel, last=None) -> None:
         r"""On-board index ``y`` (k, m) at ``t_s`` on started rows (paper Eq. 7-12).
 
         Predict over :math:`\Delta t` days, update in Joseph form, and add each sample's
@@ -356,13 +356,23 @@ class _Banks:
             \overline{\nu} = \sum_j w_j \nu_j, \quad
             w_j \propto \exp(\log w_j), \qquad
             \log w_j \mathrel{+}= \log \mathcal N(\nu_j; 0, S_j).
+
+        ``last`` (k,) bool: the rows whose last update this is; only their NIS is computed
+        (a later update would overwrite it). None: every row.
         """
         for part, sel in self._blocks(rows):
             dt = (t_s[part] - self.t_s[sel]) / DAY_S
             z, P = transition_unchecked(self.z[sel], self.P[sel], params(sel), dt)
             z, P, nis, loglik = update_unchecked(z, P, y[part], obs.H, obs.b, obs.R, loglik=True)
-            # a sum over the last axis, not ``w @ nis``: BLAS dot's order depends on the call
-            self.nis[sel] = (weights_from_log(self.log_w[sel]) * nis).sum(-1)
+            want = slice(None) if last is None else last[part]
+            at = rows[part][want]
+            if len(at):
+                # weights_from_log without its check (log_w is the fold's own), and a sum
+                # over the last axis, not ``w @ nis``: BLAS dot's order depends on the call
+                log_w = self.log_w[at]
+                w = np.exp(log_w - log_w.max(-1, keepdims=True))
+                w /= w.sum(-1, keepdims=True)
+                self.nis[at] = (w * nis[want]).sum(-1)
             self.z[sel], self.P[sel] = z, P
             self.log_w[sel] += loglik
             self.n_updates[sel] += 1
@@ -418,6 +428,8 @@ def fold_many(
     banks = _Banks([starts[i] for i in order], ns, n)
     rows_params = _params_of([params[i] for i in order])
     lengths = np.array([len(logs[i]) for i in order])
+    # position of each row's last index: the NIS of a state is that of its last update
+    last_index = depth - 1 - np.argmax(kinds[:, ::-1] == INDEX, axis=1)
     for k in range(depth):
         active = int(np.count_nonzero(lengths > k))
         kind = kinds[:active, k]
@@ -433,7 +445,8 @@ def fold_many(
                 banks.tamping(rows, times[rows, k], rows_params)
             else:
                 assert obs is not None
-                banks.index(rows, times[rows, k], values[rows, k], rows_params, obs)
+                last = last_index[rows] == k
+                banks.index(rows, times[rows, k], values[rows, k], rows_params, obs, last)
     out: list[Filtered | None] = [None] * size
     for row, i in enumerate(order):
         out[i] = banks.state(row)
