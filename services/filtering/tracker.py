@@ -92,7 +92,7 @@ DAY_S = 86400.0
 HORIZONS_DAYS = (30.0, 90.0, 180.0)
 RESTART, TAMPING, INDEX = 0, 1, 2  # kind priority at equal times
 KIND_NAMES = {RESTART: "trc", TAMPING: "maintenance", INDEX: "index"}
-SUMMARY_SEGMENTS = 32  # segments per batched summary: its temporaries stay in cache
+SUMMARY_SEGMENTS = 16  # segments per batched summary: its temporaries stay in cache
 
 SegmentId = tuple[str, str]  # (line, segment)
 EventMessage = OnboardIndex | TrcRecord | MaintenanceEvent
