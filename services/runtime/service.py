@@ -48,6 +48,7 @@ _RETRY_S = 0.5
 HEALTH_INTERVAL_S = 5.0  # how often a service checks that the router still holds its token
 DEAF_AFTER_S = 15.0  # token not seen at the router for this long: the session is lost
 HUNG_AFTER_S = 300.0  # a worker on one batch for longer stops feeding the systemd watchdog
+BACKLOG_REPORT_S = 60.0  # how often a backlog is logged
 EXIT_SESSION_LOST = 75  # EX_TEMPFAIL: a supervisor should restart the process
 _IDLE_POLL_S = 1.0  # an idle worker wakes this often (watchdog bookkeeping, stop)
 
@@ -458,7 +459,7 @@ class ServiceRuntime:
         supervisor (``trackfusion up``, systemd) restarts it. While healthy and no worker has
         been stuck on one batch for ``HUNG_AFTER_S``, it feeds the systemd watchdog.
         """
-        last_seen = time.monotonic()
+        last_seen = next_report = time.monotonic()
         while not self.stop_event.wait(self._health_interval_s):
             if self._token_at_router():
                 last_seen = time.monotonic()
@@ -475,6 +476,9 @@ class ServiceRuntime:
             else:
                 log.warning("%s: own liveliness token not seen at the router", self.service)
             now = time.monotonic()
+            if now >= next_report:
+                next_report = now + BACKLOG_REPORT_S
+                self._report_backlog()
             hung = [n for n, t in list(self._busy_since.items()) if now - t > HUNG_AFTER_S]
             if hung:
                 log.error(
@@ -482,6 +486,19 @@ class ServiceRuntime:
                 )
             else:
                 systemd.ping_watchdog()
+
+    def _report_backlog(self) -> None:
+        """A log line per inbox that has a backlog or spilled since the last line."""
+        for i, inbox in enumerate(self._inboxes):
+            stats = inbox.stats()
+            if stats.depth or stats.spilled:
+                log.info(
+                    "%s inbox %d: %d waiting (%.1f MB in memory, %.1f MB on disk), "
+                    "%d received, %d spilled in all, longest callback %.1f ms",
+                    self.service, i, stats.depth, stats.memory_bytes / 1e6,
+                    stats.spill_bytes / 1e6, stats.received, stats.spilled,
+                    stats.max_put_s * 1e3,
+                )  # fmt: skip
 
     def _token_at_router(self) -> bool:
         try:
