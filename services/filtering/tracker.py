@@ -92,7 +92,7 @@ DAY_S = 86400.0
 HORIZONS_DAYS = (30.0, 90.0, 180.0)
 RESTART, TAMPING, INDEX = 0, 1, 2  # kind priority at equal times
 KIND_NAMES = {RESTART: "trc", TAMPING: "maintenance", INDEX: "index"}
-SUMMARY_SEGMENTS = 16  # segments per batched summary: its temporaries stay in cache
+SUMMARY_SEGMENTS = 8  # segments per batched summary: temporaries below the mmap threshold
 
 SegmentId = tuple[str, str]  # (line, segment)
 EventMessage = OnboardIndex | TrcRecord | MaintenanceEvent
@@ -640,8 +640,8 @@ class Tracker:
         track, reason = step_segment(track, event, self.models)
         if reason:
             return Step(False, reason)
+        out = self.segment_state(track)  # before the swap: if it raises, nothing changed
         self.tracks[sid] = track
-        out = self.segment_state(track)
         return Step(True, "", () if out is None else (out,))
 
     def update_models(self, msgs: Sequence[ModelMessage]) -> ModelUpdate:

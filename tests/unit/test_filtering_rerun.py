@@ -231,3 +231,16 @@ def test_limits_of_each_line_in_one_batch():
     for line, seg in (("L1", "a"), ("L2", "b")):
         state = tracker.state_of(line, seg)
         assert state.limits_mm.array().tolist() == LIMITS.for_line(line).tolist()
+
+
+def test_an_event_whose_state_cannot_be_summarised_changes_nothing(monkeypatch):
+    tracker, _ = run([*MODELS, trc(0.0, line="L1", segment="s1")])
+    tracks = dict(tracker.tracks)
+
+    def failing(*args, **kwargs):
+        raise ValueError("boom")
+
+    monkeypatch.setattr(tracker_module, "summarize_states", failing)
+    with pytest.raises(ValueError, match="boom"):
+        tracker.step(index(3.0, 2.0, 2.0, line="L1", segment="s1"))
+    assert tracker.tracks == tracks
