@@ -2,25 +2,36 @@
 
 No Zenoh, no clock, no sink: :class:`ViewerCore` logs to the ``rerun.RecordingStream`` it
 is given, and the adapter (``service.py``) decides where that stream goes (native viewer,
-web viewer, ``.rrd`` file) and passes wall time in where the blueprint's rate limit needs it.
+web viewer, ``.rrd`` file) and passes wall time in where the rate limits need it.
 
 Time: every temporal row is stamped on the timeline :data:`TIMELINE` (``"event_time"``),
 a timestamp timeline holding each message's own event time ``t`` (UTC epoch seconds), so
-late or replayed messages land where they belong. Rerun also adds ``log_time``/``log_tick``
-to rows logged with ``log``; batches sent with ``send_columns`` carry only ``event_time``.
+late or replayed messages land where they belong.
+
+Volume: what a viewer holds is bounded by what is logged, so superseded messages are
+thinned before they are written (:meth:`ViewerCore.take` only updates buffers and the
+ranking; :meth:`ViewerCore.flush` writes what is due):
+
+* series (states, on-board indices): per segment and **event-day**, the newest message of
+  that day; the buffers are written every ``series_flush_s`` wall seconds, one
+  ``send_columns`` chunk per entity holding every buffered day. So a segment's plot gets at
+  most one row per event-day per flush, and its newest state reaches it within one flush.
+  TRC records (a few per segment and year) are all written.
+* live (map colours, alerts, trains): every ``live_flush_s`` wall seconds; the map's line
+  colours are re-logged (one row per line) only when a colour changed, all trains' latest
+  positions go in one row; every alert is written.
 
 Entity paths (values in mm; ``{ind}`` is ``top6`` or ``align10``):
 
 ================================================  ==========================================
-``segments/{line}/{segment}/{ind}/estimate``      exp of the state's mixture mean of ln mm
-``segments/{line}/{segment}/{ind}/ci_low``        2.5 % marginal quantile (95 % band, low)
-``segments/{line}/{segment}/{ind}/ci_high``       97.5 % marginal quantile (band, high)
-``segments/{line}/{segment}/{ind}/limit_{level}`` the limits the state refers to
+``segments/{line}/{segment}/{ind}/state``         Scalars, one instance per series: estimate
+                                                  (exp of the mixture mean of ln mm), 95 %
+                                                  band low and high, then one per limit level
 ``segments/{line}/{segment}/{ind}/onboard``       raw on-board index (points; not de-biased)
 ``segments/{line}/{segment}/{ind}/trc``           TRC record (points)
 ``map/segments/{line}``                           one line strip per segment, coloured by
                                                   exceedance probability (green → red)
-``map/trains/{train}``                            last GPS fix of a train (fix_quality > 0)
+``map/trains``                                    last GPS fix of every train (fix_quality > 0)
 ``alerts``                                        TextLog: raised = WARN, cleared = INFO
 ================================================  ==========================================
 
@@ -47,8 +58,13 @@ from simulators.network import Network
 
 TIMELINE = "event_time"  # timestamp timeline of the messages' event time t (epoch s)
 INTERVENTION = "intervention"  # the limit level the map colour and the worst ranking use
+DAY_S = 86_400.0
 DEFAULT_WORST_N = 3
-DEFAULT_BLUEPRINT_INTERVAL_S = 5.0  # wall seconds between two blueprint re-sends, at least
+# Rerun's gRPC server keeps every blueprint ever sent (~100 KB each) and replays them all
+# to each browser that connects: re-send rarely.
+DEFAULT_BLUEPRINT_INTERVAL_S = 60.0  # wall seconds between two blueprint re-sends, at least
+DEFAULT_SERIES_FLUSH_S = 10.0  # wall seconds between two writes of the plots' rows
+DEFAULT_LIVE_FLUSH_S = 1.0  # wall seconds between two writes of map colours, alerts, trains
 
 UNKNOWN_RGB = (128, 128, 128)  # a segment without a state yet
 _STOPS_P = np.array([0.0, 0.5, 1.0])
@@ -56,10 +72,8 @@ _STOPS_RGB = np.array([(40, 170, 60), (240, 200, 30), (220, 40, 40)], dtype=floa
 
 SegmentKey = tuple[str, str]  # (line, segment)
 
-_STYLES: dict[str, rr.AsComponents] = {
-    "estimate": rr.SeriesLines(colors=(80, 160, 255), widths=2.0, names="estimate"),
-    "ci_low": rr.SeriesLines(colors=(80, 160, 255, 110), widths=1.0, names="95% low"),
-    "ci_high": rr.SeriesLines(colors=(80, 160, 255, 110), widths=1.0, names="95% high"),
+_BAND_RGBA = (80, 160, 255, 110)
+_POINTS: dict[str, rr.AsComponents] = {
     "onboard": rr.SeriesPoints(
         colors=(255, 150, 40), markers="circle", marker_sizes=2.5, names="on-board"
     ),
@@ -95,6 +109,36 @@ def segment_exceedance(state: SegmentState) -> float:
 def select_worst(p_exceed: Mapping[SegmentKey, float], n: int) -> list[SegmentKey]:
     """The ``n`` segments with the highest probability, highest first; ties by (line, segment)."""
     return [key for _, key in heapq.nsmallest(n, ((-p, key) for key, p in p_exceed.items()))]
+
+
+def event_day(t: float) -> int:
+    """The UTC day (days since the epoch) of an event time in epoch seconds."""
+    return math.floor(t / DAY_S)
+
+
+def coalesce_key(msg: Message) -> tuple[str, ...] | None:
+    """What a newer message of the same key supersedes before it is written (the thinning
+    rule of the series and the trains); None for messages that are all kept (alerts, TRC)."""
+    match msg:
+        case SegmentState() | OnboardIndex():
+            kind = "state" if isinstance(msg, SegmentState) else "onboard"
+            return (kind, msg.line, msg.segment, str(event_day(msg.t)))
+        case GpsFix():
+            return ("gps", msg.train)
+    return None
+
+
+def state_series(levels: Sequence[str]) -> list[str]:
+    """Instance names of a ``…/{ind}/state`` row: estimate, the band, then one per limit."""
+    return ["estimate", "95% low", "95% high", *(f"{level} limit" for level in levels)]
+
+
+def state_style(levels: Sequence[str]) -> rr.SeriesLines:
+    """One line style per instance of a ``…/{ind}/state`` row (see :func:`state_series`)."""
+    colors = [(80, 160, 255), _BAND_RGBA, _BAND_RGBA]
+    colors += [_LIMIT_RGB.get(level, (200, 200, 200)) for level in levels]
+    widths = [2.0, 1.0, 1.0, *([1.5] * len(levels))]
+    return rr.SeriesLines(colors=colors, widths=widths, names=state_series(levels))
 
 
 def build_blueprint(
@@ -147,11 +191,15 @@ def build_blueprint(
 class _MapLine:
     keys: list[SegmentKey]  # strip order
     index: dict[str, int]  # segment id -> strip
-    colors: np.ndarray  # (k, 3) uint8, what was logged last
+    colors: np.ndarray  # (k, 3) uint8, the current colours
+    changed_t: float | None = None  # newest event time of a colour change not yet logged
 
 
 class ViewerCore:
     """Logs TrackFusion messages to ``rec``; one instance per recording, one thread.
+
+    :meth:`take` buffers and thins (no Rerun call), :meth:`flush` writes what is due at
+    wall time ``now``; :meth:`log_batch` does both and writes everything at once.
 
     Parameters
     ----------
@@ -163,6 +211,9 @@ class ViewerCore:
         Segments shown beside the map.
     blueprint_interval_s
         Minimum wall time between two blueprint sends (see :meth:`maybe_send_blueprint`).
+    series_flush_s, live_flush_s
+        Wall seconds between two writes of the plots' rows, of the map colours, alerts and
+        trains.
     """
 
     def __init__(
@@ -172,22 +223,39 @@ class ViewerCore:
         *,
         worst_n: int = DEFAULT_WORST_N,
         blueprint_interval_s: float = DEFAULT_BLUEPRINT_INTERVAL_S,
+        series_flush_s: float = DEFAULT_SERIES_FLUSH_S,
+        live_flush_s: float = DEFAULT_LIVE_FLUSH_S,
     ) -> None:
         if worst_n < 0:
             raise ValueError(f"worst_n: must be >= 0, got {worst_n}")
+        if series_flush_s < 0 or live_flush_s < 0:
+            raise ValueError("series_flush_s, live_flush_s: must be >= 0")
         self.rec = rec
         self.network = network
         self.worst_n = worst_n
         self.blueprint_interval_s = blueprint_interval_s
+        self.series_flush_s = series_flush_s
+        self.live_flush_s = live_flush_s
         self.p_exceed: dict[SegmentKey, float] = {}
         self.handled = 0  # messages taken (GPS fixes without a fix included)
+        self.rows_written = 0  # rows of the plots' entities written (thinning's result)
         self.blueprints_sent = 0
-        self._styled: set[str] = set()
+        self._newest_t: dict[SegmentKey, float] = {}
+        self._styled: dict[str, tuple[str, ...]] = {}  # entity -> styled limit levels
         self._lines: dict[str, _MapLine] = {}
+        self._map_start_t: float | None = None  # first state's event time on the map
         self._map_started = False
         self._blueprint_keys: list[SegmentKey] | None = None
         self._blueprint_at: float | None = None
         self._bounds: np.ndarray | None = None
+        # buffers, emptied by flush
+        self._series: dict[tuple[str, ...], SegmentState | OnboardIndex] = {}
+        self._trc: list[TrcRecord] = []
+        self._alerts: list[Alert] = []
+        self._fixes: dict[str, GpsFix] = {}  # newest fix per train
+        self._fixes_new = False
+        self._series_at: float | None = None
+        self._live_at: float | None = None
 
     # --- setup ---------------------------------------------------------------------------
 
@@ -215,112 +283,169 @@ class ViewerCore:
                 self._lines[line.id] = _MapLine(
                     keys,
                     {seg.id: i for i, seg in enumerate(line.segments)},
-                    np.zeros((len(keys), 3), np.uint8),
+                    np.full((len(keys), 3), UNKNOWN_RGB, np.uint8),
                 )
         self.maybe_send_blueprint(now, force=True)
 
     # --- messages ------------------------------------------------------------------------
 
-    def log_batch(self, messages: Iterable[Message]) -> int:
-        """Log a batch: series grouped per entity (``send_columns`` when several rows),
-        map colours re-logged once per line whose colours changed. Returns the count."""
-        states: dict[SegmentKey, list[SegmentState]] = defaultdict(list)
-        points: dict[tuple[SegmentKey, str], list[OnboardIndex | TrcRecord]] = defaultdict(list)
-        fixes: dict[str, GpsFix] = {}
-        alerts: list[Alert] = []
+    def take(self, messages: Iterable[Message]) -> int:
+        """Buffer a batch, keeping per :func:`coalesce_key` only the newest message; update
+        the ranking and the map's current colours. No Rerun call. Returns the count."""
         n = 0
         for msg in messages:
             n += 1
             match msg:
-                case SegmentState():
-                    states[(msg.line, msg.segment)].append(msg)
-                case OnboardIndex():
-                    points[((msg.line, msg.segment), "onboard")].append(msg)
+                case SegmentState() | OnboardIndex():
+                    self._buffer_series(msg)
+                    if isinstance(msg, SegmentState):
+                        self._take_state(msg)
                 case TrcRecord():
-                    points[((msg.line, msg.segment), "trc")].append(msg)
+                    self._trc.append(msg)
                 case GpsFix():
-                    newest = fixes.get(msg.train)
+                    newest = self._fixes.get(msg.train)
                     if msg.fix_quality > 0 and (newest is None or msg.t >= newest.t):
-                        fixes[msg.train] = msg
+                        self._fixes[msg.train] = msg
+                        self._fixes_new = True
                 case Alert():
-                    alerts.append(msg)
+                    self._alerts.append(msg)
                 case _:
                     raise TypeError(f"viewer: cannot log a {type(msg).__name__}")
-        if n == 0:
-            return 0
-        times = list(_times(states, points, fixes, alerts))
-        if times and not self._map_started:
-            self._start_map_colors(min(times))
+        self.handled += n
+        return n
+
+    def log_batch(self, messages: Iterable[Message], now: float | None = None) -> int:
+        """:meth:`take` then :meth:`flush` at ``now`` (everything when ``now`` is None)."""
+        n = self.take(messages)
+        self.flush(0.0 if now is None else now, force=now is None)
+        return n
+
+    def _buffer_series(self, msg: SegmentState | OnboardIndex) -> None:
+        key = coalesce_key(msg)
+        assert key is not None
+        held = self._series.get(key)
+        if held is None or msg.t >= held.t:
+            self._series[key] = msg
+
+    def _take_state(self, state: SegmentState) -> None:
+        key = (state.line, state.segment)
+        if state.t < self._newest_t.get(key, -math.inf):
+            return  # a late state: its day's row is written, the ranking keeps the newest
+        self._newest_t[key] = state.t
+        self.p_exceed[key] = p = segment_exceedance(state)
+        line = self._lines.get(state.line)
+        i = line.index.get(state.segment) if line is not None else None
+        if line is None or i is None:
+            return  # not on the map
+        if self._map_start_t is None:
+            self._map_start_t = state.t
+        rgb = exceedance_color(p)
+        if not np.array_equal(line.colors[i], rgb):
+            line.colors[i] = rgb
+            line.changed_t = max(line.changed_t or -math.inf, state.t)
+
+    def flush(self, now: float, *, force: bool = False) -> None:
+        """Write the live part if ``live_flush_s`` passed since its last write, the series if
+        ``series_flush_s`` passed (``force``: both, now)."""
+        if force or self._live_at is None or now - self._live_at >= self.live_flush_s:
+            self._live_at = now
+            self._flush_live()
+        if force or self._series_at is None or now - self._series_at >= self.series_flush_s:
+            self._series_at = now
+            self._flush_series()
+
+    # --- series --------------------------------------------------------------------------
+
+    def _flush_series(self) -> None:
+        states: dict[SegmentKey, list[SegmentState]] = defaultdict(list)
+        points: dict[tuple[SegmentKey, str], list[OnboardIndex | TrcRecord]] = defaultdict(list)
+        for msg in self._series.values():
+            if isinstance(msg, SegmentState):
+                states[(msg.line, msg.segment)].append(msg)
+            else:
+                points[((msg.line, msg.segment), "onboard")].append(msg)
+        for trc in self._trc:
+            points[((trc.line, trc.segment), "trc")].append(trc)
+        self._series.clear()
+        self._trc.clear()
         for key, batch in states.items():
             self._log_states(key, sorted(batch, key=lambda s: s.t))
         for (key, kind), batch in points.items():
             self._log_points(key, kind, sorted(batch, key=lambda m: m.t))
-        for fix in fixes.values():
-            self._log_fix(fix)
-        for alert in sorted(alerts, key=lambda a: a.t):
-            self._log_alert(alert)
-        self._update_map(states)
-        self.handled += n
-        return n
 
     def _log_states(self, key: SegmentKey, states: list[SegmentState]) -> None:
         line, segment = key
-        t = np.array([s.t for s in states])
         base = f"segments/{line}/{segment}"
-        for i, indicator in enumerate(states[-1].indicators):
-            path = f"{base}/{indicator}"
-            if not all(i < len(s.indicators) and s.indicators[i] == indicator for s in states):
-                continue  # a state with another indicator order: skip rather than mix series
-            self._series(
-                f"{path}/estimate", "estimate", t, [math.exp(s.mean.array()[i]) for s in states]
-            )
-            self._series(f"{path}/ci_low", "ci_low", t, [s.ci_low_mm.array()[i] for s in states])
-            self._series(f"{path}/ci_high", "ci_high", t, [s.ci_high_mm.array()[i] for s in states])
-            for j, level in enumerate(states[-1].limit_levels):
-                same = [s for s in states if j < len(s.limit_levels) and s.limit_levels[j] == level]
-                self._series(
-                    f"{path}/limit_{level}",
-                    f"limit_{level}",
-                    np.array([s.t for s in same]),
-                    [s.limits_mm.array()[j, i] for s in same],
+        for levels in dict.fromkeys(tuple(s.limit_levels) for s in states):
+            same = [s for s in states if tuple(s.limit_levels) == levels]
+            for i, indicator in enumerate(same[-1].indicators):
+                rows = [s for s in same if i < len(s.indicators) and s.indicators[i] == indicator]
+                path = f"{base}/{indicator}/state"
+                if self._styled.get(path) != levels:
+                    self.rec.log(path, state_style(levels), static=True)
+                    self._styled[path] = levels
+                values = np.array(
+                    [
+                        [
+                            math.exp(s.mean.array()[i]),
+                            s.ci_low_mm.array()[i],
+                            s.ci_high_mm.array()[i],
+                            *s.limits_mm.array()[:, i],
+                        ]
+                        for s in rows
+                    ]
                 )
-        self.p_exceed[key] = segment_exceedance(states[-1])
+                self._send(path, np.array([s.t for s in rows]), values)
 
     def _log_points(self, key: SegmentKey, kind: str, msgs: list[OnboardIndex | TrcRecord]) -> None:
         t = np.array([m.t for m in msgs])
         base = f"segments/{key[0]}/{key[1]}"
         for indicator in INDICATORS:
-            values = [getattr(m, f"{indicator}_mm") for m in msgs]
-            self._series(f"{base}/{indicator}/{kind}", kind, t, values)
+            path = f"{base}/{indicator}/{kind}"
+            if path not in self._styled:
+                self.rec.log(path, _POINTS[kind], static=True)
+                self._styled[path] = ()
+            self._send(path, t, np.array([getattr(m, f"{indicator}_mm") for m in msgs]))
 
-    def _series(self, path: str, style: str, t: np.ndarray, values: Sequence[float]) -> None:
-        """Scalars at event times: one row with ``set_time`` + ``log``, more with a batch."""
-        if len(t) == 0:
-            return
-        if path not in self._styled:
-            self.rec.log(path, _style(style), static=True)
-            self._styled.add(path)
-        if len(t) == 1:
-            self.rec.set_time(TIMELINE, timestamp=float(t[0]))
-            self.rec.log(path, rr.Scalars(float(values[0])))
-        else:
-            self.rec.send_columns(
-                path,
-                indexes=[rr.TimeColumn(TIMELINE, timestamp=t)],
-                columns=rr.Scalars.columns(scalars=np.asarray(values, dtype=float)),
-            )
-
-    def _log_fix(self, fix: GpsFix) -> None:
-        if self.network is None:
-            return
-        xy = _screen(self.network.to_xy([fix.lon_deg, fix.lat_deg]))
-        self.rec.set_time(TIMELINE, timestamp=fix.t)
-        self.rec.log(
-            f"map/trains/{fix.train}",
-            rr.Points2D(
-                [xy], radii=rr.Radius.ui_points(6.0), colors=(0, 200, 255), labels=fix.train
-            ),
+    def _send(self, path: str, t: np.ndarray, values: np.ndarray) -> None:
+        """Rows of scalars at event times ``t``: one chunk (``values`` is (rows,) or
+        (rows, instances))."""
+        self.rec.send_columns(
+            path,
+            indexes=[rr.TimeColumn(TIMELINE, timestamp=t)],
+            columns=rr.Scalars.columns(scalars=values.astype(float)),
         )
+        self.rows_written += len(t)
+
+    # --- live: map colours, trains, alerts ------------------------------------------------
+
+    def _flush_live(self) -> None:
+        if not self._map_started and self._map_start_t is not None:
+            self._start_map_colors(self._map_start_t)
+        for line_id, line in self._lines.items():
+            if line.changed_t is not None:
+                self.rec.set_time(TIMELINE, timestamp=line.changed_t)
+                self.rec.log(
+                    f"map/segments/{line_id}", rr.LineStrips2D.from_fields(colors=line.colors)
+                )
+                line.changed_t = None
+        if self._fixes_new and self.network is not None:
+            fixes = sorted(self._fixes.values(), key=lambda f: f.train)
+            xy = _screen(self.network.to_xy(np.array([[f.lon_deg, f.lat_deg] for f in fixes])))
+            self.rec.set_time(TIMELINE, timestamp=max(f.t for f in fixes))
+            self.rec.log(
+                "map/trains",
+                rr.Points2D(
+                    xy,
+                    radii=rr.Radius.ui_points(6.0),
+                    colors=(0, 200, 255),
+                    labels=[f.train for f in fixes],
+                ),
+            )
+        self._fixes_new = False
+        for alert in sorted(self._alerts, key=lambda a: a.t):
+            self._log_alert(alert)
+        self._alerts.clear()
 
     def _log_alert(self, alert: Alert) -> None:
         raised = alert.status == "raised"
@@ -344,34 +469,14 @@ class ViewerCore:
             rr.TextLog(text, level=rr.TextLogLevel.WARN if raised else rr.TextLogLevel.INFO),
         )
 
-    # --- map -----------------------------------------------------------------------------
-
     def _start_map_colors(self, t: float) -> None:
-        """Grey for every segment at the first event time seen (temporal colours can't start
-        earlier: static colours would hide every later change)."""
+        """Grey for every segment at the first state's event time (temporal colours can't
+        start earlier: static colours would hide every later change)."""
         self._map_started = True
         self.rec.set_time(TIMELINE, timestamp=t)
         for line_id, line in self._lines.items():
-            line.colors[:] = UNKNOWN_RGB
-            self.rec.log(f"map/segments/{line_id}", rr.LineStrips2D.from_fields(colors=line.colors))
-
-    def _update_map(self, states: Mapping[SegmentKey, list[SegmentState]]) -> None:
-        newest: dict[str, float] = {}
-        for (line_id, segment), batch in states.items():
-            line = self._lines.get(line_id)
-            i = line.index.get(segment) if line is not None else None
-            if line is None or i is None:
-                continue  # not on the map
-            rgb = exceedance_color(self.p_exceed[(line_id, segment)])
-            if not np.array_equal(line.colors[i], rgb):
-                line.colors[i] = rgb
-                newest[line_id] = max(newest.get(line_id, -math.inf), max(s.t for s in batch))
-        for line_id, t in newest.items():
-            self.rec.set_time(TIMELINE, timestamp=t)
-            self.rec.log(
-                f"map/segments/{line_id}",
-                rr.LineStrips2D.from_fields(colors=self._lines[line_id].colors),
-            )
+            grey = np.full((len(line.keys), 3), UNKNOWN_RGB, np.uint8)
+            self.rec.log(f"map/segments/{line_id}", rr.LineStrips2D.from_fields(colors=grey))
 
     # --- blueprint -----------------------------------------------------------------------
 
@@ -380,15 +485,18 @@ class ViewerCore:
 
     def maybe_send_blueprint(self, now: float, *, force: bool = False) -> bool:
         """Send the blueprint if the worst set changed and ``blueprint_interval_s`` of wall
-        time ``now`` (monotonic seconds) passed since the last send; ``force``: if it changed
-        (or was never sent), now. True if sent."""
+        time ``now`` (monotonic seconds) passed since the last send, or at once if it shows
+        more segments than the last one (the first plots); ``force``: if it changed (or was
+        never sent), now. True if sent."""
+        worst = self.worst()
+        shown = len(self._blueprint_keys) if self._blueprint_keys is not None else -1
         if (
             not force
+            and len(worst) <= shown
             and self._blueprint_at is not None
             and now - self._blueprint_at < self.blueprint_interval_s
         ):
             return False
-        worst = self.worst()
         if self._blueprint_keys is not None and set(worst) == set(self._blueprint_keys):
             return False
         self.rec.send_blueprint(
@@ -402,22 +510,6 @@ class ViewerCore:
         return True
 
 
-def _style(name: str) -> rr.AsComponents:
-    if name in _STYLES:
-        return _STYLES[name]
-    level = name.removeprefix("limit_")
-    return rr.SeriesLines(
-        colors=_LIMIT_RGB.get(level, (200, 200, 200)), widths=1.5, names=f"{level} limit"
-    )
-
-
 def _screen(xy: np.ndarray) -> np.ndarray:
     """Local (x east, y north) metres to Rerun's y-down 2D frame: north up on screen."""
     return np.asarray(xy, dtype=float) * np.array([1.0, -1.0])
-
-
-def _times(states, points, fixes, alerts) -> Iterable[float]:
-    for batch in (*states.values(), *points.values()):
-        yield from (m.t for m in batch)
-    yield from (f.t for f in fixes.values())
-    yield from (a.t for a in alerts)

@@ -1,11 +1,15 @@
 """`trackfusion viewer`: the thin adapter around :mod:`services.viewer.core`.
 
 Subscribes ``{ns}/state/**``, ``{ns}/index/**``, ``{ns}/trc/**``, ``{ns}/alert/**`` and
-``{ns}/gps/*`` with ``latest_only`` (a Zenoh ``RingChannel`` each: when the viewer falls
-behind, the oldest samples are dropped and the pipeline never waits for it). The runtime's
-per-subscription workers decode (errors become dead letters) and append to one bounded
-inbox, which drops its oldest too; ONE worker thread takes everything queued at once and
-hands it to the core as a batch, so only that thread touches the recording.
+``{ns}/gps/*`` latest-only (``ServiceRuntime.subscribe``: a Zenoh ``RingChannel`` each:
+when the viewer falls behind, the oldest samples are dropped and the pipeline never waits
+for it). The runtime's
+per-subscription workers decode (errors become dead letters) and hand them to one bounded
+inbox in which a newer state or index of a segment and event-day, or a newer fix of a
+train, replaces the held one (alerts and TRC records queue); ONE worker thread takes
+everything held at once, hands it to the core and lets the core write what is due, so
+only that thread touches the recording. A slow browser makes Rerun's log calls wait; the
+inbox then coalesces and the Zenoh callbacks still never wait.
 
 Sinks (:class:`Sink`): ``rrd`` writes a recording file, ``web`` serves the gRPC log
 stream and the web viewer and prints the viewer's URL on stdout, ``spawn`` starts the
@@ -42,15 +46,26 @@ from schemas import (
 )
 from services.runtime.config import RuntimeConfig
 from services.runtime.service import ServiceRuntime
-from services.viewer.core import DEFAULT_BLUEPRINT_INTERVAL_S, DEFAULT_WORST_N, ViewerCore
+from services.viewer.core import (
+    DEFAULT_BLUEPRINT_INTERVAL_S,
+    DEFAULT_LIVE_FLUSH_S,
+    DEFAULT_SERIES_FLUSH_S,
+    DEFAULT_WORST_N,
+    ViewerCore,
+    coalesce_key,
+)
 from simulators.network import DEMO_NETWORK, Network
 
 log = logging.getLogger(__name__)
 
 SERVICE = "viewer"
 APP_ID = "TrackFusion"
-INBOX_CAPACITY = 8192  # messages waiting for the logging worker; the oldest go first
+INBOX_CAPACITY = 8192  # keys (and, apart, alerts + TRC records) waiting for the worker
 SUBSCRIPTION_CAPACITY = 1024  # per RingChannel
+# What Rerun's gRPC server keeps for browsers that connect later (it drops the oldest
+# temporal data beyond it; static data and blueprints are kept). A connecting browser is
+# first sent a copy of it, so the process may hold about twice this.
+SERVER_MEMORY_LIMIT = "96MiB"
 DEFAULT_WEB_PORT = 9090
 DEFAULT_GRPC_PORT = 9876
 
@@ -91,7 +106,13 @@ def open_sink(rec: rr.RecordingStream, sink: Sink, out: TextIO) -> str | None:
             rec.save(sink.path)
             log.info("%s: recording to %s", SERVICE, sink.path)
         case "web":
-            grpc_url = rec.serve_grpc(grpc_port=sink.grpc_port)
+            # newest first: a browser that connects late draws the current state at once and
+            # fills the history in backwards
+            grpc_url = rec.serve_grpc(
+                grpc_port=sink.grpc_port,
+                server_memory_limit=SERVER_MEMORY_LIMIT,
+                newest_first=True,
+            )
             rr.serve_web_viewer(web_port=sink.web_port, open_browser=False, connect_to=grpc_url)
             url = web_viewer_url(grpc_url, sink.web_port)
             print(url, file=out, flush=True)  # the command's output: where to point a browser
@@ -108,31 +129,53 @@ def open_sink(rec: rr.RecordingStream, sink: Sink, out: TextIO) -> str | None:
 
 
 class _Inbox:
-    """A bounded deque shared by the subscriptions: never blocks a producer, drops the oldest."""
+    """What the subscriptions hand to the logging worker; never blocks a producer.
+
+    Messages with a :func:`~services.viewer.core.coalesce_key` (states and on-board indices
+    per segment and event-day, GPS fixes per train) replace the held one of their key: the
+    viewer writes only the newest of a key anyway. Alerts and TRC records queue in order.
+    Both parts are bounded; when full, the oldest entry goes (counted in ``dropped``).
+    """
 
     def __init__(self, capacity: int) -> None:
-        self._items: deque[Message] = deque(maxlen=capacity)
+        self._keyed: dict[tuple[str, ...], Message] = {}
+        self._queued: deque[Message] = deque(maxlen=capacity)
+        self._capacity = capacity
         self._cond = threading.Condition()
         self._closed = False
         self.dropped = 0
+        self.superseded = 0
 
     def put(self, item: Message) -> None:
+        key = coalesce_key(item)
         with self._cond:
             if self._closed:
                 return
-            if len(self._items) == self._items.maxlen:
-                self.dropped += 1
-            self._items.append(item)
+            if key is None:
+                if len(self._queued) == self._queued.maxlen:
+                    self.dropped += 1
+                self._queued.append(item)
+            else:
+                held = self._keyed.pop(key, None)  # re-inserted last: dict order = age
+                if held is not None:
+                    self.superseded += 1
+                    if held.t > item.t:
+                        item = held
+                elif len(self._keyed) >= self._capacity:
+                    del self._keyed[next(iter(self._keyed))]
+                    self.dropped += 1
+                self._keyed[key] = item
             self._cond.notify()
 
     def take(self, timeout: float | None) -> list[Message] | None:
-        """Everything queued (possibly nothing after ``timeout``); None once closed and empty."""
+        """Everything held (possibly nothing after ``timeout``); None once closed and empty."""
         with self._cond:
-            self._cond.wait_for(lambda: self._items or self._closed, timeout)
-            if not self._items and self._closed:
+            self._cond.wait_for(lambda: self._keyed or self._queued or self._closed, timeout)
+            if not self._keyed and not self._queued and self._closed:
                 return None
-            items = list(self._items)
-            self._items.clear()
+            items = [*self._keyed.values(), *self._queued]
+            self._keyed.clear()
+            self._queued.clear()
             return items
 
     def close(self) -> None:
@@ -174,7 +217,6 @@ class ViewerAdapter:
                 key,
                 self._decoder(kind, message_type),
                 capacity=SUBSCRIPTION_CAPACITY,
-                latest_only=True,
             )
         self._worker = self.rt.spawn(self._work, name=f"{SERVICE}:rerun")
 
@@ -188,21 +230,24 @@ class ViewerAdapter:
         return on_sample
 
     def _work(self) -> None:
+        core = self.core
         while True:
-            # the timeout lets a pending blueprint change go out when messages stop coming
-            batch = self.inbox.take(timeout=self.core.blueprint_interval_s)
+            # the timeout lets due writes and a pending blueprint go out when messages stop
+            batch = self.inbox.take(timeout=max(0.05, min(core.live_flush_s, 1.0)))
             if batch is None:
                 break
-            if batch:
-                try:
-                    self.core.log_batch(batch)
-                except Exception:  # a bad batch must not end the viewer
-                    log.exception("%s: logging a batch of %d failed", SERVICE, len(batch))
-                    self.core.handled += len(batch)
-            self.core.maybe_send_blueprint(time.monotonic())
+            now = time.monotonic()
+            try:
+                core.take(batch)
+                core.flush(now)
+            except Exception:  # a bad batch must not end the viewer
+                log.exception("%s: logging a batch of %d failed", SERVICE, len(batch))
+                core.handled += len(batch)
+            core.maybe_send_blueprint(now)
             if batch and self._on_logged is not None:
-                self._on_logged(self.core.handled)
-        self.core.maybe_send_blueprint(time.monotonic(), force=True)  # the final worst set
+                self._on_logged(core.handled)
+        core.flush(time.monotonic(), force=True)
+        core.maybe_send_blueprint(time.monotonic(), force=True)  # the final worst set
 
     def finish(self) -> None:
         """Log what is queued, then end the worker (before the recording is closed)."""
@@ -211,6 +256,12 @@ class ViewerAdapter:
             self._worker.join()
         if self.inbox.dropped:
             log.warning("%s: dropped %d messages (viewer behind)", SERVICE, self.inbox.dropped)
+        log.info(
+            "%s: %d messages superseded before logging, %d plot rows written",
+            SERVICE,
+            self.inbox.superseded,
+            self.core.rows_written,
+        )
 
 
 def _check_key(kind: str, key: str, message: Message) -> None:
@@ -237,6 +288,8 @@ def main(
     *,
     worst_n: int = DEFAULT_WORST_N,
     blueprint_interval_s: float = DEFAULT_BLUEPRINT_INTERVAL_S,
+    series_flush_s: float = DEFAULT_SERIES_FLUSH_S,
+    live_flush_s: float = DEFAULT_LIVE_FLUSH_S,
     stop: threading.Event | None = None,
     handle_signals: bool = True,
     on_logged: Callable[[int], None] | None = None,
@@ -254,7 +307,14 @@ def main(
     rec = rr.RecordingStream(APP_ID, recording_id=uuid.uuid4())
     try:
         open_sink(rec, sink, out if out is not None else sys.stdout)
-        core = ViewerCore(rec, network, worst_n=worst_n, blueprint_interval_s=blueprint_interval_s)
+        core = ViewerCore(
+            rec,
+            network,
+            worst_n=worst_n,
+            blueprint_interval_s=blueprint_interval_s,
+            series_flush_s=series_flush_s,
+            live_flush_s=live_flush_s,
+        )
         core.start(time.monotonic())
         with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
             adapter = ViewerAdapter(rt, core, on_logged=on_logged)

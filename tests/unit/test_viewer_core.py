@@ -91,18 +91,20 @@ def recording(tmp_path: Path) -> Iterator[tuple[rr.RecordingStream, Path]]:
 
 def test_blueprint_resent_only_when_worst_set_changes_and_interval_passed(recording):
     rec, _ = recording
-    core = ViewerCore(rec, None, worst_n=1, blueprint_interval_s=5.0)
+    core = ViewerCore(rec, None, worst_n=2, blueprint_interval_s=5.0)
     core.start(now=0.0)
     assert core.blueprints_sent == 1  # the map and the alert log, no segment yet
-    core.log_batch([make_state(T0, segment="s1", p_exceed=p_top6(1, 0.7))])
-    assert not core.maybe_send_blueprint(1.0)  # too soon
-    assert core.maybe_send_blueprint(6.0) and core.worst() == [("L1", "s1")]
-    core.log_batch([make_state(T0, segment="s2", p_exceed=p_top6(1, 0.2))])
+    core.take([make_state(T0, segment="s1", p_exceed=p_top6(1, 0.7))])
+    assert core.maybe_send_blueprint(1.0)  # the first plots: at once
+    core.take([make_state(T0, segment="s2", p_exceed=p_top6(1, 0.2))])
+    assert core.maybe_send_blueprint(1.5)  # one more plot: at once too
     assert not core.maybe_send_blueprint(20.0)  # same worst set: nothing to send
-    core.log_batch([make_state(T0 + DAY_S, segment="s2", p_exceed=p_top6(1, 0.9))])
-    assert not core.maybe_send_blueprint(7.0)
-    assert core.maybe_send_blueprint(7.0, force=True) and core.worst() == [("L1", "s2")]
-    assert core.blueprints_sent == 3
+    core.take([make_state(T0 + DAY_S, segment="s3", p_exceed=p_top6(1, 0.9))])
+    assert not core.maybe_send_blueprint(3.0)  # changed, as many plots: too soon
+    assert core.maybe_send_blueprint(7.0) and core.worst() == [("L1", "s3"), ("L1", "s1")]
+    core.take([make_state(T0 + DAY_S, segment="s2", p_exceed=p_top6(1, 0.95))])
+    assert core.maybe_send_blueprint(8.0, force=True)
+    assert core.blueprints_sent == 5
 
 
 def test_core_writes_series_map_trains_and_alerts(recording):
@@ -154,15 +156,70 @@ def test_core_writes_series_map_trains_and_alerts(recording):
     contents = rrd_contents(path)
     base = f"segments/L1/{seg}"
     for indicator in ("top6", "align10"):
-        for series in ("estimate", "ci_low", "ci_high", "limit_alert", "limit_intervention"):
-            assert contents[f"{base}/{indicator}/{series}"]["Scalars:scalars"] == 4
-            assert contents[f"{base}/{indicator}/{series}"]["SeriesLines:colors"] == 1  # static
+        # estimate, band, limits: one row per state (days 0, 1, 2 and 4), one static style
+        assert contents[f"{base}/{indicator}/state"]["Scalars:scalars"] == 4
+        assert contents[f"{base}/{indicator}/state"]["SeriesLines:colors"] == 1
         for series in ("onboard", "trc"):
             assert contents[f"{base}/{indicator}/{series}"]["Scalars:scalars"] == 1
             assert contents[f"{base}/{indicator}/{series}"]["SeriesPoints:markers"] == 1
     assert contents["map/segments/L1"]["LineStrips2D:strips"] == 1  # static geometry
     assert contents["map/segments/L1"]["LineStrips2D:colors"] == 2  # grey, then one change
     assert contents["map/segments/L2"]["LineStrips2D:colors"] == 1  # grey only
-    assert contents["map/trains/T1"]["Points2D:positions"] == 1
-    assert "map/trains/T2" not in contents
+    assert contents["map/trains"]["Points2D:positions"] == 1  # T1 only: T2 had no fix
     assert contents["alerts"]["TextLog:level"] == 1
+
+
+def test_series_thinned_to_the_newest_per_segment_and_event_day_per_flush(recording):
+    rec, path = recording
+    core = ViewerCore(rec, None, series_flush_s=10.0, live_flush_s=1.0)
+    core.start(now=0.0)
+    hour = 3600.0
+    day0 = [make_state(T0 + k * hour, p_exceed=p_top6(1, 0.1 * k)) for k in range(4)]
+    day1 = make_state(T0 + DAY_S, p_exceed=p_top6(1, 0.5))
+    core.take([day0[3], day0[0], day1, day0[2], day0[1]])  # order of arrival does not matter
+    core.flush(0.0)  # the first flush writes at once: one row for day 0 (its last), one for day 1
+    assert core.rows_written == 2 * 2  # two rows, two indicators
+    late = make_state(T0 + 2 * hour, p_exceed=p_top6(1, 0.9))  # day 0 again, after day 1
+    core.take([make_state(T0 + DAY_S + 5 * hour, p_exceed=p_top6(1, 0.6)), late])
+    assert core.p_exceed[("L1", "s1")] == pytest.approx(0.6)  # the ranking keeps the newest
+    core.flush(5.0)  # not due yet
+    assert core.rows_written == 4
+    core.take([make_state(T0 + DAY_S + 6 * hour, p_exceed=p_top6(1, 0.7))])
+    core.flush(10.0)  # day 1's newest and the late day-0 state
+    assert core.rows_written == 4 + 2 * 2
+    rec.flush()
+    rec.disconnect()
+    assert rrd_contents(path)["segments/L1/s1/top6/state"]["Scalars:scalars"] == 4
+
+
+def test_inbox_keeps_the_newest_per_key_and_every_alert():
+    from services.viewer.service import _Inbox
+
+    inbox = _Inbox(capacity=2)
+    states = [make_state(T0 + k * 60.0, segment="s1") for k in range(3)]
+    for state in (states[0], states[2], states[1]):  # s1, day 0: only the newest stays
+        inbox.put(state)
+    other = make_state(T0, segment="s2")
+    alerts = [
+        Alert(
+            line="L1",
+            segment="s1",
+            t=T0 + k,
+            kind="exceedance",
+            status="raised",
+            indicator="top6",
+            level="alert",
+            probability=0.9,
+        )  # fmt: skip
+        for k in range(2)
+    ]
+    for message in (other, *alerts):
+        inbox.put(message)
+    assert inbox.take(timeout=0) == [states[2], other, *alerts]
+    assert inbox.superseded == 2 and inbox.dropped == 0
+    for segment in ("s1", "s2", "s3"):  # capacity 2: the oldest key goes
+        inbox.put(make_state(T0, segment=segment))
+    assert [m.segment for m in inbox.take(timeout=0)] == ["s2", "s3"]
+    assert inbox.dropped == 1
+    inbox.close()
+    assert inbox.take(timeout=None) is None
