@@ -47,8 +47,17 @@ change it:
   TRC record are kept in the log but skipped by the fold (there is nothing to update).
 - **Models**: one Calibration (``H, b, R``) and DegradationPosteriors per group. A segment
   uses the most specific group available: ``seg.{line}.{segment}``, then ``line.{line}``,
-  then ``net``. A model with a version not newer than the one held is ignored. A new
-  calibration re-runs every segment, a new posterior the segments that now use its group.
+  then ``net``. A model with a version not newer than the one held is ignored; a model is
+  checked completely (:func:`parse_model`) before it may replace the one held, and a
+  refused one leaves the models and tracks as they were. A new calibration re-runs every
+  segment, a new posterior the segments that now use its group; several models at once
+  (:meth:`Tracker.update_models`) re-run the union of their segments once.
+- **Batched re-run**: a re-run (model change, restart) folds all its segments together
+  (:func:`fold_many`: one vectorised step per event position over the segments still
+  holding an event there, split by kind) and summarises them together
+  (:func:`summarize_states`). A segment's numbers never depend on the other segments of a
+  call, so the re-run, a replay of one segment and the live one-event step give the same
+  bits.
 - ``nis`` is the mean over samples of the per-sample NIS of the last update since the start
   of the state (a tamping keeps it; a TRC restart clears it to None), weighted by the
   mixture weights before that update (the predictive distribution the index is checked
@@ -56,7 +65,8 @@ change it:
   tamping that started the state).
 
 :class:`Tracker` keeps the per-segment tracks in a dict and the models; its :meth:`step`
-returns a :class:`Step` (accepted or not, why, and the SegmentStates to publish).
+returns a :class:`Step` (accepted or not, why, and the SegmentStates to publish), its
+:meth:`~Tracker.update_models` a :class:`ModelUpdate`.
 """
 
 from __future__ import annotations
