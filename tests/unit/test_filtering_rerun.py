@@ -244,3 +244,16 @@ def test_an_event_whose_state_cannot_be_summarised_changes_nothing(monkeypatch):
     with pytest.raises(ValueError, match="boom"):
         tracker.step(index(3.0, 2.0, 2.0, line="L1", segment="s1"))
     assert tracker.tracks == tracks
+
+
+def test_update_models_applies_the_good_and_refuses_the_bad():
+    events = mixed_events(np.random.default_rng(27))
+    good = posterior("line.L1", version=2, seed=14)
+    bad = bad_calibration(2, R=NDArray.of([[0.01, 0.02], [0.02, 0.01]]))
+    tracker, _ = run([*MODELS, *events])
+    update = tracker.update_models([bad, good])
+    assert update.accepted == [good] and [m for m, _ in update.refused] == [bad]
+    reference, _ = run([*MODELS, *events, good])
+    assert tracker.models.calibration.version == 1
+    for sid, track in reference.tracks.items():
+        assert_bit_identical(tracker.tracks[sid], track, tracker)
