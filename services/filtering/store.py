@@ -200,10 +200,6 @@ class BatchResult:
     accepted: int
 
 
-def _model_name(msg: ModelMessage) -> str:
-    return "calibration" if isinstance(msg, Calibration) else f"degradation/{msg.group}"
-
-
 class PersistentTracker:
     """A :class:`Tracker` whose accepted inputs are committed to a :class:`Store` first.
 
@@ -227,8 +223,9 @@ class PersistentTracker:
     def handle_batch(self, items: Iterable[tuple[str, bytes]]) -> BatchResult:
         """Several ``(key, payload)`` in one store transaction.
 
-        Model messages go first and are coalesced: of several versions of one model only
-        the newest is applied, and the segments they affect are re-run once. Then the
+        Model messages go first and are coalesced (:meth:`Tracker.update_models`): of
+        several versions of one model only the newest is applied, each is validated, and
+        the segments they affect are re-run once, in one batched pass. Then the
         events in the order given. Everything accepted is committed at the end, before the
         caller publishes the states; a payload that does not decode, or that the core
         refuses (a model that fails validation), is returned in ``rejected`` with the
@@ -236,7 +233,7 @@ class PersistentTracker:
         persisted, and the caller must not go on with this tracker.
         """
         rejected: list[tuple[str, str, bytes]] = []
-        newest: dict[str, tuple[ModelMessage, str, bytes]] = {}
+        models: list[tuple[ModelMessage, str, bytes]] = []
         events: list[tuple[EventMessage, str, bytes]] = []
         for key, payload in items:
             try:
@@ -247,32 +244,41 @@ class PersistentTracker:
             if msg is None:
                 continue
             if isinstance(msg, Calibration | DegradationPosterior):
-                name = _model_name(msg)
-                held = newest.get(name)
-                if held is None or msg.version > held[0].version:
-                    newest[name] = (msg, key, payload)
+                models.append((msg, key, payload))
             else:
                 events.append((msg, key, payload))
         states: dict[tuple[str, str], SegmentState] = {}
+
+        def keep(new_states: Iterable[SegmentState]) -> None:
+            for state in new_states:
+                states.pop((state.line, state.segment), None)  # the newest, last
+                states[(state.line, state.segment)] = state
+
         accepted = 0
         with self.store.transaction():
-            for msg, key, payload in [*newest.values(), *events]:
+            if models:
+                origin = {id(msg): (key, payload) for msg, key, payload in models}
+                update = self.tracker.update_models([msg for msg, _, _ in models])
+                for msg, reason in update.refused:
+                    rejected.append((*origin[id(msg)][:1], reason, origin[id(msg)][1]))
+                for msg in update.accepted:
+                    self._commit(msg, *origin[id(msg)])
+                accepted += len(update.accepted)
+                keep(update.states)
+            for msg, key, payload in events:
                 try:
                     step = self.tracker.step(msg)
-                except ValueError as e:  # a model (or event) the core refuses
+                except ValueError as e:  # an event the core refuses
                     rejected.append((key, str(e), payload))
                     continue
                 except Exception as e:  # a bug: the letter says what, the batch goes on
                     log.exception("error stepping %s", key)
                     rejected.append((key, f"{type(e).__name__}: {e}", payload))
                     continue
-                if not step.accepted:
-                    continue
-                accepted += 1
-                self._commit(msg, key, payload)
-                for state in step.states:
-                    states.pop((state.line, state.segment), None)  # keep the newest, last
-                    states[(state.line, state.segment)] = state
+                if step.accepted:
+                    accepted += 1
+                    self._commit(msg, key, payload)
+                    keep(step.states)
         return BatchResult(tuple(states.values()), tuple(rejected), accepted)
 
     def _commit(self, msg: EventMessage | ModelMessage, key: str, payload: bytes) -> None:

@@ -349,6 +349,7 @@ class ServiceRuntime:
         on_sample: Callable[[zenoh.Sample], None],
         *,
         capacity: int = DEFAULT_CAPACITY,
+        latest_only: bool = True,
         dead_letter_errors: bool = True,
     ) -> zenoh.Subscriber:
         """A latest-only subscription for displays: a Zenoh ``RingChannel(capacity)`` that
@@ -356,6 +357,8 @@ class ServiceRuntime:
         thread calling ``on_sample``. Streams where nothing may be lost use
         :meth:`subscribe_in_order` or :meth:`subscribe_batches`. An exception from
         ``on_sample`` becomes a dead letter unless ``dead_letter_errors`` is False."""
+        if not latest_only:
+            raise ValueError("subscribe() is latest-only; use subscribe_in_order()")
         subscriber = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(capacity))
         self._subscribers.append(subscriber)
         self.spawn(
