@@ -1,10 +1,10 @@
 """`trackfusion calibration`: the live calibration service (thin adapter over the core).
 
 Subscribes ``{ns}/trc/**``, ``{ns}/index/**`` and ``{ns}/maintenance/**``; every sample goes
-into ONE bounded queue drained by ONE worker, so the :class:`Calibrator` stays
-single-threaded. The worker decodes (a bad payload becomes a dead letter), feeds the core a
-batch, persists what changed (one SQLite transaction), then publishes the new models with
-``session.put`` on ``{ns}/model/calibration`` and ``{ns}/model/degradation/{group}``.
+into the runtime's inbox (never blocking Zenoh), drained by ONE worker, so the
+:class:`Calibrator` stays single-threaded. The worker decodes (a bad payload becomes a
+dead letter), feeds the core a batch, persists what changed (one SQLite transaction), then
+publishes the new models on ``{ns}/model/calibration`` and ``{ns}/model/degradation/{group}``.
 A queryable on ``{ns}/model/**`` answers late joiners with the latest of each model.
 
 At start the store is loaded (the same models, versions and samples are republished), then
@@ -15,7 +15,6 @@ the optional initial models (``initial_models``: a JSON5 file, see
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -49,15 +48,12 @@ from services.runtime.service import ServiceRuntime
 log = logging.getLogger(__name__)
 
 SERVICE = "calibration"
-QUEUE_CAPACITY = 4096  # samples waiting for the worker; a full queue slows the senders
 BATCH = 512  # samples handed to the core before one flush + one transaction
 _KINDS: dict[str, type[Event]] = {
     "trc": TrcRecord,
     "index": OnboardIndex,
     "maintenance": MaintenanceEvent,
 }
-_STOP = object()
-_STOP_TIMEOUT_S = 3.0
 
 
 @dataclass(frozen=True)
@@ -161,7 +157,6 @@ def main(
 def _serve(rt: ServiceRuntime, core: Calibrator, store: SqliteStore) -> int:
     ns = rt.ns
     latest = _Latest()
-    inbox: queue.Queue[Any] = queue.Queue(QUEUE_CAPACITY)
     models_out = rt.reliable_publisher()  # cached: filtering instances that return get them
 
     def publish(models: list[Model]) -> None:
@@ -170,17 +165,6 @@ def _serve(rt: ServiceRuntime, core: Calibrator, store: SqliteStore) -> int:
             latest.set(key, payload)
             models_out.put(key, payload)
             log.info("published %s version %d", key, model.version)
-
-    def enqueue(sample: zenoh.Sample) -> None:
-        # short: the worker does the work; when the queue is full, hold Zenoh back
-        item = (str(sample.key_expr), sample.payload.to_bytes())
-        while True:
-            try:
-                inbox.put(item, timeout=0.5)
-                return
-            except queue.Full:
-                if rt.stopping:
-                    return
 
     def decode_sample(key: str, payload: bytes) -> Event:
         _, kind, line, segment = keys.parse_segment_key(key)
@@ -192,35 +176,18 @@ def _serve(rt: ServiceRuntime, core: Calibrator, store: SqliteStore) -> int:
             )
         return message
 
-    def work() -> None:
-        while True:
-            item = inbox.get()
-            batch = [item]
-            while len(batch) < BATCH:
-                try:
-                    batch.append(inbox.get_nowait())
-                except queue.Empty:
-                    break
-            stopping = _STOP in batch
-            for entry in batch:
-                if entry is _STOP:
-                    continue
-                key, payload = entry
-                try:
-                    core.ingest(decode_sample(key, payload))
-                except (SchemaError, ValueError) as e:
-                    rt.deadletters.reject(key, str(e), payload)
-                except Exception as e:  # a bug: keep the service up, say why in the letter
-                    log.exception("error handling %s", key)
-                    rt.deadletters.reject(key, f"{type(e).__name__}: {e}", payload)
-            log.debug("batch of %d", len(batch))
-            try:
-                models = core.flush()
-            finally:
-                store.apply(core.drain_changes())  # persisted before anyone sees the models
-            publish(models)
-            if stopping:
-                return
+    def ingest(_kind: str, key: str, payload: bytes) -> None:
+        core.ingest(decode_sample(key, payload))
+
+    def handle_batch(batch: list[tuple[str, str, bytes]]) -> None:
+        for kind, key, payload in batch:  # a bad one: a dead letter (ValueError: its reason)
+            rt.guarded(ingest, kind, key, payload, refusals=(SchemaError, ValueError))
+        log.debug("batch of %d", len(batch))
+        try:
+            models = core.flush()
+        finally:
+            store.apply(core.drain_changes())  # persisted before anyone sees the models
+        publish(models)
 
     def on_query(query: zenoh.Query) -> None:
         for key, payload in latest.items():
@@ -229,15 +196,6 @@ def _serve(rt: ServiceRuntime, core: Calibrator, store: SqliteStore) -> int:
 
     publish(core.models())  # restored and initial models, for those already listening
     rt.declare_queryable(keys.model_all(ns), on_query)
-    worker = rt.spawn(work, name=f"{SERVICE}:worker")
-    for kind in _KINDS:
-        rt.declare_subscriber(keys.segment_keys(ns, kind), enqueue, reliable=True)
-    try:
-        return rt.run()
-    finally:
-        # the worker finishes what is queued, persists, and returns before the store closes
-        try:
-            inbox.put(_STOP, timeout=_STOP_TIMEOUT_S)
-        except queue.Full:
-            log.warning("worker not draining its queue; stopping without it")
-        worker.join(_STOP_TIMEOUT_S)
+    subscriptions = {kind: keys.segment_keys(ns, kind) for kind in _KINDS}
+    rt.subscribe_batches(subscriptions, handle_batch, max_batch=BATCH, reliable=True)
+    return rt.run()  # leaving: the worker handles what is queued, persists, then ends

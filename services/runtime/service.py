@@ -325,14 +325,19 @@ class ServiceRuntime:
         self.spawn(work, name=name)
         return inbox
 
-    def guarded(self, handle: Callable[..., object], *args: Any) -> Any:
+    def guarded(
+        self,
+        handle: Callable[..., object],
+        *args: Any,
+        refusals: tuple[type[Exception], ...] = (SchemaError,),
+    ) -> Any:
         """``handle(*args)``; an exception becomes a dead letter (when ``args`` are
-        ``(kind, key, payload)``) or a log line, never the end of the worker. A SchemaError's
-        message is the letter's reason; any other error is a bug and is logged with its
-        traceback."""
+        ``(kind, key, payload)``) or a log line, never the end of the worker. The message of
+        one of ``refusals`` (bad input) is the letter's reason; any other error is a bug and
+        is logged with its traceback."""
         try:
             return handle(*args)
-        except SchemaError as e:
+        except refusals as e:
             if len(args) == 3:
                 self.deadletters.reject(args[1], str(e), args[2])
             else:
