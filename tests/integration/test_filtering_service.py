@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable, Iterator
 
+import numpy as np
 import pytest
 import zenoh
 
@@ -13,6 +14,7 @@ from schemas import (
     Calibration,
     DeadLetter,
     DegradationPosterior,
+    NDArray,
     OnboardIndex,
     SegmentState,
     TrcRecord,
@@ -221,3 +223,43 @@ def test_an_instance_owning_l1_ignores_l2(
     assert set(query_states(session, keys.q_state_all(namespace))) == {
         keys.q_state(namespace, "L1", "s1")
     }
+
+
+def test_a_refused_model_is_dead_lettered_and_the_one_in_force_stays(
+    namespace, open_session, collector, until_matched, model_queryable, start_filtering
+):
+    """Issue 12: a Calibration whose indices disagree with the filter's (m = 3 here) used to
+    replace the good one and make every later index fail until a restart."""
+    session = open_session()
+    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
+    session.declare_subscriber(keys.deadletter(namespace, service.SERVICE), letters)
+    states = collector(lambda s: decode(s.payload.to_bytes(), SegmentState))
+    session.declare_subscriber(keys.segment_keys(namespace, "state"), states)
+    start_filtering()
+    trc, *indices = events()
+    put_all(session, until_matched, [(event_key(namespace, trc), encode(trc))])
+    assert states.get().n_updates == 0
+
+    good = next(m for m in models() if isinstance(m, Calibration))
+    bad = Calibration(
+        version=good.version + 1,
+        t=good.t,
+        indicators=good.indicators,
+        indices=["top6", "align10", "twist3"],
+        H=NDArray.of(np.ones((3, 2))),
+        b=NDArray.of(np.zeros(3)),
+        R=NDArray.of(np.eye(3) * 0.01),
+        n_pairs=good.n_pairs,
+        r2=NDArray.of(np.full(3, 0.9)),
+    )
+    put_all(session, until_matched, [(keys.calibration(namespace), encode(bad))])
+    letter = letters.get()
+    assert letter.key == keys.calibration(namespace)
+    assert "indices" in letter.reason, letter.reason
+
+    put_all(session, until_matched, [(event_key(namespace, m), encode(m)) for m in indices])
+    last = states.get()
+    while last.n_updates < len(indices):
+        last = states.get()
+    assert last.calibration_version == good.version
+    assert encode(last) == encode(expected([*models(), trc, *indices]))
