@@ -10,7 +10,8 @@ filtering service re-run its segments) per simulated calendar month.
 The service flushes once per batch of queued samples (at most 512); a worker that keeps
 up sees small batches. ``--flush tick`` (default) flushes after every instant of the world
 stream (the messages sharing one timestamp): the most often the service could flush, so an
-upper bound of what it publishes; ``--flush N`` flushes every N messages.
+upper bound of what it publishes; ``--flush N`` flushes every N messages; ``--flush day`` at
+the first event of each simulated day (as ``bench/correctness.py`` does).
 
 Run: ``.venv/bin/python -m bench.calibration_versions [--days D] [--flush tick|N] [--json]``.
 """
@@ -55,7 +56,8 @@ def run(
     )
     core.install_initial(cal0, posts0)
     spec = WorldSpec(demo_network(), load_config(), START_T, days, seed, trains, fidelity="index")
-    every = None if flush == "tick" else int(flush)
+    every = None if flush in ("tick", "day") else int(flush)
+    day = -1
     counts: dict[str, Counter[str]] = {"calibration": Counter(), "posterior": Counter()}
     groups: Counter[str] = Counter()
     n_flush = n_msgs = 0
@@ -72,12 +74,15 @@ def run(
 
     t = START_T
     for t, msgs in world_events(spec):
+        if flush == "day" and (d := int((t - START_T) // DAY_S)) != day:
+            day = d
+            do_flush(t)
         for msg in msgs:
             core.ingest(msg)
             n_msgs += 1
             if every is not None and n_msgs % every == 0:
                 do_flush(t)
-        if every is None:
+        if flush == "tick":
             do_flush(t)
     do_flush(t)
     months = sorted(
@@ -125,7 +130,7 @@ def table(res: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--days", type=float, default=365.0)
-    p.add_argument("--flush", default="tick", help="tick (default) or every N messages")
+    p.add_argument("--flush", default="tick", help="tick (default), day, or every N messages")
     p.add_argument("--trains", type=int, default=4, help="service passes per line and day (4)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--json", action="store_true")

@@ -72,6 +72,7 @@ import sys
 import time
 from collections import defaultdict
 from dataclasses import asdict, dataclass, replace
+from datetime import UTC, datetime
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -251,6 +252,7 @@ def run_shard(settings: Settings, shard: int, n_shards: int) -> dict:
     last_tamp_t = np.full(len(keys), np.nan)
     evals: dict[str, list] = {name: [] for name in TRACKERS}
     counts: dict[str, int] = defaultdict(int)
+    published: list[tuple[float, str]] = []  # (event time, kind) of each model flushed
     timing = defaultdict(float)
 
     def feed(name: str, msg, now: float) -> None:
@@ -293,6 +295,7 @@ def run_shard(settings: Settings, shard: int, n_shards: int) -> dict:
             day = d
             t0 = time.perf_counter()
             models = calibrator.flush()
+            published.extend((t, type(m).__name__) for m in models)
             timing["calibrator_s"] += time.perf_counter() - t0
             publish_models(models, t)
             for name in TRACKERS:
@@ -354,6 +357,7 @@ def run_shard(settings: Settings, shard: int, n_shards: int) -> dict:
         "n_states": n_states,
         "timing": dict(timing),
         "calibration": _calibration_summary(calibrator),
+        "published": published,
         "stale_alerts": {
             name: sum(1 for a in alerts[name] if a[2] == "stale" and a[5] == "raised")
             for name in TRACKERS
@@ -405,6 +409,7 @@ def _merge(shards: list[dict]) -> dict:
     out["keys"] = shards[0]["keys"]
     out["own"] = sorted(i for s in shards for i in s["own"])
     out["calibration"] = shards[0]["calibration"]
+    out["published"] = shards[0]["published"]  # every shard runs the same calibrator
     for k in ("counts", "n_states", "stale_alerts"):
         acc: dict = defaultdict(int)
         for s in shards:
@@ -657,12 +662,23 @@ def figures(merged: dict, st: Settings) -> dict:
     out["rmse"] = _rmse_at_horizon(merged, st)
     out["calibration"] = merged["calibration"]
     out["counts"] = merged["counts"]
+    out["versions_per_month"] = _versions_per_month(merged["published"])
     out["n_states"] = merged["n_states"]
     out["stale_alerts"] = merged["stale_alerts"]
     out["n_segments"] = len(merged["own"])
     out["n_tampings"] = len(merged["tampings"])
     out["timing"] = merged["timing"]
     return out
+
+
+def _versions_per_month(published: list[tuple[float, str]]) -> dict[str, list[int]]:
+    """Versions the calibrator published (after the initial models) per simulated calendar
+    month: ``{"YYYY-MM": [Calibration, DegradationPosterior]}``."""
+    out: dict[str, list[int]] = {}
+    for t, kind in published:
+        month = datetime.fromtimestamp(t, UTC).strftime("%Y-%m")
+        out.setdefault(month, [0, 0])[kind != "Calibration"] += 1
+    return dict(sorted(out.items()))
 
 
 def checks(fig: dict) -> list[tuple[str, str, str, bool | None]]:
@@ -759,6 +775,13 @@ def _table(fig: dict) -> str:
             f"  missed crossing: {d['line']}/{d['segment']} {d['indicator']} day "
             f"{d['day']:.2f}, first raise " + ("never" if after is None else f"{after:.2f} d after")
         )
+    vm = fig["versions_per_month"]
+    extra.append(
+        "model versions published per simulated month (Calibration / posteriors; the core is "
+        "flushed once a day): "
+        + ", ".join(f"{m} {c}/{p}" for m, (c, p) in vm.items())
+        + f"; total {sum(c for c, _ in vm.values())}/{sum(p for _, p in vm.values())}"
+    )
     s = fig["settings"]
     extra.append(
         f"size: {s['days']:g} days, {fig['n_segments']} segments, {s['trains']} passes/line/day, "

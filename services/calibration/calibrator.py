@@ -50,8 +50,8 @@ Observation model and the swap rule
     in :attr:`Calibrator.rejections` and logged; the current model stays, and the pairs added
     since it (the evidence of the fault) are quarantined: kept, so that their indices stay
     recognised as duplicates, but left out of every later fit (``stats["pairs_quarantined"]``).
-    Without that, one burst of bad pairs would block every later refit. Versions increase by
-    one per accepted fit (an initial model is version 1).
+    Without that, one burst of bad pairs would block every later refit. The "current model"
+    here is the newest *accepted* fit, published or not (see the publication rule).
 
 Degradation posteriors
     Per segment, the TRC history (``z`` at record times) and the tampings (known time, or the
@@ -67,9 +67,40 @@ Degradation posteriors
     from the level prior alone (``n_levels = 0``) so that drift and diffusion are published
     before any tamping has been recorded. ``samples`` draws of :func:`sample_degradation_posterior`
     use a generator seeded from ``(seed, group, version)``: re-running gives identical samples.
-    A group is rebuilt (version + 1) when a fingerprint of its inputs (increments, levels, and
-    the settings that shape the draws) changed; when the core raises :class:`CalibrationError`
-    (too little data) the old posterior stays and the refusal is counted.
+    A group is rebuilt when a fingerprint of its inputs (increments, levels, and the settings
+    that shape the draws) changed; when the core raises :class:`CalibrationError` (too little
+    data) the old posterior stays and the refusal is counted.
+
+Publication rule (issue 12: model updates without storms)
+    Every new version makes the filtering service re-run the segments it applies to, so an
+    accepted fit or a rebuilt posterior (a *candidate*) is **held**, and replaces the model in
+    force (is published, version in force + 1) only when both hold:
+
+    1. **it differs materially** from the model in force: some parameter moved by more than
+       ``material_se`` (default 1) of its standard errors. For the Calibration
+       (:func:`calibration_change`) the least-squares standard errors of ``H`` and ``b`` and
+       the sampling error of ``R`` (relative ``sqrt(2 / (N - n - 1))`` on the diagonal), all
+       of the candidate's fit; for a posterior (:func:`posterior_change`) the posterior mean of
+       any element of ``mu``, ``Sigma``, ``z+`` or ``Sigma_z+`` moved by more than the
+       candidate's posterior sd of it (both from the draws). A model with nothing in force
+       (the first fit without initial models, a new group) always differs; an initial model
+       is replaced by the first candidate that differs from it by this rule;
+    2. **the rate limit** lets it out: at least ``min_publish_interval_days`` (default 1) of
+       event time since the version in force was published. Event time is the newest event
+       time ingested (TRC ``t``, index ``t``, tamping ``t_end``), never the clock. An initial
+       model is not rate-limited.
+
+    Both are judged against the model **in force**, not the previous candidate, so many small
+    moves that add up to a material one are published. Nothing is lost while held: the pairs
+    and increments stay and the next candidate is fitted on all of them; a newer candidate
+    replaces the held one (material or not, judged afresh); a material candidate held by the
+    rate limit is published at the first :meth:`Calibrator.flush` once event time passes the
+    limit, whether or not anything was refitted since. The swap rule is unchanged: it judges
+    each refit against the newest accepted fit, so a worse fit is never held nor published.
+    With ``material_se = 0`` and ``min_publish_interval_days = 0`` every accepted change is
+    published at once (the behaviour before the rule). Counted: ``changes_immaterial``,
+    ``publications_delayed``, ``calibrations_published``, ``posteriors_published``. The held
+    candidates, the publication time of each model in force and event time are persisted.
 """
 
 from __future__ import annotations
