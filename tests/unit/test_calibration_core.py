@@ -123,6 +123,31 @@ def test_fit_min_pairs_respects_residual_dof():
         fit_observation(Z[:4], Y[:4], min_pairs=2)  # n + 1 + m = 5 rules
 
 
+def test_fit_standard_errors_closed_form_and_spread_of_refits():
+    """se(H), se(b): OLS with intercept, S = E^T E / (N - n - 1); se(R): Wishart. And they are
+    the spread of the estimates over repeated campaigns of the same model."""
+    rng = np.random.default_rng(41)
+    N = 60
+    Z, Y = pairs(N, rng)
+    fit = fit_observation(Z, Y)
+    Zt = np.column_stack([Z, np.ones(N)])
+    E = Y - Zt @ np.linalg.lstsq(Zt, Y, rcond=None)[0]
+    S = np.diag(E.T @ E) / (N - 3)
+    se = np.sqrt(np.outer(S, np.diag(np.linalg.inv(Zt.T @ Zt))))
+    np.testing.assert_allclose(fit.se_H, se[:, :2], rtol=1e-9)
+    np.testing.assert_allclose(fit.se_b, se[:, 2], rtol=1e-9)
+    np.testing.assert_allclose(np.diag(fit.se_R), np.diag(fit.R) * np.sqrt(2 / (N - 3)))
+    # 400 campaigns with the indicators held fixed: sd of the estimates ~ the model's se
+    fits = [
+        fit_observation(Z, Z @ H_TRUE.T + B_TRUE + rng.multivariate_normal([0, 0], R_TRUE, N))
+        for _ in range(400)
+    ]
+    for name in ("H", "b", "R"):
+        spread = np.std([getattr(f, name) for f in fits], axis=0)
+        mean_se = np.mean([getattr(f, f"se_{name}") for f in fits], axis=0)
+        np.testing.assert_allclose(spread, mean_se, rtol=0.2)
+
+
 # ---------------------------------------------------------------- inverse Wishart
 
 
