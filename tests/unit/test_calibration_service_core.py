@@ -4,13 +4,21 @@ lists out; persistence through the in-memory and the SQLite store."""
 from __future__ import annotations
 
 import functools
+import sqlite3
 from pathlib import Path
 
 import json5
 import numpy as np
 import pytest
 
-from schemas import Calibration, DegradationPosterior, MaintenanceEvent, OnboardIndex, TrcRecord
+from schemas import (
+    Calibration,
+    DegradationPosterior,
+    MaintenanceEvent,
+    OnboardIndex,
+    TrcRecord,
+    encode,
+)
 from services.calibration.calibrator import (
     Calibrator,
     CalibratorConfig,
@@ -464,3 +472,29 @@ def test_posterior_moves_within_its_sd_publish_no_version_a_shift_does():
     assert sorted((p.group, p.version) for p in out) == [("line.L2", 2), ("net", 2)]
     assert posterior_change(out[0], first["line.L2"])[0] > 1.0
     assert set(core.held) == {"line.L1"}  # still immaterial, still accumulated
+
+
+def test_a_store_from_before_publication_times_opens(tmp_path):
+    """A file whose models table has no published_at: the column is added, and its models
+    count as published at an unknown time (the next version is not rate-limited)."""
+    rng = np.random.default_rng(26)
+    (old,) = Calibrator(CalibratorConfig(min_pairs=30)).step(campaign(30, rng))
+    path = tmp_path / "old.sqlite"
+    with sqlite3.connect(path) as db:
+        db.execute(
+            "CREATE TABLE models (key TEXT PRIMARY KEY, payload BLOB NOT NULL, "
+            "fingerprint TEXT NOT NULL, prior INTEGER NOT NULL)"
+        )
+        db.execute("INSERT INTO models VALUES ('calibration', ?, '', 0)", (encode(old),))
+    db.close()
+    store = SqliteStore(path)
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10), store.load())
+    assert core.models() == [old] and core.published_at == {"calibration": None}
+    # a material change minutes later is published at once, then rate-limited
+    (cal,) = core.step(campaign(300, rng, start=30, B=B + [0.3, 0.0]))
+    assert cal.version == 2 and core.published_at == {"calibration": core.now}
+    store.apply(core.drain_changes())
+    store.close()
+    store = SqliteStore(path)
+    assert Calibrator(CalibratorConfig(), store.load()).published_at == core.published_at
+    store.close()
