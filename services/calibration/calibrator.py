@@ -263,7 +263,7 @@ class Changes:
     pairs: list[Pair] = field(default_factory=list)
     quarantined: list[str] = field(default_factory=list)  # index ids of pairs set aside
     models: list[ModelEntry] = field(default_factory=list)  # published, in order
-    held: dict[str, ModelEntry | None] = field(default_factory=dict)  # key -> now; None: gone
+    held: dict[str, ModelEntry | None] = field(default_factory=dict)  # key -> held now, or None
     meta: dict[str, Any] | None = None  # the whole meta when it changed
 
     def __bool__(self) -> bool:
@@ -307,12 +307,12 @@ def mean_loglik(H, b, R, Z, Y) -> float:
     return float(-0.5 * (m * math.log(2 * math.pi) + logdet + (w**2).sum(axis=0).mean()))
 
 
-Change = tuple[float, str]  # (largest move in standard errors, what moved)
+Move = tuple[float, str]  # (largest move in standard errors, what moved and how)
 
 
-def _largest_move(moves: Iterable[tuple[str, Any, Any, Any]]) -> Change:
+def _largest_move(moves: Iterable[tuple[str, Any, Any, Any]]) -> Move:
     """The largest ``|new - old| / se`` over named arrays, and where it is."""
-    best: Change = (0.0, "nothing")
+    best: Move = (0.0, "nothing")
     for name, new, old, se in moves:
         new, old, se = (np.asarray(a, dtype=np.float64) for a in (new, old, se))
         d = np.abs(new - old)
@@ -329,7 +329,7 @@ def _largest_move(moves: Iterable[tuple[str, Any, Any, Any]]) -> Change:
     return best
 
 
-def calibration_change(fit: ObservationFit, old: Calibration) -> Change:
+def calibration_change(fit: ObservationFit, old: Calibration) -> Move:
     r"""How far the fit ``fit`` moved from the model ``old``, in the fit's standard errors.
 
     .. math::
@@ -350,7 +350,7 @@ def calibration_change(fit: ObservationFit, old: Calibration) -> Change:
     )
 
 
-def posterior_change(new: DegradationPosterior, old: DegradationPosterior) -> Change:
+def posterior_change(new: DegradationPosterior, old: DegradationPosterior) -> Move:
     r"""How far the posterior ``new`` moved from ``old``, in posterior standard deviations.
 
     For each parameter :math:`\theta` of :math:`(\boldsymbol\mu, \boldsymbol\Sigma,
@@ -775,7 +775,7 @@ class Calibrator:
             return True
         return self._now >= in_force.published_at + self.config.min_publish_interval_days * DAY_S
 
-    def _hold(self, entry: ModelEntry, change: Change | None) -> None:
+    def _hold(self, entry: ModelEntry, change: Move | None) -> None:
         """Keep an accepted model; mark it for publication if it differs materially from the
         one in force (``change`` None: there is none)."""
         key = entry.key
