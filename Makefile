@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench soak lint format clean
+.PHONY: run test bench soak soak-demo soak-trains lint format clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -23,9 +23,17 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m bench
 
-# The whole stack under 100 raw trains in real time for 10 minutes (bench/soak.py);
-# e.g. `make soak SOAK_ARGS="--minutes 3 --trains 100,70,50"`.
-soak: $(STAMP)
+# `make soak`: first what `make run` starts, left running for 30 minutes with a headless
+# browser on the web viewer (bench/demo_soak.py: alive, state gaps, q/state, memory, first
+# picture), then the whole stack under 100 raw trains for 10 minutes (bench/soak.py).
+# Each alone: `make soak-demo DEMO_SOAK_ARGS="--minutes 15"`, `make soak-trains
+# SOAK_ARGS="--minutes 3 --trains 100,70,50"`.
+soak: soak-demo soak-trains
+
+soak-demo: $(STAMP)
+	$(BIN)/python -m bench.demo_soak $(DEMO_SOAK_ARGS)
+
+soak-trains: $(STAMP)
 	$(BIN)/python -m bench.soak $(SOAK_ARGS)
 
 lint: $(STAMP)
