@@ -260,25 +260,36 @@ class PersistentTracker:
                 origin = {id(msg): (key, payload) for msg, key, payload in models}
                 update = self.tracker.update_models([msg for msg, _, _ in models])
                 for msg, reason in update.refused:
-                    rejected.append((*origin[id(msg)][:1], reason, origin[id(msg)][1]))
+                    key, payload = origin[id(msg)]
+                    rejected.append((key, reason, payload))
                 for msg in update.accepted:
                     self._commit(msg, *origin[id(msg)])
                 accepted += len(update.accepted)
                 keep(update.states)
-            for msg, key, payload in events:
-                try:
-                    step = self.tracker.step(msg)
-                except ValueError as e:  # an event the core refuses
-                    rejected.append((key, str(e), payload))
-                    continue
-                except Exception as e:  # a bug: the letter says what, the batch goes on
-                    log.exception("error stepping %s", key)
-                    rejected.append((key, f"{type(e).__name__}: {e}", payload))
-                    continue
-                if step.accepted:
-                    accepted += 1
-                    self._commit(msg, key, payload)
-                    keep(step.states)
+            try:
+                reasons, event_states = self.tracker.step_events([msg for msg, _, _ in events])
+            except Exception:  # one of them cannot be folded: find it, one at a time
+                log.info("a batch of %d events failed; stepping them one by one", len(events))
+                for msg, key, payload in events:
+                    try:
+                        step = self.tracker.step(msg)
+                    except ValueError as e:  # an event the core refuses
+                        rejected.append((key, str(e), payload))
+                        continue
+                    except Exception as e:  # a bug: the letter says what, the batch goes on
+                        log.exception("error stepping %s", key)
+                        rejected.append((key, f"{type(e).__name__}: {e}", payload))
+                        continue
+                    if step.accepted:
+                        accepted += 1
+                        self._commit(msg, key, payload)
+                        keep(step.states)
+            else:
+                for (msg, key, payload), reason in zip(events, reasons, strict=True):
+                    if not reason:
+                        accepted += 1
+                        self._commit(msg, key, payload)
+                keep(event_states)
         return BatchResult(tuple(states.values()), tuple(rejected), accepted)
 
     def _commit(self, msg: EventMessage | ModelMessage, key: str, payload: bytes) -> None:

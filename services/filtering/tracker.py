@@ -654,6 +654,29 @@ class Tracker:
         self.tracks[sid] = track
         return Step(True, "", () if out is None else (out,))
 
+    def step_events(self, msgs: Sequence[EventMessage]) -> tuple[list[str], tuple]:
+        """Fold several events and summarise each changed segment once, in batches.
+
+        Returns ``(reasons, states)``: per message ``""`` if accepted, else why not; and the
+        newest SegmentState of each changed, publishable segment. The tracks are the same
+        as after stepping the messages one by one (same fold), and so are the final states
+        (:meth:`segment_states` is :meth:`segment_state` in batches, bit for bit); only the
+        intermediate states of a segment are not summarised. If anything raises, nothing
+        is changed.
+        """
+        changed: dict[SegmentId, Track] = {}
+        reasons = []
+        for msg in msgs:
+            sid = (msg.line, msg.segment)
+            track = changed.get(sid) or self.tracks.get(sid) or Track(msg.line, msg.segment)
+            track, reason = step_segment(track, event_of(msg), self.models)
+            reasons.append(reason)
+            if not reason:
+                changed[sid] = track
+        states = self.segment_states(list(changed.values()))  # before the swap
+        self.tracks.update(changed)
+        return reasons, tuple(state for state in states if state is not None)
+
     def update_models(self, msgs: Sequence[ModelMessage]) -> ModelUpdate:
         """Apply several model messages at once, re-running each affected segment once.
 

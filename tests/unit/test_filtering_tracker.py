@@ -354,6 +354,34 @@ def test_store_rebuilds_identical_states_after_an_unclean_stop(tmp_path):
         node.store.close()
 
 
+def test_a_batch_equals_its_messages_one_by_one(tmp_path):
+    """handle_batch (models first and coalesced, events folded then summarised together, one
+    transaction) leaves the tracker and the store as handle() of each message does, and
+    publishes each changed segment's newest state, bit for bit; bad payloads come back."""
+    rng = np.random.default_rng(5)
+    events = history(rng)
+    rng.shuffle(events)
+    messages = [calibration(1), posterior(), *events[:30], calibration(2, 1.05), *events[30:]]
+    one_by_one = feed(tmp_path / "one.sqlite", messages)
+    batched = PersistentTracker(new_tracker(), Store(tmp_path / "batch.sqlite"))
+    items = [keyed(m) for m in messages]
+    bad = (keys.index("tf", "L1", "s1"), b"\xc1")
+    results = [batched.handle_batch(chunk) for chunk in (items[:25], [*items[25:50], bad])]
+    results.append(batched.handle_batch(items[50:]))
+
+    assert_same_states(one_by_one.tracker, batched.tracker)
+    assert [len(r.rejected) for r in results] == [0, 1, 0]
+    assert results[1].rejected[0][0] == bad[0]
+    newest = {(s.line, s.segment): encode(s) for r in results for s in r.states}
+    assert newest == {
+        sid: encode(one_by_one.tracker.segment_state(track))
+        for sid, track in one_by_one.tracker.tracks.items()
+    }
+    assert batched.store.count_events() == one_by_one.store.count_events()
+    for node in (one_by_one, batched):
+        node.store.close()
+
+
 def keyed(msg) -> tuple[str, bytes]:
     """The key a message is published on (namespace "tf") and its payload."""
     match msg:
