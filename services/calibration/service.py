@@ -4,7 +4,10 @@ Subscribes ``{ns}/trc/**``, ``{ns}/index/**`` and ``{ns}/maintenance/**``; every
 into the runtime's inbox (never blocking Zenoh), drained by ONE worker, so the
 :class:`Calibrator` stays single-threaded. The worker decodes (a bad payload becomes a
 dead letter), feeds the core a batch, persists what changed (one SQLite transaction), then
-publishes the new models on ``{ns}/model/calibration`` and ``{ns}/model/degradation/{group}``.
+publishes the new models on ``{ns}/model/calibration`` and ``{ns}/model/degradation/{group}``:
+those the core's publication rule lets out (a material change, at most one version per model
+per day of event time; ``calibrator.py``), checked at every batch, so a version held by the
+rate limit goes out with the first batch whose events pass the limit.
 A queryable on ``{ns}/model/**`` answers late joiners with the latest of each model.
 
 At start the store is loaded (the same models, versions and samples are republished), then
