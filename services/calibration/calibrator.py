@@ -609,19 +609,22 @@ class Calibrator:
         return self.flush()
 
     def ingest(self, event: Event) -> bool:
-        """Take one event; False if it was a duplicate or otherwise not used."""
-        t = event.t_end if isinstance(event, MaintenanceEvent) else getattr(event, "t", None)
-        if t is not None and t > self._now:
-            self._now = t
+        """Take one event; False if it was a duplicate or otherwise not used.
+
+        Every event taken (used or not) moves event time to its own time if that is newer; an
+        event that raises does not.
+        """
         match event:
             case TrcRecord():
-                return self._ingest_trc(event)
+                used, t = self._ingest_trc(event), event.t
             case OnboardIndex():
-                return self._ingest_index(event)
+                used, t = self._ingest_index(event), event.t
             case MaintenanceEvent():
-                return self._ingest_maintenance(event)
+                used, t = self._ingest_maintenance(event), event.t_end
             case _:
                 raise TypeError(f"not a calibration input: {type(event).__name__}")
+        self._now = max(self._now, t)
+        return used
 
     def install_initial(
         self, calibration: Calibration | None, posteriors: Iterable[DegradationPosterior]
