@@ -19,6 +19,7 @@ so order holds per key, not across keys.
 
 from __future__ import annotations
 
+import logging
 import os
 import struct
 import tempfile
@@ -26,6 +27,8 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+
+log = logging.getLogger(__name__)
 
 Item = tuple[str, str, bytes]  # (kind, key, payload)
 
@@ -69,7 +72,7 @@ class Inbox:
         self._spill_read = 0  # file offsets of the next record to read / write
         self._spill_write = 0
         self._spill_items = 0
-        self._received = self._taken = self._spilled = 0
+        self._received = self._taken = self._spilled = self._spill_errors = 0
         self._max_put_s = 0.0
 
     # --- the callback side ---------------------------------------------------------------
@@ -86,7 +89,15 @@ class Inbox:
                 self._items.append((kind, key, payload))
                 self._memory += size
             else:  # keep FIFO: once spilling, everything goes behind the spilled items
-                self._spill(kind, key, payload)
+                try:
+                    self._spill(kind, key, payload)
+                except OSError as e:  # disk full: keep it in memory, out of order, not lost
+                    self._spill_errors += 1
+                    if self._spill_errors == 1 or self._spill_errors % 10_000 == 0:
+                        log.error("inbox spill failed (%s): %d items kept in memory", e,
+                                  self._spill_errors)  # fmt: skip
+                    self._items.append((kind, key, payload))
+                    self._memory += size
             self._cond.notify()
             elapsed = time.perf_counter() - started
             if elapsed > self._max_put_s:
@@ -147,7 +158,8 @@ class Inbox:
             self._spill_fd = fd
         k, q = kind.encode(), key.encode()
         record = _HEADER.pack(len(k), len(q), len(payload)) + k + q + payload
-        os.pwrite(self._spill_fd, record, self._spill_write)
+        if os.pwrite(self._spill_fd, record, self._spill_write) != len(record):
+            raise OSError("short write to the spill file (disk full?)")
         self._spill_write += len(record)
         self._spill_items += 1
         self._spilled += 1
