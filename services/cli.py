@@ -328,6 +328,34 @@ def build_parser() -> argparse.ArgumentParser:
     add_timeout_argument(p)
     p.set_defaults(func=_operator("export"))
 
+    # --- report (services/report.py) -----------------------------------------------------
+    def _report(args: argparse.Namespace) -> int:
+        from services import report
+        from services.runtime.config import config_from_args
+
+        return report.main(
+            config_from_args(args),
+            out_path=args.out,
+            line=args.line,
+            network_path=args.network,
+            worst_n=args.worst,
+            timeout=args.timeout,
+        )
+
+    p = sub.add_parser(
+        "report",
+        help="a self-contained HTML report for maintenance planners",
+        description="Map, ranked segments, forecast fans and open alerts in one HTML file "
+        "(inline CSS and SVG, no external resource).",
+    )
+    p.add_argument("--line", help="one line (default: all lines)")
+    p.add_argument("--out", default="report.html", metavar="FILE.html", help="(%(default)s)")
+    p.add_argument("--network", metavar="FILE.geojson", help="geometry (default: the demo)")
+    p.add_argument("--worst", type=int, default=6, metavar="N", help="fans drawn (%(default)s)")
+    add_zenoh_arguments(p, mode=False)
+    add_timeout_argument(p)
+    p.set_defaults(func=_report)
+
     # --- study (services/filtering/study.py) ---------------------------------------------
     def _study_frequency(args: argparse.Namespace) -> int:
         from services.filtering import study

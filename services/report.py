@@ -1,0 +1,493 @@
+"""`trackfusion report`: one self-contained HTML file for a maintenance planner.
+
+The map of the line(s) coloured by P(exceeding the intervention limit), the segments ranked
+by it with their estimates, 95 % intervals, forecasts and next TRC run, forecast fans of the
+worst segments, and the open alerts. Inline CSS and SVG only: no script, no external
+resource, so it renders offline from a mail attachment.
+
+Pure part: :func:`render` (``ReportData`` → HTML text) and its helpers, tested without
+Zenoh. Thin part: :func:`main` asks the running system like :mod:`services.operator` does.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from html import escape
+from pathlib import Path
+from typing import TextIO
+
+import msgpack
+
+from schemas import Alert, SegmentState, decode, keys
+from services import operator
+from services.runtime.config import RuntimeConfig
+
+INTERVENTION = "intervention"
+WORST_N = 6
+# P(exceed) bins of the map and the table: (upper bound, colour, label). The edges follow
+# the alerting defaults: predicted exceedance raises at 0.3, exceedance at 0.5.
+BINS: tuple[tuple[float, str, str], ...] = (
+    (0.1, "#1a9850", "below 0.1"),
+    (0.3, "#91cf60", "0.1 – 0.3"),
+    (0.5, "#f6d32d", "0.3 – 0.5"),
+    (0.8, "#f46d43", "0.5 – 0.8"),
+    (math.inf, "#d73027", "0.8 and above"),
+)
+NO_STATE = "#b0b0b0"  # a segment of the network without a state
+MAP_W, MAP_H_MAX = 800, 560  # px
+
+
+# --- data -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Station:
+    line: str
+    lon: float
+    lat: float
+    label: str
+
+
+@dataclass(frozen=True)
+class NetworkMap:
+    """What the report draws of the network: each segment's polyline ([lon, lat] pairs) and
+    chainage range (m), and the stations."""
+
+    polylines: dict[tuple[str, str], list[tuple[float, float]]] = field(default_factory=dict)
+    chainage_m: dict[tuple[str, str], tuple[float, float]] = field(default_factory=dict)
+    stations: list[Station] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class ReportData:
+    """Everything one report shows. ``alerts``/``plan`` are None when alerting did not
+    answer; ``missing`` then says why."""
+
+    states: list[SegmentState]
+    network: NetworkMap
+    made_at: float  # wall clock, epoch s
+    alerts: list[Alert] | None = None
+    plan: dict | None = None
+    missing: str = ""
+    lines: tuple[str, ...] = ()  # the lines asked for; () = all
+    worst_n: int = WORST_N
+
+
+def level_index(state: SegmentState, level: str = INTERVENTION) -> int:
+    """Index of ``level`` in the state's limit levels; the last (strictest) if absent."""
+    levels = state.limit_levels
+    return levels.index(level) if level in levels else len(levels) - 1
+
+
+def p_now(state: SegmentState) -> float:
+    """P(exceeding the intervention limit) now, max over indicators."""
+    return float(state.p_exceed.array()[level_index(state)].max())
+
+
+def p_forecast(state: SegmentState) -> dict[float, float]:
+    """{horizon days: P(exceeding the intervention limit) then, max over indicators}."""
+    p = state.forecast_p_exceed.array()[:, level_index(state), :].max(axis=1)
+    return {float(h): float(v) for h, v in zip(state.horizons_days.array(), p, strict=True)}
+
+
+def colour(p: float | None) -> str:
+    """The map and table colour of a probability (None: no state)."""
+    if p is None or math.isnan(p):
+        return NO_STATE
+    return next(c for upper, c, _ in BINS if p < upper)
+
+
+def ranked(states: list[SegmentState]) -> list[SegmentState]:
+    """Highest P(exceed) first; ties by line and segment."""
+    return sorted(states, key=lambda s: (-p_now(s), s.line, s.segment))
+
+
+def iso(t: float | None, spec: str = "minutes") -> str:
+    if t is None:
+        return "–"
+    return datetime.fromtimestamp(t, UTC).isoformat(timespec=spec).replace("+00:00", " UTC")
+
+
+def day(t: float | None) -> str:
+    return "–" if t is None else datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%d")
+
+
+# --- rendering ------------------------------------------------------------------------------
+
+CSS = """
+body{font:14px/1.4 system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:16px;color:#222}
+h1{font-size:20px;margin:0 0 4px}h2{font-size:16px;margin:20px 0 6px}
+.meta{color:#555;margin:0 0 6px}.note{background:#fff4ce;border:1px solid #e0c060;padding:6px}
+table{border-collapse:collapse;font-size:12px}th,td{border:1px solid #ccc;padding:2px 6px}
+th{background:#eee;text-align:left}td.n{text-align:right;font-variant-numeric:tabular-nums}
+td.p{text-align:right;font-weight:600}.legend span{display:inline-block;margin-right:12px}
+.legend i{display:inline-block;width:14px;height:10px;margin-right:4px;vertical-align:middle}
+.fans{display:flex;flex-wrap:wrap;gap:12px}.fan{border:1px solid #ddd;padding:4px}
+.fan h3{font-size:13px;margin:0 0 2px}svg text{font-family:inherit}
+"""
+
+
+def render(data: ReportData) -> str:
+    """The whole HTML document."""
+    states = ranked(data.states)
+    title = "TrackFusion track geometry report"
+    if data.lines:
+        title += " — " + ", ".join(data.lines)
+    parts = [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>{escape(title)}</title><style>{CSS}</style></head><body>",
+        _header(data, states, title),
+        '<h2 id="map-title">Map: P(exceeding the intervention limit) now</h2>',
+        _map(data, states),
+        _legend(),
+    ]
+    if data.missing:
+        parts.append(f'<p class="note">{escape(data.missing)}</p>')
+    parts += [
+        "<h2>Segments, highest P(exceed) first</h2>",
+        _table(data, states),
+        f"<h2>Forecast fans of the {min(data.worst_n, len(states))} worst segments</h2>",
+        _fans(states[: data.worst_n]),
+        "<h2>Open alerts</h2>",
+        _alerts(data),
+        "</body></html>",
+    ]
+    return "\n".join(parts) + "\n"
+
+
+def _header(data: ReportData, states: list[SegmentState], title: str) -> str:
+    newest = max((s.t for s in states), default=None)
+    high = sum(p_now(s) >= 0.5 for s in states)
+    lines = sorted({s.line for s in states})
+    return (
+        f"<h1>{escape(title)}</h1>"
+        f'<p class="meta">Made {escape(iso(data.made_at, "seconds"))} (wall clock). '
+        f"Newest state: {escape(iso(newest))} (event time). "
+        f"{len(states)} segments on {len(lines)} line(s) ({escape(', '.join(lines))}); "
+        f"{high} with P(exceed) ≥ 0.5.</p>"
+        "<p>Each 200 m segment's track geometry is estimated from the last Track Recording "
+        "Car (TRC) record and the on-board indices of in-service trains since then. Top6 and "
+        "Align10 are in mm; the estimate is the median and [low, high] the 95 % credible "
+        "interval: the true value lies in it with probability 0.95. <b>P(exceed)</b> is the "
+        "probability that the segment's worse indicator is above its intervention limit now; "
+        "the 30/90/180-day columns are the same probability if nothing is done until then. "
+        "The fans show how the interval widens with the forecast against the alert and "
+        "intervention limits. Next TRC is the expected next run of the line's recording "
+        "car; alerts are those raised now.</p>"
+    )
+
+
+def _project(points: list[tuple[float, float]], lat0: float) -> list[tuple[float, float]]:
+    k = math.cos(math.radians(lat0))
+    return [(lon * k, -lat) for lon, lat in points]
+
+
+def _map(data: ReportData, states: list[SegmentState]) -> str:
+    wanted = set(data.lines)
+    by_key = {(s.line, s.segment): s for s in states}
+    polylines = {
+        key: pts
+        for key, pts in data.network.polylines.items()
+        if (not wanted or key[0] in wanted) and len(pts) >= 2
+    }
+    stations = [s for s in data.network.stations if not wanted or s.line in wanted]
+    if not polylines:
+        return '<p class="note">No geometry for these segments in the network file.</p>'
+    lat0 = sum(p[1] for pts in polylines.values() for p in pts) / sum(
+        len(pts) for pts in polylines.values()
+    )
+    projected = {key: _project(pts, lat0) for key, pts in polylines.items()}
+    xs = [x for pts in projected.values() for x, _ in pts]
+    ys = [y for pts in projected.values() for _, y in pts]
+    x0, y0 = min(xs), min(ys)
+    span = max(max(xs) - x0, (max(ys) - y0) * MAP_W / MAP_H_MAX, 1e-9)
+    pad = 30
+    scale = (MAP_W - 2 * pad) / span
+    height = round((max(ys) - y0) * scale + 2 * pad)
+
+    def xy(x: float, y: float) -> str:
+        return f"{pad + (x - x0) * scale:.1f},{pad + (y - y0) * scale:.1f}"
+
+    out = [
+        f'<svg id="map" width="{MAP_W}" height="{height}" '
+        f'viewBox="0 0 {MAP_W} {height}" role="img" aria-label="map" '
+        'style="background:#fafafa;border:1px solid #ccc">'
+    ]
+    # segments without a state first, so that coloured ones are drawn over them
+    order = sorted(projected, key=lambda k: (k in by_key, p_now(by_key[k]) if k in by_key else 0))
+    for key in order:
+        state = by_key.get(key)
+        p = p_now(state) if state is not None else None
+        tip = f"{key[0]}/{key[1]}: " + ("no state" if p is None else f"P(exceed) {p:.2f}")
+        points = " ".join(xy(*pt) for pt in projected[key])
+        out.append(
+            f'<polyline points="{points}" fill="none" stroke="{colour(p)}" stroke-width="5" '
+            f'stroke-linecap="round"><title>{escape(tip)}</title></polyline>'
+        )
+    for line in sorted({k[0] for k in projected}):
+        first = min((k for k in projected if k[0] == line), key=lambda k: k[1])
+        x, y = xy(*projected[first][0]).split(",")
+        out.append(
+            f'<text x="{x}" y="{float(y) - 8:.1f}" font-size="13" font-weight="bold" '
+            f'fill="#222">{escape(line)}</text>'
+        )
+    for st in stations:
+        x, y = xy(*_project([(st.lon, st.lat)], lat0)[0]).split(",")
+        out.append(
+            f'<circle cx="{x}" cy="{y}" r="3.5" fill="#fff" stroke="#222" stroke-width="1.5"/>'
+            f'<text x="{float(x) + 6:.1f}" y="{float(y) + 4:.1f}" font-size="10" '
+            f'fill="#333">{escape(st.label)}</text>'
+        )
+    out.append("</svg>")
+    return "".join(out)
+
+
+def _legend() -> str:
+    items = [f'<span><i style="background:{c}"></i>{escape(label)}</span>' for _, c, label in BINS]
+    items.append(f'<span><i style="background:{NO_STATE}"></i>no state</span>')
+    return (
+        '<p class="legend">P(exceeding the intervention limit), max over Top6 and Align10: '
+        + "".join(items)
+        + "</p>"
+    )
+
+
+def _mm(state: SegmentState, i: int) -> str:
+    median = math.exp(state.mean.array()[i])
+    low, high = state.ci_low_mm.array()[i], state.ci_high_mm.array()[i]
+    return f"{median:.2f} [{low:.2f}, {high:.2f}]"
+
+
+def _table(data: ReportData, states: list[SegmentState]) -> str:
+    horizons = sorted({h for s in states for h in p_forecast(s)})
+    plan_rows = {(r["line"], r["segment"]): r for r in (data.plan or {}).get("rows", [])}
+    head = ["#", "line", "segment", "chainage (km)"]
+    head += ["Top6 mm [95 %]", "Align10 mm [95 %]", "P(exceed) now"]
+    head += [f"in {h:g} d" for h in horizons]
+    head += ["last TRC", "next TRC", "P before next TRC"]
+    rows = ['<table id="segments"><thead><tr>']
+    rows += [f"<th>{escape(h)}</th>" for h in head]
+    rows.append("</tr></thead><tbody>")
+    for rank, s in enumerate(states, 1):
+        key = (s.line, s.segment)
+        chain = data.network.chainage_m.get(key)
+        chain_text = "–" if chain is None else f"{chain[0] / 1e3:.1f} – {chain[1] / 1e3:.1f}"
+        cells = [f'<td class="n">{rank}</td>', f"<td>{escape(s.line)}</td>"]
+        cells.append(f"<td>{escape(s.segment)}</td><td>{chain_text}</td>")
+        for name in ("top6", "align10"):
+            text = _mm(s, s.indicators.index(name)) if name in s.indicators else "–"
+            cells.append(f'<td class="n">{text}</td>')
+        cells.append(_p_cell(p_now(s)))
+        forecast = p_forecast(s)
+        cells += [_p_cell(forecast.get(h)) for h in horizons]
+        plan = plan_rows.get(key)
+        cells.append(f"<td>{day(s.last_trc_t)}</td>")
+        if plan is None:
+            cells.append("<td>–</td><td>–</td>")
+        else:
+            cells.append(f"<td>{day(plan.get('next_trc_t'))}</td>")
+            cells.append(_p_cell(plan.get("probability")))
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    rows.append("</tbody></table>")
+    return "".join(rows)
+
+
+def _p_cell(p: float | None) -> str:
+    if p is None:
+        return "<td>–</td>"
+    text = "#fff" if p >= 0.5 or p < 0.1 else "#222"
+    return f'<td class="p" style="background:{colour(p)};color:{text}">{p:.2f}</td>'
+
+
+def _fans(states: list[SegmentState]) -> str:
+    if not states:
+        return "<p>No segment.</p>"
+    out = []
+    for s in states:
+        title = f"{s.line}/{s.segment}: P(exceed) {p_now(s):.2f} at {iso(s.t)}"
+        out.append(f'<div class="fan"><h3>{escape(title)}</h3>')
+        out += [_fan(s, i) for i in range(len(s.indicators))]
+        out.append("</div>")
+    return '<div class="fans">' + "".join(out) + "</div>"
+
+
+def _fan(s: SegmentState, i: int) -> str:
+    """One indicator's estimate now and forecasts at the horizons: the 95 % band, the
+    median, and the alert and intervention limits."""
+    w, h, left, right, top, bottom = 330, 170, 42, 92, 10, 28
+    days = [0.0] + [float(d) for d in s.horizons_days.array()]
+    median = [math.exp(s.mean.array()[i])] + [math.exp(v) for v in s.forecast_mean.array()[:, i]]
+    low = [float(s.ci_low_mm.array()[i])] + [float(v) for v in s.forecast_ci_low_mm.array()[:, i]]
+    high = [float(s.ci_high_mm.array()[i])]
+    high += [float(v) for v in s.forecast_ci_high_mm.array()[:, i]]
+    limits = [(lvl, float(s.limits_mm.array()[k, i])) for k, lvl in enumerate(s.limit_levels)]
+    y_max = max(high + [v for _, v in limits]) * 1.1
+    x_max = max(days) or 1.0
+
+    def px(d: float) -> float:
+        return left + d / x_max * (w - left - right)
+
+    def py(mm: float) -> float:
+        return top + (1 - mm / y_max) * (h - top - bottom)
+
+    band = [f"{px(d):.1f},{py(v):.1f}" for d, v in zip(days, high, strict=True)]
+    band += [f"{px(d):.1f},{py(v):.1f}" for d, v in reversed(list(zip(days, low, strict=True)))]
+    line = " ".join(f"{px(d):.1f},{py(v):.1f}" for d, v in zip(days, median, strict=True))
+    name = s.indicators[i]
+    out = [
+        f'<svg width="{w}" height="{h}" '
+        f'viewBox="0 0 {w} {h}" role="img" aria-label="{escape(name)} forecast">',
+        f'<line x1="{left}" y1="{py(0):.1f}" x2="{w - right}" y2="{py(0):.1f}" stroke="#888"/>',
+        f'<line x1="{left}" y1="{top}" x2="{left}" y2="{py(0):.1f}" stroke="#888"/>',
+        f'<polygon points="{" ".join(band)}" fill="#9cc3ec" fill-opacity="0.7"/>',
+        f'<polyline points="{line}" fill="none" stroke="#1f5fb4" stroke-width="2"/>',
+    ]
+    for d, v, lo, hi in zip(days, median, low, high, strict=True):
+        tip = f"{'now' if d == 0 else f'in {d:g} d'}: {v:.2f} mm [{lo:.2f}, {hi:.2f}]"
+        out.append(
+            f'<circle cx="{px(d):.1f}" cy="{py(v):.1f}" r="3" fill="#1f5fb4">'
+            f"<title>{escape(tip)}</title></circle>"
+        )
+    for lvl, v in limits:
+        stroke = "#d73027" if lvl == INTERVENTION else "#e08a00"
+        out.append(
+            f'<line x1="{left}" y1="{py(v):.1f}" x2="{w - right}" y2="{py(v):.1f}" '
+            f'stroke="{stroke}" stroke-dasharray="5,3"/>'
+            f'<text x="{w - right + 3}" y="{py(v) + 4:.1f}" font-size="10" fill="{stroke}">'
+            f"{escape(lvl)} {v:g}</text>"
+        )
+    for d in days:
+        out.append(
+            f'<text x="{px(d):.1f}" y="{h - 12}" font-size="10" text-anchor="middle">'
+            f"{'now' if d == 0 else f'{d:g} d'}</text>"
+        )
+    for frac in (0.0, 0.5, 1.0):
+        v = y_max / 1.1 * frac
+        out.append(
+            f'<text x="{left - 4}" y="{py(v) + 3:.1f}" font-size="10" text-anchor="end">'
+            f"{v:.1f}</text>"
+        )
+    out.append(
+        f'<text x="{left + 4}" y="{top + 10}" font-size="11" font-weight="bold">'
+        f"{escape(name)} (mm)</text></svg>"
+    )
+    return "".join(out)
+
+
+def _alerts(data: ReportData) -> str:
+    if data.alerts is None:
+        return '<p class="note">Alerts missing: the alerting service did not answer.</p>'
+    if not data.alerts:
+        return "<p>No alert raised.</p>"
+    rows = ['<table id="alerts"><thead><tr>']
+    head = ("time", "segment", "kind", "indicator", "level", "p", "message")
+    rows += [f"<th>{h}</th>" for h in head]
+    rows.append("</tr></thead><tbody>")
+    for a in sorted(data.alerts, key=lambda a: (-a.probability, a.line, a.segment, a.kind)):
+        cells = [iso(a.t), f"{a.line}/{a.segment}", a.kind, a.indicator, a.level]
+        rows.append(
+            "<tr>"
+            + "".join(f"<td>{escape(c)}</td>" for c in cells)
+            + f'<td class="n">{a.probability:.2f}</td><td>{escape(a.message)}</td></tr>'
+        )
+    rows.append("</tbody></table>")
+    return "".join(rows)
+
+
+# --- network --------------------------------------------------------------------------------
+
+
+def network_map(network_path: str | None = None) -> NetworkMap:
+    """Segment polylines and chainages, and stations, of a network file (default: the demo).
+
+    A line feature may name its stations with ``station_names`` (one per ``stations``
+    chainage); without names a station is labelled with its chainage in km.
+    """
+    from simulators.network import DEMO_NETWORK
+    from simulators.run import load_network
+
+    network = load_network(network_path)
+    try:
+        raw = json.loads(Path(network_path or DEMO_NETWORK).read_text())
+        props = {f["properties"]["id"]: f["properties"] for f in raw["features"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        props = {}
+    polylines, chainage, stations = {}, {}, []
+    for line in network.lines.values():
+        for seg in line.segments:
+            polylines[(line.id, seg.id)] = [tuple(p) for p in line.segment_lonlat(seg).tolist()]
+            chainage[(line.id, seg.id)] = (seg.start_m, seg.end_m)
+        names = props.get(line.id, {}).get("station_names") or []
+        for k, c in enumerate(line.stations):
+            lon, lat = map(float, line.lonlat_at(c))
+            label = str(names[k]) if k < len(names) else f"{line.id} km {c / 1e3:.1f}"
+            stations.append(Station(line.id, lon, lat, label))
+    return NetworkMap(polylines, chainage, stations)
+
+
+# --- the running system ---------------------------------------------------------------------
+
+
+def _ask_alerting(session, ns: str, line: str | None, timeout: float):
+    """(alerts, plan, missing note): both None with a note when alerting does not answer."""
+    params = f"?line={line}" if line else ""
+    try:
+        replies = list(operator.ask(session, keys.q_alerts(ns) + params, timeout))
+        plan_replies = list(operator.ask(session, keys.q_plan(ns) + params, timeout))
+    except SystemExit as exc:  # ask's message for an incomplete or failed answer
+        return None, None, f"Alerts and plan missing: {exc}"
+    if not replies or not plan_replies:
+        return (
+            None,
+            None,
+            (
+                "Alerts and plan missing: the alerting service did not answer "
+                "(is it running? `trackfusion status`)."
+            ),
+        )
+    alerts = [decode(msgpack.packb(item), Alert) for item in msgpack.unpackb(replies[0][1])]
+    return alerts, msgpack.unpackb(plan_replies[0][1]), ""
+
+
+def main(
+    conf: RuntimeConfig,
+    *,
+    out_path: str | Path = "report.html",
+    line: str | None = None,
+    network_path: str | None = None,
+    worst_n: int = WORST_N,
+    timeout: float = operator.QUERY_TIMEOUT_S,
+    out: TextIO = sys.stdout,
+) -> int:
+    """Ask the running system and write the report; SystemExit (1) without any state."""
+    network = network_map(network_path)
+    with operator._session(conf) as session:
+        states = operator.query_states(session, conf.ns, f"{line}/**" if line else "**", timeout)
+        if not states:
+            what = f"line {line}" if line else f"namespace {conf.ns!r}"
+            raise SystemExit(
+                f"report: no segment state for {what} on {keys.q_state_all(conf.ns)}. Is the "
+                "filtering service running (`trackfusion status`)? It answers only for "
+                "segments with a TRC record and a model; check the line id too."
+            )
+        alerts, plan, missing = _ask_alerting(session, conf.ns, line, timeout)
+    data = ReportData(
+        states=states,
+        network=network,
+        made_at=time.time(),
+        alerts=alerts,
+        plan=plan,
+        missing=missing,
+        lines=(line,) if line else (),
+        worst_n=worst_n,
+    )
+    Path(out_path).write_text(render(data), encoding="utf-8")
+    note = f" ({missing})" if missing else ""
+    print(f"wrote {out_path}: {len(states)} segments{note}", file=out)
+    return 0
