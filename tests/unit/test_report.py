@@ -1,0 +1,149 @@
+"""Pure parts of `trackfusion report`: fixture states → one self-contained HTML document."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from schemas import Alert
+from services.alerting.testing import T0, forecast_top6, make_state, p_top6
+from services.report import (
+    BINS,
+    NO_STATE,
+    NetworkMap,
+    ReportData,
+    Station,
+    colour,
+    network_map,
+    p_forecast,
+    p_now,
+    ranked,
+    render,
+)
+
+DAY_S = 86_400.0
+EVIL = 's<b>&"1"'  # ids are key chunks: `<`, `&` and quotes are allowed in them
+
+
+def a_network() -> NetworkMap:
+    """Three segments in a row on line L1, 0.002° (≈ 200 m) each, and one station."""
+    polylines = {
+        ("L1", seg): [(153.0 + 0.002 * k, -27.5), (153.0 + 0.002 * (k + 1), -27.5)]
+        for k, seg in enumerate(("s1", "s2", EVIL))
+    }
+    chainage = {key: (200.0 * k, 200.0 * (k + 1)) for k, key in enumerate(polylines)}
+    return NetworkMap(polylines, chainage, [Station("L1", 153.0, -27.5, "Roma <St>")])
+
+
+def some_states():
+    return [
+        make_state(T0, segment="s1", p_exceed=p_top6(1, 0.2), last_trc_t=T0 - 30 * DAY_S),
+        make_state(
+            T0 + DAY_S,
+            segment="s2",
+            p_exceed=p_top6(1, 0.9),
+            forecast=forecast_top6(0.92, 0.95, 0.99),
+        ),
+        make_state(T0, segment=EVIL, p_exceed=p_top6(1, 0.05)),
+    ]
+
+
+def a_report(**kw) -> str:
+    data = {"states": some_states(), "network": a_network(), "made_at": T0 + 5 * DAY_S} | kw
+    return render(ReportData(**data))
+
+
+def an_alert(**kw) -> Alert:
+    fields = {"line": "L1", "segment": "s2", "t": T0, "kind": "exceedance", "status": "raised"}
+    fields |= {"indicator": "top6", "level": "intervention", "probability": 0.9}
+    return Alert(**(fields | kw))
+
+
+@pytest.mark.parametrize(
+    ("p", "expected"),
+    [(0.0, BINS[0][1]), (0.099, BINS[0][1]), (0.1, BINS[1][1]), (0.35, BINS[2][1]),
+     (0.5, BINS[3][1]), (0.8, BINS[4][1]), (1.0, BINS[4][1]), (None, NO_STATE)],
+)  # fmt: skip
+def test_colour_per_probability_bin(p, expected):
+    assert colour(p) == expected
+
+
+def test_probabilities_are_the_intervention_level_max_over_indicators():
+    state = make_state(p_exceed=[[0.9, 0.8], [0.2, 0.4]], forecast=forecast_top6(0.5, 0.6, 0.7))
+    assert p_now(state) == pytest.approx(0.4)  # align10 at intervention, not top6 at alert
+    assert p_forecast(state) == pytest.approx({30.0: 0.5, 90.0: 0.6, 180.0: 0.7})
+
+
+def test_segments_are_ranked_by_p_exceed_then_id():
+    states = some_states() + [make_state(segment="s0", p_exceed=p_top6(1, 0.2))]
+    assert [s.segment for s in ranked(states)] == ["s2", "s0", "s1", EVIL]
+    html = a_report()
+    rows = re.findall(r"<tr><td class=\"n\">(\d+)</td><td>L1</td><td>([^<]*)</td>", html)
+    assert rows == [("1", "s2"), ("2", "s1"), ("3", "s&lt;b&gt;&amp;&quot;1&quot;")]
+
+
+def test_map_draws_each_segment_in_the_colour_of_its_probability():
+    html = a_report()
+    svg = html[html.index('<svg id="map"') : html.index("</svg>")]
+    strokes = re.findall(r'<polyline points="[^"]+" fill="none" stroke="(#\w+)"', svg)
+    assert sorted(strokes) == sorted([colour(0.2), colour(0.9), colour(0.05)])
+    assert "Roma &lt;St&gt;" in svg  # station label, escaped
+    # a segment of the network without a state is grey; the legend has every bin
+    html = a_report(states=some_states()[:2])
+    assert f'stroke="{NO_STATE}"' in html
+    assert all(f"background:{c}" in html for _, c, _ in BINS)
+
+
+def test_ids_and_messages_are_escaped():
+    html = a_report(alerts=[an_alert(segment=EVIL, message="<script>alert(1)</script> & co")])
+    assert EVIL not in html and "<b>&" not in html and "<script>" not in html
+    assert "&lt;script&gt;alert(1)&lt;/script&gt; &amp; co" in html
+    assert "L1/s&lt;b&gt;&amp;&quot;1&quot;" in html  # the map tooltip and the alert row
+
+
+def test_the_file_is_self_contained():
+    html = a_report(alerts=[an_alert()], plan={"v": 1, "t": T0, "rows": []})
+    assert html.startswith("<!DOCTYPE html>")
+    for external in ("http://", "https://", "src=", "<script", "<link", "url(", "@import"):
+        assert external not in html, external
+    assert html.count("<svg") == 1 + 2 * 3  # the map, two fans per segment
+
+
+def test_table_has_estimates_intervals_forecasts_last_and_next_trc():
+    plan = {"v": 1, "t": T0, "rows": [{"line": "L1", "segment": "s2", "probability": 0.97,
+            "indicator": "top6", "next_trc_t": T0 + 40 * DAY_S}]}  # fmt: skip
+    html = a_report(alerts=[], plan=plan)
+    row = re.search(r"<tr><td class=\"n\">1</td>.*?</tr>", html).group(0)
+    assert "0.2 – 0.4" in row  # chainage, km
+    assert "4.00 [3.29, 4.87]" in row and "3.00 [2.47, 3.65]" in row  # median [95 %] mm
+    assert [c for c in re.findall(r">(\d\.\d\d)</td>", row)] == ["0.90", "0.92", "0.95", "0.99",
+                                                                "0.97"]  # fmt: skip
+    assert "2026-02-10" in row  # next TRC from the plan
+    first = re.search(r"<tr><td class=\"n\">2</td>.*?</tr>", html).group(0)
+    assert "2025-12-02" in first  # last TRC record
+    assert "No alert raised." in html
+    assert "Made 2026-01-06T00:00:00 UTC (wall clock)" in html
+    assert "Newest state: 2026-01-02T00:00 UTC (event time)" in html
+
+
+def test_fans_of_the_worst_n_with_limits():
+    html = a_report(worst_n=1)
+    fans = html[html.index('<div class="fans">') :]
+    assert fans.count('<div class="fan">') == 1 and "L1/s2: P(exceed) 0.90" in fans
+    assert "intervention 8" in fans and "alert 6" in fans  # limits_mm, top6
+    assert "intervention 7" in fans and "alert 5" in fans  # align10
+
+
+def test_missing_alerting_is_said_not_fatal():
+    note = "Alerts and plan missing: the alerting service did not answer"
+    html = a_report(alerts=None, plan=None, missing=note)
+    assert note in html and "Alerts missing" in html
+    assert html.count('<tr><td class="n">') == 3  # the segments are still there
+
+
+def test_demo_network_map_has_every_segment_and_stations():
+    demo = network_map(None)
+    assert len(demo.polylines) == 295 and set(demo.chainage_m) == set(demo.polylines)
+    assert demo.chainage_m[("L1", "s00001")] == (200.0, 400.0)
+    assert any(s.label == "L1 km 3.5" for s in demo.stations)
