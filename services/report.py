@@ -409,15 +409,20 @@ def network_map(network_path: str | None = None) -> NetworkMap:
     A line feature may name its stations with ``station_names`` (one per ``stations``
     chainage); without names a station is labelled with its chainage in km.
     """
-    from simulators.network import DEMO_NETWORK
-    from simulators.run import load_network
+    # simulators.network alone: simulators.run (load_network) imports scipy.signal, 4 s here
+    from simulators.network import DEMO_NETWORK, Network
 
-    network = load_network(network_path)
+    path = Path(network_path or DEMO_NETWORK)
     try:
-        raw = json.loads(Path(network_path or DEMO_NETWORK).read_text())
-        props = {f["properties"]["id"]: f["properties"] for f in raw["features"]}
-    except (OSError, ValueError, KeyError, TypeError):
-        props = {}
+        raw = json.loads(path.read_text())
+        network = Network.from_geojson(raw)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"--network {path}: {exc}") from None
+    props = {
+        f["properties"]["id"]: f["properties"]
+        for f in raw["features"]
+        if isinstance(f.get("properties"), dict) and "id" in f["properties"]
+    }
     polylines, chainage, stations = {}, {}, []
     for line in network.lines.values():
         for seg in line.segments:

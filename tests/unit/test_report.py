@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 
 import pytest
@@ -147,3 +148,16 @@ def test_demo_network_map_has_every_segment_and_stations():
     assert len(demo.polylines) == 295 and set(demo.chainage_m) == set(demo.polylines)
     assert demo.chainage_m[("L1", "s00001")] == (200.0, 400.0)
     assert any(s.label == "L1 km 3.5" for s in demo.stations)
+
+
+def test_station_names_from_the_network_file_and_a_bad_file(tmp_path):
+    line = {"type": "Feature", "geometry": {"type": "LineString",
+            "coordinates": [[153.0, -27.5], [153.01, -27.5]]},
+            "properties": {"id": "X", "stations": [0.0, 900.0],
+                           "station_names": ["Central", "Park"]}}  # fmt: skip
+    path = tmp_path / "net.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": [line]}))
+    assert [s.label for s in network_map(str(path)).stations] == ["Central", "Park"]
+    path.write_text("{")
+    with pytest.raises(SystemExit, match="--network"):
+        network_map(str(path))

@@ -1,0 +1,108 @@
+"""`trackfusion report` against a real router, with queryables standing in for filtering
+(`q/state/**`) and alerting (`q/alerts`, `q/plan`)."""
+
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+from pathlib import Path
+
+import msgpack
+import pytest
+import zenoh
+
+from schemas import Alert, encode, keys
+from services import report
+from services.alerting.testing import T0, make_state, p_top6
+
+DAY_S = 86_400.0
+STATES = [
+    make_state(T0, line="L1", segment="s00001", p_exceed=p_top6(1, 0.3)),
+    make_state(T0, line="L1", segment="s00002", p_exceed=p_top6(1, 0.95)),
+    make_state(T0, line="L2", segment="s00001", p_exceed=p_top6(1, 0.6)),
+]
+ALERT = Alert(line="L1", segment="s00002", t=T0, kind="exceedance", status="raised",
+              indicator="top6", level="intervention", probability=0.95,
+              message="Top6 likely above intervention limit 8.0 mm")  # fmt: skip
+
+
+def filtering_stand_in(session: zenoh.Session, ns: str) -> zenoh.Queryable:
+    """Answers `q/state/**` like filtering: one reply per state whose key the query asks."""
+
+    def answer(query: zenoh.Query) -> None:
+        for state in STATES:
+            key = keys.q_state(ns, state.line, state.segment)
+            if query.key_expr.intersects(zenoh.KeyExpr(key)):
+                query.reply(key, encode(state))
+
+    return session.declare_queryable(keys.q_state_all(ns), answer)
+
+
+def alerting_stand_in(session: zenoh.Session, ns: str, asked: list[str]):
+    """Answers `q/alerts` and `q/plan` like alerting; ``asked`` gets each query's parameters."""
+
+    def alerts(query: zenoh.Query) -> None:
+        asked.append(f"alerts?{query.parameters}")
+        query.reply(keys.q_alerts(ns), msgpack.packb([msgpack.unpackb(encode(ALERT))]))
+
+    def plan(query: zenoh.Query) -> None:
+        asked.append(f"plan?{query.parameters}")
+        row = {"line": "L1", "segment": "s00002", "probability": 0.97, "indicator": "top6",
+               "next_trc_t": T0 + 40 * DAY_S}  # fmt: skip
+        query.reply(keys.q_plan(ns), msgpack.packb({"v": 1, "t": T0, "rows": [row]}))
+
+    return [
+        session.declare_queryable(keys.q_alerts(ns), alerts),
+        session.declare_queryable(keys.q_plan(ns), plan),
+    ]
+
+
+def test_report_of_one_line_from_the_running_system(open_session, service_config, tmp_path):
+    ns, asked = service_config.ns, []
+    services = open_session()
+    filtering_stand_in(services, ns)
+    alerting_stand_in(services, ns, asked)
+    out_path, out = tmp_path / "report.html", io.StringIO()
+
+    assert report.main(service_config, out_path=out_path, line="L1", timeout=5, out=out) == 0
+
+    html = out_path.read_text()
+    assert "wrote" in out.getvalue() and "2 segments" in out.getvalue()
+    assert sorted(asked) == ["alerts?line=L1", "plan?line=L1"]
+    segments = [s for s in ("L1/s00001", "L1/s00002", "L2/s00001") if f"{s}: P(exceed)" in html]
+    assert segments == ["L1/s00001", "L1/s00002"]  # L2 was not asked for
+    assert html.index("<td>s00002</td>") < html.index("<td>s00001</td>")  # 0.95 before 0.3
+    assert "Top6 likely above intervention limit 8.0 mm" in html  # the open alert
+    assert "2026-02-10" in html  # next TRC from the plan
+    assert "missing" not in html
+
+
+def test_report_without_alerting_is_written_with_a_note(open_session, service_config, tmp_path):
+    filtering_stand_in(open_session(), service_config.ns)
+    out_path, out = tmp_path / "report.html", io.StringIO()
+
+    assert report.main(service_config, out_path=out_path, timeout=5, out=out) == 0
+
+    html = out_path.read_text()
+    assert "Alerts and plan missing: the alerting service did not answer" in html
+    assert "Alerts and plan missing" in out.getvalue()
+    assert all(f"{s.line}/{s.segment}: P(exceed)" in html for s in STATES)
+
+
+def test_report_without_filtering_exits_1_saying_what_to_check(
+    open_session, service_config, router, tmp_path
+):
+    alerting_stand_in(open_session(), service_config.ns, [])
+    out_path = tmp_path / "report.html"
+    with pytest.raises(SystemExit, match=r"filtering service running \(`trackfusion status`\)"):
+        report.main(service_config, out_path=out_path, timeout=5, out=io.StringIO())
+    # the command itself: exit code 1, the message on stderr, no file
+    done = subprocess.run(
+        [sys.executable, "-m", "services.cli", "report", "--out", str(out_path), "--line", "L1",
+         "--connect", router, "--ns", service_config.ns, "--timeout", "5"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 1, done.stderr
+    assert "no segment state for line L1" in done.stderr and "trackfusion status" in done.stderr
+    assert not Path(out_path).exists()
