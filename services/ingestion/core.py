@@ -8,8 +8,27 @@ The chain, per message:
 
 1. **Validation** beyond the schema (:func:`inspect_chunk`): the channel set holds the six
    accelerometer channels and ``supply_v``; the sample rate is within ``rate_tolerance`` of
-   the unit's expected rate; every value is finite; the supply voltage is plausible
-   (``supply_min_v``..``supply_max_v``). A failure is a :class:`Rejection` with a reason.
+   the unit's expected rate; the samples are floats (an integer dtype carries no scale on
+   the wire: refused); ``t0`` is in the valid time range; every value is finite; the
+   accelerations are in g (:func:`vertical_unit_reason`: a vertical channel's mean is
+   gravity, so a mean beyond ``vertical_max_g`` is m/s² at ≈ 9.81, or counts); the supply
+   voltage is plausible (``supply_min_v``..``supply_max_v``). A failure is a
+   :class:`Rejection` with a reason.
+
+   **The train's clock.** Event time is the gateway's, so one wrong time must not become
+   "now". A fix's ``t`` and a chunk's ``t0`` outside ``[valid_t_min, valid_t_max)``
+   (2000..2100) are refused. A fix or chunk more than ``max_ahead_s`` (300 s) ahead of the
+   train's last accepted fix *and* of the fleet's clock (the median of the other trains'
+   last fixes; when there are none, of the train's alone) is refused as a clock jump, as is
+   a fix more than ``max_ahead_s`` behind the train's last fix: neither moves the train's
+   event time, its reorder windows or its knot horizon. A train whose gateway clock really
+   moved is **re-based**: ``rebase_fixes`` (5) consecutive refused fixes, each 0 <
+   Δt <= ``rebase_gap_s`` (10 s) after the one before, make the last of them the train's
+   new timeline (what is held is released first; the units' sequencing starts over with
+   ``gap_before``; a warning is logged; :attr:`TrainStats.rebases`). A fix far behind the
+   train that agrees with the fleet's clock re-bases it at once (a train whose timeline
+   was wrong). One fix on the train's timeline ends a run of refused fixes, so a single
+   outlier, or outliers among good fixes, never re-base anything.
 2. **Sequencing** per (train, unit) (:func:`step_unit`): ``t0`` must agree with ``seq``
    (``t0 ≈ t0_ref + (seq - seq_ref) * chunk duration`` within ``t0_tolerance_s``);
    duplicates (same seq) are dropped and counted, not dead-lettered (re-delivery is normal
@@ -71,16 +90,20 @@ and visible, never silently lost).
 
 from __future__ import annotations
 
+import logging
 import math
 from bisect import bisect_left, bisect_right
 from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, fields, replace
+from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
 
 from schemas import ACCEL_CHANNELS, SUPPLY_CHANNEL, GpsFix, NDArray, PositionedChunk, RawChunk
+
+log = logging.getLogger(__name__)
 
 G_MPS2 = 9.80665
 CHANNELS = list(ACCEL_CHANNELS)  # output columns (supply_v dropped after the correction)
@@ -123,6 +146,19 @@ class IngestionConfig:
     fuse_gate_m: float = 20.0  # projections farther from the prediction are taken as is
     search_m: float = 300.0  # projection window around the predicted chainage
     knot_keep_s: float = 60.0  # knots kept behind the train's event time
+    # Time plausibility ("the train's clock", module docstring): event times outside
+    # [valid_t_min, valid_t_max) are refused; a fix or chunk more than max_ahead_s ahead of
+    # the train's last fix and of the fleet's median is refused as a clock jump, and
+    # rebase_fixes consecutive fixes at the new time (each within rebase_gap_s of the one
+    # before) re-base the train there.
+    valid_t_min: float = 946_684_800.0  # 2000-01-01T00:00:00Z
+    valid_t_max: float = 4_102_444_800.0  # 2100-01-01T00:00:00Z
+    max_ahead_s: float = 300.0
+    rebase_fixes: int = 5
+    rebase_gap_s: float = 10.0
+    # Units: the mean of a vertical channel over a chunk is gravity, +1 g; beyond this many g
+    # the samples are not in g (m/s^2 reads 9.81, counts read hundreds or thousands).
+    vertical_max_g: float = 2.5
 
     @classmethod
     def from_dict(cls, raw: Mapping[str, Any]) -> IngestionConfig:
@@ -193,6 +229,8 @@ class TrainStats:
     extrapolated: int = 0  # chunks whose tail was dead-reckoned past the last knot
     held: int = 0  # chunks that had to wait for a knot (none close enough before them)
     max_correction_m: float = 0.0  # largest later correction of a dead-reckoned position
+    clock_jumps: int = 0  # fixes and chunks refused as ahead of (or far behind) the clock
+    rebases: int = 0  # times the train's clock was re-based to a new timeline
 
 
 # --- chunk inspection (vectorised) ------------------------------------------------------------
@@ -237,10 +275,19 @@ def inspect_chunk(chunk: RawChunk, cfg: IngestionConfig) -> Inspected | str:
             f"rate_hz: {chunk.rate_hz:g} Hz outside {expected:g} Hz "
             f"± {cfg.rate_tolerance * 100:g} %"
         )
+    if chunk.samples.dtype[0] != "f":
+        return (
+            f"samples: dtype {chunk.samples.dtype} is an integer type, whose scale the wire "
+            "does not carry; send f4 (or f8) with accelerations in g and supply_v in V "
+            "(counts × your sensor's g per count)"
+        )
     a = chunk.samples.array()
     n = a.shape[0]
     if n < 2:
         return f"samples: {n} rows, need at least 2"
+    bad = time_range_reason("t0", chunk.t0, cfg)
+    if bad:
+        return bad
     order = _column_order(chunk.channels)
     if order is not None:
         a = a[:, order]
@@ -252,6 +299,9 @@ def inspect_chunk(chunk: RawChunk, cfg: IngestionConfig) -> Inspected | str:
     top, bottom = float(a.max()), float(a.min())
     if not (math.isfinite(top) and math.isfinite(bottom)):
         return "samples: contain NaN or inf"
+    unit = vertical_unit_reason(acc, cfg)
+    if unit:
+        return unit
     vmin, vmax = float(volts.min()), float(volts.max())
     if vmin < cfg.supply_min_v or vmax > cfg.supply_max_v:
         return (
@@ -291,6 +341,45 @@ def inspect_chunk(chunk: RawChunk, cfg: IngestionConfig) -> Inspected | str:
         supply_min_v=vmin,
         supply_max_v=vmax,
     )
+
+
+def time_range_reason(name: str, t: float, cfg: IngestionConfig) -> str | None:
+    """Why an event time is outside the valid range, or None."""
+    if cfg.valid_t_min <= t < cfg.valid_t_max:
+        return None
+    return (
+        f"{name}: {t:.3f} ({_iso(t)}) outside the valid time range "
+        f"{_iso(cfg.valid_t_min)} .. {_iso(cfg.valid_t_max)} (UTC epoch seconds)"
+    )
+
+
+def vertical_unit_reason(acc: np.ndarray, cfg: IngestionConfig) -> str | None:
+    """Why the accelerations are not in g, judged by gravity on the vertical channels.
+
+    Over a chunk a vertical channel averages to gravity, +1 g (the bogie's vibration averages
+    out). A mean beyond ``vertical_max_g`` on either of ``left_z``/``right_z`` is no
+    acceleration in g: about 9.81 is m/s², anything larger counts or another scale.
+    """
+    means = acc[:, [0, 3]].mean(axis=0, dtype=np.float64)
+    worst = float(means[np.argmax(np.abs(means))])
+    if abs(worst) <= cfg.vertical_max_g:
+        return None
+    if abs(abs(worst) - G_MPS2) <= cfg.vertical_max_g:
+        return (
+            f"samples: vertical mean {worst:.2f} looks like m/s² (gravity reads ≈ 9.81); "
+            f"send accelerations in g (m/s² ÷ {G_MPS2}): gravity must read ≈ +1"
+        )
+    return (
+        f"samples: vertical mean {worst:.4g} is no acceleration in g (gravity must read ≈ +1, "
+        f"at most ±{cfg.vertical_max_g:g}): raw counts or another scale? send f4 in g"
+    )
+
+
+def _iso(t: float) -> str:
+    try:
+        return datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+    except (OverflowError, OSError, ValueError):
+        return "beyond the calendar"
 
 
 def _account(h: UnitHealth, item: Inspected) -> None:
@@ -476,6 +565,9 @@ class TrainState:
     poor_until: float = -math.inf  # published knots before this follow a large correction
     pending: list[tuple[Inspected, bool]] = field(default_factory=list)
     units: list[UnitState] = field(default_factory=list)  # the train's units, for windows
+    # times of the current run of consecutive fixes refused as a clock jump (a re-base
+    # candidate); cleared by a fix on the train's timeline
+    suspects: list[float] = field(default_factory=list)
 
 
 class Positioner:
@@ -947,6 +1039,86 @@ class IngestionCore:
             st = self.trains[train] = TrainState()
         return st
 
+    def fleet_t(self, train: str) -> float | None:
+        """The fleet's clock: the median of the other trains' last accepted fix times."""
+        times = [
+            st.last_fix_t
+            for name, st in self.trains.items()
+            if name != train and st.last_fix_t is not None
+        ]
+        return float(np.median(times)) if times else None
+
+    def _ahead(self, train: str, st: TrainState, name: str, t: float) -> str | None:
+        """Why ``t`` is too far ahead of the train's clock and of the fleet's, or None."""
+        cfg, last = self.cfg, st.last_fix_t
+        if last is not None and t - last <= cfg.max_ahead_s:
+            return None
+        fleet = self.fleet_t(train)
+        if fleet is not None and t - fleet <= cfg.max_ahead_s:
+            return None  # the train was away (an outage, a depot night): the fleet agrees
+        if last is None and fleet is None:
+            return None  # nothing to compare with
+        against = []
+        if last is not None:
+            against.append(f"{t - last:.0f} s ahead of the train's last fix {last:.3f}")
+        if fleet is not None:
+            against.append(f"{t - fleet:.0f} s ahead of the fleet's clock {fleet:.3f}")
+        return (
+            f"{name}: {t:.3f} is {' and '.join(against)} (more than {cfg.max_ahead_s:g} s): "
+            "refused as a clock jump"
+        )
+
+    def _clock_check(self, fix: GpsFix, st: TrainState) -> tuple[str | None, bool]:
+        """``(reason, rebase)``: why a fix is off the train's timeline (None: on it) and
+        whether the train re-bases to it now (the rule in the module docstring)."""
+        cfg, last, t = self.cfg, st.last_fix_t, fix.t
+        reason = self._ahead(fix.train, st, "t", t)
+        if reason is None and last is not None and last - t > cfg.max_ahead_s:
+            fleet = self.fleet_t(fix.train)
+            if fleet is not None and abs(t - fleet) <= cfg.max_ahead_s:
+                return None, True  # back on the fleet's clock: re-base at once
+            reason = (
+                f"t: {t:.3f} is {last - t:.0f} s behind the train's last fix {last:.3f} "
+                f"(more than {cfg.max_ahead_s:g} s): refused as a clock jump"
+            )
+        if reason is None:
+            st.suspects.clear()
+            return None, False
+        run = st.suspects
+        if run and 0 < t - run[-1] <= cfg.rebase_gap_s:
+            run.append(t)
+        else:
+            run[:] = [t]
+        if len(run) >= cfg.rebase_fixes:
+            return None, True
+        return (
+            f"{reason} ({cfg.rebase_fixes - len(run)} more consecutive fixes at the new "
+            "time re-base the train there)",
+            False,
+        )
+
+    def _rebase(self, st: TrainState, fix: GpsFix) -> list[Output]:
+        """Start the train's timeline over at ``fix``: what is held goes out first."""
+        out: list[Output] = []
+        for unit in st.units:
+            for released in release_unit(unit, self.cfg, force=True):
+                out += self._to_train(st, released)
+        out += self._count(step_train(st, None, self.positioner, final=True)[1])
+        log.warning(
+            "train %s: clock re-based from %s to %s (%d consecutive fixes at the new time)",
+            fix.train,
+            "none" if st.last_fix_t is None else f"{st.last_fix_t:.3f}",
+            f"{fix.t:.3f}",
+            len(st.suspects),
+        )
+        for unit in st.units:  # sequencing starts over too: t0 against seq at the new time
+            unit.next_seq, unit.ref, unit.gap_pending = None, None, True
+            unit.lost.clear()
+        fresh = TrainState(stats=st.stats, units=st.units)
+        fresh.stats.rebases += 1
+        self.trains[fix.train] = fresh
+        return out
+
     def _on_chunk(self, chunk: RawChunk) -> list[Output]:
         key = (chunk.train, chunk.unit)
         st = self._train(chunk.train)
@@ -958,6 +1130,11 @@ class IngestionCore:
         if isinstance(inspected, str):
             unit.health.rejected += 1
             return [Rejection(f"RawChunk: {inspected}", chunk)]
+        jump = self._ahead(chunk.train, st, "t0", chunk.t0)
+        if jump is not None:
+            unit.health.rejected += 1
+            st.stats.clock_jumps += 1
+            return [Rejection(f"RawChunk: {jump}", chunk)]
         unit, released, reason = step_unit(unit, inspected, self.cfg)
         out: list[Output] = [] if reason is None else [Rejection(f"RawChunk: {reason}", chunk)]
         if reason is None:
@@ -971,6 +1148,16 @@ class IngestionCore:
     def _on_fix(self, fix: GpsFix) -> list[Output]:
         st = self._train(fix.train)
         out: list[Output] = []
+        bad = time_range_reason("t", fix.t, self.cfg)
+        if bad is not None:
+            return [Rejection(f"GpsFix: {bad}", fix)]
+        reason, rebase = self._clock_check(fix, st)
+        if reason is not None:
+            st.stats.clock_jumps += 1
+            return [Rejection(f"GpsFix: {reason}", fix)]
+        if rebase:
+            out += self._rebase(st, fix)
+            st = self.trains[fix.train]
         # the fix's time also closes the reorder windows of the train's units
         for unit in st.units:
             if unit.buffer:
