@@ -7,11 +7,21 @@ Decoding runs ``__post_init__``, so a decoded message is a valid message.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 import msgspec
 
-from schemas.wire import NDArray, check, check_array, check_finite, check_id
+from schemas.wire import (
+    INT_MAX,
+    NDArray,
+    check,
+    check_array,
+    check_finite,
+    check_id,
+    check_int,
+    check_range,
+    check_time,
+)
 
 SCHEMA_VERSION = 1
 INDICATORS = ("top6", "align10")  # state order, n = 2
@@ -19,9 +29,19 @@ ONBOARD_INDICES = ("top6", "align10")  # on-board index order, m = 2
 ACCEL_CHANNELS = ("left_z", "left_y", "left_x", "right_z", "right_y", "right_x")
 SUPPLY_CHANNEL = "supply_v"
 
+# Plausibility ranges (schemas/README.md, "Limits"): what a sender can be told at once.
+INDEX_MAX_MM = 100.0  # Top6, Align10: (0, 100] mm; intervention limits are ~10 mm
+SPEED_MAX_MPS = 150.0  # 540 km/h
+RATE_MAX_HZ = 100_000.0
+HDOP_MAX = 100.0
+HORIZON_MAX_DAYS = 36_525.0  # 100 years
+KIB = 1024
+
 
 class Message(msgspec.Struct, frozen=True, kw_only=True):
     """Base: the schema version ``v`` and its check."""
+
+    MAX_BYTES: ClassVar[int] = 4 * KIB  # payload size limit, checked before decoding
 
     v: int = SCHEMA_VERSION
 
@@ -32,9 +52,10 @@ class Message(msgspec.Struct, frozen=True, kw_only=True):
 def _check_samples(msg: RawChunk | PositionedChunk) -> None:
     check_id("train", msg.train)
     check_id("unit", msg.unit)
-    check(msg.seq >= 0, f"seq: must be >= 0, got {msg.seq}")
-    check_finite("t0", msg.t0)
+    check_int("seq", msg.seq)
+    check_time("t0", msg.t0)
     check_finite("rate_hz", msg.rate_hz, positive=True)
+    check_range("rate_hz", msg.rate_hz, 0.0, RATE_MAX_HZ)
     check(len(msg.channels) > 0, "channels: empty")
     check(len(set(msg.channels)) == len(msg.channels), f"channels: duplicates in {msg.channels}")
     check_array("samples", msg.samples, (None, len(msg.channels)), kinds="fi")
@@ -43,6 +64,8 @@ def _check_samples(msg: RawChunk | PositionedChunk) -> None:
 class RawChunk(Message, frozen=True, kw_only=True):
     """About one second of bogie accelerometer samples from one on-board unit (gateway)."""
 
+    # 1 s at 2000 Hz of the 7 channels in f8 is 112 kB: room for 4x that
+    MAX_BYTES: ClassVar[int] = 512 * KIB
     train: str
     unit: str
     seq: int  # per (train, unit), +1 per chunk
@@ -70,19 +93,21 @@ class GpsFix(Message, frozen=True, kw_only=True):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_id("train", self.train)
-        check_finite("t", self.t)
+        check_time("t", self.t)
         check_finite("lat_deg", self.lat_deg)
         check_finite("lon_deg", self.lon_deg)
         check(-90 <= self.lat_deg <= 90, f"lat_deg: {self.lat_deg} outside [-90, 90]")
         check(-180 <= self.lon_deg <= 180, f"lon_deg: {self.lon_deg} outside [-180, 180]")
-        check_finite("speed_mps", self.speed_mps)
-        check_finite("hdop", self.hdop)
+        check_range("speed_mps", self.speed_mps, 0.0, SPEED_MAX_MPS)
+        check_range("hdop", self.hdop, 0.0, HDOP_MAX)
         check(self.fix_quality in (0, 1, 2), f"fix_quality: {self.fix_quality} not 0, 1 or 2")
 
 
 class PositionedChunk(Message, frozen=True, kw_only=True):
     """Cleaned samples of one unit with (t, line, chainage, speed) knots from map matching."""
 
+    # a RawChunk's samples in f8 (up to 4x an i2 chunk at its limit) and the knots
+    MAX_BYTES: ClassVar[int] = 4096 * KIB
     train: str
     unit: str
     seq: int
@@ -109,6 +134,13 @@ class PositionedChunk(Message, frozen=True, kw_only=True):
         check_array("knot_speed_mps", self.knot_speed_mps, (k,))
         t = self.knot_t.array()
         check(bool((t[1:] >= t[:-1]).all()), "knot_t: must be non-decreasing")
+        check_time("knot_t", float(t[0]))
+        check_time("knot_t", float(t[-1]))
+        v = self.knot_speed_mps.array()
+        check(
+            bool(((v >= 0) & (v <= SPEED_MAX_MPS)).all()),
+            f"knot_speed_mps: values outside [0, {SPEED_MAX_MPS:g}]",
+        )
 
 
 class OnboardIndex(Message, frozen=True, kw_only=True):
@@ -130,15 +162,25 @@ class OnboardIndex(Message, frozen=True, kw_only=True):
         super().__post_init__()
         for name in ("line", "segment", "train", "unit"):
             check_id(name, getattr(self, name))
-        check_finite("t", self.t)
-        check_finite("top6_mm", self.top6_mm, positive=True)
-        check_finite("align10_mm", self.align10_mm, positive=True)
-        check_finite("speed_mps", self.speed_mps)
-        check(self.speed_mps >= 0, f"speed_mps: must be >= 0, got {self.speed_mps}")
+        if self.run_id:
+            check_id("run_id", self.run_id)
+        check_time("t", self.t)
+        _check_index("top6_mm", self.top6_mm)
+        _check_index("align10_mm", self.align10_mm)
+        check_range("speed_mps", self.speed_mps, 0.0, SPEED_MAX_MPS)
         for name in ("coverage", "quality"):
-            value = getattr(self, name)
-            check_finite(name, value)
-            check(0 <= value <= 1, f"{name}: {value} outside [0, 1]")
+            check_range(name, getattr(self, name), 0.0, 1.0)
+
+
+def _check_index(name: str, value: float) -> None:
+    check_finite(name, value, positive=True)
+    check(value <= INDEX_MAX_MM, f"{name}: {value!r} outside (0, {INDEX_MAX_MM:g}] mm")
+
+
+def _check_model_time(name: str, value: float) -> None:
+    """A model's time: 0.0 for a prior (no data used yet), else an event time."""
+    if value != 0.0:
+        check_time(name, value)
 
 
 class TrcRecord(Message, frozen=True, kw_only=True):
@@ -155,9 +197,9 @@ class TrcRecord(Message, frozen=True, kw_only=True):
         super().__post_init__()
         for name in ("line", "segment", "run_id"):
             check_id(name, getattr(self, name))
-        check_finite("t", self.t)
-        check_finite("top6_mm", self.top6_mm, positive=True)
-        check_finite("align10_mm", self.align10_mm, positive=True)
+        check_time("t", self.t)
+        _check_index("top6_mm", self.top6_mm)
+        _check_index("align10_mm", self.align10_mm)
 
 
 class MaintenanceEvent(Message, frozen=True, kw_only=True):
@@ -174,14 +216,15 @@ class MaintenanceEvent(Message, frozen=True, kw_only=True):
         super().__post_init__()
         for name in ("line", "segment", "event_id"):
             check_id(name, getattr(self, name))
-        check_finite("t_start", self.t_start)
-        check_finite("t_end", self.t_end)
+        check_time("t_start", self.t_start)
+        check_time("t_end", self.t_end)
         check(self.t_end >= self.t_start, f"t_end: {self.t_end} before t_start {self.t_start}")
 
 
 class Calibration(Message, frozen=True, kw_only=True):
     """Observation model y = H z + b + e, e ~ N(0, R) (paper Eq. 3-6) with diagnostics."""
 
+    MAX_BYTES: ClassVar[int] = 16 * KIB
     version: int  # >= 1, increases with every accepted refit
     t: float  # event time of the newest pair used
     indicators: list[str]  # state names, n
@@ -194,20 +237,22 @@ class Calibration(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check(self.version >= 1, f"version: must be >= 1, got {self.version}")
-        check_finite("t", self.t)
+        check_int("version", self.version, 1, INT_MAX)
+        _check_model_time("t", self.t)
         n, m = len(self.indicators), len(self.indices)
         check(n > 0 and m > 0, "indicators/indices: must not be empty")
         check_array("H", self.H, (m, n))
         check_array("b", self.b, (m,))
         check_array("R", self.R, (m, m))
         check_array("r2", self.r2, (m,))
-        check(self.n_pairs > 0, f"n_pairs: must be > 0, got {self.n_pairs}")
+        check_int("n_pairs", self.n_pairs, 1, INT_MAX)
 
 
 class DegradationPosterior(Message, frozen=True, kw_only=True):
     """Ns posterior samples of the degradation parameters of one group (paper Eq. 2, 13)."""
 
+    # Ns = 1000 samples of n = 2 indicators are 96 kB: room for Ns = 5000, or n = 5 at 1000
+    MAX_BYTES: ClassVar[int] = 512 * KIB
     group: str  # e.g. "class-fast", "line-L1", "L1.s0042"
     version: int
     t: float  # event time of the newest TRC record used
@@ -222,8 +267,10 @@ class DegradationPosterior(Message, frozen=True, kw_only=True):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_id("group", self.group)
-        check(self.version >= 1, f"version: must be >= 1, got {self.version}")
-        check_finite("t", self.t)
+        check_int("version", self.version, 1, INT_MAX)
+        _check_model_time("t", self.t)
+        check_int("n_increments", self.n_increments)
+        check_int("n_levels", self.n_levels)
         n = len(self.indicators)
         check(n > 0, "indicators: must not be empty")
         check_array("mu", self.mu, (None, n))
@@ -237,6 +284,7 @@ class DegradationPosterior(Message, frozen=True, kw_only=True):
 class SegmentState(Message, frozen=True, kw_only=True):
     """The filter's mixture summary of one segment after an event (paper Eq. 13-14)."""
 
+    MAX_BYTES: ClassVar[int] = 64 * KIB
     line: str
     segment: str
     t: float  # event time of the state
@@ -265,10 +313,16 @@ class SegmentState(Message, frozen=True, kw_only=True):
         super().__post_init__()
         check_id("line", self.line)
         check_id("segment", self.segment)
-        check_finite("t", self.t)
+        if self.posterior_group:
+            check_id("posterior_group", self.posterior_group)
+        check_time("t", self.t)
         check_finite("width", self.width)
-        check_finite("last_trc_t", self.last_trc_t)
+        check(self.width >= 0, f"width: must be >= 0, got {self.width!r}")
+        check_time("last_trc_t", self.last_trc_t)
         check_finite("nis", self.nis)
+        check_int("n_updates", self.n_updates)
+        check_int("calibration_version", self.calibration_version)
+        check_int("posterior_version", self.posterior_version)
         n, levels = len(self.indicators), len(self.limit_levels)
         check(n > 0, "indicators: must not be empty")
         for name in ("mean", "ci_low_mm", "ci_high_mm"):
@@ -289,6 +343,7 @@ class SegmentState(Message, frozen=True, kw_only=True):
 class Alert(Message, frozen=True, kw_only=True):
     """An alert raised or cleared for one segment."""
 
+    MAX_BYTES: ClassVar[int] = 16 * KIB
     line: str
     segment: str
     t: float  # event time
@@ -304,15 +359,15 @@ class Alert(Message, frozen=True, kw_only=True):
         super().__post_init__()
         check_id("line", self.line)
         check_id("segment", self.segment)
-        check_finite("t", self.t)
-        check_finite("probability", self.probability)
-        check(0 <= self.probability <= 1, f"probability: {self.probability} outside [0, 1]")
-        check_finite("horizon_days", self.horizon_days)
+        check_time("t", self.t)
+        check_range("probability", self.probability, 0.0, 1.0)
+        check_range("horizon_days", self.horizon_days, 0.0, HORIZON_MAX_DAYS)
 
 
 class DeadLetter(Message, frozen=True, kw_only=True):
     """A rejected payload: where it came from and why it was refused."""
 
+    MAX_BYTES: ClassVar[int] = 64 * KIB
     service: str
     key: str
     reason: str

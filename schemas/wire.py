@@ -11,7 +11,14 @@ import numpy as np
 # dtype codes on the wire: numpy's kind+size, always little-endian.
 DTYPES = {"f4": "<f4", "f8": "<f8", "i2": "<i2", "i4": "<i4", "u1": "|u1"}
 MAX_ARRAY_ELEMENTS = 4_000_000  # ~30 min of one 7-channel unit at 2000 Hz; larger is an error
-ID_FORBIDDEN = set("/*$?# ")
+ID_FORBIDDEN = set("/*$?#")  # key-expression syntax; whitespace and control characters too
+ID_MAX_CHARS = 64
+MAX_NESTING = 32  # containers inside containers; the deepest valid message has 3
+NESTING_SCAN_ITEMS = 10_000  # items looked at for nesting before decoding (a valid message: <300)
+# Plausibility windows shared by the messages (see schemas/README.md, "Limits").
+T_MIN = 946_684_800.0  # 2000-01-01T00:00:00Z: event times are on or after it
+T_MAX = 4_102_444_800.0  # 2100-01-01T00:00:00Z: and before it (a fixed window, not the clock)
+INT_MAX = 2**53  # counters and versions: exact in a float64 and in SQLite's INTEGER
 
 
 class SchemaError(ValueError):
@@ -31,11 +38,51 @@ def check_finite(name: str, value: float | None, *, positive: bool = False) -> N
         check(value > 0, f"{name}: must be > 0, got {value!r}")
 
 
+def check_range(name: str, value: float | None, low: float, high: float) -> None:
+    """``low <= value <= high`` (and finite); None passes (an optional field left out)."""
+    if value is None:
+        return
+    check_finite(name, value)
+    check(low <= value <= high, f"{name}: {value!r} outside [{low:g}, {high:g}]")
+
+
+def check_time(name: str, value: float | None) -> None:
+    """An event time in [2000-01-01, 2100-01-01) UTC, epoch s."""
+    if value is None:
+        return
+    check_finite(name, value)
+    check(
+        T_MIN <= value < T_MAX,
+        f"{name}: {value!r} outside [{T_MIN:.0f}, {T_MAX:.0f}) (2000-01-01 to 2100-01-01 UTC)",
+    )
+
+
+def check_int(name: str, value: int, low: int = 0, high: int = INT_MAX) -> None:
+    """An integer in [low, high] (by default a count: [0, 2^53])."""
+    check(low <= value <= high, f"{name}: {_short(value)} outside [{low}, {_int_text(high)}]")
+
+
+def _int_text(value: int) -> str:
+    return "2^53" if value == INT_MAX else str(value)
+
+
+def _short(value: object, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[: limit - 3]}..."
+
+
 def check_id(name: str, value: str) -> None:
-    """Ids become key-expression chunks: non-empty, no `/ * $ ? #` and no spaces."""
+    """Ids become key-expression chunks: 1 to 64 characters, no `/ * $ ? #`, no whitespace or
+    control characters, no leading `@` (Zenoh's verbatim chunks, never delivered to ``**``)."""
     check(bool(value), f"{name}: must be a non-empty string")
+    check(len(value) <= ID_MAX_CHARS, f"{name}: {len(value)} characters > {ID_MAX_CHARS}")
     bad = ID_FORBIDDEN.intersection(value)
     check(not bad, f"{name}: {value!r} contains forbidden characters {sorted(bad)}")
+    check(
+        all(c.isprintable() and not c.isspace() for c in value),
+        f"{name}: {value!r} contains whitespace or control characters",
+    )
+    check(not value.startswith("@"), f"{name}: {value!r} starts with '@' (a verbatim chunk)")
 
 
 class NDArray(msgspec.Struct, frozen=True):
@@ -47,6 +94,7 @@ class NDArray(msgspec.Struct, frozen=True):
 
     def __post_init__(self) -> None:
         check(self.dtype in DTYPES, f"dtype: {self.dtype!r} not one of {sorted(DTYPES)}")
+        check(len(self.shape) <= 8, f"shape: {len(self.shape)} dimensions > 8")
         check(all(s >= 0 for s in self.shape), f"shape: negative extent in {self.shape}")
         size = math.prod(self.shape)
         check(size <= MAX_ARRAY_ELEMENTS, f"shape: {size} elements > {MAX_ARRAY_ELEMENTS}")
@@ -90,11 +138,101 @@ def encode(message: msgspec.Struct) -> bytes:
 
 
 def decode(payload: bytes | bytearray | memoryview, message_type: type[T]) -> T:
-    """Decode and validate ``payload`` as ``message_type``; raise SchemaError saying why not."""
+    """Decode and validate ``payload`` as ``message_type``; raise SchemaError saying why not.
+
+    A payload longer than the type's ``MAX_BYTES`` is refused before it is parsed; so is one
+    nested too deep for the decoder (an unknown field holding a list in a list in …).
+    """
+    name = message_type.__name__
+    limit = getattr(message_type, "MAX_BYTES", None)
+    if limit is not None and len(payload) > limit:
+        raise SchemaError(f"{name}: payload of {len(payload)} bytes > the limit of {limit}")
+    deep = too_deep(payload)
+    if deep is not None:
+        raise SchemaError(f"{name}: {deep}: nested deeper than {MAX_NESTING} levels")
     decoder = _decoders.get(message_type)
     if decoder is None:
         decoder = _decoders[message_type] = msgspec.msgpack.Decoder(message_type)
     try:
         return decoder.decode(payload)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:
-        raise SchemaError(f"{message_type.__name__}: {exc}") from None
+        raise SchemaError(f"{name}: {exc}") from None
+    except RecursionError:  # deep nesting beyond the items scanned
+        raise SchemaError(f"{name}: nested too deep to decode") from None
+
+
+_FIXED = {  # MessagePack scalar type byte -> bytes that follow it
+    0xC0: 0, 0xC2: 0, 0xC3: 0, 0xCA: 4, 0xCB: 8, 0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8,
+    0xD0: 1, 0xD1: 2, 0xD2: 4, 0xD3: 8, 0xD4: 2, 0xD5: 3, 0xD6: 5, 0xD7: 9, 0xD8: 17,
+}  # fmt: skip
+_SIZED = {  # type byte -> (length bytes, extra bytes): bin, str and ext
+    0xC4: (1, 0), 0xC5: (2, 0), 0xC6: (4, 0), 0xD9: (1, 0), 0xDA: (2, 0), 0xDB: (4, 0),
+    0xC7: (1, 1), 0xC8: (2, 1), 0xC9: (4, 1),
+}  # fmt: skip
+_COUNTED = {0xDC: (2, 1), 0xDD: (4, 1), 0xDE: (2, 2), 0xDF: (4, 2)}  # array/map: count bytes
+
+
+def _item(buf: bytes, pos: int) -> tuple[int, int]:
+    """``(position after the header, items it contains)`` of the MessagePack item at ``pos``
+    (a scalar or string is skipped whole and contains 0 items)."""
+    b = buf[pos]
+    if b <= 0x7F or b >= 0xE0:
+        return pos + 1, 0
+    if b <= 0x8F:
+        return pos + 1, 2 * (b - 0x80)
+    if b <= 0x9F:
+        return pos + 1, b - 0x90
+    if b <= 0xBF:
+        return pos + 1 + b - 0xA0, 0
+    if b in _FIXED:
+        return pos + 1 + _FIXED[b], 0
+    if b in _SIZED:
+        n, extra = _SIZED[b]
+        return pos + 1 + n + extra + int.from_bytes(buf[pos + 1 : pos + 1 + n], "big"), 0
+    if b in _COUNTED:
+        n, per = _COUNTED[b]
+        return pos + 1 + n, per * int.from_bytes(buf[pos + 1 : pos + 1 + n], "big")
+    raise ValueError(f"byte {b:#x} at {pos}")
+
+
+def too_deep(
+    payload: bytes | bytearray | memoryview,
+    limit: int = MAX_NESTING,
+    max_items: int = NESTING_SCAN_ITEMS,
+) -> str | None:
+    """The top-level map key whose value nests deeper than ``limit`` containers, if any.
+
+    Iterative (no recursion) and bounded: it looks at the first ``max_items`` items only
+    (what lies beyond is left to the decoder, which refuses what it cannot recurse into).
+    None when the payload is not a map or no value within the items looked at is that deep.
+    """
+    buf = payload if isinstance(payload, bytes) else bytes(payload)
+    budget = max_items
+    try:
+        pos, items = _item(buf, 0)
+        if not 0x80 <= buf[0] <= 0x8F and buf[0] not in (0xDE, 0xDF):
+            return None
+        for _ in range(items // 2):
+            key_start = pos
+            pos, _n = _item(buf, pos)
+            key = repr(msgspec.msgpack.decode(buf[key_start:pos]))[:40]
+            stack: list[int] = []
+            remaining = 1
+            while remaining or stack:
+                if not remaining:
+                    remaining = stack.pop()
+                    continue
+                remaining -= 1
+                budget -= 1
+                if budget < 0:
+                    return None
+                start = buf[pos]
+                pos, n = _item(buf, pos)
+                if n and (0x80 <= start <= 0x9F or start in _COUNTED):
+                    stack.append(remaining)
+                    if len(stack) > limit:
+                        return key
+                    remaining = n
+    except (IndexError, ValueError, msgspec.DecodeError):
+        return None
+    return None

@@ -1,8 +1,10 @@
 """Persistence of one filtering instance: accepted events and the latest models in SQLite.
 
-The store holds what the tracker needs to rebuild every segment by replay: the raw payload
-of every accepted event (with its kind, key, identity and event time) and the payload of
-the latest Calibration and of the latest DegradationPosterior of each group. Each write is
+The store holds what the tracker needs to rebuild every segment by replay: every accepted
+event (with its kind, key, identity and event time) and the latest Calibration and the
+latest DegradationPosterior of each group, each as the *decoded message re-encoded*, never
+the payload as received: fields the schema does not know are dropped, so what a sender
+adds to a message cannot grow the file (the payload size limits bound the rest). Each write is
 its own committed transaction, done *before* the state it leads to is published, so a
 SIGKILL loses nothing that was published (WAL journal; ``synchronous=NORMAL`` is durable
 against a process crash, which is what the design asks for; power loss may drop the last
@@ -32,6 +34,7 @@ from schemas import (
     SegmentState,
     TrcRecord,
     decode,
+    encode,
 )
 from services.filtering.tracker import (
     KIND_NAMES,
@@ -56,7 +59,7 @@ CREATE TABLE IF NOT EXISTS events (
     key      TEXT NOT NULL,     -- key expression it arrived on
     identity TEXT NOT NULL,     -- JSON of the tracker's identity tuple
     t        REAL NOT NULL,     -- epoch s of the event (a tamping's assumed time)
-    payload  BLOB NOT NULL,     -- the MessagePack payload as received
+    payload  BLOB NOT NULL,     -- the decoded message, re-encoded (unknown fields dropped)
     UNIQUE (line, segment, identity)
 );
 CREATE INDEX IF NOT EXISTS events_segment_t ON events (line, segment, t);
@@ -217,7 +220,7 @@ class PersistentTracker:
             return Step(False, "not a model this service uses")
         step = self.tracker.step(msg)
         if step.accepted:
-            self._commit(msg, str(key), payload)
+            self._commit(msg, str(key))
         return step
 
     def handle_batch(self, items: Iterable[tuple[str, bytes]]) -> BatchResult:
@@ -263,7 +266,7 @@ class PersistentTracker:
                     key, payload = origin[id(msg)]
                     rejected.append((key, reason, payload))
                 for msg in update.accepted:
-                    self._commit(msg, *origin[id(msg)])
+                    self._commit(msg, origin[id(msg)][0])
                 accepted += len(update.accepted)
                 keep(update.states)
             try:
@@ -282,17 +285,18 @@ class PersistentTracker:
                         continue
                     if step.accepted:
                         accepted += 1
-                        self._commit(msg, key, payload)
+                        self._commit(msg, key)
                         keep(step.states)
             else:
-                for (msg, key, payload), reason in zip(events, reasons, strict=True):
+                for (msg, key, _payload), reason in zip(events, reasons, strict=True):
                     if not reason:
                         accepted += 1
-                        self._commit(msg, key, payload)
+                        self._commit(msg, key)
                 keep(event_states)
         return BatchResult(tuple(states.values()), tuple(rejected), accepted)
 
-    def _commit(self, msg: EventMessage | ModelMessage, key: str, payload: bytes) -> None:
+    def _commit(self, msg: EventMessage | ModelMessage, key: str) -> None:
+        payload = encode(msg)  # not what was received: unknown fields are not kept
         match msg:
             case Calibration():
                 self.store.put_model(
@@ -325,7 +329,21 @@ class PersistentTracker:
                     self.store.prune(msg.line, msg.segment, event.t_s)
 
     def rebuild(self) -> list[SegmentState]:
-        """Load every stored model and event into the tracker: the publishable states."""
-        models = [decode_keyed(key, payload) for _kind, key, payload in self.store.models()]
-        events = [decode_keyed(key, payload) for _kind, key, payload in self.store.events()]
-        return self.tracker.load([m for m in models if m is not None], events)
+        """Load every stored model and event into the tracker: the publishable states.
+
+        A stored row that no longer decodes (written before a schema limit was added) is
+        skipped with a warning rather than stopping the service at every start.
+        """
+        models = [m for m in self._decoded(self.store.models()) if m is not None]
+        events = list(self._decoded(self.store.events()))
+        return self.tracker.load(models, events)  # type: ignore[arg-type]
+
+    @staticmethod
+    def _decoded(
+        rows: Iterable[tuple[str, str, bytes]],
+    ) -> Iterator[EventMessage | ModelMessage | None]:
+        for _kind, key, payload in rows:
+            try:
+                yield decode_keyed(key, payload)
+            except SchemaError as e:
+                log.warning("store: skipping a stored %s that no longer decodes: %s", key, e)
