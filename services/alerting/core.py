@@ -31,9 +31,17 @@ level)``; only transitions are emitted, never a repeat):
 ``stale``
     no state for more than ``stale_days`` of event time. The core has no clock:
     :meth:`AlertingCore.check_stale` compares every segment's last state time with the
-    ``now_t`` it is given; the adapter calls it with the newest event time seen on any line
-    (states and TRC records), so a line whose data stop entirely is still caught. Cleared by
-    the segment's next state. ``probability`` is 1.
+    ``now_t`` it is given; the adapter calls it with :attr:`AlertingCore.newest_t`, the
+    event-time **watermark** of every line (states and TRC records), so a line whose data
+    stop entirely is still caught. Cleared by the segment's next state. ``probability`` is 1.
+
+    The watermark is not the newest time seen, which one far-future record (a TRC export
+    dated year 3000, a gateway's clock jump) would make "now" for every segment, raising
+    ``stale`` everywhere. It is the newest time that ``k`` segments agree on: the ``k``-th
+    largest of the segments' newest event times (state or TRC record), with
+    ``k = min(stale.watermark_quorum (3), max(1, segments // 2))``. So one, or ``k - 1``,
+    segments far ahead move nothing; a network of fewer than four segments cannot tell an
+    outlier from the rest (``k = 1``: the newest time).
 
 Probabilities: the state's own ``p_exceed`` / ``forecast_p_exceed`` (exact mixture values) are
 used when the state was computed against the same limits as ours (``services.limits``);
@@ -115,12 +123,15 @@ class AlertingConfig:
     nis_dof: int = 2
     nis_clear_after: int = 3
     stale_days: float = 21.0
+    watermark_quorum: int = 3  # segments that must agree on "now" (module docstring)
     plan_level: str = "intervention"
     default_trc_interval_days: float = 70.0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.nis_tail_probability < 1.0:
             raise ValueError(f"sudden_change.tail_probability: {self.nis_tail_probability}")
+        if self.watermark_quorum < 1:
+            raise ValueError(f"stale.watermark_quorum: must be >= 1, got {self.watermark_quorum}")
         if self.nis_dof < 1 or self.nis_clear_after < 1:
             raise ValueError("sudden_change: dof and clear_after must be >= 1")
         for name in ("predicted_within_days", "stale_days", "default_trc_interval_days"):
@@ -172,9 +183,11 @@ class AlertingConfig:
                 kwargs["nis_dof"] = int(sudden["dof"])
             if "clear_after" in sudden:
                 kwargs["nis_clear_after"] = int(sudden["clear_after"])
-            stale = section("stale", {"stale_days"})
+            stale = section("stale", {"stale_days", "watermark_quorum"})
             if "stale_days" in stale:
                 kwargs["stale_days"] = float(stale["stale_days"])
+            if "watermark_quorum" in stale:
+                kwargs["watermark_quorum"] = int(stale["watermark_quorum"])
             plan = section("plan", {"level", "default_trc_interval_days"})
             if "level" in plan:
                 kwargs["plan_level"] = str(plan["level"])
@@ -307,7 +320,8 @@ class AlertingCore:
         self.raised: dict[AlertKey, Alert] = {}
         self.segments: dict[tuple[str, str], SegmentMemory] = {}
         self.schedule = TrcSchedule(config.default_trc_interval_days)
-        self.newest_t: float | None = None  # newest event time seen (states and TRC records)
+        self._latest: dict[tuple[str, str], float] = {}  # newest event time per segment
+        self._top: list[tuple[float, tuple[str, str]]] = []  # the quorum newest, descending
         self.approximated = 0  # probabilities recomputed because the state's limits differ
         self._nis_threshold = config.nis_threshold
         self._stale_s = config.stale_days * DAY_S
@@ -326,7 +340,7 @@ class AlertingCore:
         if memory is None:
             memory = self.segments[where] = SegmentMemory(state)
         memory.state = state
-        self._seen(state.t)
+        self._seen(where, state.t)
         self._stale_due = min(self._stale_due, state.t + self._stale_s)
 
         out: list[Alert] = []
@@ -342,7 +356,7 @@ class AlertingCore:
 
     def on_trc(self, record: TrcRecord) -> bool:
         """Learn the line's TRC schedule; True if it changed (to persist)."""
-        self._seen(record.t)
+        self._seen((record.line, record.segment), record.t)
         return self.schedule.observe(record.line, record.run_id, record.t)
 
     def check_stale(self, now_t: float) -> list[Alert]:
@@ -383,11 +397,11 @@ class AlertingCore:
             self.raised[alert_key(alert)] = alert
         for memory in segments:
             self.segments[(memory.state.line, memory.state.segment)] = memory
-            self._seen(memory.state.t)
+            self._seen((memory.state.line, memory.state.segment), memory.state.t)
             self._stale_due = min(self._stale_due, memory.state.t + self._stale_s)
         for line, run_id, t in trc_runs:
             self.schedule.observe(line, run_id, t)
-            self._seen(t)
+            self._seen((line, ""), t)  # the run's segments are not stored: its line stands in
 
     # --- outputs -------------------------------------------------------------------------
 
@@ -559,9 +573,24 @@ class AlertingCore:
         f_sd = (np.log(hi) - np.log(lo)) / (2 * _Z975)
         return limit, p_now, _normal_sf(log_limit, f_mean, f_sd), names
 
-    def _seen(self, t: float) -> None:
-        if self.newest_t is None or t > self.newest_t:
-            self.newest_t = t
+    @property
+    def newest_t(self) -> float | None:
+        """The event-time watermark: the newest time ``k`` segments agree on (module
+        docstring, ``stale``); None before any data."""
+        if not self._top:
+            return None
+        k = min(self.config.watermark_quorum, max(1, len(self._latest) // 2))
+        return self._top[k - 1][0]
+
+    def _seen(self, where: tuple[str, str], t: float) -> None:
+        """Note a segment's event time; keeps the ``watermark_quorum`` newest segments."""
+        if t <= self._latest.get(where, -math.inf):
+            return
+        self._latest[where] = t
+        top = [entry for entry in self._top if entry[1] != where]
+        top.append((t, where))
+        top.sort(reverse=True)
+        self._top = top[: self.config.watermark_quorum]
 
     def _raise(
         self,

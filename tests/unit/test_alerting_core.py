@@ -175,6 +175,40 @@ def test_stale_raised_against_event_time_and_cleared_by_data(core):
     assert [a.segment for a in core.raised_alerts()] == ["s2"]
 
 
+def _network_of(core, n: int, t: float) -> None:
+    for i in range(n):
+        core.on_state(make_state(t, segment=f"s{i}"))
+
+
+def test_one_trc_record_dated_far_ahead_does_not_make_every_segment_stale(core):
+    """The adapter checks stale against ``newest_t``: a watermark one record cannot move.
+    (Year 3000 itself is refused by the schemas now; 2099 is inside their range.)"""
+    _network_of(core, 20, T0)
+    year_2099 = 4_070_908_800.0
+    record = TrcRecord(line="L1", segment="s3", t=year_2099, top6_mm=3, align10_mm=2, run_id="x")
+    core.on_trc(record)
+    assert core.newest_t == T0
+    assert core.check_stale(core.newest_t) == []
+
+
+def test_one_or_two_far_future_states_do_not_move_the_watermark(core):
+    _network_of(core, 20, T0)
+    core.on_state(make_state(T0 + 400 * DAY_S, segment="s1"))
+    core.on_state(make_state(T0 + 500 * DAY_S, segment="s2"))
+    assert core.newest_t == T0
+    assert core.check_stale(core.newest_t) == []
+
+
+def test_the_watermark_moves_when_a_quorum_of_segments_agrees(core):
+    """Three segments (the quorum) moving on are the network's time: the others go stale."""
+    _network_of(core, 20, T0)
+    for i in range(3):
+        core.on_state(make_state(T0 + 30 * DAY_S + i, segment=f"s{i}"))
+    assert core.newest_t == T0 + 30 * DAY_S
+    stale = core.check_stale(core.newest_t)
+    assert sorted(a.segment for a in stale) == sorted(f"s{i}" for i in range(3, 20))
+
+
 def test_late_state_is_ignored(core):
     core.on_state(make_state(T0 + DAY_S, p_exceed=p_top6(1, 0.1)))
     assert core.on_state(make_state(T0, p_exceed=p_top6(1, 0.9))) == []
