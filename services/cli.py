@@ -548,6 +548,29 @@ def build_parser() -> argparse.ArgumentParser:
     add_zenoh_arguments(p)
     p.set_defaults(func=_extraction)
 
+    # --- gateway check (services/gateway_check.py) ----------------------------------------
+    def _gateway_check(args: argparse.Namespace) -> int:
+        from services import gateway_check
+        from services.runtime.config import config_from_args
+        from services.runtime.service import configure_logging
+
+        configure_logging(args.log_level)
+        return gateway_check.main(config_from_args(args), args.train, args.seconds)
+
+    gateway_parser = sub.add_parser("gateway", help="tools for fleet gateway integrators")
+    gateways = gateway_parser.add_subparsers(dest="gateway_command", required=True)
+    p = gateways.add_parser(
+        "check",
+        help="check a train's gateway traffic against the contract (schemas/README.md)",
+        description="Subscribe to {ns}/raw/TRAIN/**, {ns}/gps/TRAIN and ingestion's dead "
+        "letters for S seconds (or until Ctrl-C), check every message as ingestion does and "
+        "print a report. Exit code 0 clean, 1 deviations found, 2 nothing arrived.",
+    )
+    p.add_argument("--train", required=True, help="the train id the gateway publishes as")
+    p.add_argument("--seconds", type=float, metavar="S", help="how long (default: until Ctrl-C)")
+    add_zenoh_arguments(p)
+    p.set_defaults(func=_gateway_check)
+
     # --- secure-config (services/runtime/security.py) ------------------------------------
     def _secure_config(args: argparse.Namespace) -> int:
         from services.runtime import security

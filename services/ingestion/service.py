@@ -38,6 +38,24 @@ def load_network(path: str | Path) -> Network:
         raise SystemExit(f"network {path}: {exc}") from None
 
 
+def decode_gateway(kind: str, key: str, payload: bytes) -> RawChunk | GpsFix:
+    """A gateway's payload (``kind`` "raw" or "gps") decoded and checked against its key;
+    SchemaError says what is wrong. ``trackfusion gateway check`` uses it too."""
+    parts = key.split("/")
+    if kind == "raw":
+        chunk = decode(payload, RawChunk)
+        if parts[1:] != ["raw", chunk.train, chunk.unit]:
+            raise SchemaError(
+                f"RawChunk: key {key} is not {{ns}}/raw/{chunk.train}/{chunk.unit}, "
+                f"as the message's train and unit say"
+            )
+        return chunk
+    fix = decode(payload, GpsFix)
+    if parts[-1] != fix.train:
+        raise SchemaError(f"GpsFix: key says {parts[-1]}, message says {fix.train}")
+    return fix
+
+
 class IngestionAdapter:
     """Decode → core → encode → put; one instance per running service."""
 
@@ -66,19 +84,7 @@ class IngestionAdapter:
 
     def handle(self, kind: str, key: str, payload: bytes) -> list[Output]:
         """One payload through the core; raises SchemaError for a malformed one."""
-        parts = key.split("/")
-        if kind == "raw":
-            chunk = decode(payload, RawChunk)
-            if parts[1:] != ["raw", chunk.train, chunk.unit]:
-                raise SchemaError(
-                    f"RawChunk: key {key} is not {{ns}}/raw/{chunk.train}/{chunk.unit}, "
-                    f"as the message's train and unit say"
-                )
-            return self.core.step(chunk)
-        fix = decode(payload, GpsFix)
-        if parts[-1] != fix.train:
-            raise SchemaError(f"GpsFix: key says {parts[-1]}, message says {fix.train}")
-        return self.core.step(fix)
+        return self.core.step(decode_gateway(kind, key, payload))
 
     def publish(self, outputs: list[Output]) -> None:
         ns, session = self.rt.ns, self.rt.session
