@@ -1,19 +1,21 @@
 """`trackfusion report` against a real router, with queryables standing in for filtering
-(`q/state/**`) and alerting (`q/alerts`, `q/plan`)."""
+(`q/state/**`) and alerting (`q/alerts`, `q/plan`), and with the real alerting service."""
 
 from __future__ import annotations
 
 import io
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import msgpack
 import pytest
 import zenoh
 
-from schemas import Alert, encode, keys
+from schemas import Alert, decode, encode, keys
 from services import report
+from services.alerting import service as alerting
 from services.alerting.testing import T0, make_state, p_top6
 
 DAY_S = 86_400.0
@@ -106,3 +108,44 @@ def test_report_without_filtering_exits_1_saying_what_to_check(
     assert done.returncode == 1, done.stderr
     assert "no segment state for line L1" in done.stderr and "trackfusion status" in done.stderr
     assert not Path(out_path).exists()
+
+
+def test_report_with_the_real_alerting_service(
+    open_session, service_config, liveliness_events, collector, until_matched, tmp_path
+):
+    ns = service_config.ns
+    client = open_session()
+    filtering_stand_in(client, ns)
+    raised = collector(lambda s: decode(s.payload.to_bytes(), Alert))
+    client.declare_subscriber(keys.segment_keys(ns, "alert"), raised)
+    token = liveliness_events(client, keys.alive(ns, alerting.SERVICE, "test"))
+    stop, result = threading.Event(), []
+    service = threading.Thread(
+        target=lambda: result.append(
+            alerting.main(
+                service_config, db=tmp_path / "a.sqlite", stop=stop, handle_signals=False
+            )  # fmt: skip
+        ),
+        name="alerting-under-test",
+    )
+    service.start()
+    try:
+        assert token.get()[0] == zenoh.SampleKind.PUT
+        for state in STATES:  # what filtering would have published
+            publisher = client.declare_publisher(keys.state(ns, state.line, state.segment))
+            until_matched(publisher)
+            publisher.put(encode(state))
+        # once L1/s00002's alert is out, alerting has it in its plan too
+        while (alert := raised.get()).segment != "s00002" or alert.line != "L1":
+            pass  # L2 has other limits in deploy/limits.json5: its state may raise or not
+        out_path = tmp_path / "report.html"
+        assert report.main(service_config, out_path=out_path, line="L1", timeout=5) == 0
+    finally:
+        stop.set()
+        service.join(10)
+    assert not service.is_alive() and result == [0]
+    html = out_path.read_text()
+    assert "missing" not in html
+    assert "Top6 likely above intervention limit 8.0 mm (p=0.95)" in html
+    row = html[html.index("<td>s00002</td>") :].split("</tr>")[0]
+    assert "2026-03-12" in row  # next TRC: the newest last-TRC stand-in + 70 days, per README
