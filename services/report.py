@@ -176,7 +176,8 @@ def _header(data: ReportData, states: list[SegmentState], title: str) -> str:
         "Align10 are in mm; the estimate is the median and [low, high] the 95 % credible "
         "interval: the true value lies in it with probability 0.95. <b>P(exceed)</b> is the "
         "probability that the segment's worse indicator is above its intervention limit now; "
-        "the 30/90/180-day columns are the same probability if nothing is done until then. "
+        'the "in … d" columns are the same probability at the forecast horizons if nothing '
+        "is done until then. "
         "The fans show how the interval widens with the forecast against the alert and "
         "intervention limits. Next TRC is the expected next run of the line's recording "
         "car; alerts are those raised now.</p>"
