@@ -15,7 +15,7 @@ stack — for ``--minutes`` (30 by default), and watches it from outside:
   after ``--warmup-minutes`` to the last;
 - **the viewer in a browser** (where Debian's chromium is installed): at each ``--open``
   minute a fresh headless Chromium opens the web viewer and the time to the coloured map is
-  taken (:func:`bench.browser.first_picture`).
+  taken (:func:`tests.browser.first_picture`).
 
 The run passes when every process stayed alive (no restart), no state gap while indices
 flowed exceeded 30 s, every q/state answer covered the segments tracked, the viewer stayed
@@ -219,7 +219,7 @@ def ask_states(session: zenoh.Session, ns: str, minute: float, health: dict | No
 
 
 def open_viewer(health: dict | None, out: Path, minute: float) -> dict:
-    from bench.browser import first_picture
+    from tests.browser import first_picture
 
     url = (health or {}).get("viewer_url", "")
     if not url:
