@@ -7,7 +7,7 @@ JSON; stdlib only): navigate, wait until the page's ``window._handle`` exists (t
 "app started" hook), then screenshot until the map's exceedance colours are on it.
 Rendering is WebGL on SwiftShader (``renderer=webgl`` is appended to the URL);
 services/viewer/README.md has what was tried. Used by tests/e2e/test_viewer_browser.py and
-``python -m bench.viewer_soak``; ``python -m bench.browser URL OUT.png`` times one opening.
+``python -m bench.viewer_soak``; ``python tests/browser.py URL OUT.png`` times one opening.
 """
 
 from __future__ import annotations
@@ -145,17 +145,28 @@ class DevTools:
 
 
 def hue_pixels(png: bytes) -> dict[str, int]:
-    """Pixels of the map's exceedance hues (green, yellow, red) and of the plots' estimate
-    blue on a screenshot. Strips are drawn with an outline and blended: hues, not exact RGB."""
+    """Pixels of the map's exceedance hues (green, yellow, red) in the map's part of the
+    screenshot (left 58 %, below the top bar, above the alert log) and of the plots'
+    estimate blue in the plots' part (the rest of those rows). Strips are drawn with an
+    outline and blended, so hues are matched, not exact RGB."""
     from PIL import Image  # matplotlib's dependency
 
     rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
-    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    h, w = rgb.shape[:2]
+    rows = slice(int(0.05 * h), int(0.55 * h))  # below the top bar ("Software rasterizer")
+    map_part, plots = rgb[rows, : int(0.58 * w)], rgb[rows, int(0.62 * w) :]
+
+    def hues(part: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return part[..., 0], part[..., 1], part[..., 2]
+
+    r, g, b = hues(map_part)
+    pr, pg, pb = hues(plots)
     masks = {
         "green": (g > r + 30) & (g > b + 30),
         "yellow": (r > 180) & (g > 150) & (b < 90) & (abs(r - g) < 60),
         "red": (r > g + 60) & (r > b + 60),
-        "blue": (b > r + 80) & (b > g + 30) & (g > r + 30),  # estimate (80, 160, 255)
+        # the estimate (80, 160, 255); the trains' (0, 200, 255) are on the map, not here
+        "blue": (pb > pg + 60) & (pg > pr + 40) & (pr > 30),
     }
     return {name: int(mask.sum()) for name, mask in masks.items()}
 
@@ -177,6 +188,7 @@ class Picture:
     panicked: bool = False
     missing: list[str] = field(default_factory=list)
     page_text: str = ""
+    seen_s: dict[str, float] = field(default_factory=dict)  # hue -> first screenshot with it
 
 
 def first_picture(
@@ -226,6 +238,9 @@ def first_picture(
             if shot is not None:
                 picture.png = base64.b64decode(shot["data"])
                 picture.missing = missing_colors(picture.png, wanted)
+                for hue in wanted:
+                    if hue not in picture.missing:
+                        picture.seen_s.setdefault(hue, time.monotonic() - t0)
                 if not picture.missing:
                     picture.drawn_s = time.monotonic() - t0
                     break

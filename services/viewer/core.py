@@ -63,7 +63,7 @@ DEFAULT_WORST_N = 3
 # Rerun's gRPC server keeps every blueprint ever sent (~100 KB each) and replays them all
 # to each browser that connects: re-send rarely.
 DEFAULT_BLUEPRINT_INTERVAL_S = 60.0  # wall seconds between two blueprint re-sends, at least
-DEFAULT_SERIES_FLUSH_S = 10.0  # wall seconds between two writes of the plots' rows
+DEFAULT_SERIES_FLUSH_S = 60.0  # wall seconds between two writes of the plots' rows
 DEFAULT_LIVE_FLUSH_S = 1.0  # wall seconds between two writes of map colours, alerts, trains
 
 UNKNOWN_RGB = (128, 128, 128)  # a segment without a state yet
@@ -345,29 +345,41 @@ class ViewerCore:
             line.changed_t = max(line.changed_t or -math.inf, state.t)
 
     def flush(self, now: float, *, force: bool = False) -> None:
-        """Write the live part if ``live_flush_s`` passed since its last write, the series if
-        ``series_flush_s`` passed (``force``: both, now)."""
-        if force or self._live_at is None or now - self._live_at >= self.live_flush_s:
-            self._live_at = now
-            self._flush_live()
+        """Write the live part (with the plotted segments' series) if ``live_flush_s``
+        passed since its last write, every series if ``series_flush_s`` passed (``force``:
+        all, now)."""
         if force or self._series_at is None or now - self._series_at >= self.series_flush_s:
             self._series_at = now
+            self._live_at = now
+            self._flush_live()
             self._flush_series()
+        elif self._live_at is None or now - self._live_at >= self.live_flush_s:
+            self._live_at = now
+            self._flush_live()
+            self._flush_series(set(self._blueprint_keys or ()))
 
     # --- series --------------------------------------------------------------------------
 
-    def _flush_series(self) -> None:
+    def _flush_series(self, only: set[SegmentKey] | None = None) -> None:
+        """Write the buffered rows (of the ``only`` segments, if given)."""
         states: dict[SegmentKey, list[SegmentState]] = defaultdict(list)
         points: dict[tuple[SegmentKey, str], list[OnboardIndex | TrcRecord]] = defaultdict(list)
-        for msg in self._series.values():
+        if only is None:
+            taken, self._series = self._series, {}
+            trcs, self._trc = self._trc, []
+        else:
+            taken = {k: m for k, m in self._series.items() if (m.line, m.segment) in only}
+            for k in taken:
+                del self._series[k]
+            trcs = [m for m in self._trc if (m.line, m.segment) in only]
+            self._trc = [m for m in self._trc if (m.line, m.segment) not in only]
+        for msg in taken.values():
             if isinstance(msg, SegmentState):
                 states[(msg.line, msg.segment)].append(msg)
             else:
                 points[((msg.line, msg.segment), "onboard")].append(msg)
-        for trc in self._trc:
+        for trc in trcs:
             points[((trc.line, trc.segment), "trc")].append(trc)
-        self._series.clear()
-        self._trc.clear()
         for key, batch in states.items():
             self._log_states(key, sorted(batch, key=lambda s: s.t))
         for (key, kind), batch in points.items():

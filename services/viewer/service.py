@@ -65,7 +65,7 @@ SUBSCRIPTION_CAPACITY = 1024  # per RingChannel
 # What Rerun's gRPC server keeps for browsers that connect later (it drops the oldest
 # temporal data beyond it; static data and blueprints are kept). A connecting browser is
 # first sent a copy of it, so the process may hold about twice this.
-SERVER_MEMORY_LIMIT = "96MiB"
+SERVER_MEMORY_LIMIT = "64MiB"
 DEFAULT_WEB_PORT = 9090
 DEFAULT_GRPC_PORT = 9876
 
@@ -257,10 +257,11 @@ class ViewerAdapter:
         if self.inbox.dropped:
             log.warning("%s: dropped %d messages (viewer behind)", SERVICE, self.inbox.dropped)
         log.info(
-            "%s: %d messages superseded before logging, %d plot rows written",
+            "%s: %d messages superseded before logging, %d plot rows written, %d blueprints sent",
             SERVICE,
             self.inbox.superseded,
             self.core.rows_written,
+            self.core.blueprints_sent,
         )
 
 

@@ -223,3 +223,19 @@ def test_inbox_keeps_the_newest_per_key_and_every_alert():
     assert inbox.dropped == 1
     inbox.close()
     assert inbox.take(timeout=None) is None
+
+
+def test_plotted_segments_written_every_live_flush_the_rest_every_series_flush(recording):
+    rec, _ = recording
+    core = ViewerCore(rec, None, worst_n=1, series_flush_s=60.0, live_flush_s=1.0)
+    core.start(now=0.0)
+    core.flush(0.0)  # the first flush: everything (nothing yet)
+    hot = make_state(T0, segment="hot", p_exceed=p_top6(1, 0.9))
+    core.take([hot, make_state(T0, segment="cold", p_exceed=p_top6(1, 0.1))])
+    assert core.maybe_send_blueprint(0.5) and core.worst() == [("L1", "hot")]
+    core.flush(1.0)  # live: the plotted segment's row only (two indicators)
+    assert core.rows_written == 2
+    core.flush(30.0)
+    assert core.rows_written == 2
+    core.flush(60.0)  # the series flush: the rest
+    assert core.rows_written == 4

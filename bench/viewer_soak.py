@@ -1,0 +1,152 @@
+"""The viewer under `make run`: memory and time to the first picture in a late browser.
+
+Runs ``trackfusion up`` on a copy of ``deploy/stack.json5`` with its own router endpoint,
+namespace, state directory and viewer ports (so it runs beside another stack), samples the
+viewer's VmRSS every ``--sample`` seconds, and at each ``--open`` minute opens the web
+viewer in a fresh headless Chromium (``tests/browser.py``) and times the first screenshot
+with the coloured map (green and red strips) and with the plots' estimate lines.
+
+    python -m bench.viewer_soak --minutes 11 --open 5,10 --out /tmp/viewer-soak
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from tests.browser import first_picture, hue_pixels
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def stack_copy(out: Path, *, port: int, ns: str, web_port: int, grpc_port: int) -> Path:
+    """``deploy/stack.json5`` with its endpoint, namespace, state files and viewer moved."""
+    text = (REPO / "deploy" / "stack.json5").read_text()
+    text = text.replace('"var/', f'"{out}/').replace('state_dir: "var"', f'state_dir: "{out}"')
+    text = re.sub(r'ns: "\w+"', f'ns: "{ns}"', text, count=1)
+    text = re.sub(r"tcp/127\.0\.0\.1:\d+", f"tcp/127.0.0.1:{port}", text, count=1)
+    text = text.replace(
+        '"viewer", args: ["--instance", "viewer"]',
+        f'"viewer", args: ["--instance", "viewer", "--web", "--web-port", "{web_port}", '
+        f'"--grpc-port", "{grpc_port}"]',
+    )
+    if f'"{web_port}"' not in text:
+        raise SystemExit("deploy/stack.json5: the viewer entry changed; update bench/viewer_soak")
+    path = out / "stack.json5"
+    path.write_text(text)
+    return path
+
+
+def rss_mb(pid: int) -> float | None:
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return None
+    match = re.search(r"VmRSS:\s+(\d+) kB", status)
+    return int(match[1]) / 1024 if match else None
+
+
+def viewer_pid(ns: str) -> int | None:
+    """The viewer child of this stack (by its command line: ``viewer … --ns {ns}``)."""
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            argv = (proc / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"services.cli" in argv and b"viewer" in argv and ns.encode() in argv:
+            return int(proc.name)
+    return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--minutes", type=float, default=11.0)
+    parser.add_argument("--open", default="5,10", help="minutes at which a browser opens")
+    parser.add_argument("--sample", type=float, default=30.0, help="RSS period, seconds")
+    parser.add_argument("--browser-timeout", type=float, default=240.0)
+    parser.add_argument("--out", type=Path, default=Path("/tmp/viewer-soak"))
+    args = parser.parse_args(argv)
+    out = args.out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    ns = f"tfsoak{os.getpid()}"
+    web_port, grpc_port = _free_port(), _free_port()
+    stack = stack_copy(out, port=_free_port(), ns=ns, web_port=web_port, grpc_port=grpc_port)
+    opens = sorted(float(m) for m in args.open.split(",") if m)
+    with (out / "up.log").open("wb") as log:
+        up = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "up", "--stack", str(stack)],
+            cwd=REPO,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+    t0 = time.monotonic()
+    samples: list[tuple[float, float | None]] = []
+    pictures: list[dict] = []
+    url = f"http://127.0.0.1:{web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc_port}%2Fproxy"
+    pid = None
+    next_sample = 0.0
+    try:
+        while (elapsed := time.monotonic() - t0) < args.minutes * 60:
+            pid = pid or viewer_pid(ns)
+            if elapsed >= next_sample and pid is not None:
+                samples.append((round(elapsed), rss_mb(pid)))
+                print(f"{elapsed:6.0f} s  viewer RSS {samples[-1][1]} MB", flush=True)
+                next_sample += args.sample
+            if opens and elapsed >= opens[0] * 60:
+                minute = opens.pop(0)
+                picture = first_picture(
+                    url,
+                    out / f"browser-{minute:g}",
+                    wanted=("green", "red", "blue"),
+                    timeout_s=args.browser_timeout,
+                )
+                if picture.png:
+                    (out / f"viewer-{minute:g}min.png").write_bytes(picture.png)
+                pictures.append(
+                    {
+                        "minute": minute,
+                        "started_s": picture.started_s,
+                        "map_s": (
+                            max(picture.seen_s["green"], picture.seen_s["red"])
+                            if {"green", "red"} <= picture.seen_s.keys()
+                            else None
+                        ),
+                        "plots_s": picture.seen_s.get("blue"),
+                        "all_s": picture.drawn_s,
+                        "missing": picture.missing,
+                        "pixels": hue_pixels(picture.png) if picture.png else {},
+                        "rss_mb_after": rss_mb(pid) if pid else None,
+                    }
+                )
+                print(json.dumps(pictures[-1]), flush=True)
+                continue
+            time.sleep(1.0)  # a sampling loop: the clock is what it waits for
+    finally:
+        os.killpg(up.pid, signal.SIGINT)
+        up.wait(60)
+    rss = [mb for _, mb in samples if mb is not None]
+    report = {"samples": samples, "pictures": pictures, "max_rss_mb": max(rss, default=None)}
+    (out / "report.json").write_text(json.dumps(report, indent=1))
+    print(json.dumps({"max_rss_mb": report["max_rss_mb"], "pictures": pictures}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
