@@ -36,11 +36,13 @@ default congestion control). No sleeps: every wait is a queue read with a timeou
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
 import queue
 import random
+import sqlite3
 import threading
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -528,10 +530,10 @@ class RecordingCore(ViewerCore):
 
     logged: list[bytes]
 
-    def log_batch(self, messages):  # type: ignore[no-untyped-def]
+    def take(self, messages):  # type: ignore[no-untyped-def]
         messages = list(messages)
         RecordingCore.logged.extend(encode(m) for m in messages)
-        return super().log_batch(messages)
+        return super().take(messages)
 
 
 def viewer_spec(ns: str) -> Spec:
@@ -629,7 +631,21 @@ KINDS = (
     "out_of_range",
     "truncated",
     "extra_key_prefix",
+    "deep_nesting",
+    "big_int",
+    "huge_float",
+    "far_time",
+    "bad_id",
+    "huge_unknown",
+    "oversize",
 )
+TIME_FIELDS = ("t", "t0", "t_start", "t_end", "last_trc_t")
+ID_FIELDS = ("train", "unit", "line", "segment", "run_id", "event_id", "group", "posterior_group")
+FAR_TIMES = (0.0, -1e9, 32_503_680_000.0, 2.0**63, -(2.0**63), 2**63 - 1, -(2**63))  # 3000 AD
+BIG_INTS = (2**63, 2**64 - 1, 2**63 - 1, -(2**63), 2**53 + 1)  # MessagePack stops at 64 bits
+BAD_IDS = ("@x", "@", "a/b", "L1/s1", "a b", "a\tb", "a\nb", "a\x00b", "x" * 65, "a*", "$a")
+HUGE_BYTES = 5_000_000  # an unknown field of 5 MB
+HUGE_BUDGET = 6  # payloads of megabytes per run: they cost the 2-core CI seconds each
 if os.environ.get("TF_FUZZ_KINDS"):  # a comma-separated subset, e.g. to bisect a failure
     KINDS = tuple(os.environ["TF_FUZZ_KINDS"].split(","))
 
@@ -642,6 +658,7 @@ class Fuzzer:
         self.rng = random.Random(seed)
         self.np_rng = np.random.default_rng(seed)
         self.last_valid: dict[str, bytes] = {}  # per input key: the last valid payload sent
+        self.huge_left = HUGE_BUDGET
 
     def next(self) -> Bad:
         while True:
@@ -762,6 +779,94 @@ class Fuzzer:
         self.detail = f"{patch!r:.80}"
         return inp.key, msgpack.packb(front(m, *patch))
 
+    def _refused(self, inp: Input, m: dict[str, Any], *first: str) -> tuple[str, bytes] | None:
+        """``m`` packed on the input's key if its type refuses it, else None (not sent)."""
+        payload = msgpack.packb(front(m, *first))
+        try:
+            decode(payload, type(inp.template))
+        except SchemaError:
+            return inp.key, payload
+        return None
+
+    def _deep_nesting(self, inp: Input) -> tuple[str, bytes] | None:
+        # an unknown field holding a list in a list in ... (msgpack's packer refuses to
+        # nest this deep, so the map is written by hand, the deep field first)
+        m = plain(inp.template)
+        depth = self.rng.choice((33, 100, 1_000, 3_000, 10_000))
+        self.detail = f"extra field nested {depth} deep"
+        body = b"".join(msgpack.packb(k) + msgpack.packb(v) for k, v in m.items())
+        deep = msgpack.packb("fuzz_deep") + b"\x91" * depth + b"\x90"
+        return inp.key, map_header(len(m) + 1) + deep + body
+
+    def _big_int(self, inp: Input) -> tuple[str, bytes] | None:
+        # integers beyond int64 and beyond SQLite's INTEGER, in integer or float fields
+        m = plain(inp.template)
+        names = [k for k, v in m.items() if isinstance(v, int | float) and not isinstance(v, bool)]
+        self.rng.shuffle(names)
+        value = self.rng.choice(BIG_INTS)
+        for name in names:
+            made = self._refused(inp, m | {name: value}, name)
+            if made is not None:
+                self.detail = f"{name}={value}"
+                return made
+        return None
+
+    def _huge_float(self, inp: Input) -> tuple[str, bytes] | None:
+        m = plain(inp.template)
+        names = [k for k, v in m.items() if isinstance(v, float) or self._is_float(inp, k)]
+        self.rng.shuffle(names)
+        value = self.rng.choice((1e308, -1e308, 1.7976931348623157e308))
+        for name in names:
+            made = self._refused(inp, m | {name: value}, name)
+            if made is not None:
+                self.detail = f"{name}={value}"
+                return made
+        return None
+
+    def _far_time(self, inp: Input) -> tuple[str, bytes] | None:
+        m = plain(inp.template)
+        names = [k for k in TIME_FIELDS if k in m]
+        if not names:
+            return None
+        name, value = self.rng.choice(names), self.rng.choice(FAR_TIMES)
+        if name == "t_start":  # keep t_end >= t_start out of the way: both move
+            m["t_end"] = value
+        self.detail = f"{name}={value}"
+        return self._refused(inp, m | {name: value}, name)  # a model's t = 0 is a prior
+
+    def _bad_id(self, inp: Input) -> tuple[str, bytes] | None:
+        m = plain(inp.template)
+        names = [k for k in ID_FIELDS if k in m]
+        if not names:
+            return None
+        name, value = self.rng.choice(names), self.rng.choice(BAD_IDS)
+        self.detail = f"{name}={value!r}"
+        return self._refused(inp, m | {name: value}, name)
+
+    def _huge_unknown(self, inp: Input) -> tuple[str, bytes] | None:
+        # an unknown field of 5 MB: beyond every message's size limit
+        if self.huge_left <= 0:
+            return None
+        self.huge_left -= 1
+        m = plain(inp.template)
+        m["fuzz_blob"] = self.rng.choice((b"\x00" * HUGE_BYTES, "x" * HUGE_BYTES))
+        self.detail = f"unknown field of {HUGE_BYTES} bytes"
+        return inp.key, msgpack.packb(m)
+
+    def _oversize(self, inp: Input) -> tuple[str, bytes] | None:
+        # a valid message padded by an unknown field to just beyond its type's size limit
+        limit = type(inp.template).MAX_BYTES
+        if limit > 1_000_000:
+            if self.huge_left <= 0:
+                return None
+            self.huge_left -= 1
+        m = plain(inp.template)
+        size = len(msgpack.packb(m))
+        pad = limit - size + self.rng.randint(1, 100)
+        m["fuzz_pad"] = b"\x00" * pad
+        self.detail = f"{len(msgpack.packb(m))} bytes > {limit}"
+        return inp.key, msgpack.packb(m)
+
     def _truncated(self, inp: Input) -> tuple[str, bytes] | None:
         payload = encode(inp.template)
         return inp.key, payload[: self.rng.randrange(1, len(payload))]
@@ -776,6 +881,11 @@ class Fuzzer:
 def front(m: dict[str, Any], *names: str) -> dict[str, Any]:
     """``m`` with ``names`` first: the mutation lands in the dead letter's 256-byte head."""
     return {n: m[n] for n in names if n in m} | m
+
+
+def map_header(n: int) -> bytes:
+    """The MessagePack header of a map of ``n`` pairs."""
+    return bytes([0x80 | n]) if n < 16 else b"\xde" + n.to_bytes(2, "big")
 
 
 def wrong_values(value: Any, *, optional: bool) -> list[Any]:
@@ -1133,3 +1243,15 @@ def test_bad_input_is_dead_lettered_and_changes_nothing(
         assert len(clean.logged) == len(clean_spec.valid) and clean.rrd
     else:
         assert clean.outputs, f"{name}: the valid traffic gave no output to compare"
+    if name == filtering.SERVICE:  # unknown fields are not stored: the same bytes as clean
+        assert stored_bytes(tmp_path / "fuzz") == stored_bytes(tmp_path / "clean")
+
+
+def stored_bytes(run_dir: Path) -> tuple[int, int]:
+    """(rows, payload bytes) in a filtering run's store."""
+    with contextlib.closing(sqlite3.connect(run_dir / "filtering.sqlite")) as db:
+        return db.execute(
+            "SELECT COUNT(*) + (SELECT COUNT(*) FROM models),"
+            " COALESCE(SUM(LENGTH(payload)), 0)"
+            " + (SELECT COALESCE(SUM(LENGTH(payload)), 0) FROM models) FROM events"
+        ).fetchone()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -380,6 +381,46 @@ def test_a_batch_equals_its_messages_one_by_one(tmp_path):
     assert batched.store.count_events() == one_by_one.store.count_events()
     for node in (one_by_one, batched):
         node.store.close()
+
+
+def test_the_store_keeps_the_message_not_unknown_fields_and_refuses_what_it_cannot_store(
+    tmp_path,
+):
+    """Issue 14: a valid message with a large unknown field is stored re-encoded (the field
+    dropped); a model version beyond SQLite's INTEGER, or a payload nested 10,000 deep, is a
+    dead letter naming the field, not an exception out of the batch."""
+    node = PersistentTracker(new_tracker(), Store(tmp_path / "f.sqlite"))
+    post = posterior()
+    index = OnboardIndex(line="L1", segment="s1", train="T1", unit="u1", t=T0 + DAY_S,
+                         top6_mm=2.0, align10_mm=1.5, speed_mps=30.0, coverage=1.0)  # fmt: skip
+    trc = TrcRecord(line="L1", segment="s1", t=T0, top6_mm=2.1, align10_mm=1.6, run_id="r1")
+    blob = b"\x00" * (DegradationPosterior.MAX_BYTES - len(encode(post)) - 100)
+    padded = [
+        (key, msgpack.packb({**msgpack.unpackb(payload), "blob": extra}))
+        for (key, payload), extra in [
+            (keyed(calibration()), b"\x00" * 10_000),
+            (keyed(post), blob),
+            (keyed(trc), b"\x00" * 3_000),
+            (keyed(index), b"\x00" * 3_000),
+        ]
+    ]
+    big = msgpack.packb({**msgpack.unpackb(keyed(calibration(2))[1]), "version": 2**63})
+    deep_key, deep_payload = keyed(index)
+    deep = b"\xde" + (len(msgpack.unpackb(deep_payload)) + 1).to_bytes(2, "big")
+    deep += msgpack.packb("extra") + b"\x91" * 10_000 + b"\x90" + deep_payload[1:]
+    done = node.handle_batch([*padded, (keys.calibration("tf"), big), (deep_key, deep)])
+
+    assert done.accepted == 4 and len(done.states) == 1
+    reasons = [reason for _key, reason, _payload in done.rejected]
+    assert len(reasons) == 2
+    assert reasons[0].startswith("Calibration: version: 9223372036854775808 outside")
+    assert reasons[1].startswith("OnboardIndex:")  # beyond its size limit, or too deep
+    stored = [payload for _kind, _key, payload in [*node.store.models(), *node.store.events()]]
+    assert sorted(stored) == sorted(encode(m) for m in (calibration(), post, trc, index))
+    node.store.close()
+    rebuilt = PersistentTracker(new_tracker(), Store(tmp_path / "f.sqlite"))
+    assert [encode(s) for s in rebuilt.rebuild()] == [encode(s) for s in done.states]
+    rebuilt.store.close()
 
 
 def keyed(msg) -> tuple[str, bytes]:

@@ -200,6 +200,13 @@ def _calibration(**override) -> bytes:
     return msgpack.packb({**good, **override})
 
 
+def _with_first(payload: bytes, *pairs: bytes) -> bytes:
+    """``payload`` (a msgpack map) with packed key/value ``pairs`` put in front."""
+    n = len(msgpack.unpackb(payload))
+    body = payload[1:] if payload[0] < 0x90 else payload[3:]
+    return b"\xde" + (n + len(pairs) // 2).to_bytes(2, "big") + b"".join(pairs) + body
+
+
 BAD_PAYLOADS = {
     "not msgpack": (b"\xc1\xc1", GpsFix, "malformed"),
     "not a map": (msgpack.packb([1, 2, 3]), GpsFix, "Expected `object`"),
@@ -243,6 +250,37 @@ BAD_PAYLOADS = {
         Alert,
         "kind",
     ),
+    # issue 14: limits and plausibility
+    "version beyond int64": (
+        _calibration(version=2**63),
+        Calibration,
+        "version: 9223372036854775808",
+    ),
+    "version beyond 2^53": (_calibration(version=2**53 + 1), Calibration, "version"),
+    "n_pairs beyond int64": (_calibration(n_pairs=2**64 - 1), Calibration, "n_pairs"),
+    "index 1e308": (_index(top6_mm=1e308), OnboardIndex, "top6_mm: 1e+308 outside (0, 100]"),
+    "align10 above 100 mm": (_index(align10_mm=100.5), OnboardIndex, "align10_mm"),
+    "speed above 150 m/s": (_index(speed_mps=151.0), OnboardIndex, "speed_mps"),
+    "time 0": (_index(t=0.0), OnboardIndex, "t: 0.0 outside"),
+    "time -1e9": (_gps(t=-1e9), GpsFix, "t: -1000000000.0 outside"),
+    "time in the year 3000": (_gps(t=32_503_680_000.0), GpsFix, "t: "),
+    "time 2^63": (_gps(t=2**63), GpsFix, "t: "),
+    "model time far": (_calibration(t=-(2.0**63)), Calibration, "t: "),
+    "id with @": (_gps(train="@T1"), GpsFix, "train: '@T1' starts with '@'"),
+    "id with slash": (_index(run_id="r/1"), OnboardIndex, "run_id"),
+    "id with tab": (_gps(train="T\t1"), GpsFix, "whitespace or control"),
+    "id with NUL": (_gps(train="T\x001"), GpsFix, "whitespace or control"),
+    "id of 65 characters": (_gps(train="T" * 65), GpsFix, "train: 65 characters > 64"),
+    "deep nesting": (
+        _with_first(_gps(), msgpack.packb("deep"), b"\x91" * 3000 + b"\x90"),
+        GpsFix,
+        "'deep': nested deeper than 32 levels",
+    ),
+    "beyond the size limit": (
+        msgpack.packb({**msgpack.unpackb(_gps()), "blob": b"\x00" * 5_000}),
+        GpsFix,
+        "payload of 5",
+    ),
 }
 
 
@@ -258,6 +296,49 @@ def test_malformed_payload_raises_schema_error_saying_why(case):
 def test_constructing_an_invalid_message_raises_the_same_error():
     with pytest.raises(SchemaError, match="t_end"):
         MaintenanceEvent(line="L1", segment="s1", event_id="e", t_start=T0, t_end=T0 - 1)
+
+
+def test_nesting_within_the_bound_and_unknown_fields_are_accepted():
+    deep = _with_first(_gps(), msgpack.packb("extra"), b"\x91" * 30 + b"\x90")
+    assert decode(deep, GpsFix) == decode(_gps(), GpsFix)
+
+
+def test_a_deep_unknown_field_beyond_the_scanned_items_is_refused_not_raised():
+    # the nesting scan stops after NESTING_SCAN_ITEMS items; the decoder's RecursionError
+    # is then turned into a SchemaError
+    chunk = encode(examples()[0])
+    many = msgpack.packb(list(range(20_000)))
+    deep = b"\x91" * 5000 + b"\x90"
+    payload = _with_first(chunk, msgpack.packb("many"), many, msgpack.packb("deep"), deep)
+    assert len(payload) <= RawChunk.MAX_BYTES
+    with pytest.raises(SchemaError, match="RawChunk: nested too deep"):
+        decode(payload, RawChunk)
+
+
+@pytest.mark.parametrize("message", examples(), ids=lambda m: type(m).__name__)
+def test_every_example_is_within_its_size_limit(message):
+    assert len(encode(message)) <= type(message).MAX_BYTES
+
+
+def test_size_limits_fit_the_reference_unit_and_a_1000_sample_posterior():
+    rng = np.random.default_rng(1)
+    chunk = RawChunk(
+        train="T1", unit="b1", seq=0, t0=T0, rate_hz=2000,
+        channels=[*ACCEL_CHANNELS, "supply_v"], samples=NDArray.of(rng.normal(size=(2000, 7))),
+    )  # fmt: skip
+    assert 4 * len(encode(chunk)) <= RawChunk.MAX_BYTES  # 1 s in f8, four times over
+    ns, eye = 1000, np.broadcast_to(np.eye(2), (1000, 2, 2))
+    posterior = DegradationPosterior(
+        group="net", version=1, t=T0, indicators=["top6", "align10"],
+        mu=f8(np.zeros((ns, 2))), sigma=f8(eye), z_plus=f8(np.zeros((ns, 2))),
+        sigma_z_plus=f8(eye), n_increments=10, n_levels=3,
+    )  # fmt: skip
+    assert 4 * len(encode(posterior)) <= DegradationPosterior.MAX_BYTES
+
+
+def test_a_prior_model_may_have_time_zero():
+    cal = decode(_calibration(t=0.0), Calibration)
+    assert cal.t == 0.0
 
 
 # --- keys --------------------------------------------------------------------------------
@@ -303,7 +384,9 @@ def test_wildcards_include_their_concrete_keys():
     assert not ke(keys.raw_all("tf")).intersects(ke(keys.raw("tf2", "T1", "b1")))
 
 
-@pytest.mark.parametrize("bad", ["", "a/b", "a*", "$x", "q?", "#", "has space"])
+@pytest.mark.parametrize(
+    "bad", ["", "a/b", "a*", "$x", "q?", "#", "has space", "@x", "a\tb", "a\nb", "x" * 65]
+)
 def test_keys_refuse_unsafe_chunks(bad):
     with pytest.raises(ValueError):
         keys.index("tf", "L1", bad)
