@@ -48,6 +48,7 @@ log = logging.getLogger(__name__)
 SERVICE = "filtering"
 BATCH = 1024  # queued messages handled in one store transaction (when there is a backlog)
 EXIT_STORE_FAILED = 74  # EX_IOERR
+EXIT_SOFTWARE = 70  # EX_SOFTWARE: a bug escaped a batch
 STATE_CACHE = 16  # states kept per segment for a returning consumer (alerting, viewer)
 MODEL_QUERY_TIMEOUT_S = (
     10.0  # the start-up query for the latest models (ends sooner when all reply)
@@ -130,11 +131,12 @@ class FilteringAdapter:
         """What is queued, in one store transaction; then the changed states are published."""
         try:
             done = self.node.handle_batch((key, payload) for _kind, key, payload in batch)
-        except sqlite3.Error:
-            # the store failed (disk full, file removed): what the tracker holds is no longer
+        except Exception as e:
+            # the store failed (disk full, file removed), or a bug escaped the transaction
+            # (its writes are rolled back): either way what the tracker holds is no longer
             # what is persisted; stop so that a restart rebuilds it from the store
-            log.exception("filtering: the store refused a batch; stopping")
-            self.rt.exit_code = EXIT_STORE_FAILED
+            log.exception("filtering: a batch failed in the store transaction; stopping")
+            self.rt.exit_code = EXIT_STORE_FAILED if isinstance(e, sqlite3.Error) else EXIT_SOFTWARE
             self.rt.stop()
             return
         for key, reason, payload in done.rejected:

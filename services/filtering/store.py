@@ -233,7 +233,8 @@ class PersistentTracker:
         caller publishes the states; a payload that does not decode, or that the core
         refuses (a model that fails validation), is returned in ``rejected`` with the
         reason. A store error (``sqlite3.Error``) propagates: nothing of the batch is then
-        persisted, and the caller must not go on with this tracker.
+        persisted, and the caller must not go on with this tracker (nor after any other
+        exception out of this method: the tracker may have moved on without the store).
         """
         rejected: list[tuple[str, str, bytes]] = []
         models: list[tuple[ModelMessage, str, bytes]] = []
