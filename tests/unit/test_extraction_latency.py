@@ -12,6 +12,7 @@ from services.extraction.pipeline import ExtractionConfig, LineSegments, Segment
 from services.extraction.versine import END_GUARD_M
 
 FS = 2000
+EPOCH = 1_767_225_600.0  # 2026-01-01: event times must lie in the schemas' window
 G = 9.80665
 V = 20.0  # m/s
 X0 = 2.0  # chainage at t = 0
@@ -41,12 +42,12 @@ def pieces(bounds_s: np.ndarray) -> list[PositionedChunk]:
                 train="T1",
                 unit="u0",
                 seq=seq,
-                t0=float(a),
+                t0=EPOCH + float(a),
                 rate_hz=float(FS),
                 channels=list(ACCEL_CHANNELS),
                 samples=NDArray.of(accelerations(t), "f4"),
                 line="L1",
-                knot_t=NDArray.of(kt),
+                knot_t=NDArray.of(EPOCH + kt),
                 knot_chainage_m=NDArray.of(X0 + V * kt),
                 knot_speed_mps=NDArray.of([V, V]),
                 position_ok=True,
@@ -67,7 +68,8 @@ def emitted(chunks: list[PositionedChunk]) -> dict[str, tuple[float, float, floa
     out = {}
     for c in chunks:
         for ix in p.process(c):
-            out[ix.segment] = (c.t0 + c.samples.shape[0] / FS, ix.top6_mm, ix.align10_mm)
+            t_end = round(c.t0 - EPOCH + c.samples.shape[0] / FS, 6)  # relative, to the µs
+            out[ix.segment] = (t_end, ix.top6_mm, ix.align10_mm)
     return out
 
 
