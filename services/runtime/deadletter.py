@@ -14,6 +14,9 @@ from schemas import DeadLetter, encode, keys
 log = logging.getLogger(__name__)
 
 PAYLOAD_HEAD_BYTES = 256
+MAX_REASON_CHARS = 1000  # a letter's reason is cut here
+MAX_REASONS = 1000  # distinct reasons counted; the rest are counted together under OTHER
+OTHER = "(other reasons)"
 
 
 class DeadLetterPublisher:
@@ -49,10 +52,12 @@ class DeadLetterPublisher:
         payload: bytes | bytearray | memoryview | zenoh.ZBytes | None = None,
     ) -> DeadLetter:
         """Count and publish one rejection of ``payload`` received on ``key``."""
-        reason = reason or "unspecified"
+        reason = (reason or "unspecified")[:MAX_REASON_CHARS]
         with self._lock:
-            self.counts[reason] = self.counts.get(reason, 0) + 1
-            count = self.counts[reason]
+            # reasons quote the bad values: a sender must not grow the counter without bound
+            counted = reason if reason in self.counts or len(self.counts) < MAX_REASONS else OTHER
+            self.counts[counted] = self.counts.get(counted, 0) + 1
+            count = self.counts[counted]
         letter = DeadLetter(
             service=self.service,
             key=str(key),
