@@ -84,6 +84,7 @@ import numpy as np
 from scipy import signal
 
 from schemas import OnboardIndex, PositionedChunk, SchemaError
+from schemas.messages import INDEX_MAX_MM
 from services.extraction.versine import (
     ALIGN_CHORD_M,
     TOP_CHORD_M,
@@ -161,7 +162,9 @@ class Counters:
     """What one pipeline (or the sum of all) did; every pass is either indexed or skipped.
 
     ``passes_indexed`` OnboardIndex emitted; ``skipped_position``, ``skipped_slow``,
-    ``skipped_coverage`` passes skipped by reason (module docstring); ``chunks`` and
+    ``skipped_coverage``, ``skipped_implausible`` (a statistic above the schemas'
+    ``INDEX_MAX_MM``: not geometry but a fault) passes skipped by reason (module
+    docstring); ``chunks`` and
     ``samples`` (rows of 6 accelerometer channels) processed; ``resets`` restarts of the
     streaming state (gap_before, first chunk, line change, time running backwards);
     ``reversals`` changes of the direction of travel; ``unknown_line`` chunks on a line
@@ -172,6 +175,7 @@ class Counters:
     skipped_position: int = 0
     skipped_slow: int = 0
     skipped_coverage: int = 0
+    skipped_implausible: int = 0
     chunks: int = 0
     samples: int = 0
     resets: int = 0
@@ -188,7 +192,11 @@ class Counters:
     @property
     def passes(self) -> int:
         return (
-            self.passes_indexed + self.skipped_position + self.skipped_slow + self.skipped_coverage
+            self.passes_indexed
+            + self.skipped_position
+            + self.skipped_slow
+            + self.skipped_coverage
+            + self.skipped_implausible
         )
 
 
@@ -741,6 +749,9 @@ class UnitPipeline:
             stats.append(min(usable))
         if min(stats) <= 0.0:
             c.skipped_coverage += 1
+            return []
+        if max(stats) > INDEX_MAX_MM:  # not track geometry: a sensor fault or a wrong unit
+            c.skipped_implausible += 1
             return []
         coverage = min(max(r.coverage) for r in (top, align))
         quality = (

@@ -62,10 +62,11 @@ class ExtractionAdapter:
     def log_counters(self) -> None:
         c = self.extractor.counters()
         log.info(
-            "%s: %d units, %d passes indexed, skipped: position %d, slow %d, coverage %d; "
-            "%d chunks, %d resets, %d reversals, %d on unknown lines",
+            "%s: %d units, %d passes indexed, skipped: position %d, slow %d, coverage %d, "
+            "implausible %d; %d chunks, %d resets, %d reversals, %d on unknown lines",
             SERVICE, len(self.extractor.pipelines), c.passes_indexed, c.skipped_position,
-            c.skipped_slow, c.skipped_coverage, c.chunks, c.resets, c.reversals, c.unknown_line,
+            c.skipped_slow, c.skipped_coverage, c.skipped_implausible, c.chunks, c.resets,
+            c.reversals, c.unknown_line,
         )  # fmt: skip
 
 

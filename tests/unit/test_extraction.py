@@ -290,3 +290,11 @@ def test_extractor_keeps_one_pipeline_per_unit_and_reads_the_network_file(sim_ch
 
 def _replace(c: PositionedChunk, **changes) -> PositionedChunk:
     return msgspec.structs.replace(c, **changes)
+
+
+def test_a_statistic_beyond_any_track_geometry_is_skipped_not_published():
+    """Hundreds of mm are a sensor fault or a wrong unit, not track: the pass is counted as
+    implausible instead of failing the chunk on the schema's bound."""
+    out, p = run(sine_run(20.0, amp_mm=500.0))
+    assert out == []
+    assert p.counters.skipped_implausible >= 3
