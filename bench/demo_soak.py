@@ -19,8 +19,9 @@ stack — for ``--minutes`` (30 by default), and watches it from outside:
 
 The run passes when every process stayed alive (no restart), no state gap while indices
 flowed exceeded 30 s, every q/state answer covered the segments tracked, the viewer stayed
-within 500 MB and no other process grew by more than 50 % after the warm-up, and each
-browser drew the map within 15 s. A summary table is printed, and ``--json FILE`` writes
+within 500 MB, no process grew by more than 20 % over the second half of the run (memory
+bounded once the demo's caches and TRC cycles have filled), and each browser drew the map
+within 15 s. A summary table is printed, and ``--json FILE`` writes
 it; the exit code is 1 when a check failed.
 
     python -m bench.demo_soak --minutes 30 --open 2,10,20,29
@@ -51,7 +52,7 @@ from services.runtime.config import zenoh_config
 REPO = Path(__file__).resolve().parents[1]
 STATE_GAP_LIMIT_S = 30.0
 VIEWER_RSS_LIMIT_MB = 500.0
-GROWTH_LIMIT = 0.5
+GROWTH_LIMIT = 0.2
 FIRST_PICTURE_LIMIT_S = 15.0
 
 
@@ -92,6 +93,7 @@ class Flows:
     kept coming; fed by Zenoh callbacks (a lock, counters, nothing else)."""
 
     def __init__(self) -> None:
+        self.started = time.monotonic()
         self.lock = threading.Lock()
         self.index = self.state = 0
         self.last_state = self.last_index = None
@@ -110,7 +112,7 @@ class Flows:
         now = time.monotonic()
         with self.lock:
             if self.last_state is not None and now - self.last_state > 5.0:
-                self.gaps.append((self.last_state, now - self.last_state))
+                self.gaps.append((self.last_state - self.started, now - self.last_state))
             self.state += 1
             self.last_state = now
 
@@ -230,7 +232,9 @@ def open_viewer(health: dict | None, out: Path, minute: float) -> dict:
 
 
 def summarize(args, out, flows, samples, answers, pictures, not_alive, restarts, up) -> dict:
-    warm = [s for s in samples if s["minute"] >= args.warmup_minutes]
+    # bounded: what a process still grows over the second half of the run (after the
+    # warm-up), when the demo's caches and TRC cycles have filled
+    warm = [s for s in samples if s["minute"] >= max(args.warmup_minutes, args.minutes / 2)]
     growth, peak = {}, {}
     if warm:
         for name in warm[-1]["rss_mb"]:
@@ -247,7 +251,7 @@ def summarize(args, out, flows, samples, answers, pictures, not_alive, restarts,
         "q/state answered for every tracked segment": any(a["tracked"] for a in answers)
         and all(a["answered"] >= a["tracked"] for a in answers),
         f"viewer ≤ {VIEWER_RSS_LIMIT_MB:.0f} MB": (peak.get("viewer") or 0) <= VIEWER_RSS_LIMIT_MB,
-        f"no process grew over {GROWTH_LIMIT:.0%} after warm-up": all(
+        f"no process grew over {GROWTH_LIMIT:.0%} in the second half": all(
             g <= GROWTH_LIMIT for g in growth.values()
         ),
     }
@@ -264,10 +268,12 @@ def summarize(args, out, flows, samples, answers, pictures, not_alive, restarts,
         "index": flows.index,
         "state": flows.state,
         "longest_state_gap_while_indices_s": round(flows.longest_gap_s, 1),
-        "state_gaps_over_5s": [round(g, 1) for _, g in flows.gaps],
+        "state_gaps_over_5s": [
+            {"minute": round(at / 60, 2), "seconds": round(g, 1)} for at, g in flows.gaps
+        ],
         "q_state": answers,
         "rss_peak_mb": {k: round(v, 0) for k, v in peak.items() if v},
-        "rss_growth_after_warmup": {k: round(v, 3) for k, v in growth.items()},
+        "rss_growth_second_half": {k: round(v, 3) for k, v in growth.items()},
         "browser": pictures,
         "checks": checks,
     }
@@ -280,7 +286,9 @@ def table(summary: dict) -> str:
     lines.append(f"  while indices flowed {gap} s")
     lines.append(f"  restarts {summary['restarts']}, not alive {summary['not_alive_s']}")
     lines.append(f"  RSS peak MB {summary['rss_peak_mb']}")
-    lines.append(f"  RSS growth after warm-up {summary['rss_growth_after_warmup']}")
+    lines.append(f"  RSS growth in the second half {summary['rss_growth_second_half']}")
+    if summary["state_gaps_over_5s"]:
+        lines.append(f"  state gaps over 5 s: {summary['state_gaps_over_5s']}")
     if summary["q_state"]:
         worst = max(summary["q_state"], key=lambda a: a["seconds"])
         lines.append(f"  q/state: {len(summary['q_state'])} asks, slowest {worst}")
