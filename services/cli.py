@@ -59,7 +59,11 @@ def build_parser() -> argparse.ArgumentParser:
 
         configure_logging(args.log_level)
         return filtering.main(
-            config_from_args(args), selector=args.selector, db=args.db, limits=args.limits
+            config_from_args(args),
+            selector=args.selector,
+            db=args.db,
+            limits=args.limits,
+            network=args.network,
         )
 
     p = sub.add_parser(
@@ -71,6 +75,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--selector",
         metavar="KEYEXPR_SUFFIX",
         help="the part of the network this instance owns, e.g. 'L1/**' (default: **)",
+    )
+    p.add_argument(
+        "--network",
+        metavar="FILE.geojson",
+        help="refuse events on segments this network does not have (default: accept any)",
     )
     p.add_argument(
         "--db",

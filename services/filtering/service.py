@@ -23,7 +23,10 @@ never used for a state.
 
 Options (``services.filtering`` in the config file, overridden by the flags): ``selector``
 (default ``**``), ``db`` (default ``./var/filtering-{instance}.sqlite`` with the configured
-instance id, ``default`` without one, so a restarted process finds its file), ``limits``.
+instance id, ``default`` without one, so a restarted process finds its file), ``limits``,
+``network`` (a network GeoJSON file: events on segments it does not have are dead-lettered,
+so a sender cannot make the instance hold tracks for ids that do not exist; default: none,
+every segment accepted).
 """
 
 from __future__ import annotations
@@ -61,12 +64,14 @@ def main(
     selector: str | None = None,
     db: str | Path | None = None,
     limits: str | Path | None = None,
+    network: str | Path | None = None,
     stop: threading.Event | None = None,
     handle_signals: bool = True,
 ) -> int:
     """Run one filtering instance until ``stop`` is set or SIGINT/SIGTERM; returns 0."""
     options = conf.options(SERVICE)
     selector = selector or options.get("selector") or "**"
+    network = network or options.get("network")
     limits_table = load_limits(limits or options.get("limits") or DEFAULT_LIMITS_FILE)
     db = db or options.get("db") or DEFAULT_DB.format(instance=conf.instance or "default")
     with ExitStack() as stack:
@@ -75,11 +80,26 @@ def main(
         rt = stack.enter_context(
             ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop)
         )
-        node = PersistentTracker(Tracker(limits_table.for_line, limits_table.levels), store)
+        tracker = Tracker(limits_table.for_line, limits_table.levels)
+        node = PersistentTracker(tracker, store, **known_segments(network))
         FilteringAdapter(rt, node, selector).start()
         log.info("filtering %s: selector %s, store %s", rt.instance, selector, store.path)
         return rt.run()
     return 0  # unreachable; for type checkers
+
+
+def known_segments(network: str | Path | None) -> dict:
+    """``PersistentTracker`` keywords: the (line, segment) ids of a network file, if given."""
+    if network is None:
+        return {}
+    from services.extraction.pipeline import SegmentTable  # the network reader we have
+
+    try:
+        table = SegmentTable.from_geojson(network)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"filtering: network {network}: {exc}") from None
+    ids = [(line, seg) for line, segs in table.lines.items() for seg in segs.ids]
+    return {"segments": ids, "network_name": f"the network {Path(network).name}"}
 
 
 class FilteringAdapter:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 import logging
 import sqlite3
-from collections.abc import Iterable, Iterator
+from collections.abc import Collection, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -210,14 +210,34 @@ class PersistentTracker:
     commits it before returning the states to publish. ``rebuild()`` replays the store.
     """
 
-    def __init__(self, tracker: Tracker, store: Store) -> None:
+    def __init__(
+        self,
+        tracker: Tracker,
+        store: Store,
+        *,
+        segments: Collection[tuple[str, str]] | None = None,
+        network_name: str = "the network",
+    ) -> None:
         self.tracker = tracker
         self.store = store
+        self.segments = None if segments is None else frozenset(segments)
+        self._network_name = network_name
+
+    def _check_known(self, msg: EventMessage) -> None:
+        """An event on a segment the network does not have is refused (when one is given):
+        a sender cannot make the service hold tracks for ids that do not exist."""
+        if self.segments is not None and (msg.line, msg.segment) not in self.segments:
+            raise SchemaError(
+                f"{type(msg).__name__}: segment {msg.line}/{msg.segment} is not in "
+                f"{self._network_name}"
+            )
 
     def handle(self, key: str, payload: bytes) -> Step:
         msg = decode_keyed(key, payload)
         if msg is None:
             return Step(False, "not a model this service uses")
+        if not isinstance(msg, Calibration | DegradationPosterior):
+            self._check_known(msg)
         step = self.tracker.step(msg)
         if step.accepted:
             self._commit(msg, str(key))
@@ -249,8 +269,13 @@ class PersistentTracker:
                 continue
             if isinstance(msg, Calibration | DegradationPosterior):
                 models.append((msg, key, payload))
-            else:
-                events.append((msg, key, payload))
+                continue
+            try:
+                self._check_known(msg)
+            except SchemaError as e:
+                rejected.append((key, str(e), payload))
+                continue
+            events.append((msg, key, payload))
         states: dict[tuple[str, str], SegmentState] = {}
 
         def keep(new_states: Iterable[SegmentState]) -> None:

@@ -423,6 +423,23 @@ def test_the_store_keeps_the_message_not_unknown_fields_and_refuses_what_it_cann
     rebuilt.store.close()
 
 
+def test_events_on_segments_the_network_lacks_are_refused_and_hold_nothing(tmp_path):
+    node = PersistentTracker(
+        new_tracker(),
+        Store(tmp_path / "known.sqlite"),
+        segments=[("L1", "s1")],
+        network_name="the network demo.geojson",
+    )
+    known, unknown = trc(0.0, 3.0, 2.5, segment="s1"), trc(0.0, 3.0, 2.5, segment="s9")
+    result = node.handle_batch([keyed(m) for m in (calibration(1), posterior(), known, unknown)])
+    assert [state.segment for state in result.states] == ["s1"]
+    ((key, reason, _),) = result.rejected
+    assert key == keyed(unknown)[0]
+    assert reason == "TrcRecord: segment L1/s9 is not in the network demo.geojson"
+    assert set(node.tracker.tracks) == {("L1", "s1")} and node.store.count_events() == 1
+    node.store.close()
+
+
 def keyed(msg) -> tuple[str, bytes]:
     """The key a message is published on (namespace "tf") and its payload."""
     match msg:
