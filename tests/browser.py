@@ -189,6 +189,7 @@ class Picture:
     missing: list[str] = field(default_factory=list)
     page_text: str = ""
     seen_s: dict[str, float] = field(default_factory=dict)  # hue -> first screenshot with it
+    shots: list[tuple[float, bytes]] = field(default_factory=list)  # (seconds, png) each one
 
 
 def first_picture(
@@ -237,6 +238,7 @@ def first_picture(
             shot = ask("Page.captureScreenshot", {"format": "png"})
             if shot is not None:
                 picture.png = base64.b64decode(shot["data"])
+                picture.shots.append((time.monotonic() - t0, picture.png))
                 picture.missing = missing_colors(picture.png, wanted)
                 for hue in wanted:
                     if hue not in picture.missing:

@@ -52,6 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
+from rerun.encodings import TimeRange
 
 from schemas import INDICATORS, Alert, GpsFix, Message, OnboardIndex, SegmentState, TrcRecord
 from simulators.network import Network
@@ -63,8 +64,12 @@ DEFAULT_WORST_N = 3
 # Rerun's gRPC server keeps every blueprint ever sent (~100 KB each) and replays them all
 # to each browser that connects: re-send rarely.
 DEFAULT_BLUEPRINT_INTERVAL_S = 60.0  # wall seconds between two blueprint re-sends, at least
-DEFAULT_SERIES_FLUSH_S = 60.0  # wall seconds between two writes of the plots' rows
-DEFAULT_LIVE_FLUSH_S = 1.0  # wall seconds between two writes of map colours, alerts, trains
+DEFAULT_SERIES_FLUSH_S = 300.0  # wall seconds between two writes of the other segments' rows
+WORST_MARGIN = 0.05  # a segment replaces a plotted one if its p is higher by more than this
+DEFAULT_PLOT_FLUSH_S = 10.0  # wall seconds between two writes of the plotted segments' rows
+DEFAULT_LIVE_FLUSH_S = 2.0  # wall seconds between two writes of map colours, alerts, trains
+ONBOARD_KEPT_DAYS = 90  # event days of on-board points kept for a segment not plotted yet
+PLOT_WINDOW_DAYS = 90.0  # event days before the time cursor that the plots show
 
 UNKNOWN_RGB = (128, 128, 128)  # a segment without a state yet
 _STOPS_P = np.array([0.0, 0.5, 1.0])
@@ -109,6 +114,29 @@ def segment_exceedance(state: SegmentState) -> float:
 def select_worst(p_exceed: Mapping[SegmentKey, float], n: int) -> list[SegmentKey]:
     """The ``n`` segments with the highest probability, highest first; ties by (line, segment)."""
     return [key for _, key in heapq.nsmallest(n, ((-p, key) for key, p in p_exceed.items()))]
+
+
+def select_worst_sticky(
+    p_exceed: Mapping[SegmentKey, float],
+    n: int,
+    shown: Sequence[SegmentKey],
+    margin: float,
+) -> list[SegmentKey]:
+    """Like :func:`select_worst`, but a segment already ``shown`` keeps its place unless
+    one not shown has a probability more than ``margin`` above it: near-ties (many segments
+    close to p = 1) do not swap the plots back and forth. Highest first."""
+    best = select_worst(p_exceed, n)
+    kept = [key for key in shown if key in p_exceed][:n]
+    for candidate in best:
+        if candidate in kept:
+            continue
+        if len(kept) < n:
+            kept.append(candidate)
+            continue
+        weakest = min(kept, key=lambda key: (p_exceed[key], key))
+        if p_exceed[candidate] > p_exceed[weakest] + margin:
+            kept[kept.index(weakest)] = candidate
+    return sorted(kept, key=lambda key: (-p_exceed[key], key))
 
 
 def event_day(t: float) -> int:
@@ -158,6 +186,13 @@ def build_blueprint(
         if bounds is None
         else rrb.VisualBounds2D(x_range=bounds[:, 0], y_range=bounds[:, 1]),
     )
+    # an explicit window ending at the cursor: the plot's automatic x range is fitted to the
+    # first rows it draws, which for a browser that connects late (newest first) are the
+    # last few and so too narrow to show the rest when it arrives
+    window = TimeRange(
+        start=rrb.TimeRangeBoundary.cursor_relative(seconds=-PLOT_WINDOW_DAYS * DAY_S),
+        end=rrb.TimeRangeBoundary.cursor_relative(seconds=DAY_S),
+    )
     rows = [
         rrb.Horizontal(
             *(
@@ -166,6 +201,7 @@ def build_blueprint(
                     contents="$origin/**",
                     name=f"{line}/{segment} {indicator} mm (p={p:.2f})",
                     plot_legend=rrb.PlotLegend(visible=False),  # small plots: hover for names
+                    axis_x=rrb.TimeAxis(view_range=window),
                 )
                 for indicator in INDICATORS
             )
@@ -211,9 +247,9 @@ class ViewerCore:
         Segments shown beside the map.
     blueprint_interval_s
         Minimum wall time between two blueprint sends (see :meth:`maybe_send_blueprint`).
-    series_flush_s, live_flush_s
-        Wall seconds between two writes of the plots' rows, of the map colours, alerts and
-        trains.
+    series_flush_s, plot_flush_s, live_flush_s
+        Wall seconds between two writes of every segment's rows, of the plotted segments'
+        rows, of the map colours, alerts and trains.
     """
 
     def __init__(
@@ -224,24 +260,30 @@ class ViewerCore:
         worst_n: int = DEFAULT_WORST_N,
         blueprint_interval_s: float = DEFAULT_BLUEPRINT_INTERVAL_S,
         series_flush_s: float = DEFAULT_SERIES_FLUSH_S,
+        plot_flush_s: float = DEFAULT_PLOT_FLUSH_S,
         live_flush_s: float = DEFAULT_LIVE_FLUSH_S,
     ) -> None:
         if worst_n < 0:
             raise ValueError(f"worst_n: must be >= 0, got {worst_n}")
-        if series_flush_s < 0 or live_flush_s < 0:
-            raise ValueError("series_flush_s, live_flush_s: must be >= 0")
+        if min(series_flush_s, plot_flush_s, live_flush_s) < 0:
+            raise ValueError("series_flush_s, plot_flush_s, live_flush_s: must be >= 0")
         self.rec = rec
         self.network = network
         self.worst_n = worst_n
         self.blueprint_interval_s = blueprint_interval_s
         self.series_flush_s = series_flush_s
+        self.plot_flush_s = plot_flush_s
         self.live_flush_s = live_flush_s
         self.p_exceed: dict[SegmentKey, float] = {}
         self.handled = 0  # messages taken (GPS fixes without a fix included)
         self.rows_written = 0  # rows of the plots' entities written (thinning's result)
         self.blueprints_sent = 0
         self._newest_t: dict[SegmentKey, float] = {}
+        # Series styles are static, and every static chunk goes to each browser that
+        # connects before any data: only the segments ever plotted get them.
         self._styled: dict[str, tuple[str, ...]] = {}  # entity -> styled limit levels
+        self._levels: dict[str, tuple[str, ...]] = {}  # state entity -> its limit levels
+        self._plotted: set[SegmentKey] = set()  # segments that were ever in a blueprint
         self._lines: dict[str, _MapLine] = {}
         self._map_start_t: float | None = None  # first state's event time on the map
         self._map_started = False
@@ -255,7 +297,10 @@ class ViewerCore:
         self._fixes: dict[str, GpsFix] = {}  # newest fix per train
         self._fixes_new = False
         self._series_at: float | None = None
+        self._plot_at: float | None = None
         self._live_at: float | None = None
+        # on-board points of segments not plotted: written when a segment is first plotted
+        self._onboard_kept: dict[SegmentKey, dict[int, OnboardIndex]] = defaultdict(dict)
 
     # --- setup ---------------------------------------------------------------------------
 
@@ -345,17 +390,23 @@ class ViewerCore:
             line.changed_t = max(line.changed_t or -math.inf, state.t)
 
     def flush(self, now: float, *, force: bool = False) -> None:
-        """Write the live part (with the plotted segments' series) if ``live_flush_s``
-        passed since its last write, every series if ``series_flush_s`` passed (``force``:
-        all, now)."""
-        if force or self._series_at is None or now - self._series_at >= self.series_flush_s:
-            self._series_at = now
+        """Write what is due at wall time ``now``: every segment's rows each
+        ``series_flush_s``, the plotted segments' rows each ``plot_flush_s``, the map
+        colours, trains and alerts each ``live_flush_s`` (``force``: all, now)."""
+
+        def due(at: float | None, interval: float) -> bool:
+            return force or at is None or now - at >= interval
+
+        series = due(self._series_at, self.series_flush_s)
+        plots = series or due(self._plot_at, self.plot_flush_s)
+        if plots or due(self._live_at, self.live_flush_s):
             self._live_at = now
             self._flush_live()
+        if series:
+            self._series_at = self._plot_at = now
             self._flush_series()
-        elif self._live_at is None or now - self._live_at >= self.live_flush_s:
-            self._live_at = now
-            self._flush_live()
+        elif plots:
+            self._plot_at = now
             self._flush_series(set(self._blueprint_keys or ()))
 
     # --- series --------------------------------------------------------------------------
@@ -374,10 +425,18 @@ class ViewerCore:
             trcs = [m for m in self._trc if (m.line, m.segment) in only]
             self._trc = [m for m in self._trc if (m.line, m.segment) not in only]
         for msg in taken.values():
+            key = (msg.line, msg.segment)
             if isinstance(msg, SegmentState):
-                states[(msg.line, msg.segment)].append(msg)
-            else:
-                points[((msg.line, msg.segment), "onboard")].append(msg)
+                states[key].append(msg)
+            elif key in self._plotted:
+                points[(key, "onboard")].append(msg)
+            else:  # kept for when the segment is plotted: half the chunks of the history
+                kept = self._onboard_kept[key]
+                day = event_day(msg.t)
+                if day not in kept or kept[day].t <= msg.t:
+                    kept[day] = msg
+                for old in sorted(kept)[:-ONBOARD_KEPT_DAYS]:
+                    del kept[old]
         for trc in trcs:
             points[((trc.line, trc.segment), "trc")].append(trc)
         for key, batch in states.items():
@@ -393,7 +452,8 @@ class ViewerCore:
             for i, indicator in enumerate(same[-1].indicators):
                 rows = [s for s in same if i < len(s.indicators) and s.indicators[i] == indicator]
                 path = f"{base}/{indicator}/state"
-                if self._styled.get(path) != levels:
+                self._levels[path] = levels
+                if key in self._plotted and self._styled.get(path) != levels:
                     self.rec.log(path, state_style(levels), static=True)
                     self._styled[path] = levels
                 values = np.array(
@@ -414,7 +474,7 @@ class ViewerCore:
         base = f"segments/{key[0]}/{key[1]}"
         for indicator in INDICATORS:
             path = f"{base}/{indicator}/{kind}"
-            if path not in self._styled:
+            if key in self._plotted and path not in self._styled:
                 self.rec.log(path, _POINTS[kind], static=True)
                 self._styled[path] = ()
             self._send(path, t, np.array([getattr(m, f"{indicator}_mm") for m in msgs]))
@@ -492,19 +552,45 @@ class ViewerCore:
 
     # --- blueprint -----------------------------------------------------------------------
 
+    def _style(self, keys: Iterable[SegmentKey]) -> None:
+        """The static series styles of newly plotted segments' entities."""
+        for key in keys:
+            if key in self._plotted:
+                continue
+            self._plotted.add(key)
+            base = f"segments/{key[0]}/{key[1]}"
+            for indicator in INDICATORS:
+                path = f"{base}/{indicator}/state"
+                levels = self._levels.get(path)
+                if levels is not None:
+                    self.rec.log(path, state_style(levels), static=True)
+                    self._styled[path] = levels
+                for kind, style in _POINTS.items():
+                    self.rec.log(f"{base}/{indicator}/{kind}", style, static=True)
+                    self._styled[f"{base}/{indicator}/{kind}"] = ()
+            kept = self._onboard_kept.pop(key, {})
+            if kept:
+                self._log_points(key, "onboard", sorted(kept.values(), key=lambda m: m.t))
+
     def worst(self) -> list[SegmentKey]:
-        return select_worst(self.p_exceed, self.worst_n)
+        """The segments to plot: :func:`select_worst_sticky` around the plotted ones."""
+        return select_worst_sticky(
+            self.p_exceed, self.worst_n, self._blueprint_keys or [], WORST_MARGIN
+        )
 
     def maybe_send_blueprint(self, now: float, *, force: bool = False) -> bool:
         """Send the blueprint if the worst set changed and ``blueprint_interval_s`` of wall
-        time ``now`` (monotonic seconds) passed since the last send, or at once if it shows
-        more segments than the last one (the first plots); ``force``: if it changed (or was
-        never sent), now. True if sent."""
+        time ``now`` (monotonic seconds) passed since the last send, or at once if it fills
+        the plots for the first time (``worst_n`` segments known); ``force``: if it changed
+        (or was never sent), now. True if sent.
+
+        Rerun's gRPC server keeps every blueprint and a browser that connects replays them
+        all before any data (about 15 s for 7 of them on SwiftShader): send few."""
         worst = self.worst()
-        shown = len(self._blueprint_keys) if self._blueprint_keys is not None else -1
+        first_full = len(worst) == self.worst_n and len(self._blueprint_keys or ()) < len(worst)
         if (
             not force
-            and len(worst) <= shown
+            and not first_full
             and self._blueprint_at is not None
             and now - self._blueprint_at < self.blueprint_interval_s
         ):
@@ -518,6 +604,7 @@ class ViewerCore:
         )
         self._blueprint_keys = worst
         self._blueprint_at = now
+        self._style(worst)
         self.blueprints_sent += 1
         return True
 

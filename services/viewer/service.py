@@ -49,6 +49,7 @@ from services.runtime.service import ServiceRuntime
 from services.viewer.core import (
     DEFAULT_BLUEPRINT_INTERVAL_S,
     DEFAULT_LIVE_FLUSH_S,
+    DEFAULT_PLOT_FLUSH_S,
     DEFAULT_SERIES_FLUSH_S,
     DEFAULT_WORST_N,
     ViewerCore,
@@ -65,7 +66,7 @@ SUBSCRIPTION_CAPACITY = 1024  # per RingChannel
 # What Rerun's gRPC server keeps for browsers that connect later (it drops the oldest
 # temporal data beyond it; static data and blueprints are kept). A connecting browser is
 # first sent a copy of it, so the process may hold about twice this.
-SERVER_MEMORY_LIMIT = "64MiB"
+SERVER_MEMORY_LIMIT = "32MiB"
 DEFAULT_WEB_PORT = 9090
 DEFAULT_GRPC_PORT = 9876
 
@@ -290,6 +291,7 @@ def main(
     worst_n: int = DEFAULT_WORST_N,
     blueprint_interval_s: float = DEFAULT_BLUEPRINT_INTERVAL_S,
     series_flush_s: float = DEFAULT_SERIES_FLUSH_S,
+    plot_flush_s: float = DEFAULT_PLOT_FLUSH_S,
     live_flush_s: float = DEFAULT_LIVE_FLUSH_S,
     stop: threading.Event | None = None,
     handle_signals: bool = True,
@@ -314,6 +316,7 @@ def main(
             worst_n=worst_n,
             blueprint_interval_s=blueprint_interval_s,
             series_flush_s=series_flush_s,
+            plot_flush_s=plot_flush_s,
             live_flush_s=live_flush_s,
         )
         core.start(time.monotonic())

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rerun as rr
+from msgspec.structs import replace
 
 from schemas import Alert, GpsFix, OnboardIndex, TrcRecord
 from services.alerting.testing import T0, make_state, p_top6
@@ -20,6 +21,7 @@ from services.viewer.core import (
     exceedance_color,
     segment_exceedance,
     select_worst,
+    select_worst_sticky,
 )
 from services.viewer.testing import rrd_contents, verify_rrd
 from simulators.network import demo_network
@@ -95,16 +97,16 @@ def test_blueprint_resent_only_when_worst_set_changes_and_interval_passed(record
     core.start(now=0.0)
     assert core.blueprints_sent == 1  # the map and the alert log, no segment yet
     core.take([make_state(T0, segment="s1", p_exceed=p_top6(1, 0.7))])
-    assert core.maybe_send_blueprint(1.0)  # the first plots: at once
+    assert not core.maybe_send_blueprint(1.0)  # one plot of two: wait for the interval
     core.take([make_state(T0, segment="s2", p_exceed=p_top6(1, 0.2))])
-    assert core.maybe_send_blueprint(1.5)  # one more plot: at once too
+    assert core.maybe_send_blueprint(1.5)  # the plots filled for the first time: at once
     assert not core.maybe_send_blueprint(20.0)  # same worst set: nothing to send
     core.take([make_state(T0 + DAY_S, segment="s3", p_exceed=p_top6(1, 0.9))])
-    assert not core.maybe_send_blueprint(3.0)  # changed, as many plots: too soon
+    assert not core.maybe_send_blueprint(3.0)  # changed: too soon
     assert core.maybe_send_blueprint(7.0) and core.worst() == [("L1", "s3"), ("L1", "s1")]
     core.take([make_state(T0 + DAY_S, segment="s2", p_exceed=p_top6(1, 0.95))])
     assert core.maybe_send_blueprint(8.0, force=True)
-    assert core.blueprints_sent == 5
+    assert core.blueprints_sent == 4
 
 
 def test_core_writes_series_map_trains_and_alerts(recording):
@@ -147,6 +149,11 @@ def test_core_writes_series_map_trains_and_alerts(recording):
         ),  # fmt: skip
     ]
     assert core.log_batch(batch) == len(batch)
+    assert core.maybe_send_blueprint(1.0, force=True)  # plotted: static styles, kept points
+    never_plotted = line.segments[9].id  # its state rows, no style, its on-board points kept
+    core.log_batch(
+        [make_state(T0, segment=never_plotted), replace(batch[3], segment=never_plotted)]
+    )
     # the same colour again: the line's colours are not re-logged
     core.log_batch([make_state(T0 + 4 * DAY_S, segment=seg, p_exceed=p_top6(1, 0.6))])
     rec.flush()
@@ -162,8 +169,10 @@ def test_core_writes_series_map_trains_and_alerts(recording):
         for series in ("onboard", "trc"):
             assert contents[f"{base}/{indicator}/{series}"]["Scalars:scalars"] == 1
             assert contents[f"{base}/{indicator}/{series}"]["SeriesPoints:markers"] == 1
+    assert contents[f"segments/L1/{never_plotted}/top6/state"] == {"Scalars:scalars": 1}
+    assert f"segments/L1/{never_plotted}/top6/onboard" not in contents
     assert contents["map/segments/L1"]["LineStrips2D:strips"] == 1  # static geometry
-    assert contents["map/segments/L1"]["LineStrips2D:colors"] == 2  # grey, then one change
+    assert contents["map/segments/L1"]["LineStrips2D:colors"] == 3  # grey, two changes
     assert contents["map/segments/L2"]["LineStrips2D:colors"] == 1  # grey only
     assert contents["map/trains"]["Points2D:positions"] == 1  # T1 only: T2 had no fix
     assert contents["alerts"]["TextLog:level"] == 1
@@ -225,17 +234,32 @@ def test_inbox_keeps_the_newest_per_key_and_every_alert():
     assert inbox.take(timeout=None) is None
 
 
-def test_plotted_segments_written_every_live_flush_the_rest_every_series_flush(recording):
+def test_plotted_segments_written_every_plot_flush_the_rest_every_series_flush(recording):
     rec, _ = recording
-    core = ViewerCore(rec, None, worst_n=1, series_flush_s=60.0, live_flush_s=1.0)
+    core = ViewerCore(
+        rec, None, worst_n=1, series_flush_s=60.0, plot_flush_s=10.0, live_flush_s=1.0
+    )
     core.start(now=0.0)
     core.flush(0.0)  # the first flush: everything (nothing yet)
     hot = make_state(T0, segment="hot", p_exceed=p_top6(1, 0.9))
     core.take([hot, make_state(T0, segment="cold", p_exceed=p_top6(1, 0.1))])
     assert core.maybe_send_blueprint(0.5) and core.worst() == [("L1", "hot")]
-    core.flush(1.0)  # live: the plotted segment's row only (two indicators)
+    core.flush(1.0)  # live only: map colours
+    assert core.rows_written == 0
+    core.flush(10.0)  # the plotted segment's row (two indicators)
     assert core.rows_written == 2
     core.flush(30.0)
     assert core.rows_written == 2
     core.flush(60.0)  # the series flush: the rest
     assert core.rows_written == 4
+
+
+def test_select_worst_sticky_keeps_plotted_segments_through_near_ties():
+    p = {("L1", "a"): 0.99, ("L1", "b"): 0.98, ("L1", "c"): 1.0, ("L1", "d"): 0.5}
+    shown = [("L1", "a"), ("L1", "b")]
+    assert select_worst_sticky(p, 2, shown, margin=0.05) == shown  # c is only 0.02 above b
+    p[("L1", "c")] = 1.0
+    p[("L1", "b")] = 0.9
+    assert select_worst_sticky(p, 2, shown, margin=0.05) == [("L1", "c"), ("L1", "a")]
+    assert select_worst_sticky(p, 3, [], margin=0.05) == select_worst(p, 3)
+    assert select_worst_sticky(p, 1, [("L9", "gone")], margin=0.05) == [("L1", "c")]
