@@ -65,7 +65,7 @@ DEFAULT_WORST_N = 3
 # to each browser that connects: re-send rarely.
 DEFAULT_BLUEPRINT_INTERVAL_S = 60.0  # wall seconds between two blueprint re-sends, at least
 DEFAULT_SERIES_FLUSH_S = 300.0  # wall seconds between two writes of the other segments' rows
-WORST_MARGIN = 0.05  # a segment replaces a plotted one if its p is higher by more than this
+WORST_MARGIN = 0.25  # a segment replaces a plotted one if its p is higher by more than this
 DEFAULT_PLOT_FLUSH_S = 10.0  # wall seconds between two writes of the plotted segments' rows
 DEFAULT_LIVE_FLUSH_S = 2.0  # wall seconds between two writes of map colours, alerts, trains
 ONBOARD_KEPT_DAYS = 90  # event days of on-board points kept for a segment not plotted yet
