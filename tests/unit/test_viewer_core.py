@@ -104,7 +104,7 @@ def test_blueprint_resent_only_when_worst_set_changes_and_interval_passed(record
     core.take([make_state(T0 + DAY_S, segment="s3", p_exceed=p_top6(1, 0.9))])
     assert not core.maybe_send_blueprint(3.0)  # changed: too soon
     assert core.maybe_send_blueprint(7.0) and core.worst() == [("L1", "s3"), ("L1", "s1")]
-    core.take([make_state(T0 + DAY_S, segment="s2", p_exceed=p_top6(1, 0.95))])
+    core.take([make_state(T0 + DAY_S, segment="s2", p_exceed=p_top6(1, 1.0))])  # > 0.7 + 0.25
     assert core.maybe_send_blueprint(8.0, force=True)
     assert core.blueprints_sent == 4
 
