@@ -20,6 +20,8 @@ Workloads (DESIGN "Performance targets"):
    plain puts, and a returning subscriber's history fetch (``bench/delivery.py``).
 8. the filtering core's model-change re-run: events replayed per second, summaries included,
    against the filter bank alone and the one-segment-at-a-time re-run (``bench/rerun.py``).
+9. model versions calibration publishes per simulated month of the demo world, with the
+   publication rule against without it (``bench/calibration_versions.py``).
 """
 
 from __future__ import annotations
@@ -173,6 +175,7 @@ def bench_study() -> None:
 
 
 def main() -> None:
+    from bench.calibration_versions import main as bench_calibration_versions
     from bench.delivery import bench_delivery
     from bench.extraction import bench_extraction
     from bench.filtering import bench_filtering_service
@@ -190,6 +193,7 @@ def main() -> None:
     bench_extraction()
     bench_filtering_service()
     bench_delivery()
+    bench_calibration_versions([])
 
 
 if __name__ == "__main__":
