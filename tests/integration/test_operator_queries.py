@@ -23,7 +23,7 @@ def trackfusion(*args: str) -> subprocess.CompletedProcess:
 
 def test_an_answer_later_than_the_timeout_says_what_to_do(open_session, router, namespace):
     released = threading.Event()  # the busy service answers once the asker has given up
-    state = encode(make_state(0.0))
+    state = encode(make_state())
 
     def busy(query: zenoh.Query) -> None:
         released.wait(30)

@@ -219,7 +219,9 @@ def test_the_board_counts_in_callbacks_and_decodes_alerts_later():
     board = StatusBoard()
 
     def alert(status: str) -> FakeSample:
-        message = Alert(line="L1", segment="s1", t=0.0, kind="stale", status=status, indicator="")
+        message = Alert(
+            line="L1", segment="s1", t=1.767e9, kind="stale", status=status, indicator=""
+        )
         return FakeSample("ns/alert/L1/s1", encode(message))
 
     for sample in (
