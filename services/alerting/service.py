@@ -25,7 +25,7 @@ from schemas.keys import parse_segment_key
 from services.alerting.core import AlertingConfig, AlertingCore
 from services.alerting.store import AlertStore
 from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits
-from services.runtime.config import DEPLOY_DIR, RuntimeConfig
+from services.runtime.config import DEPLOY_DIR, RuntimeConfig, default_db
 from services.runtime.service import ServiceRuntime
 
 log = logging.getLogger(__name__)
@@ -46,12 +46,6 @@ def load_alerting_config(path: str | Path = DEFAULT_ALERTING_FILE) -> AlertingCo
         return AlertingConfig.from_dict(raw)
     except (OSError, ValueError) as exc:
         raise SystemExit(f"alerting config {path}: {exc}") from None
-
-
-def default_db_path(instance: str | None) -> Path:
-    """``./var/alerting-{instance}.sqlite``; ``default`` when no instance id was configured
-    (a hostname-pid id would give every restart a new, empty file)."""
-    return Path("var") / f"alerting-{instance or 'default'}.sqlite"
 
 
 class AlertingAdapter:
@@ -153,7 +147,7 @@ def main(
         load_alerting_config(alerting_config or DEFAULT_ALERTING_FILE),
         _load_limits(limits or DEFAULT_LIMITS_FILE),
     )
-    db_path = Path(db) if db is not None else default_db_path(conf.instance)
+    db_path = Path(db) if db is not None else default_db(SERVICE, conf.instance)
     store = AlertStore(db_path)
     try:
         core.restore(*store.load())

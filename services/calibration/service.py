@@ -45,7 +45,7 @@ from services.calibration.calibrator import (
     initial_models,
 )
 from services.calibration.store import SqliteStore
-from services.runtime.config import RuntimeConfig
+from services.runtime.config import RuntimeConfig, default_db
 from services.runtime.service import ServiceRuntime
 
 log = logging.getLogger(__name__)
@@ -135,7 +135,7 @@ def main(
     """Run the calibration service until SIGINT/SIGTERM or ``stop_event``; returns 0."""
     settings = settings or settings_from(conf.options(SERVICE))
     with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop_event) as rt:
-        db = settings.db or Path("var") / f"calibration-{rt.instance}.sqlite"
+        db = settings.db or default_db(SERVICE, conf.instance)
         store = SqliteStore(db)
         try:
             core = Calibrator(settings.core, state=store.load())

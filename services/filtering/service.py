@@ -40,10 +40,10 @@ from pathlib import Path
 import zenoh
 
 from schemas import SegmentState, encode, keys
-from services.filtering.store import DEFAULT_DB, PersistentTracker, Store
+from services.filtering.store import PersistentTracker, Store
 from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_limits
-from services.runtime.config import RuntimeConfig
+from services.runtime.config import RuntimeConfig, default_db
 from services.runtime.service import ServiceRuntime
 
 log = logging.getLogger(__name__)
@@ -73,7 +73,7 @@ def main(
     selector = selector or options.get("selector") or "**"
     network = network or options.get("network")
     limits_table = load_limits(limits or options.get("limits") or DEFAULT_LIMITS_FILE)
-    db = db or options.get("db") or DEFAULT_DB.format(instance=conf.instance or "default")
+    db = db or options.get("db") or default_db(SERVICE, conf.instance)
     with ExitStack() as stack:
         store = Store(db)
         stack.callback(store.close)  # after the runtime has joined the worker

@@ -48,7 +48,6 @@ from services.filtering.tracker import (
 
 log = logging.getLogger(__name__)
 
-DEFAULT_DB = "./var/filtering-{instance}.sqlite"
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS events (

@@ -68,6 +68,13 @@ class RuntimeConfig:
         return zenoh_config(self)
 
 
+def default_db(service: str, instance: str | None) -> Path:
+    """``./var/{service}-{instance}.sqlite``: one state file per service instance, named after
+    the configured instance id, ``default`` without one (never the hostname-pid id, which
+    would give every restart a new, empty file)."""
+    return Path("var") / f"{service}-{instance or 'default'}.sqlite"
+
+
 def default_instance() -> str:
     """``{hostname}-{pid}``, reduced to characters safe in a key chunk."""
     host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname()) or "host"

@@ -280,3 +280,13 @@ def test_zenoh_config_from_plain_settings_forces_multicast_off():
     conf = zenoh_config({"mode": "router", "scouting": {"multicast": {"enabled": True}}})
     assert conf.get_json("scouting/multicast/enabled") == "false"
     assert conf.get_json("listen/endpoints") == f'["{DEFAULT_ENDPOINT}"]'
+
+
+def test_a_service_without_instance_or_db_finds_its_file_again_after_a_restart():
+    """The state file is named after the configured instance id, never the process's
+    hostname-pid id (issue 15: `trackfusion calibration` restarted on an empty store)."""
+    from services.runtime.config import default_db, default_instance
+
+    assert default_db("calibration", None) == Path("var/calibration-default.sqlite")
+    assert default_db("filtering", "f1") == Path("var/filtering-f1.sqlite")
+    assert default_instance() not in str(default_db("alerting", None))
