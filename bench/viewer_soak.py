@@ -4,7 +4,8 @@ Runs ``trackfusion up`` on a copy of ``deploy/stack.json5`` with its own router 
 namespace, state directory and viewer ports (so it runs beside another stack), samples the
 viewer's VmRSS every ``--sample`` seconds, and at each ``--open`` minute opens the web
 viewer in a fresh headless Chromium (``tests/browser.py``) and times the first screenshot
-with the coloured map (green and red strips) and with the plots' estimate lines.
+with the coloured map (green strips: grey before the first states) and with the plots'
+estimate lines (blue).
 
     python -m bench.viewer_soak --minutes 11 --open 5,10 --out /tmp/viewer-soak
 """
@@ -79,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--minutes", type=float, default=11.0)
     parser.add_argument("--open", default="5,10", help="minutes at which a browser opens")
     parser.add_argument("--sample", type=float, default=30.0, help="RSS period, seconds")
-    parser.add_argument("--browser-timeout", type=float, default=240.0)
+    parser.add_argument("--browser-timeout", type=float, default=120.0)
     parser.add_argument("--out", type=Path, default=Path("/tmp/viewer-soak"))
     args = parser.parse_args(argv)
     out = args.out.resolve()
@@ -114,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
                 picture = first_picture(
                     url,
                     out / f"browser-{minute:g}",
-                    wanted=("green", "red", "blue"),
+                    wanted=("green", "blue"),
                     timeout_s=args.browser_timeout,
                 )
                 if picture.png:
@@ -123,11 +124,7 @@ def main(argv: list[str] | None = None) -> int:
                     {
                         "minute": minute,
                         "started_s": picture.started_s,
-                        "map_s": (
-                            max(picture.seen_s["green"], picture.seen_s["red"])
-                            if {"green", "red"} <= picture.seen_s.keys()
-                            else None
-                        ),
+                        "map_s": picture.seen_s.get("green"),  # coloured (grey before)
                         "plots_s": picture.seen_s.get("blue"),
                         "all_s": picture.drawn_s,
                         "missing": picture.missing,

@@ -8,18 +8,22 @@ Time: every temporal row is stamped on the timeline :data:`TIMELINE` (``"event_t
 a timestamp timeline holding each message's own event time ``t`` (UTC epoch seconds), so
 late or replayed messages land where they belong.
 
-Volume: what a viewer holds is bounded by what is logged, so superseded messages are
-thinned before they are written (:meth:`ViewerCore.take` only updates buffers and the
-ranking; :meth:`ViewerCore.flush` writes what is due):
+Volume: what a viewer holds, and what a browser that connects late must take in before it
+draws, is what is logged; so superseded messages are thinned and rows are batched into few
+chunks (:meth:`ViewerCore.take` only updates buffers and the ranking; :meth:`ViewerCore.flush`
+writes what is due; services/viewer/README.md has the figures):
 
 * series (states, on-board indices): per segment and **event-day**, the newest message of
-  that day; the buffers are written every ``series_flush_s`` wall seconds, one
-  ``send_columns`` chunk per entity holding every buffered day. So a segment's plot gets at
-  most one row per event-day per flush, and its newest state reaches it within one flush.
-  TRC records (a few per segment and year) are all written.
-* live (map colours, alerts, trains): every ``live_flush_s`` wall seconds; the map's line
-  colours are re-logged (one row per line) only when a colour changed, all trains' latest
-  positions go in one row; every alert is written.
+  that day is buffered; the plotted segments' buffers are written every ``plot_flush_s``
+  wall seconds, every segment's every ``series_flush_s``, one ``send_columns`` chunk per
+  entity. So a plot gets at most one row per event-day per write. On-board indices of a
+  segment never plotted are kept (90 days) and written when it is first plotted; TRC
+  records (a few per segment and year) are all written.
+* live (map colours, alerts, trains): every ``live_flush_s`` wall seconds; a line's colours
+  are re-logged (one row) only when one changed, all trains' latest positions go in one
+  row; every alert is written.
+* static series styles only for the segments ever plotted (static data reaches a browser
+  before anything else).
 
 Entity paths (values in mm; ``{ind}`` is ``top6`` or ``align10``):
 

@@ -1,144 +1,53 @@
 """A real browser: headless Chromium (Debian's ``chromium``) opens the web viewer served by
 the viewer service while it holds data, and a screenshot shows the rendered viewer.
 
-Chromium's ``--screenshot`` captures at the page's load event, before the viewer's Wasm
-has started (``--virtual-time-budget`` does not wait for it either), so the test drives
-Chromium over the DevTools protocol on ``--remote-debugging-pipe`` (fd 3 in, fd 4 out,
-NUL-separated JSON; no extra package): navigate, wait until the page's ``window._handle``
-exists (the viewer's own "app started" hook), give it frames to draw, capture. Rendering
-is WebGL on SwiftShader (``renderer=webgl`` in the URL); services/viewer/README.md has
-what was tried.
+Chromium is driven over the DevTools pipe by :mod:`bench.browser` (``--screenshot`` fires
+before the viewer's Wasm has started; services/viewer/README.md has what was tried).
+Rendering is WebGL on SwiftShader (``renderer=webgl`` in the URL).
+
+Two cases: a small fixture (40 segments of one line) logged into an in-process viewer, and
+the demo world: ``trackfusion up`` with the services, the viewer and the fast-mode world at
+a higher speedup than ``make run``, until as many on-board indices went through as in 5
+minutes of ``make run``; then a browser opens late and must draw the coloured map, the worst
+segments' plots within seconds, while the viewer's memory stays bounded.
 """
 
 from __future__ import annotations
 
-import base64
 import io
 import json
-import os
+import re
 import signal
 import socket
-import subprocess
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
-import numpy as np
+import json5
 import pytest
+from browser import CHROMIUM, first_picture, hue_pixels
 
 from schemas import Alert, GpsFix, encode, keys
 from services.alerting.testing import T0, make_state, p_top6
 from services.viewer import service as viewer
 from simulators.network import DEMO_NETWORK, demo_network
 
-CHROMIUM = Path("/usr/bin/chromium")
 TIMEOUT_S = 5.0
-# Upper bounds only (each loop ends as soon as its condition holds: ~20 s in all unloaded).
-# SwiftShader renders on the CPU: with three busy processes beside the suite, 30 s to draw
-# was once not enough.
-START_S = 120.0  # Wasm download + compile + first frame on 2 shared cores
-DRAW_S = 120.0  # then until the streamed recording is drawn
+# Upper bounds only (each loop ends as soon as its condition holds). SwiftShader renders on
+# the CPU: with three busy processes beside the suite, 30 s to draw was once not enough.
+DRAW_S = 120.0  # navigation → Wasm download, compile, first frame → the map drawn
 DAY_S = 86_400.0
+# `make run` (15,000x, 4 service trains per line and day) publishes about 65,000 on-board
+# indices in 5 minutes (52 simulated days; filtering's coalesced states: about half that).
+# The world here runs 3x faster.
+MAKE_RUN_5_MIN_INDICES = 65_000
+WORLD_SPEEDUP = 45_000
+WORLD_S = 600.0  # upper bound for those indices to go through
+RSS_LIMIT_MB = 500.0  # the viewer's budget (services/viewer/README.md, "Memory")
 
 pytestmark = pytest.mark.skipif(
     not CHROMIUM.exists(), reason="no /usr/bin/chromium (apt-get install -y chromium)"
 )
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class DevTools:
-    """Headless Chromium driven over ``--remote-debugging-pipe``."""
-
-    def __init__(self, profile: Path, log: Path) -> None:
-        to_chrome_r, self._to_chrome = os.pipe()
-        self._from_chrome, from_chrome_w = os.pipe()
-
-        def fds_3_and_4() -> None:  # in the child: the pipe ends Chromium expects
-            a, b = os.dup(to_chrome_r), os.dup(from_chrome_w)
-            os.dup2(a, 3)
-            os.dup2(b, 4)
-
-        with log.open("wb") as err:
-            self.proc = subprocess.Popen(
-                [
-                    str(CHROMIUM),
-                    "--headless",
-                    "--no-sandbox",
-                    "--disable-quic",
-                    "--no-first-run",
-                    "--disable-background-networking",
-                    "--disable-component-update",
-                    "--disable-sync",
-                    f"--user-data-dir={profile}",
-                    "--window-size=1400,900",
-                    "--use-angle=swiftshader",
-                    "--enable-unsafe-swiftshader",
-                    "--remote-debugging-pipe",
-                    "about:blank",
-                ],  # fmt: skip
-                preexec_fn=fds_3_and_4,
-                close_fds=False,
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL,
-                stderr=err,
-                start_new_session=True,
-            )
-        os.close(to_chrome_r)
-        os.close(from_chrome_w)
-        self._buffer = b""
-        self._id = 0
-        self.session: str | None = None
-
-    def call(self, method: str, params: dict[str, Any] | None = None) -> dict[str, Any]:
-        self._id += 1
-        message: dict[str, Any] = {"id": self._id, "method": method, "params": params or {}}
-        if self.session is not None:
-            message["sessionId"] = self.session
-        os.write(self._to_chrome, json.dumps(message).encode() + b"\0")
-        while True:  # skip events until our answer
-            while b"\0" not in self._buffer:
-                chunk = os.read(self._from_chrome, 1 << 16)
-                if not chunk:
-                    raise EOFError("chromium closed the DevTools pipe")
-                self._buffer += chunk
-            raw, self._buffer = self._buffer.split(b"\0", 1)
-            reply = json.loads(raw)
-            if reply.get("id") == self._id:
-                if "error" in reply:
-                    raise RuntimeError(f"{method}: {reply['error']}")
-                return reply["result"]
-
-    def open(self, url: str) -> None:
-        target = self.call("Target.createTarget", {"url": "about:blank"})["targetId"]
-        attach = {"targetId": target, "flatten": True}
-        self.session = self.call("Target.attachToTarget", attach)["sessionId"]
-        self.call("Page.enable")
-        self.call("Page.navigate", {"url": url})
-
-    def evaluate(self, expression: str) -> Any:
-        result = self.call("Runtime.evaluate", {"expression": expression, "returnByValue": True})
-        return result["result"].get("value")
-
-    def screenshot(self) -> bytes:
-        return base64.b64decode(self.call("Page.captureScreenshot", {"format": "png"})["data"])
-
-    def close(self) -> None:
-        try:
-            self.session = None
-            self.call("Browser.close")
-            self.proc.wait(TIMEOUT_S)
-        except (OSError, EOFError, RuntimeError, subprocess.TimeoutExpired):
-            os.killpg(self.proc.pid, signal.SIGKILL)
-            self.proc.wait(TIMEOUT_S)
-        finally:
-            os.close(self._to_chrome)
-            os.close(self._from_chrome)
 
 
 def test_headless_chromium_renders_the_web_viewer(
@@ -164,6 +73,7 @@ def test_headless_chromium_renders_the_web_viewer(
                 stop=stop,
                 handle_signals=False,
                 blueprint_interval_s=0.0,  # the worst segments' plots at once
+                series_flush_s=0.0,
                 on_logged=lambda total: total >= expected and logged.set(),
                 out=out,
             )
@@ -171,7 +81,6 @@ def test_headless_chromium_renders_the_web_viewer(
         name="viewer-web-under-test",
     )
     thread.start()
-    browser = None
     try:
         assert alive.get()[1] == keys.alive(ns, viewer.SERVICE, "test")
         url = out.getvalue().strip()
@@ -195,46 +104,116 @@ def test_headless_chromium_renders_the_web_viewer(
         client.put(keys.alert(ns, "L1", segments[-1]), encode(alert))
         assert logged.wait(TIMEOUT_S), "the viewer did not log the published messages"
 
-        browser = DevTools(tmp_path / "profile", tmp_path / "chromium.log")
-        browser.open(f"{url}&renderer=webgl")
-        deadline = time.monotonic() + START_S
-        state = ""
-        while time.monotonic() < deadline:  # polling a page: no event to wait on from here
-            state = browser.evaluate(
-                "window._handle ? 'started' : (document.body ? document.body.innerText : '')"
-            )
-            if state == "started":
-                break
-            time.sleep(0.5)
-        assert state == "started", f"web viewer did not start: {state!r}"
-        assert browser.evaluate("window._handle.has_panicked()") is False
-        deadline = time.monotonic() + DRAW_S
-        while True:  # the recording streams in over gRPC: screenshot until the map is coloured
-            png = browser.screenshot()
-            missing = missing_colors(png)
-            if not missing or time.monotonic() > deadline:
-                break
-            time.sleep(1.0)
-        assert browser.evaluate("window._handle.has_panicked()") is False
+        picture = first_picture(
+            url, tmp_path / "browser", wanted=("green", "red"), timeout_s=DRAW_S
+        )
     finally:
-        if browser is not None:
-            browser.close()
         stop.set()
         thread.join(TIMEOUT_S)
     assert not thread.is_alive() and result == [0]
+    assert picture.started_s is not None, f"web viewer did not start: {picture.page_text!r}"
+    assert not picture.panicked
+    (tmp_path / "viewer.png").write_bytes(picture.png)
+    assert not picture.missing, f"no {picture.missing} map pixels on {tmp_path / 'viewer.png'}"
 
-    (tmp_path / "viewer.png").write_bytes(png)
-    assert not missing, f"no {missing} map pixels on the screenshot {tmp_path / 'viewer.png'}"
+
+def test_a_late_browser_draws_the_demo_world_within_seconds(
+    free_port, namespace, spawn, tmp_path: Path
+):
+    """The demo world through the real services into the web viewer; a browser that opens
+    after ~5 minutes' worth of `make run` draws the coloured map (green strips: segments
+    with a state; grey before) and the worst segments' plots (the estimate's blue); the
+    viewer's RSS stays within its budget meanwhile."""
+    state_dir = tmp_path / "var"
+    web_port, grpc_port = _free_port(), _free_port()
+    stack = {
+        "ns": namespace,
+        "router": {"listen": f"tcp/127.0.0.1:{free_port}"},
+        "state_dir": str(state_dir),
+        "processes": [
+            {
+                "name": "calibration",
+                "args": [
+                    "--db", str(state_dir / "cal.sqlite"), "--instance", "calibration",
+                    "--initial-models", "deploy/initial-models.json5",
+                ],
+            },
+            {"name": "filtering",
+             "args": ["--db", str(state_dir / "f.sqlite"), "--instance", "filtering"]},
+            {"name": "alerting",
+             "args": ["--db", str(state_dir / "a.sqlite"), "--instance", "alerting"]},
+            {
+                "name": "viewer",
+                "args": ["--instance", "viewer", "--web", "--web-port", str(web_port),
+                         "--grpc-port", str(grpc_port)],
+            },
+            {
+                "name": "simulator",
+                "command": "simulate",
+                "args": ["--fidelity", "index", "--trains", "4", "--days", "365",
+                         "--speedup", str(WORLD_SPEEDUP), "--seed", "1",
+                         "--instance", "simulator", "--no-progress"],
+            },
+        ],
+    }  # fmt: skip
+    stack_file = tmp_path / "stack.json5"
+    stack_file.write_text(json5.dumps(stack))
+    up = spawn("up", "up", "--stack", str(stack_file))
+    health_file = state_dir / "health.json"
+
+    deadline = time.monotonic() + WORLD_S
+    rss_mb: list[float] = []
+    health: dict = {}
+    while time.monotonic() < deadline:  # the stack's own board: polled, no event to wait on
+        health = _health(health_file)
+        pid = health.get("processes", {}).get("viewer", {}).get("pid")
+        if pid:
+            rss_mb.append(_rss_mb(pid))
+        if health.get("counts", {}).get("index", 0) >= MAKE_RUN_5_MIN_INDICES:
+            break
+        time.sleep(1.0)
+    indices = health.get("counts", {}).get("index", 0)
+    assert indices >= MAKE_RUN_5_MIN_INDICES, f"{indices} indices in {WORLD_S} s{up.log()}"
+    url = health["viewer_url"]
+    states, raised = health["counts"].get("state", 0), health["alerts_raised"]
+    print(f"\n{states} states, {indices} indices, {raised} alerts raised; "
+          f"viewer RSS max {max(rss_mb):.0f} MB")  # fmt: skip
+
+    picture = first_picture(url, tmp_path / "browser", wanted=("green", "blue"), timeout_s=DRAW_S)
+    (tmp_path / "viewer.png").write_bytes(picture.png)
+    for seconds, png in picture.shots:  # what the browser showed, in order
+        (tmp_path / f"shot-{seconds:05.1f}s.png").write_bytes(png)
+    rss_mb.append(_rss_mb(health["processes"]["viewer"]["pid"]))
+    seen = {hue: round(s, 1) for hue, s in picture.seen_s.items()}
+    print(f"browser: app started in {picture.started_s} s; first screenshot with the coloured "
+          f"map (green) and the plots (blue) {seen} s; pixels {hue_pixels(picture.png)}; "
+          f"viewer RSS max {max(rss_mb):.0f} MB")  # fmt: skip
+
+    up.signal(signal.SIGINT)
+    assert up.wait(30) == 0, up.log()
+    assert picture.started_s is not None, f"web viewer did not start: {picture.page_text!r}"
+    assert not picture.panicked
+    assert not picture.missing, f"no {picture.missing} pixels on {tmp_path / 'viewer.png'}"
+    assert max(rss_mb) <= RSS_LIMIT_MB, rss_mb
 
 
-def missing_colors(png: bytes) -> list[str]:
-    """Hues of the map's exceedance colours (green, red) with fewer than 100 pixels.
+def _free_port() -> int:
+    """Another free port (the ``free_port`` fixture gives one per test)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
-    Strips are drawn with an outline and blended, so hues are matched, not exact RGB.
-    """
-    from PIL import Image  # matplotlib's dependency
 
-    rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
-    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
-    hues = {"green": (g > r + 30) & (g > b + 30), "red": (r > g + 60) & (r > b + 60)}
-    return [name for name, mask in hues.items() if mask.sum() < 100]
+def _health(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}  # not written yet
+
+
+def _rss_mb(pid: int) -> float:
+    try:
+        match = re.search(r"VmRSS:\s+(\d+) kB", Path(f"/proc/{pid}/status").read_text())
+    except OSError:
+        return 0.0
+    return int(match[1]) / 1024 if match else 0.0
