@@ -135,6 +135,7 @@ from services.calibration.posterior import (
     sample_degradation_posterior,
 )
 from services.calibration.regression import CalibrationError, ObservationFit, fit_observation
+from services.calibration.robust import Rules, check_model, raw_pieces, reference, screen_segment
 
 __all__ = [
     "CALIBRATION_KEY",
@@ -145,6 +146,7 @@ __all__ = [
     "ModelEntry",
     "Model",
     "Pair",
+    "Quarantine",
     "StoredState",
     "calibration_change",
     "initial_models",
@@ -155,6 +157,10 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 DAY_S = 86400.0
+_AHEAD = "dated "  # how robust.screen_segment's reason for a record ahead of event time begins
+_INCREMENT_SD_FLOOR = 1e-3  # ln mm / sqrt(day): the robust sd of increments is at least this
+_LEVEL_SD_FLOOR = 1e-2  # ln mm: and that of post-tamping levels
+_RESIDUAL_SD_FLOOR = 1e-3  # ln: and that of (TRC, on-board) residuals
 CALIBRATION_KEY = "calibration"  # ModelEntry.key of the Calibration; posteriors use their group
 _N = len(INDICATORS)
 
@@ -184,6 +190,14 @@ class CalibratorConfig:
     seed: int = 0
     material_se: float = 1.0  # publication rule: a change is material beyond this many SEs
     min_publish_interval_days: float = 1.0  # event time between two versions of one model
+    # robustness (issue 14; robust.py)
+    max_rate_per_day: float = 1.0 / 30.0  # hard bound on |dz|/dt between records, ln mm/day
+    max_jump: float = 0.5  # ... plus this much, ln mm (diffusion and TRC noise over short dt)
+    robust_k: float = 8.0  # outliers: beyond this many robust sd (1.4826 MAD)
+    robust_min_count: int = 20  # samples before a median/MAD reference is used
+    max_move_sd: float = 8.0  # a pooled posterior moved beyond this (sd of the one in force)
+    event_time_quorum: int = 3  # event time: the newest time this many segments have reached
+    max_ahead_days: float = 180.0  # TRC records later than event time + this: left out for now
     drift_prior: NIWPrior | None = None  # None: NIWPrior.default_drift
     level_prior: NIWPrior | None = None  # None: NIWPrior.default_level
 
@@ -202,6 +216,19 @@ class CalibratorConfig:
             raise ValueError(f"seed: must be >= 0, got {self.seed}")
         if self.segment_min_increments < 1 or self.min_increments < 1 or self.min_levels < 1:
             raise ValueError("segment_min_increments, min_increments, min_levels must be >= 1")
+        if not (
+            self.max_rate_per_day > 0
+            and self.max_jump >= 0
+            and self.robust_k > 0
+            and self.max_move_sd > 0
+            and self.max_ahead_days >= 0
+        ):
+            raise ValueError(
+                "max_rate_per_day, robust_k, max_move_sd must be > 0, max_jump and "
+                "max_ahead_days >= 0"
+            )
+        if self.event_time_quorum < 1 or self.robust_min_count < 3:
+            raise ValueError("event_time_quorum must be >= 1 and robust_min_count >= 3")
         if not self.material_se >= 0 or not self.min_publish_interval_days >= 0:
             raise ValueError(
                 "material_se and min_publish_interval_days: must be >= 0, got "
@@ -220,6 +247,18 @@ class Pair:
     t: float
     z: tuple[float, float]
     y: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Quarantine:
+    """Something left out of a fit or a posterior, to report (a dead letter): ``kind`` is the
+    key kind of what caused it (``trc`` or ``index``), ``message`` the record when kept."""
+
+    kind: str
+    line: str
+    segment: str
+    reason: str
+    message: TrcRecord | None = None
 
 
 @dataclass(frozen=True)
@@ -475,7 +514,8 @@ class _GroupInput:
     level: np.ndarray
     age: np.ndarray
     level_source: str  # the group whose levels are used, or "prior"
-    t_newest: float  # epoch s of the newest TRC record of the group's segments
+    t_newest: float  # epoch s of the newest TRC record used of the group's segments
+    members: tuple[Segment, ...] = ()  # segments whose increments are pooled
 
 
 class Calibrator:
@@ -499,7 +539,16 @@ class Calibrator:
         self._models: dict[str, ModelEntry] = {}  # in force: published
         self._held: dict[str, ModelEntry] = {}  # newest accepted, not published (yet)
         self._material: set[str] = set()  # held keys that differ materially from in force
-        self._now = -math.inf  # event time: the newest event's (epoch s)
+        self._now = -math.inf  # event time (epoch s): see _note_time
+        # newest event time of the event_time_quorum segments furthest ahead: (t, line, seg)
+        self._clock_top: list[tuple[float, str, str]] = []
+        self._history: dict[Segment, tuple[list[TrcRecord], np.ndarray, np.ndarray, list]] = {}
+        self._raw: dict[Segment, tuple[np.ndarray, np.ndarray]] = {}  # robust.raw_pieces
+        self._screened: dict[Segment, dict[str, str]] = {}  # run_id -> why it is left out
+        self._reported: set[str] = set()  # trc ids reported left out (and still left out)
+        self._newest_used: dict[Segment, float] = {}  # epoch s of the newest record used
+        self._outbox: list[Quarantine] = []  # to report (dead letters), see drain_quarantined
+        self._screened_now = -math.inf  # event time at the last screening
         self._refused: dict[str, str] = {}  # group -> fingerprint whose build failed
         self._increments: dict[Segment, SegmentIncrements] = {}
         self._dirty: set[Segment] = set()
@@ -530,6 +579,8 @@ class Calibrator:
         self._material = set(state.meta.get("material", [])) & set(self._held)
         now = state.meta.get("now")
         self._now = -math.inf if now is None else float(now)
+        self._clock_top = [(float(t), line, seg) for t, line, seg in state.meta.get("clock", [])]
+        self._reported = set(state.meta.get("reported", []))
         self._attempt_at = int(state.meta.get("attempt_at", 0))
         self.stats.update(state.meta.get("stats", {}))
         self.rejections.extend(state.meta.get("rejections", []))
@@ -541,6 +592,8 @@ class Calibrator:
         return {
             "attempt_at": self._attempt_at,
             "now": self._now if math.isfinite(self._now) else None,
+            "clock": [list(c) for c in self._clock_top],
+            "reported": sorted(self._reported),
             "material": sorted(self._material),
             "stats": dict(self.stats),
             "rejections": list(self.rejections),
@@ -594,8 +647,29 @@ class Calibrator:
 
     @property
     def now(self) -> float:
-        """Event time as the core knows it: the newest event's (epoch s; -inf before any)."""
+        """Event time (epoch s; -inf before any event): the newest time that
+        ``event_time_quorum`` segments have reached (with fewer segments known, the oldest of
+        their newest times), never going back. One segment's events, however late they are
+        dated (a record dated 2099), cannot move it: the publication rate limit runs on it."""
         return self._now
+
+    def drain_quarantined(self) -> list[Quarantine]:
+        """What was left out since the last call, with reasons (the adapter's dead letters)."""
+        out, self._outbox = self._outbox, []
+        return out
+
+    def _note_time(self, seg: Segment, t: float) -> None:
+        top = self._clock_top
+        for i, (tt, line, segment) in enumerate(top):
+            if (line, segment) == seg:
+                if t > tt:
+                    top[i] = (t, line, segment)
+                break
+        else:
+            top.append((t, *seg))
+        top.sort(reverse=True)
+        del top[self.config.event_time_quorum :]
+        self._now = max(self._now, top[-1][0])
 
     def n_pending(self) -> int:
         return sum(len(p) for p in self._pending.values())
@@ -611,8 +685,8 @@ class Calibrator:
     def ingest(self, event: Event) -> bool:
         """Take one event; False if it was a duplicate or otherwise not used.
 
-        Every event taken (used or not) moves event time to its own time if that is newer; an
-        event that raises does not.
+        Every event taken (used or not) counts for event time (:attr:`now`); an event that
+        raises does not.
         """
         match event:
             case TrcRecord():
@@ -623,7 +697,7 @@ class Calibrator:
                 used, t = self._ingest_maintenance(event), event.t_end
             case _:
                 raise TypeError(f"not a calibration input: {type(event).__name__}")
-        self._now = max(self._now, t)
+        self._note_time((event.line, event.segment), t)
         return used
 
     def install_initial(
@@ -753,7 +827,10 @@ class Calibrator:
         """Fit or rebuild what the new data calls for, then publish what the publication
         rule lets through; the models published, the Calibration first, then by group."""
         self._maybe_fit()
-        if self._dirty:
+        ahead_due = self._screened_now != self._now and any(
+            r.startswith(_AHEAD) for left in self._screened.values() for r in left.values()
+        )
+        if self._dirty or ahead_due:
             self._update_increments()
             self._dirty.clear()
             self._rebuild_posteriors()
@@ -777,6 +854,18 @@ class Calibrator:
         if in_force is None or in_force.published_at is None:
             return True
         return self._now >= in_force.published_at + self.config.min_publish_interval_days * DAY_S
+
+    def _invalid(self, entry: ModelEntry) -> str | None:
+        """Why ``entry`` must never be published (:func:`robust.check_model`), logged and
+        counted, or None."""
+        reason = check_model(entry.message)
+        if reason is None:
+            return None
+        self.stats["models_invalid"] += 1
+        msg = f"{entry.key} version {entry.message.version} invalid, not published: {reason}"
+        self.rejections.append(msg)
+        log.error("%s", msg)
+        return msg
 
     def _hold(self, entry: ModelEntry, change: Move | None) -> None:
         """Keep an accepted model; mark it for publication if it differs materially from the
@@ -804,6 +893,9 @@ class Calibrator:
         at = self._now if math.isfinite(self._now) else None
         for key in sorted(self._material, key=lambda k: (k != CALIBRATION_KEY, k)):
             if not self._due(key):
+                continue
+            if self._invalid(self._held[key]) is not None:  # checked when held: never here
+                self._material.discard(key)
                 continue
             entry = replace(self._held.pop(key), published_at=at)
             self._material.discard(key)
@@ -835,8 +927,10 @@ class Calibrator:
             self.stats["fit_errors"] += 1
             log.warning("calibration fit on %d pairs refused: %s", n, e)
             return None
+        n_ref = 0
         if fitted:
             old: Calibration = current.message  # type: ignore[union-attr,assignment]
+            n_ref = old.n_pairs
             reason = self._worse(old, fit, Z[: old.n_pairs], Y[: old.n_pairs])
             if reason is not None:
                 self.stats["fits_rejected"] += 1
@@ -851,6 +945,17 @@ class Calibrator:
                 self.stats["pairs_quarantined"] += len(new)
                 self._attempt_at = old.n_pairs
                 return None
+        # a fit the swap rule lets through may still lean on a few wild pairs: out, and refit
+        if self._drop_outlying_pairs(fit.H, fit.b, n_ref):
+            n = self._attempt_at = len(self._pairs)
+            Z = np.array([p.z for p in self._pairs])
+            Y = np.array([p.y for p in self._pairs])
+            try:
+                fit = fit_observation(Z, Y, min_pairs=cfg.min_pairs)
+            except CalibrationError as e:
+                self.stats["fit_errors"] += 1
+                log.warning("calibration fit on %d pairs refused: %s", n, e)
+                return None
         in_force = self._models.get(CALIBRATION_KEY)
         version = self._next_version(CALIBRATION_KEY)
         cal = Calibration(
@@ -864,6 +969,9 @@ class Calibrator:
             n_pairs=n,
             r2=_arr(fit.r2),
         )
+        entry = ModelEntry(CALIBRATION_KEY, cal)
+        if self._invalid(entry) is not None:
+            return None
         self.stats["fits_accepted"] += 1
         change = None
         if in_force is not None:
@@ -875,8 +983,43 @@ class Calibrator:
             None if in_force is None else in_force.message.version,
             "none" if change is None else change[1],
         )
-        self._hold(ModelEntry(CALIBRATION_KEY, cal), change)
+        self._hold(entry, change)
         return cal
+
+    def _drop_outlying_pairs(self, H: np.ndarray, b: np.ndarray, n_ref: int) -> int:
+        """Quarantine the pairs after the first ``n_ref`` whose residual ``y - (Hz + b)``
+        under the fit ``H, b`` is beyond ``robust_k`` robust sd (1.4826 MAD) of the residuals
+        of the first ``n_ref`` (all pairs when ``n_ref`` is 0: a first fit judged on its own
+        pairs); the number left out. Run after the swap rule has accepted the fit: a burst
+        of bad pairs (a faulty unit) is the swap rule's and goes whole; single wild pairs
+        the swap rule lets through (a wrong pairing, a glitch) go here."""
+        cfg = self.config
+        Z = np.array([p.z for p in self._pairs]).reshape(-1, _N)
+        Y = np.array([p.y for p in self._pairs]).reshape(-1, len(ONBOARD_INDICES))
+        E = Y - Z @ H.T - b
+        ref = reference(
+            E[:n_ref] if n_ref else E, min_count=cfg.robust_min_count, floor=_RESIDUAL_SD_FLOOR
+        )
+        if ref is None:
+            return 0
+        out = [i for i in range(n_ref, len(E)) if ref.outlying(E[i], cfg.robust_k)]
+        for i in out:
+            p, d = self._pairs[i], np.abs(E[i] - ref.median) / ref.scale
+            m = int(np.argmax(d))
+            why = (
+                f"pair of index {p.index_id} with TRC run {p.run_id} left out of the "
+                f"observation model: residual of {ONBOARD_INDICES[m]} {E[i][m]:+.3f} ln is "
+                f"{d[m]:.1f} robust sd (1.4826 MAD {ref.scale[m]:.3g}) from the fit's "
+                f"(more than {cfg.robust_k:g})"
+            )
+            log.warning("%s", why)
+            self._outbox.append(Quarantine("index", p.line, p.segment, why))
+        dropped = set(out)
+        self._quarantined.extend(self._pairs[i] for i in out)
+        self._changes.quarantined.extend(self._pairs[i].index_id for i in out)
+        self._pairs = [p for i, p in enumerate(self._pairs) if i not in dropped]
+        self.stats["pairs_outliers"] += len(out)
+        return len(out)
 
     def _worse(self, old: Calibration, fit, Z: np.ndarray, Y: np.ndarray) -> str | None:
         """The swap rule: why the candidate ``fit`` is worse than ``old``, or None."""
@@ -898,25 +1041,87 @@ class Calibrator:
         return None
 
     def _update_increments(self) -> None:
+        """Screen every segment's TRC history (:func:`robust.screen_segment`: the reference
+        is the whole network's, so a new record anywhere may change a verdict) and rebuild
+        the increments of the segments whose records used changed."""
+        cfg = self.config
         for seg in self._dirty:
             records = sorted(self._trc.get(seg, {}).values(), key=lambda r: r.t)
             if not records:
-                self._increments.pop(seg, None)
+                for d in (self._history, self._raw, self._increments, self._newest_used):
+                    d.pop(seg, None)
                 continue
             t = np.array([r.t / DAY_S for r in records])
             z = np.array([_z(r) for r in records]).reshape(len(records), _N)
-            tamping = [
+            tamping = sorted(
                 0.5 * (e.t_start + e.t_end) / DAY_S for e in self._maint.get(seg, {}).values()
-            ]
-            self._increments[seg] = history_to_increments(
-                t, z, sorted(tamping), max_age=self.config.max_level_age_days
             )
+            self._history[seg] = (records, t, z, tamping)
+            self._raw[seg] = raw_pieces(t, z, tamping)
+        raw = [self._raw[s] for s in sorted(self._raw)]
+        empty = np.empty((0, _N))
+        increments = reference(
+            np.concatenate([x for x, _ in raw] or [empty]),
+            min_count=cfg.robust_min_count,
+            floor=_INCREMENT_SD_FLOOR,
+        )
+        levels = reference(
+            np.concatenate([lv for _, lv in raw] or [empty]),
+            min_count=cfg.robust_min_count,
+            floor=_LEVEL_SD_FLOOR,
+        )
+        rules = Rules(cfg.max_rate_per_day, cfg.max_jump, cfg.robust_k, cfg.max_ahead_days)
+        now_days = self._now / DAY_S if math.isfinite(self._now) else math.inf
+        self._screened_now = self._now
+        for seg in sorted(self._history):
+            records, t, z, tamping = self._history[seg]
+            out = screen_segment(
+                t, z, tamping, now_days=now_days, rules=rules, increments=increments, levels=levels
+            )
+            left = {records[i].run_id: reason for i, reason in out.items()}
+            if seg not in self._dirty and left == self._screened.get(seg, {}):
+                continue
+            self._report_screening(seg, left)
+            keep = np.array([i not in out for i in range(len(records))])
+            if not keep.any():
+                self._increments.pop(seg, None)
+                self._newest_used.pop(seg, None)
+                continue
+            self._increments[seg] = history_to_increments(
+                t[keep], z[keep], tamping, max_age=cfg.max_level_age_days
+            )
+            self._newest_used[seg] = float(t[keep].max()) * DAY_S
+
+    def _report_screening(self, seg: Segment, left: dict[str, str]) -> None:
+        """Log, count and report (once) the records of ``seg`` newly left out; forget those
+        taken back (a step confirmed by a later record, event time reaching a record)."""
+        before = self._screened.get(seg, {})
+        if left:
+            self._screened[seg] = left
+        else:
+            self._screened.pop(seg, None)
+        records = self._trc[seg]
+        for run_id in sorted(set(before) - set(left)):
+            self._reported.discard(trc_id(records[run_id]))
+            self.stats["trc_taken_back"] += 1
+            log.info("TRC record %s used again", trc_id(records[run_id]))
+        for run_id, reason in sorted(left.items()):
+            rec = records[run_id]
+            tid = trc_id(rec)
+            if tid in self._reported:
+                continue
+            self._reported.add(tid)
+            self.stats["trc_quarantined"] += 1
+            why = f"TRC record {tid} left out of the degradation posteriors: {reason}"
+            log.warning("%s", why)
+            self._outbox.append(Quarantine("trc", rec.line, rec.segment, why, rec))
+        self._changes.meta = {}  # the reported set is part of meta
 
     def _group_inputs(self) -> dict[str, _GroupInput]:
         """Inputs of every group that exists now (deterministic order of pooling)."""
         cfg = self.config
         segs = sorted(self._increments)
-        newest = {s: max(r.t for r in self._trc[s].values()) for s in segs}
+        newest = self._newest_used
 
         def pool(members: list[Segment]):
             incs = [self._increments[s] for s in members]
@@ -926,6 +1131,7 @@ class Calibrator:
                 np.concatenate([i.level for i in incs]).reshape(-1, _N),
                 np.concatenate([i.age for i in incs]),
                 max(newest[s] for s in members),
+                tuple(members),
             )
 
         net = pool(segs)
@@ -935,11 +1141,11 @@ class Calibrator:
         line_pool = {line: pool(members) for line, members in lines.items()}
 
         def make(own, chain: list[tuple[str, tuple]]) -> _GroupInput:
-            dz, dt, _, _, t_newest = own
-            for source, (_, _, level, age, _) in chain:
+            dz, dt, _, _, t_newest, members = own
+            for source, (_, _, level, age, _, _) in chain:
                 if len(level) >= cfg.min_levels:
-                    return _GroupInput(dz, dt, level, age, source, t_newest)
-            return _GroupInput(dz, dt, net[2][:0], net[3][:0], "prior", t_newest)
+                    return _GroupInput(dz, dt, level, age, source, t_newest, members)
+            return _GroupInput(dz, dt, net[2][:0], net[3][:0], "prior", t_newest, members)
 
         out: dict[str, _GroupInput] = {"net": make(net, [("net", net)])}
         for line, lp in line_pool.items():
@@ -994,12 +1200,80 @@ class Calibrator:
                 self.stats["posteriors_refused"] += 1
                 log.info("posterior %s not rebuilt: %s", group, e)
                 continue
+            entry = ModelEntry(group, post, fingerprint=fp)
+            if self._invalid(entry) is not None:
+                self._refused[group] = fp
+                continue
+            if in_force is not None and (why := self._one_segment_move(g, post, in_force)):
+                self._refused[group] = fp
+                self.stats["posteriors_held_move"] += 1
+                self.rejections.append(why)
+                log.warning("%s", why)
+                continue
             self._refused.pop(group, None)
             self.stats["posteriors_built"] += 1
             change = None
             if in_force is not None:
                 change = posterior_change(post, in_force.message)  # type: ignore[arg-type]
-            self._hold(ModelEntry(group, post, fingerprint=fp), change)
+            self._hold(entry, change)
+
+    def _one_segment_move(
+        self, g: _GroupInput, post: DegradationPosterior, in_force: ModelEntry
+    ) -> str | None:
+        r"""The move bound: why the pooled posterior ``post`` moved too far on the strength of
+        one segment, or None.
+
+        The move is :math:`\max |\bar\theta_{new} - \bar\theta_{old}| / sd(\theta_{old})`
+        over the elements of ``mu`` and ``Sigma``, in the posterior sd of the version in force
+        (from its draws). Beyond ``max_move_sd`` the conjugate posterior means are computed
+        again without each member segment in turn; when leaving out one segment brings the
+        move back within the bound (or the group has one segment only), that segment alone
+        moved it: the candidate is held (not published) and the segment's newest record
+        reported. Segment groups are not judged (their data are the segment's own).
+        """
+        if post.group.startswith("seg."):
+            return None
+        old: DegradationPosterior = in_force.message  # type: ignore[assignment]
+        o_mu, o_sigma = old.mu.array(), old.sigma.array()
+        ref = (o_mu.mean(axis=0), o_mu.std(axis=0), o_sigma.mean(axis=0), o_sigma.std(axis=0))
+
+        def move(mu, sigma) -> Move:
+            return _largest_move([("mu", mu, ref[0], ref[1]), ("sigma", sigma, ref[2], ref[3])])
+
+        bound = self.config.max_move_sd
+        moved = move(post.mu.array().mean(axis=0), post.sigma.array().mean(axis=0))
+        if moved[0] <= bound:
+            return None
+        members = [s for s in g.members if len(self._increments[s].dt)]
+        culprit: Segment | None = members[0] if len(members) == 1 else None
+        if culprit is None:
+            best = (math.inf, members[0])
+            for s in members:
+                rest = [self._increments[m] for m in members if m != s]
+                try:
+                    p = posterior_drift_diffusion(
+                        np.concatenate([i.dz for i in rest]).reshape(-1, _N),
+                        np.concatenate([i.dt for i in rest]),
+                        self.config.drift_prior,
+                        min_increments=1,
+                    )
+                except CalibrationError:
+                    continue
+                without = move(p.m, p.mean_sigma())[0]
+                best = min(best, (without, s))
+            if best[0] <= bound:
+                culprit = best[1]
+        if culprit is None:
+            return None  # several segments agree: a real change
+        why = (
+            f"posterior {post.group} not published: moved {moved[1]} of version "
+            f"{old.version} in force (more than {bound:g}) on the strength of segment "
+            f"{culprit[0]}/{culprit[1]} alone"
+        )
+        records = self._history[culprit][0]
+        rec = records[-1]
+        self._outbox.append(Quarantine("trc", rec.line, rec.segment, why, rec))
+        return why
 
     def _build(self, group: str, g: _GroupInput, version: int) -> DegradationPosterior:
         cfg = self.config

@@ -264,7 +264,8 @@ def test_groups_pooling_and_levels():
     last = max(
         e.t for e in events if isinstance(e, TrcRecord) and e.segment == "s0" and e.line == "L1"
     )
-    out = core.step([trc("L1", "s0", "new", last + 60 * DAY, np.log([3.5, 2.5]))])
+    new = trc("L1", "s0", "new", last + 60 * DAY, np.log([3.5, 2.5]))
+    out = core.step([new, *waiting_index(0, t0=new.t)])  # event time follows it elsewhere
     assert sorted((p.group, p.version) for p in out) == [
         ("line.L1", 2),
         ("net", 2),
@@ -345,8 +346,11 @@ def day_batch(n_pairs, rng, day, *, start, t0=T0, **kw):
 
 
 def waiting_index(day, t0=T0):
-    """An event that only moves event time: an index waiting for a TRC record that never comes."""
-    return index("L9", "w", t0 + day * DAY, np.log([2.0, 1.5]), run=f"none{day}")
+    """Events that only move event time: indices waiting for TRC records that never come, on
+    as many segments as event time needs to agree (``event_time_quorum``, 3)."""
+    return [
+        index("L9", f"w{k}", t0 + day * DAY, np.log([2.0, 1.5]), run=f"none{day}") for k in range(3)
+    ]
 
 
 _day_batch, _waiting_index = day_batch, waiting_index
@@ -391,15 +395,16 @@ def test_two_material_changes_within_a_day_publish_once_then_when_event_time_pas
     (v1,) = core.step(day_batch(1000, rng, 0, start=0))
     (v2,) = core.step(day_batch(300, rng, 2, start=1000, B=B + [0.15, 0.0]))
     published = core.published_at["calibration"]
-    assert published == core.now == max(p.t for p in core.pairs)
+    # event time: the newest time three segments have reached (each pair has its own segment)
+    assert published == core.now == sorted(p.t for p in core.pairs)[-3]
     # a second material change 0.3 day later: accepted, held by the rate limit
     assert core.step(day_batch(300, rng, 2.3, start=1300, B=B + [0.0, 0.15])) == []
     held = core.held["calibration"]
     assert held.version == 3 and held.n_pairs == 1600
     assert core.stats["publications_delayed"] == 1 and core.calibration == v2
     # event time moves on without any refit: still within the day, then past it
-    assert core.step([waiting_index(3.1)]) == []  # v2 came out at day 2.21 (its last pair)
-    (v3,) = core.step([waiting_index(3.3)])
+    assert core.step(waiting_index(3.1)) == []  # v2 came out at day 2.21 (its last pairs)
+    (v3,) = core.step(waiting_index(3.3))
     assert v3 == held and core.held == {} and core.published_at["calibration"] == core.now
     assert core.stats["fits_accepted"] == 3 and core.stats["calibrations_published"] == 3
     assert [v1.version, v2.version, v3.version] == [1, 2, 3]
@@ -433,8 +438,8 @@ def test_restart_keeps_the_version_in_force_and_its_publication_time(kind, tmp_p
     assert restored.step([]) == []
     # the held version comes out on both when event time passes the day, not before
     for day, n in ((3.1, 0), (3.3, 1)):
-        out = core.step([waiting_index(day)])
-        assert restored.step([waiting_index(day)]) == out and len(out) == n
+        out = core.step(waiting_index(day))
+        assert restored.step(waiting_index(day)) == out and len(out) == n
         store.apply(restored.drain_changes())
     assert out[0].version == 3
     reopened = Calibrator(cfg, store.load())
