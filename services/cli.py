@@ -103,6 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
             conf.options(calibration.SERVICE),
             db=args.db,
             initial_models=args.initial_models,
+            network=args.network,
             min_pairs=args.min_pairs,
             refit_every=args.refit_every,
             tolerance_days=args.tolerance_days,
@@ -127,6 +128,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.json5",
         help="prior models published as version 1 until data gives better ones "
         "(e.g. deploy/initial-models.json5; default: none)",
+    )
+    p.add_argument(
+        "--network",
+        type=Path,
+        metavar="FILE.geojson",
+        help="refuse events on segments this network does not have (default: accept any)",
     )
     p.add_argument("--min-pairs", type=int, help="pairs before the first fit (default: 30)")
     p.add_argument("--refit-every", type=int, help="new pairs between refits (default: 10)")

@@ -124,6 +124,7 @@ from schemas import (
     MaintenanceEvent,
     NDArray,
     OnboardIndex,
+    SchemaError,
     TrcRecord,
 )
 from services.calibration.posterior import (
@@ -161,6 +162,7 @@ _AHEAD = "dated "  # how robust.screen_segment's reason for a record ahead of ev
 _INCREMENT_SD_FLOOR = 1e-3  # ln mm / sqrt(day): the robust sd of increments is at least this
 _LEVEL_SD_FLOOR = 1e-2  # ln mm: and that of post-tamping levels
 _RESIDUAL_SD_FLOOR = 1e-3  # ln: and that of (TRC, on-board) residuals
+_MAX_OUTLIER_SHARE = 0.2  # more outlying pairs than this share are a burst: the swap rule's
 CALIBRATION_KEY = "calibration"  # ModelEntry.key of the Calibration; posteriors use their group
 _N = len(INDICATORS)
 
@@ -919,6 +921,12 @@ class Calibrator:
             return None  # the last first-fit attempt failed: wait for more pairs
         self._attempt_at = n
         self._changes.meta = {}  # mark meta as changed
+        if fitted:  # a few wild new pairs go before the swap rule judges the rest
+            cur: Calibration = current.message  # type: ignore[union-attr,assignment]
+            if self._drop_outlying_pairs(cur.H.array(), cur.b.array(), cur.n_pairs):
+                n = self._attempt_at = len(self._pairs)
+                if n == cur.n_pairs:
+                    return None
         Z = np.array([p.z for p in self._pairs])
         Y = np.array([p.y for p in self._pairs])
         try:
@@ -927,10 +935,8 @@ class Calibrator:
             self.stats["fit_errors"] += 1
             log.warning("calibration fit on %d pairs refused: %s", n, e)
             return None
-        n_ref = 0
         if fitted:
             old: Calibration = current.message  # type: ignore[union-attr,assignment]
-            n_ref = old.n_pairs
             reason = self._worse(old, fit, Z[: old.n_pairs], Y[: old.n_pairs])
             if reason is not None:
                 self.stats["fits_rejected"] += 1
@@ -945,8 +951,7 @@ class Calibrator:
                 self.stats["pairs_quarantined"] += len(new)
                 self._attempt_at = old.n_pairs
                 return None
-        # a fit the swap rule lets through may still lean on a few wild pairs: out, and refit
-        if self._drop_outlying_pairs(fit.H, fit.b, n_ref):
+        if not fitted and self._drop_outlying_pairs(fit.H, fit.b, 0):  # on its own residuals
             n = self._attempt_at = len(self._pairs)
             Z = np.array([p.z for p in self._pairs])
             Y = np.array([p.y for p in self._pairs])
@@ -958,17 +963,23 @@ class Calibrator:
                 return None
         in_force = self._models.get(CALIBRATION_KEY)
         version = self._next_version(CALIBRATION_KEY)
-        cal = Calibration(
-            version=version,
-            t=max(p.t for p in self._pairs),
-            indicators=list(INDICATORS),
-            indices=list(ONBOARD_INDICES),
-            H=_arr(fit.H),
-            b=_arr(fit.b),
-            R=_arr(fit.R),
-            n_pairs=n,
-            r2=_arr(fit.r2),
-        )
+        try:
+            cal = Calibration(
+                version=version,
+                t=max(p.t for p in self._pairs),
+                indicators=list(INDICATORS),
+                indices=list(ONBOARD_INDICES),
+                H=_arr(fit.H),
+                b=_arr(fit.b),
+                R=_arr(fit.R),
+                n_pairs=n,
+                r2=_arr(fit.r2),
+            )
+        except SchemaError as e:  # NaN/inf or out of the wire's bounds: never published
+            self.stats["models_invalid"] += 1
+            self.rejections.append(f"calibration fit on {n} pairs invalid, not published: {e}")
+            log.error("%s", self.rejections[-1])
+            return None
         entry = ModelEntry(CALIBRATION_KEY, cal)
         if self._invalid(entry) is not None:
             return None
@@ -990,9 +1001,11 @@ class Calibrator:
         """Quarantine the pairs after the first ``n_ref`` whose residual ``y - (Hz + b)``
         under the fit ``H, b`` is beyond ``robust_k`` robust sd (1.4826 MAD) of the residuals
         of the first ``n_ref`` (all pairs when ``n_ref`` is 0: a first fit judged on its own
-        pairs); the number left out. Run after the swap rule has accepted the fit: a burst
-        of bad pairs (a faulty unit) is the swap rule's and goes whole; single wild pairs
-        the swap rule lets through (a wrong pairing, a glitch) go here."""
+        pairs); the number left out. Only when they are a few (at most
+        ``_MAX_OUTLIER_SHARE`` of the pairs judged, or one): single wild pairs (a wrong
+        pairing, a glitch) go here, before the swap rule judges the rest, which would
+        otherwise quarantine every new pair with them; a burst of bad pairs (a faulty unit)
+        is left whole to the swap rule."""
         cfg = self.config
         Z = np.array([p.z for p in self._pairs]).reshape(-1, _N)
         Y = np.array([p.y for p in self._pairs]).reshape(-1, len(ONBOARD_INDICES))
@@ -1003,6 +1016,8 @@ class Calibrator:
         if ref is None:
             return 0
         out = [i for i in range(n_ref, len(E)) if ref.outlying(E[i], cfg.robust_k)]
+        if len(out) > max(1.0, _MAX_OUTLIER_SHARE * (len(E) - n_ref)):
+            return 0
         for i in out:
             p, d = self._pairs[i], np.abs(E[i] - ref.median) / ref.scale
             m = int(np.argmax(d))
@@ -1195,6 +1210,12 @@ class Calibrator:
             version = self._next_version(group)
             try:
                 post = self._build(group, g, version)
+            except SchemaError as e:  # NaN/inf or out of the wire's bounds: never published
+                self._refused[group] = fp
+                self.stats["models_invalid"] += 1
+                self.rejections.append(f"{group} version {version} invalid, not published: {e}")
+                log.error("%s", self.rejections[-1])
+                continue
             except CalibrationError as e:
                 self._refused[group] = fp
                 self.stats["posteriors_refused"] += 1
@@ -1227,9 +1248,10 @@ class Calibrator:
         over the elements of ``mu`` and ``Sigma``, in the posterior sd of the version in force
         (from its draws). Beyond ``max_move_sd`` the conjugate posterior means are computed
         again without each member segment in turn; when leaving out one segment brings the
-        move back within the bound (or the group has one segment only), that segment alone
-        moved it: the candidate is held (not published) and the segment's newest record
-        reported. Segment groups are not judged (their data are the segment's own).
+        move back within the bound (or the group has one segment only and a prior in force),
+        that segment alone moved it: the candidate is held (not published) and the segment's
+        newest record reported. Segment groups, and a pooled group of one segment whose
+        version in force came from data, are not judged (their data are one segment's own).
         """
         if post.group.startswith("seg."):
             return None
@@ -1245,6 +1267,8 @@ class Calibrator:
         if moved[0] <= bound:
             return None
         members = [s for s in g.members if len(self._increments[s].dt)]
+        if len(members) == 1 and old.n_increments > 0:
+            return None  # a one-segment group from data: it moves with its segment
         culprit: Segment | None = members[0] if len(members) == 1 else None
         if culprit is None:
             best = (math.inf, members[0])

@@ -144,8 +144,9 @@ def screen_segment(
     for r in np.unique(run[~ahead]):
         idx = [int(i) for i in np.flatnonzero((run == r) & ~ahead)]
         starts_after_tamping = bool(np.any(tamping <= t[idx[0]]))
+        kept: list[int] = []  # records of the run kept so far: a left-out one is no neighbour
         for j, i in enumerate(idx):
-            p = idx[j - 1] if j > 0 else None
+            p = kept[-1] if kept else None
             q = idx[j + 1] if j + 1 < len(idx) else None
             reason = None
             if p is not None and q is not None:
@@ -160,7 +161,7 @@ def screen_segment(
                 out_of = why(i, q, False)
                 if out_of and why(q, idx[j + 2], False) is None:
                     reason = f"against the records after it: {out_of}"
-            level = reason is None and j == 0 and starts_after_tamping
+            level = reason is None and not kept and starts_after_tamping
             if level and levels is not None and levels.outlying(z[i], rules.k):
                 d = np.abs(z[i] - levels.median) / levels.scale
                 m = int(np.argmax(d))
@@ -168,7 +169,9 @@ def screen_segment(
                     f"post-tamping level {z[i][m]:.3f} ln mm is {d[m]:.1f} robust sd from "
                     f"the network's {levels.median[m]:.3f} (more than {rules.k:g})"
                 )
-            if reason is not None:
+            if reason is None:
+                kept.append(i)
+            else:
                 out[i] = reason
     return out
 

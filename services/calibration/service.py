@@ -9,6 +9,11 @@ those the core's publication rule lets out (a material change, at most one versi
 per day of event time; ``calibrator.py``), checked at every batch, so a version held by the
 rate limit goes out with the first batch whose events pass the limit.
 A queryable on ``{ns}/model/**`` answers late joiners with the latest of each model.
+What the core leaves out (a TRC record, a pair, a posterior held by the move bound; issue 14)
+is published as a dead letter on ``{ns}/deadletter/calibration`` with the reason, keyed by the
+record's own key (``{ns}/trc/{line}/{segment}`` or ``{ns}/index/{line}/{segment}``), the
+record as payload when the core kept it. With ``network`` (a network GeoJSON file), events on
+segments it does not have are dead-lettered before they reach the core.
 
 At start the store is loaded (the same models, versions and samples are republished), then
 the optional initial models (``initial_models``: a JSON5 file, see
@@ -22,7 +27,7 @@ import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import json5
 import zenoh
@@ -42,6 +47,7 @@ from services.calibration.calibrator import (
     CalibratorConfig,
     Event,
     Model,
+    Quarantine,
     initial_models,
 )
 from services.calibration.store import SqliteStore
@@ -66,19 +72,21 @@ class Settings:
     core: CalibratorConfig = field(default_factory=CalibratorConfig)
     db: Path | None = None
     initial_models: Path | None = None
+    network: Path | None = None  # refuse events on segments it does not have (None: any)
 
 
 def settings_from(options: Mapping[str, Any], **overrides: Any) -> Settings:
     """Settings from the config file's ``services.calibration`` section, then ``overrides``
     (command-line values; None means "not given").
 
-    Keys: ``db``, ``initial_models`` and every field of :class:`CalibratorConfig`
+    Keys: ``db``, ``initial_models``, ``network`` and every field of :class:`CalibratorConfig`
     (``min_pairs``, ``refit_every``, ``tolerance_days``, ``samples``, ``seed``, …).
     """
     merged = dict(options)
     merged.update({k: v for k, v in overrides.items() if v is not None})
     db = merged.pop("db", None)
     initial = merged.pop("initial_models", None)
+    network = merged.pop("network", None)
     fields = set(CalibratorConfig.__dataclass_fields__) - {"drift_prior", "level_prior"}
     unknown = set(merged) - fields
     if unknown:
@@ -91,6 +99,7 @@ def settings_from(options: Mapping[str, Any], **overrides: Any) -> Settings:
         core=core,
         db=Path(db) if db is not None else None,
         initial_models=Path(initial) if initial is not None else None,
+        network=Path(network) if network is not None else None,
     )
 
 
@@ -101,6 +110,26 @@ def load_initial_models(path: Path, core: CalibratorConfig):
         return initial_models(spec, samples=core.samples, seed=core.seed)
     except (OSError, ValueError) as e:
         raise SystemExit(f"initial models {path}: {e}") from None
+
+
+def known_segments(network: Path | None) -> frozenset[tuple[str, str]] | None:
+    """The (line, segment) ids of a network file, or None (accept any); as the filtering
+    service's ``--network``."""
+    if network is None:
+        return None
+    from services.extraction.pipeline import SegmentTable  # the network reader we have
+
+    try:
+        table = SegmentTable.from_geojson(network)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"calibration: network {network}: {exc}") from None
+    return frozenset((line, seg) for line, segs in table.lines.items() for seg in segs.ids)
+
+
+def quarantine_key(ns: str, q: Quarantine) -> str:
+    """The key a left-out record came on: its dead letter's key."""
+    make = keys.trc if q.kind == "trc" else keys.index
+    return make(ns, q.line, q.segment)
 
 
 def model_key(ns: str, model: Model) -> str:
@@ -152,12 +181,19 @@ def main(
                 if installed:
                     log.info("initial models installed: %d", len(installed))
             store.apply(core.drain_changes())
-            return _serve(rt, core, store)
+            segments = known_segments(settings.network)
+            return _serve(rt, core, store, segments, settings.network)
         finally:
             store.close()
 
 
-def _serve(rt: ServiceRuntime, core: Calibrator, store: SqliteStore) -> int:
+def _serve(
+    rt: ServiceRuntime,
+    core: Calibrator,
+    store: SqliteStore,
+    segments: frozenset[tuple[str, str]] | None = None,
+    network: Path | None = None,
+) -> int:
     ns = rt.ns
     latest = _Latest()
     models_out = rt.reliable_publisher()  # cached: filtering instances that return get them
@@ -177,6 +213,11 @@ def _serve(rt: ServiceRuntime, core: Calibrator, store: SqliteStore) -> int:
                 f"{type(message).__name__}: line/segment {message.line}/{message.segment} "
                 f"do not match the key {key}"
             )
+        if segments is not None and (line, segment) not in segments:
+            raise SchemaError(
+                f"{type(message).__name__}: segment {line}/{segment} is not in the network "
+                f"{cast(Path, network).name}"
+            )
         return message
 
     def ingest(_kind: str, key: str, payload: bytes) -> None:
@@ -190,6 +231,9 @@ def _serve(rt: ServiceRuntime, core: Calibrator, store: SqliteStore) -> int:
             models = core.flush()
         finally:
             store.apply(core.drain_changes())  # persisted before anyone sees the models
+        for q in core.drain_quarantined():
+            payload = encode(q.message) if q.message is not None else None
+            rt.deadletters.reject(quarantine_key(ns, q), q.reason, payload)
         publish(models)
 
     def on_query(query: zenoh.Query) -> None:

@@ -8,6 +8,7 @@ import sqlite3
 from pathlib import Path
 
 import json5
+import msgspec
 import numpy as np
 import pytest
 
@@ -15,8 +16,10 @@ from schemas import (
     Calibration,
     DegradationPosterior,
     MaintenanceEvent,
+    NDArray,
     OnboardIndex,
     TrcRecord,
+    decode,
     encode,
 )
 from services.calibration.calibrator import (
@@ -29,6 +32,7 @@ from services.calibration.calibrator import (
     posterior_change,
 )
 from services.calibration.regression import fit_observation
+from services.calibration.robust import check_model
 from services.calibration.store import MemoryStore, SqliteStore
 
 DAY = 86400.0
@@ -503,3 +507,187 @@ def test_a_store_from_before_publication_times_opens(tmp_path):
     store = SqliteStore(path)
     assert Calibrator(CalibratorConfig(), store.load()).published_at == core.published_at
     store.close()
+
+
+# ---------------------------------------------------------------- robustness (issue 14)
+
+
+def seven_records(line, seg, t0, mm, *, outlier_at=3, outlier_mm=99.0, rng=None):
+    """Seven TRC records 70 days apart near ``mm``, one of them ``outlier_mm``."""
+    rng = rng or np.random.default_rng(0)
+    z = np.log(mm)
+    out = []
+    for k in range(7):
+        v = np.exp(z) if k != outlier_at else np.array([outlier_mm, outlier_mm])
+        out.append(trc(line, seg, f"x{k}", t0 + 70 * k * DAY, np.log(v)))
+        z = z + MU * 70 + rng.multivariate_normal([0, 0], SIGMA * 70)
+    return out
+
+
+def moved_sd(new: DegradationPosterior, old: DegradationPosterior) -> float:
+    """The largest move of the mean of mu or Sigma, in the old posterior's sd."""
+    return max(
+        float(np.max(np.abs(a_new.mean(0) - a_old.mean(0)) / a_old.std(0)))
+        for a_new, a_old in (
+            (new.mu.array(), old.mu.array()),
+            (new.sigma.array(), old.sigma.array()),
+        )
+    )
+
+
+@pytest.mark.parametrize("outlier_at", [3, 6])  # a spike; the newest record
+def test_a_99_mm_record_does_not_move_the_network_posterior(outlier_at):
+    rng = np.random.default_rng(31)
+    cfg = CalibratorConfig(samples=200, segment_min_increments=99)
+    core = Calibrator(cfg)
+    events = histories(rng, segs=6, records=8, tamp_every=99)
+    before = {m.group: m for m in core.step(events)}["net"]
+    t0 = max(e.t for e in events) - 6 * 70 * DAY
+    seven = seven_records("X", "unknown", t0, [3.0, 2.0], outlier_at=outlier_at)
+    core.step(seven)
+    net = core.held.get("net") or core.posteriors["net"]
+    assert moved_sd(net, before) < cfg.max_move_sd
+    assert net.sigma.array().mean(0)[0, 0] < 1e-3  # not 1.8e3 (ln mm)^2/day
+    (q,) = core.drain_quarantined()
+    assert (q.kind, q.line, q.segment, q.message) == ("trc", "X", "unknown", seven[outlier_at])
+    assert "left out of the degradation posteriors" in q.reason and "ln mm" in q.reason
+    assert core.stats["trc_quarantined"] == 1
+    assert core.drain_quarantined() == []  # reported once
+    # a later record does not report it again (but a newest outlier is taken back once a
+    # record confirms the step: two agreeing records are a change, not an outlier)
+    core.step([trc("X", "unknown", "x7", seven[-1].t + 70 * DAY, np.log([3.2, 2.1]))])
+    assert core.drain_quarantined() == []
+
+
+def test_the_incident_seven_records_on_one_segment_from_the_initial_models():
+    """Issue 14's case (1e308 then, 99 mm now): only the initial models and seven records of
+    one segment, one of them 99 mm."""
+    spec = json5.loads((REPO / "deploy" / "initial-models.json5").read_text())
+    cal0, posts = initial_models(spec, samples=200, seed=0)
+    core = Calibrator(CalibratorConfig(samples=200))
+    core.install_initial(cal0, posts)
+    out = core.step(seven_records("X", "unknown", T0, [3.0, 2.0]))
+    (q,) = core.drain_quarantined()
+    assert q.message is not None and q.message.top6_mm == pytest.approx(99.0)
+    assert "a spike" in q.reason
+    for m in out:
+        assert np.all(np.isfinite(m.sigma.array())) and m.sigma.array().mean(0)[0, 0] < 1e-3
+
+
+def test_a_pooled_posterior_moved_by_one_segment_alone_is_held():
+    rng = np.random.default_rng(32)
+    cfg = CalibratorConfig(samples=200, segment_min_increments=99)
+    core = Calibrator(cfg)
+    events = histories(rng, lines=("L1",), segs=6, records=8, tamp_every=99)
+    before = {m.group: m for m in core.step(events)}
+    # one segment whose records all degrade 40x faster, steadily (no single record is odd)
+    t0 = max(e.t for e in events) + DAY
+    fast = [
+        trc("L1", "s9", f"f{k}", t0 + 20 * k * DAY, np.log([2.0, 1.5]) + 0.3 * k) for k in range(8)
+    ]
+    assert core.step(fast) == []
+    assert core.stats["posteriors_held_move"] >= 1
+    assert "on the strength of segment L1/s9 alone" in core.rejections[-1]
+    assert core.posteriors["net"] == before["net"] and "net" not in core.held
+    (q, *_) = core.drain_quarantined()
+    assert (q.line, q.segment) == ("L1", "s9") and "not published" in q.reason
+
+
+def test_a_record_dated_2099_does_not_stall_publication():
+    rng = np.random.default_rng(33)
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, tolerance_days=None))
+    (v1,) = core.step(day_batch(1000, rng, 0, start=0))
+    now = core.now
+    late = trc("L1", "c5", "late", 4_090_000_000.0, np.log([3.0, 2.0]))  # 2099-08
+    late_index = index("L1", "c5", late.t + 5, np.log([2.5, 1.5]), run="late")
+    assert core.step([late, late_index]) == []
+    assert now <= core.now < now + DAY  # one segment cannot move event time
+    # two days later a material change is published at once, the day after another one
+    (v2,) = core.step(day_batch(300, rng, 2, start=1000, B=B + [0.15, 0.0]))
+    assert v2.version == 2 and core.published_at["calibration"] < late.t
+    assert core.step(day_batch(300, rng, 2.3, start=1300, B=B + [0.0, 0.15])) == []
+    (v3,) = core.step(waiting_index(3.3))
+    assert v3.version == 3
+    # event time never came near 2099: the late record is left out of the posteriors
+    assert core.now < T0 + 10 * DAY
+    assert all(p.t < late.t for p in core.posteriors.values())
+    reasons = [q.reason for q in core.drain_quarantined() if q.kind == "trc"]
+    assert any("late" in r and "after event time" in r for r in reasons)
+
+
+def test_a_wild_pair_the_swap_rule_lets_through_is_quarantined():
+    rng = np.random.default_rng(34)
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, **EVERY_CHANGE))
+    core.step(campaign(200, rng))
+    batch = campaign(10, rng, start=200)
+    wild = batch[-1]
+    batch[-1] = index(
+        wild.line,
+        wild.segment,
+        wild.t,
+        np.log([wild.top6_mm, wild.align10_mm]) + 2.0,
+        run=wild.run_id,
+    )
+    (cal,) = core.step(batch)
+    assert cal.n_pairs == 209 and core.stats["pairs_outliers"] == 1
+    assert core.stats["fits_rejected"] == 0
+    (q,) = core.drain_quarantined()
+    assert (q.kind, q.segment, q.message) == ("index", wild.segment, None)
+    assert "robust sd" in q.reason and "left out of the observation model" in q.reason
+    assert [p.index_id for p in core.quarantined] == [f"L1/{wild.segment}/T1/u1/{wild.t!r}"]
+
+
+def test_check_model_refuses_non_positive_definite_covariances():
+    rng = np.random.default_rng(35)
+    (cal,) = Calibrator(CalibratorConfig(min_pairs=30)).step(campaign(30, rng))
+    assert check_model(cal) is None
+    bad_r = msgspec.structs.replace(cal, R=NDArray.of(np.array([[1.0, 2.0], [2.0, 1.0]])))
+    assert check_model(bad_r) == "R is not positive definite"
+    (post,) = [
+        m
+        for m in Calibrator(CalibratorConfig(samples=20)).step(histories(rng, lines=("L1",)))
+        if m.group == "net"
+    ]
+    assert check_model(post) is None
+    sigma = post.sigma.array().copy()
+    sigma[3] = [[1e-4, 2e-4], [2e-4, 1e-4]]  # symmetric, one eigenvalue < 0
+    assert check_model(msgspec.structs.replace(post, sigma=NDArray.of(sigma))) == (
+        "sigma is not positive definite"
+    )
+    # NaN and inf cannot even be built (NDArray refuses them): the core counts such a model
+    # as invalid when it builds it (models_invalid) and never publishes it
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_no_nan_inf_or_indefinite_model_is_ever_published(seed):
+    """Property: whatever outliers within the schema's bounds arrive (values in (0, 100] mm,
+    times in [2000, 2100)), every model published is finite with SPD covariances."""
+    rng = np.random.default_rng(100 + seed)
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, samples=30))
+    events = histories(rng, segs=3, records=6) + campaign(40, rng)
+    for _ in range(25):
+        line, seg = rng.choice(["L1", "L2", "X"]), f"s{rng.integers(0, 5)}"
+        t = float(
+            rng.choice([rng.uniform(946_684_800, 4_102_444_700), T0 + rng.uniform(0, 800) * DAY])
+        )
+        mm = np.exp(rng.uniform(np.log(1e-3), np.log(100.0), size=2))
+        run = f"o{rng.integers(0, 10**9)}"
+        events.append(trc(line, seg, run, t, np.log(mm)))
+        if rng.random() < 0.5:
+            y = np.log(np.exp(rng.uniform(np.log(1e-3), np.log(100.0), size=2)))
+            events.append(index(line, seg, t + 1, y, run=run))
+        if rng.random() < 0.2:
+            events.append(
+                MaintenanceEvent(
+                    line=line, segment=seg, event_id=run, t_start=t - DAY, t_end=t - DAY
+                )
+            )
+    rng.shuffle(events)
+    published = []
+    for k in range(0, len(events), 17):
+        published += core.step(events[k : k + 17])
+    published += core.step(waiting_index(0, t0=T0 + 900 * DAY))
+    assert published
+    for m in published:
+        assert check_model(m) is None
+        decode(encode(m), type(m))  # and within the wire limits
