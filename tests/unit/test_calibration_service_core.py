@@ -25,6 +25,7 @@ from schemas import (
 from services.calibration.calibrator import (
     Calibrator,
     CalibratorConfig,
+    Quarantine,
     calibration_change,
     group_rng,
     initial_models,
@@ -691,3 +692,16 @@ def test_no_nan_inf_or_indefinite_model_is_ever_published(seed):
     for m in published:
         assert check_model(m) is None
         decode(encode(m), type(m))  # and within the wire limits
+
+
+def test_service_network_setting_and_dead_letter_keys():
+    from services.calibration import service
+
+    network = REPO / "deploy" / "demo-network.geojson"
+    settings = service.settings_from({"network": str(network)})
+    assert settings.network == network
+    known = service.known_segments(settings.network)
+    assert known is not None and len(known) == 295 and service.known_segments(None) is None
+    q = Quarantine("trc", "L1", "s00042", "why")
+    assert service.quarantine_key("tf", q) == "tf/trc/L1/s00042"
+    assert service.quarantine_key("tf", Quarantine("index", "L1", "s1", "")) == "tf/index/L1/s1"
