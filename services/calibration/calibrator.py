@@ -86,9 +86,9 @@ Publication rule (issue 12: model updates without storms)
        (the first fit without initial models, a new group) always differs; an initial model
        is replaced by the first candidate that differs from it by this rule;
     2. **the rate limit** lets it out: at least ``min_publish_interval_days`` (default 1) of
-       event time since the version in force was published. Event time is the newest event
-       time ingested (TRC ``t``, index ``t``, tamping ``t_end``), never the clock. An initial
-       model is not rate-limited.
+       event time since the version in force was published. Event time is the newest time
+       (TRC ``t``, index ``t``, tamping ``t_end``) that ``event_time_quorum`` segments have
+       reached (:attr:`Calibrator.now`), never the clock. An initial model is not rate-limited.
 
     Both are judged against the model **in force**, not the previous candidate, so many small
     moves that add up to a material one are published. Nothing is lost while held: the pairs
@@ -101,6 +101,16 @@ Publication rule (issue 12: model updates without storms)
     published at once (the behaviour before the rule). Counted: ``changes_immaterial``,
     ``publications_delayed``, ``calibrations_published``, ``posteriors_published``. The held
     candidates, the publication time of each model in force and event time are persisted.
+
+Robustness (issue 14)
+    Every model is checked (:func:`robust.check_model`: finite, SPD covariances) before it is
+    held and again before it is published; TRC records that the data blame (a spike, a newest
+    record beyond the physical rate bound, a post-tamping level far off the network's, a
+    record dated far after event time) are left out of the increments and levels
+    (:func:`robust.screen_segment`); a pooled posterior moved beyond ``max_move_sd`` by one
+    segment alone is held; a few wild pairs are quarantined before the swap rule judges a
+    refit. What is left out is logged, counted and returned by
+    :meth:`Calibrator.drain_quarantined` (the adapter's dead letters). See the README.
 """
 
 from __future__ import annotations
