@@ -19,8 +19,8 @@ writes what is due; services/viewer/README.md has the figures):
   entity. So a plot gets at most one row per event-day per write. On-board indices of a
   segment never plotted are kept (90 days) and written when it is first plotted; TRC
   records (a few per segment and year) are all written.
-* live (map colours, alerts, trains): every ``live_flush_s`` wall seconds; a line's colours
-  are re-logged (one row) only when one changed, all trains' latest positions go in one
+* live (map colours, alerts, trains): every ``live_flush_s`` wall seconds; the network's
+  colours are re-logged (one row) only when one changed, all trains' latest positions go in one
   row; every alert is written.
 * static series styles only for the segments ever plotted (static data reaches a browser
   before anything else).
@@ -33,8 +33,9 @@ Entity paths (values in mm; ``{ind}`` is ``top6`` or ``align10``):
                                                   band low and high, then one per limit level
 ``segments/{line}/{segment}/{ind}/onboard``       raw on-board index (points; not de-biased)
 ``segments/{line}/{segment}/{ind}/trc``           TRC record (points)
-``map/segments/{line}``                           one line strip per segment, coloured by
-                                                  exceedance probability (green → red)
+``map/segments``                                  one line strip per segment of the network
+                                                  (labelled ``{line}/{segment}``), coloured
+                                                  by exceedance probability (green → red)
 ``map/trains``                                    last GPS fix of every train (fix_quality > 0)
 ``alerts``                                        TextLog: raised = WARN, cleared = INFO
 ================================================  ==========================================
@@ -42,7 +43,7 @@ Entity paths (values in mm; ``{ind}`` is ``top6`` or ``align10``):
 Map frame: local metres of :meth:`simulators.network.Network.to_xy` (x east, y north)
 with y negated on logging, because Rerun's 2D view draws y downwards (rerun#1387): north
 is up on screen. Strip geometry and labels are static; only the colours are temporal, so
-the map is drawn before the first state and a colour change re-logs one array per line.
+the map is drawn before the first state and a colour change re-logs one colour array.
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ from schemas import INDICATORS, Alert, GpsFix, Message, OnboardIndex, SegmentSta
 from simulators.network import Network
 
 TIMELINE = "event_time"  # timestamp timeline of the messages' event time t (epoch s)
+MAP_PATH = "map/segments"  # every segment of the network, one line strip each
 INTERVENTION = "intervention"  # the limit level the map colour and the worst ranking use
 DAY_S = 86_400.0
 DEFAULT_WORST_N = 3
@@ -71,7 +73,7 @@ DEFAULT_BLUEPRINT_INTERVAL_S = 60.0  # wall seconds between two blueprint re-sen
 DEFAULT_SERIES_FLUSH_S = 300.0  # wall seconds between two writes of the other segments' rows
 WORST_MARGIN = 0.25  # a segment replaces a plotted one if its p is higher by more than this
 DEFAULT_PLOT_FLUSH_S = 10.0  # wall seconds between two writes of the plotted segments' rows
-DEFAULT_LIVE_FLUSH_S = 2.0  # wall seconds between two writes of map colours, alerts, trains
+DEFAULT_LIVE_FLUSH_S = 3.0  # wall seconds between two writes of map colours, alerts, trains
 ONBOARD_KEPT_DAYS = 90  # event days of on-board points kept for a segment not plotted yet
 PLOT_WINDOW_DAYS = 90.0  # event days before the time cursor that the plots show
 
@@ -228,9 +230,9 @@ def build_blueprint(
 
 
 @dataclass
-class _MapLine:
-    keys: list[SegmentKey]  # strip order
-    index: dict[str, int]  # segment id -> strip
+class _Map:
+    keys: list[SegmentKey]  # strip order: the network's lines, each in chainage order
+    index: dict[SegmentKey, int]  # segment -> strip
     colors: np.ndarray  # (k, 3) uint8, the current colours
     changed_t: float | None = None  # newest event time of a colour change not yet logged
 
@@ -288,7 +290,7 @@ class ViewerCore:
         self._styled: dict[str, tuple[str, ...]] = {}  # entity -> styled limit levels
         self._levels: dict[str, tuple[str, ...]] = {}  # state entity -> its limit levels
         self._plotted: set[SegmentKey] = set()  # segments that were ever in a blueprint
-        self._lines: dict[str, _MapLine] = {}
+        self._map: _Map | None = None
         self._map_start_t: float | None = None  # first state's event time on the map
         self._map_started = False
         self._blueprint_keys: list[SegmentKey] | None = None
@@ -314,26 +316,29 @@ class ViewerCore:
             xy = _screen(np.concatenate([ln.xy for ln in self.network.lines.values()]))
             margin = 0.05 * (xy.max(axis=0) - xy.min(axis=0)).max()
             self._bounds = np.stack([xy.min(axis=0) - margin, xy.max(axis=0) + margin])
-            for line in self.network.lines.values():
-                keys = [(line.id, seg.id) for seg in line.segments]
-                strips = [
-                    _screen(self.network.to_xy(line.segment_lonlat(s))) for s in line.segments
-                ]
-                self.rec.log(
-                    f"map/segments/{line.id}",
-                    rr.LineStrips2D(
-                        strips,
-                        radii=rr.Radius.ui_points(3.5),
-                        labels=[f"{line.id}/{seg.id}" for seg in line.segments],
-                        show_labels=False,
-                    ),
-                    static=True,
-                )
-                self._lines[line.id] = _MapLine(
-                    keys,
-                    {seg.id: i for i, seg in enumerate(line.segments)},
-                    np.full((len(keys), 3), UNKNOWN_RGB, np.uint8),
-                )
+            lines = list(self.network.lines.values())
+            keys = [(line.id, seg.id) for line in lines for seg in line.segments]
+            strips = [
+                _screen(self.network.to_xy(line.segment_lonlat(seg)))
+                for line in lines
+                for seg in line.segments
+            ]
+            # one entity for the whole network: one chunk per colour change, not one per line
+            self.rec.log(
+                MAP_PATH,
+                rr.LineStrips2D(
+                    strips,
+                    radii=rr.Radius.ui_points(3.5),
+                    labels=[f"{line}/{segment}" for line, segment in keys],
+                    show_labels=False,
+                ),
+                static=True,
+            )
+            self._map = _Map(
+                keys,
+                {key: i for i, key in enumerate(keys)},
+                np.full((len(keys), 3), UNKNOWN_RGB, np.uint8),
+            )
         self.maybe_send_blueprint(now, force=True)
 
     # --- messages ------------------------------------------------------------------------
@@ -382,16 +387,15 @@ class ViewerCore:
             return  # a late state: its day's row is written, the ranking keeps the newest
         self._newest_t[key] = state.t
         self.p_exceed[key] = p = segment_exceedance(state)
-        line = self._lines.get(state.line)
-        i = line.index.get(state.segment) if line is not None else None
-        if line is None or i is None:
+        i = self._map.index.get(key) if self._map is not None else None
+        if self._map is None or i is None:
             return  # not on the map
         if self._map_start_t is None:
             self._map_start_t = state.t
         rgb = exceedance_color(p)
-        if not np.array_equal(line.colors[i], rgb):
-            line.colors[i] = rgb
-            line.changed_t = max(line.changed_t or -math.inf, state.t)
+        if not np.array_equal(self._map.colors[i], rgb):
+            self._map.colors[i] = rgb
+            self._map.changed_t = max(self._map.changed_t or -math.inf, state.t)
 
     def flush(self, now: float, *, force: bool = False) -> None:
         """Write what is due at wall time ``now``: every segment's rows each
@@ -498,13 +502,10 @@ class ViewerCore:
     def _flush_live(self) -> None:
         if not self._map_started and self._map_start_t is not None:
             self._start_map_colors(self._map_start_t)
-        for line_id, line in self._lines.items():
-            if line.changed_t is not None:
-                self.rec.set_time(TIMELINE, timestamp=line.changed_t)
-                self.rec.log(
-                    f"map/segments/{line_id}", rr.LineStrips2D.from_fields(colors=line.colors)
-                )
-                line.changed_t = None
+        if self._map is not None and self._map.changed_t is not None:
+            self.rec.set_time(TIMELINE, timestamp=self._map.changed_t)
+            self.rec.log(MAP_PATH, rr.LineStrips2D.from_fields(colors=self._map.colors))
+            self._map.changed_t = None
         if self._fixes_new and self.network is not None:
             fixes = sorted(self._fixes.values(), key=lambda f: f.train)
             xy = _screen(self.network.to_xy(np.array([[f.lon_deg, f.lat_deg] for f in fixes])))
@@ -549,10 +550,10 @@ class ViewerCore:
         """Grey for every segment at the first state's event time (temporal colours can't
         start earlier: static colours would hide every later change)."""
         self._map_started = True
-        self.rec.set_time(TIMELINE, timestamp=t)
-        for line_id, line in self._lines.items():
-            grey = np.full((len(line.keys), 3), UNKNOWN_RGB, np.uint8)
-            self.rec.log(f"map/segments/{line_id}", rr.LineStrips2D.from_fields(colors=grey))
+        if self._map is not None:
+            self.rec.set_time(TIMELINE, timestamp=t)
+            grey = np.full((len(self._map.keys), 3), UNKNOWN_RGB, np.uint8)
+            self.rec.log(MAP_PATH, rr.LineStrips2D.from_fields(colors=grey))
 
     # --- blueprint -----------------------------------------------------------------------
 

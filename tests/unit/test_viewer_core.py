@@ -171,9 +171,8 @@ def test_core_writes_series_map_trains_and_alerts(recording):
             assert contents[f"{base}/{indicator}/{series}"]["SeriesPoints:markers"] == 1
     assert contents[f"segments/L1/{never_plotted}/top6/state"] == {"Scalars:scalars": 1}
     assert f"segments/L1/{never_plotted}/top6/onboard" not in contents
-    assert contents["map/segments/L1"]["LineStrips2D:strips"] == 1  # static geometry
-    assert contents["map/segments/L1"]["LineStrips2D:colors"] == 3  # grey, two changes
-    assert contents["map/segments/L2"]["LineStrips2D:colors"] == 1  # grey only
+    assert contents["map/segments"]["LineStrips2D:strips"] == 1  # static geometry, all lines
+    assert contents["map/segments"]["LineStrips2D:colors"] == 3  # grey, two changes
     assert contents["map/trains"]["Points2D:positions"] == 1  # T1 only: T2 had no fix
     assert contents["alerts"]["TextLog:level"] == 1
 
