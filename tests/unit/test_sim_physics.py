@@ -41,6 +41,7 @@ class StraightLine:
 
 T0 = 1_767_225_600.0  # 2026-01-01: fixes must lie in the schemas' time window
 
+
 def make_profile(length_m=6000.0, seed=7, top_mm=2.0, align_mm=1.5, **kw) -> LineProfile:
     s = int(length_m // 200)
     bounds = np.c_[np.arange(s) * 200.0, np.arange(1, s + 1) * 200.0]
