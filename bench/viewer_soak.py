@@ -34,7 +34,9 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def stack_copy(out: Path, *, port: int, ns: str, web_port: int, grpc_port: int) -> Path:
+def stack_copy(
+    out: Path, *, port: int, ns: str, web_port: int, grpc_port: int, viewer_args: str = ""
+) -> Path:
     """``deploy/stack.json5`` with its endpoint, namespace, state files and viewer moved."""
     text = (REPO / "deploy" / "stack.json5").read_text()
     text = text.replace('"var/', f'"{out}/').replace('state_dir: "var"', f'state_dir: "{out}"')
@@ -43,7 +45,9 @@ def stack_copy(out: Path, *, port: int, ns: str, web_port: int, grpc_port: int) 
     text = text.replace(
         '"viewer", args: ["--instance", "viewer"]',
         f'"viewer", args: ["--instance", "viewer", "--web", "--web-port", "{web_port}", '
-        f'"--grpc-port", "{grpc_port}"]',
+        f'"--grpc-port", "{grpc_port}"'
+        + "".join(f', "{arg}"' for arg in viewer_args.split())
+        + "]",
     )
     if f'"{web_port}"' not in text:
         raise SystemExit("deploy/stack.json5: the viewer entry changed; update bench/viewer_soak")
@@ -82,12 +86,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sample", type=float, default=30.0, help="RSS period, seconds")
     parser.add_argument("--browser-timeout", type=float, default=120.0)
     parser.add_argument("--out", type=Path, default=Path("/tmp/viewer-soak"))
+    parser.add_argument("--viewer-args", default="", help="more viewer flags, e.g. '--worst 2'")
     args = parser.parse_args(argv)
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     ns = f"tfsoak{os.getpid()}"
     web_port, grpc_port = _free_port(), _free_port()
-    stack = stack_copy(out, port=_free_port(), ns=ns, web_port=web_port, grpc_port=grpc_port)
+    stack = stack_copy(
+        out,
+        port=_free_port(),
+        ns=ns,
+        web_port=web_port,
+        grpc_port=grpc_port,
+        viewer_args=args.viewer_args,
+    )
     opens = sorted(float(m) for m in args.open.split(",") if m)
     with (out / "up.log").open("wb") as log:
         up = subprocess.Popen(
