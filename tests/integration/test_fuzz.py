@@ -1087,7 +1087,7 @@ class Run:
     def assert_alive(self) -> None:
         assert self.thread.is_alive(), f"{self.spec.name} has stopped"
         tokens: list[str] = []
-        for _ in range(6):  # an unanswered query on a loaded 2-core machine is not a dead token
+        for _ in range(12):  # an unanswered query on a loaded 2-core machine is not a dead token
             tokens = [
                 str(r.ok.key_expr)
                 for r in self.session.liveliness().get(self.alive_key, timeout=TIMEOUT_S)
@@ -1237,11 +1237,20 @@ def test_bad_input_is_dead_lettered_and_changes_nothing(
     difference = first_difference(clean.outputs, fuzz.outputs)
     assert fuzz.outputs == clean.outputs, f"{name}: outputs differ from the clean run: {difference}"
     assert fuzz.answers == clean.answers, f"{name}: queryable answers differ from the clean run"
-    assert fuzz.logged == clean.logged, f"{name}: logged messages differ from the clean run"
-    assert fuzz.rrd == clean.rrd
     if name == viewer.SERVICE:
-        assert len(clean.logged) == len(clean_spec.valid) and clean.rrd
+        # A display is latest-only: its inbox replaces a held message by a newer one of the
+        # same segment and day (and GPS fix of the same train) when they come faster than it
+        # draws, so how many of the earlier ones it logged depends on timing. What must
+        # hold: it logged only valid messages, the newest of each key in both runs, and the
+        # same entities.
+        valid = {payload for _, payload in clean_spec.valid}
+        newest = set(dict(clean_spec.valid).values())
+        for run in (clean, fuzz):
+            assert set(run.logged) <= valid, f"{name}: logged a message it was not sent"
+            assert newest <= set(run.logged), f"{name}: the newest of a key was not logged"
+        assert fuzz.rrd.keys() == clean.rrd.keys() and clean.rrd
     else:
+        assert fuzz.logged == clean.logged, f"{name}: logged messages differ from the clean run"
         assert clean.outputs, f"{name}: the valid traffic gave no output to compare"
     if name == filtering.SERVICE:  # unknown fields are not stored: the same bytes as clean
         assert stored_bytes(tmp_path / "fuzz") == stored_bytes(tmp_path / "clean")
