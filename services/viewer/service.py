@@ -209,6 +209,18 @@ class ViewerAdapter:
         self.inbox = _Inbox(INBOX_CAPACITY)
         self._on_logged = on_logged
         self._worker: threading.Thread | None = None
+        network = core.network
+        # what the map draws: a message on a segment it does not have is a dead letter, so
+        # a sender cannot grow the viewer's per-segment memory with ids that do not exist
+        self._known = (
+            None
+            if network is None
+            else {
+                (line_id, seg.id)
+                for line_id, line in network.lines.items()
+                for seg in line.segments
+            }
+        )
 
     def start(self) -> None:
         ns = self.rt.ns
@@ -226,6 +238,12 @@ class ViewerAdapter:
             # runs in the runtime's worker for this subscription; SchemaError -> dead letter
             message = decode(sample.payload.to_bytes(), message_type)
             _check_key(kind, str(sample.key_expr), message)
+            segment = (getattr(message, "line", None), getattr(message, "segment", None))
+            if self._known is not None and kind != "gps" and segment not in self._known:
+                raise SchemaError(
+                    f"{type(message).__name__}: segment {segment[0]}/{segment[1]} is not in "
+                    "the viewer's network"
+                )
             self.inbox.put(message)
 
         return on_sample

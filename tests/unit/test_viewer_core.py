@@ -262,3 +262,30 @@ def test_select_worst_sticky_keeps_plotted_segments_through_near_ties():
     assert select_worst_sticky(p, 2, shown, margin=0.05) == [("L1", "c"), ("L1", "a")]
     assert select_worst_sticky(p, 3, [], margin=0.05) == select_worst(p, 3)
     assert select_worst_sticky(p, 1, [("L9", "gone")], margin=0.05) == [("L1", "c")]
+
+
+def test_messages_on_segments_the_map_lacks_are_refused(recording):
+    from schemas import SchemaError, encode
+    from services.viewer.service import ViewerAdapter
+
+    rec, _ = recording
+    adapter = ViewerAdapter(None, ViewerCore(rec, demo_network(), worst_n=2))  # type: ignore[arg-type]
+
+    class Sample:  # what the decoder reads of a zenoh.Sample
+        def __init__(self, key: str, payload: bytes) -> None:
+            self.key_expr, self.payload, self._payload = key, self, payload
+
+        def to_bytes(self) -> bytes:
+            return self._payload
+
+    known = make_state(T0, line="L1", segment="s00001")
+    unknown = make_state(T0, line="L1", segment="s99999")
+    on_state = adapter._decoder("state", type(known))
+    for state in (known, unknown):
+        sample = Sample(f"tf/state/{state.line}/{state.segment}", encode(state))
+        if state is known:
+            on_state(sample)  # type: ignore[arg-type]
+        else:
+            with pytest.raises(SchemaError, match="L1/s99999 is not in the viewer's network"):
+                on_state(sample)  # type: ignore[arg-type]
+    assert len(adapter.inbox.take(timeout=0)) == 1
