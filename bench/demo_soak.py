@@ -62,8 +62,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def stack_copy(out: Path, *, endpoint: str, ns: str, web_port: int, grpc_port: int) -> Path:
-    """``deploy/stack.json5`` with its endpoint, namespace, state files and viewer moved."""
+def stack_copy(
+    out: Path, *, endpoint: str, ns: str, web_port: int, grpc_port: int, viewer_args: str = ""
+) -> Path:
+    """``deploy/stack.json5`` with its endpoint, namespace, state files and viewer moved
+    (and ``viewer_args`` added to the viewer's arguments)."""
     text = (REPO / "deploy" / "stack.json5").read_text()
     text = text.replace('"var/', f'"{out}/').replace('state_dir: "var"', f'state_dir: "{out}"')
     text = re.sub(r'ns: "\w+"', f'ns: "{ns}"', text, count=1)
@@ -72,6 +75,7 @@ def stack_copy(out: Path, *, endpoint: str, ns: str, web_port: int, grpc_port: i
     if viewer is None:
         raise SystemExit("deploy/stack.json5: no viewer entry; update bench/demo_soak.py")
     args = viewer.group(1) + f', "--web", "--web-port", "{web_port}", "--grpc-port", "{grpc_port}"'
+    args += "".join(f', "{arg}"' for arg in viewer_args.split())
     text = text[: viewer.start(1)] + args + text[viewer.end(1) :]
     path = out / "stack.json5"
     path.write_text(text)

@@ -15,54 +15,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import signal
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+from bench.demo_soak import free_port, rss_mb, stack_copy
 from tests.browser import first_picture, hue_pixels
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def stack_copy(
-    out: Path, *, port: int, ns: str, web_port: int, grpc_port: int, viewer_args: str = ""
-) -> Path:
-    """``deploy/stack.json5`` with its endpoint, namespace, state files and viewer moved."""
-    text = (REPO / "deploy" / "stack.json5").read_text()
-    text = text.replace('"var/', f'"{out}/').replace('state_dir: "var"', f'state_dir: "{out}"')
-    text = re.sub(r'ns: "\w+"', f'ns: "{ns}"', text, count=1)
-    text = re.sub(r"tcp/127\.0\.0\.1:\d+", f"tcp/127.0.0.1:{port}", text, count=1)
-    text = text.replace(
-        '"viewer", args: ["--instance", "viewer"]',
-        f'"viewer", args: ["--instance", "viewer", "--web", "--web-port", "{web_port}", '
-        f'"--grpc-port", "{grpc_port}"'
-        + "".join(f', "{arg}"' for arg in viewer_args.split())
-        + "]",
-    )
-    if f'"{web_port}"' not in text:
-        raise SystemExit("deploy/stack.json5: the viewer entry changed; update bench/viewer_soak")
-    path = out / "stack.json5"
-    path.write_text(text)
-    return path
-
-
-def rss_mb(pid: int) -> float | None:
-    try:
-        status = Path(f"/proc/{pid}/status").read_text()
-    except OSError:
-        return None
-    match = re.search(r"VmRSS:\s+(\d+) kB", status)
-    return int(match[1]) / 1024 if match else None
 
 
 def viewer_pid(ns: str) -> int | None:
@@ -91,10 +53,10 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     ns = f"tfsoak{os.getpid()}"
-    web_port, grpc_port = _free_port(), _free_port()
+    web_port, grpc_port = free_port(), free_port()
     stack = stack_copy(
         out,
-        port=_free_port(),
+        endpoint=f"tcp/127.0.0.1:{free_port()}",
         ns=ns,
         web_port=web_port,
         grpc_port=grpc_port,

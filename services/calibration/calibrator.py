@@ -937,14 +937,10 @@ class Calibrator:
                 n = self._attempt_at = len(self._pairs)
                 if n == cur.n_pairs:
                     return None
-        Z = np.array([p.z for p in self._pairs])
-        Y = np.array([p.y for p in self._pairs])
-        try:
-            fit = fit_observation(Z, Y, min_pairs=cfg.min_pairs)
-        except CalibrationError as e:
-            self.stats["fit_errors"] += 1
-            log.warning("calibration fit on %d pairs refused: %s", n, e)
+        fitted_pairs = self._fit_pairs()
+        if fitted_pairs is None:
             return None
+        fit, Z, Y = fitted_pairs
         if fitted:
             old: Calibration = current.message  # type: ignore[union-attr,assignment]
             reason = self._worse(old, fit, Z[: old.n_pairs], Y[: old.n_pairs])
@@ -963,14 +959,10 @@ class Calibrator:
                 return None
         if not fitted and self._drop_outlying_pairs(fit.H, fit.b, 0):  # on its own residuals
             n = self._attempt_at = len(self._pairs)
-            Z = np.array([p.z for p in self._pairs])
-            Y = np.array([p.y for p in self._pairs])
-            try:
-                fit = fit_observation(Z, Y, min_pairs=cfg.min_pairs)
-            except CalibrationError as e:
-                self.stats["fit_errors"] += 1
-                log.warning("calibration fit on %d pairs refused: %s", n, e)
+            fitted_pairs = self._fit_pairs()
+            if fitted_pairs is None:
                 return None
+            fit, Z, Y = fitted_pairs
         in_force = self._models.get(CALIBRATION_KEY)
         version = self._next_version(CALIBRATION_KEY)
         try:
@@ -1045,6 +1037,18 @@ class Calibrator:
         self._pairs = [p for i, p in enumerate(self._pairs) if i not in dropped]
         self.stats["pairs_outliers"] += len(out)
         return len(out)
+
+    def _fit_pairs(self):
+        """``(fit, Z, Y)`` of H, b, R on every pair held (Eq. 5-6), or None (counted and
+        logged) when the fit is refused."""
+        Z = np.array([p.z for p in self._pairs])
+        Y = np.array([p.y for p in self._pairs])
+        try:
+            return fit_observation(Z, Y, min_pairs=self.config.min_pairs), Z, Y
+        except CalibrationError as e:
+            self.stats["fit_errors"] += 1
+            log.warning("calibration fit on %d pairs refused: %s", len(Z), e)
+            return None
 
     def _worse(self, old: Calibration, fit, Z: np.ndarray, Y: np.ndarray) -> str | None:
         """The swap rule: why the candidate ``fit`` is worse than ``old``, or None."""

@@ -354,21 +354,15 @@ class ServiceRuntime:
         on_sample: Callable[[zenoh.Sample], None],
         *,
         capacity: int = DEFAULT_CAPACITY,
-        latest_only: bool = True,
-        dead_letter_errors: bool = True,
     ) -> zenoh.Subscriber:
         """A latest-only subscription for displays: a Zenoh ``RingChannel(capacity)`` that
         drops the oldest sample when full (never blocks the session), read by a worker
         thread calling ``on_sample``. Streams where nothing may be lost use
         :meth:`subscribe_in_order` or :meth:`subscribe_batches`. An exception from
-        ``on_sample`` becomes a dead letter unless ``dead_letter_errors`` is False."""
-        if not latest_only:
-            raise ValueError("subscribe() is latest-only; use subscribe_in_order()")
+        ``on_sample`` becomes a dead letter."""
         subscriber = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(capacity))
         self._subscribers.append(subscriber)
-        self.spawn(
-            self._consume, subscriber, on_sample, dead_letter_errors, name=f"{self.service}:{key}"
-        )
+        self.spawn(self._consume, subscriber, on_sample, name=f"{self.service}:{key}")
         return subscriber
 
     def declare_subscriber(
@@ -439,23 +433,16 @@ class ServiceRuntime:
                 self.stop_event.wait(_RETRY_S)
 
     def _consume(
-        self,
-        subscriber: zenoh.Subscriber,
-        on_sample: Callable[[zenoh.Sample], None],
-        dead_letter_errors: bool,
+        self, subscriber: zenoh.Subscriber, on_sample: Callable[[zenoh.Sample], None]
     ) -> None:
         for sample in subscriber.handler:  # ends when the subscriber is undeclared
             try:
                 on_sample(sample)
             except SchemaError as e:
-                if dead_letter_errors:
-                    self.deadletters.reject_sample(sample, str(e))
-                else:
-                    log.warning("rejected %s: %s", sample.key_expr, e)
+                self.deadletters.reject_sample(sample, str(e))
             except Exception as e:
                 log.exception("%s: error handling %s", self.service, sample.key_expr)
-                if dead_letter_errors:
-                    self.deadletters.reject_sample(sample, f"{type(e).__name__}: {e}")
+                self.deadletters.reject_sample(sample, f"{type(e).__name__}: {e}")
 
     def _watch_health(self) -> None:
         """Every ``health_interval_s``: ask the router for this service's own liveliness token.

@@ -1,13 +1,14 @@
-"""A service slower than its inputs keeps its session: the root cause of the deaf filtering.
+"""A service slower than its inputs: the inbox holds the backlog and Zenoh never waits.
 
 Before the inbox (services/runtime/inbox.py), a subscription's callback blocked on a full
-queue while the worker was busy. The session then stopped reading its link, the router's
-queue towards it filled, and after ``wait_before_close`` (5 s) of a BLOCK message without
-room the router closed the link: everything queued on it was dropped without a trace, the
-service's token vanished, and what came back (if anything) had lost its declarations.
-This test holds the worker still while a flood larger than any buffer arrives for longer
-than that, then lets it go: every message must be handled, the token never withdrawn, and
-no callback may have waited. On the code before the fix it lost most of the flood.
+queue while the worker was busy; with the service's own traffic waiting on the same link,
+the router closed it after ``wait_before_close`` (5 s) and dropped what was queued — the
+root cause of the deaf filtering, reproduced with real processes in
+tests/e2e/test_filtering_flood.py. This test holds the worker still while 80 MB arrive,
+then lets it go: every message must be handled, the backlog must have gone to the
+disk spill, the token never withdrawn, and no callback may have waited. (A stalled worker
+alone, with no outgoing traffic, did not lose its session on the code before the fix
+either: this test checks the inbox, the e2e test the loss.)
 """
 
 from __future__ import annotations
