@@ -211,6 +211,7 @@ class MaintenanceEvent(Message, frozen=True, kw_only=True):
     kind: Literal["tamping"] = "tamping"
     t_start: float  # epoch s
     t_end: float  # epoch s, >= t_start
+    revision: int = 0  # a correction of the same event_id carries a higher revision
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -218,6 +219,7 @@ class MaintenanceEvent(Message, frozen=True, kw_only=True):
             check_id(name, getattr(self, name))
         check_time("t_start", self.t_start)
         check_time("t_end", self.t_end)
+        check_int("revision", self.revision)
         check(self.t_end >= self.t_start, f"t_end: {self.t_end} before t_start {self.t_start}")
 
 

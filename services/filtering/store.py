@@ -125,14 +125,16 @@ class Store:
         identity: tuple[Any, ...],
         t: float,
         payload: bytes,
-    ) -> bool:
-        """Commit one accepted event; False if its identity is already stored."""
-        cur = self._db.execute(
-            "INSERT OR IGNORE INTO events (line, segment, kind, key, identity, t, payload)"
-            " VALUES (?, ?, ?, ?, ?, ?, ?)",
+    ) -> None:
+        """Commit one accepted event; one row per identity, so a tamping report that the
+        tracker accepted as a correction of its ``event_id`` replaces the stored one."""
+        self._db.execute(
+            "INSERT INTO events (line, segment, kind, key, identity, t, payload)"
+            " VALUES (?, ?, ?, ?, ?, ?, ?)"
+            " ON CONFLICT (line, segment, identity) DO UPDATE SET"
+            " kind = excluded.kind, key = excluded.key, t = excluded.t, payload = excluded.payload",
             (line, segment, kind, key, json.dumps(list(identity)), t, bytes(payload)),
         )
-        return cur.rowcount == 1
 
     def prune(self, line: str, segment: str, before_t: float) -> int:
         """Delete the segment's events older than ``before_t`` (its latest TRC record)."""

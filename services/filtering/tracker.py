@@ -7,9 +7,13 @@ models, so the order in which events arrive, duplicates, and when the models arr
 change it:
 
 - **Canonical order** of a log: ``(t, kind priority, identity)`` with the priority
-  ``restart < tamping < index`` for equal times; identities are ``(run_id, t)`` for a TRC
+  ``tamping < restart < index`` for equal times (a TRC record at a tamping's time is the
+  exact measurement after it, so it wins); identities are ``(run_id, t)`` for a TRC
   record, ``event_id`` for a tamping and ``(train, unit, t)`` for an on-board index. A second
-  event with an identity already in the log is a duplicate and is ignored (the first wins).
+  event with an identity already in the log is a duplicate and is ignored, except that a
+  tamping report replaces the one held under its ``event_id`` when it ranks higher
+  (:func:`report_rank`: higher ``revision``, then the narrower interval, then the later
+  time), so that a correction wins whatever the order of arrival.
 - **Log window**: every event at or after the segment's latest TRC record (every event while
   there is none). A TRC record drops the events before it; an event older than the latest
   TRC record cannot change the state and is refused (``accepted`` False, reason given).
@@ -20,7 +24,11 @@ change it:
 
   * ``TrcRecord``: restart, ``z = ln [top6_mm, align10_mm]`` in every sample, ``P = 0``.
   * ``MaintenanceEvent`` (tamping): at ``t_start`` if ``t_start == t_end``, else at the
-    mid-point ``(t_start + t_end) / 2`` (the paper's mid-interval rule, Eq. 2). The filter
+    middle of the *reported* interval ``(t_start + t_end) / 2``. The paper (Eq. 2) assumes
+    the middle of the filter interval ``(t_{k-1}, t_k]`` in which a tamping is known to
+    have happened; a maintenance report's interval is that knowledge, narrowed, so its
+    middle is Eq. 2's rule on the report. It does not depend on the other events of the
+    log (an on-board index inside the reported interval does not move it). The filter
     predicts to that time with ``tamping_age = 0``, i.e. resets to ``(z+, Sigma_z+)`` of
     each sample; the next event then degrades from there (Eq. 7-8 with the tamping age).
     A tamping also starts a state on a segment without any TRC record yet.
@@ -100,7 +108,7 @@ from services.filtering.mixture import summarize_unchecked, weights_from_log
 
 DAY_S = 86400.0
 HORIZONS_DAYS = (30.0, 90.0, 180.0)
-RESTART, TAMPING, INDEX = 0, 1, 2  # kind priority at equal times
+TAMPING, RESTART, INDEX = 0, 1, 2  # kind priority at equal times: a TRC record after a tamping
 KIND_NAMES = {RESTART: "trc", TAMPING: "maintenance", INDEX: "index"}
 SUMMARY_SEGMENTS = 8  # segments per batched summary: temporaries below the mmap threshold
 
@@ -129,10 +137,22 @@ class Event:
 
 
 def tamping_time(msg: MaintenanceEvent) -> float:
-    """Epoch s the filter assumes for a tamping: known time, else mid-interval (Eq. 2)."""
+    """Epoch s the filter assumes for a tamping: known time, else the middle of the
+    reported interval (Eq. 2's mid-interval rule on the report's interval)."""
     if msg.t_start == msg.t_end:
         return msg.t_start
     return 0.5 * (msg.t_start + msg.t_end)
+
+
+def report_rank(msg: MaintenanceEvent) -> tuple[int, float, float, float]:
+    """Which of two reports of one ``event_id`` holds: the higher rank.
+
+    A higher ``revision`` first (an explicit correction), then the narrower interval (a
+    known time is an interval of width 0, so it replaces an interval-only report), then the
+    later ``(t_start, t_end)``. Equal ranks are the same report. The rank depends only on
+    the reports, so the one held does not depend on which arrived first.
+    """
+    return (msg.revision, -(msg.t_end - msg.t_start), msg.t_start, msg.t_end)
 
 
 def event_of(msg: EventMessage) -> Event:
@@ -553,12 +573,22 @@ def replay(track: Track, models: Models) -> Track:
 
 
 def add_event(track: Track, event: Event) -> tuple[Track, str]:
-    """Insert ``event`` into the log (state untouched): ``(track, "")`` or ``(track, reason)``."""
-    if track.trc_t is not None and event.t_s < track.trc_t:
-        return track, "older than the latest TRC record"
-    if any(e.identity == event.identity for e in track.log):
-        return track, "duplicate"
+    """Insert ``event`` into the log (state untouched): ``(track, "")`` or ``(track, reason)``.
+
+    A tamping report that outranks the one held under its ``event_id`` (:func:`report_rank`)
+    replaces it, and is accepted even when its time is now before the latest TRC record:
+    the held report then leaves the log (the TRC record already measured the tamping).
+    """
+    held = next((e for e in track.log if e.identity == event.identity), None)
     log, trc_t = track.log, track.trc_t
+    if held is not None:
+        if event.kind != TAMPING or report_rank(event.message) <= report_rank(held.message):
+            return track, "duplicate"
+        log = tuple(e for e in log if e is not held)
+        if trc_t is not None and event.t_s < trc_t:
+            return replace(track, log=log), ""
+    elif trc_t is not None and event.t_s < trc_t:
+        return track, "older than the latest TRC record"
     if event.kind == RESTART:
         log = tuple(e for e in log if e.t_s >= event.t_s)  # a restart forgets what precedes it
         trc_t = event.t_s if trc_t is None else max(trc_t, event.t_s)
@@ -574,7 +604,9 @@ def step_segment(track: Track, event: Event, models: Models) -> tuple[Track, str
     new, reason = add_event(track, event)
     if reason:
         return track, reason
-    if new.log[-1] is event and (event.kind == RESTART or track.state is not None):
+    replaced = any(e.identity == event.identity for e in track.log)
+    appended = bool(new.log) and new.log[-1] is event and not replaced
+    if appended and (event.kind == RESTART or track.state is not None):
         # ``track.state`` is the fold of the log before ``event``: one more step of it.
         state, group = _fold(new, models, (event,), track.state)
         return replace(new, state=state, group=group), ""

@@ -523,3 +523,94 @@ def test_store_rebuild_restores_the_weights(tmp_path):
     for track in second.tracker.tracks.values():
         assert np.ptp(track.state.log_w) > 0
     second.store.close()
+
+
+def test_a_trc_record_at_a_tampings_time_wins_whatever_the_order():
+    """A TRC record is exact (P = 0): a tamping at the same time is ordered before it."""
+    post = posterior()
+    before = [calibration(), post, trc(0.0), index(5.0, 2.0, 2.0)]
+    for last_two in ([tamping(10.0), trc(10.0, 4.0, 3.0)], [trc(10.0, 4.0, 3.0), tamping(10.0)]):
+        tracker, _ = run([*before, *last_two])
+        state = tracker.tracks[("L1", "s1")].state
+        np.testing.assert_array_equal(state.z, np.broadcast_to(np.log([4.0, 3.0]), (NS, 2)))
+        np.testing.assert_array_equal(state.P, 0.0)
+        assert state.last_trc_t == T0 + 10 * DAY_S
+    # and the tamping still counts for what follows: the next index degrades from the record
+    tracker, _ = run([*before, trc(10.0, 4.0, 3.0), tamping(10.0), index(12.0, 3.9, 2.9)])
+    alone, _ = run([*before, trc(10.0, 4.0, 3.0), index(12.0, 3.9, 2.9)])
+    np.testing.assert_array_equal(
+        tracker.tracks[("L1", "s1")].state.z, alone.tracks[("L1", "s1")].state.z
+    )
+
+
+def correction(report: MaintenanceEvent, t_start_days: float, t_end_days=None, revision=0):
+    t_end_days = t_start_days if t_end_days is None else t_end_days
+    return MaintenanceEvent(
+        line=report.line,
+        segment=report.segment,
+        event_id=report.event_id,
+        t_start=T0 + t_start_days * DAY_S,
+        t_end=T0 + t_end_days * DAY_S,
+        revision=revision,
+    )
+
+
+@pytest.mark.parametrize(
+    "corrected",
+    [
+        pytest.param(lambda r: correction(r, 13.0), id="interval corrected to a known time"),
+        pytest.param(lambda r: correction(r, 9.0, 11.0), id="narrower interval"),
+        pytest.param(lambda r: correction(r, 16.0, 19.0, revision=1), id="higher revision"),
+    ],
+)
+def test_a_tamping_correction_replaces_the_report_whatever_the_order(corrected):
+    report = tamping(8.0, 14.0)
+    fixed = corrected(report)
+    base = [*MODELS, trc(0.0), index(5.0, 2.0, 2.0), index(20.0, 2.2, 2.1)]
+    truth, _ = run([*base, fixed])  # what the correction alone gives
+    first, _ = run([*base, report, fixed])
+    second, _ = run([*base, fixed, report])
+    assert_same_states(first, truth)
+    assert_same_states(second, truth)
+    assert first.step(report).reason == "duplicate"  # the report no longer replaces it
+    # one row per event_id in the store, the correction, whatever the order
+    for order in ([report, fixed], [fixed, report]):
+        node = PersistentTracker(new_tracker(), Store(":memory:"))
+        for msg in [*base, *order]:
+            node.handle(*keyed(msg))
+        rebuilt = PersistentTracker(new_tracker(), node.store)
+        rebuilt.rebuild()
+        assert_same_states(rebuilt.tracker, truth)
+        node.store.close()
+
+
+def test_a_correction_before_the_latest_trc_record_removes_the_report():
+    """The report put the tamping after the TRC record; the correction puts it before, where
+    the record already measured it: the tamping leaves the log."""
+    report = tamping(15.0, 25.0)  # placed at day 20, after the record of day 18
+    base = [*MODELS, trc(0.0), trc(18.0, 2.5, 2.2), index(22.0, 2.4, 2.2)]
+    tracker, _ = run([*base, report])
+    assert report.event_id in {e.identity[1] for e in tracker.tracks[("L1", "s1")].log}
+    step = tracker.step(correction(report, 16.0))
+    assert step.accepted
+    without, _ = run(base)
+    assert_same_states(tracker, without)
+
+
+def test_an_interval_only_tamping_sits_at_the_middle_of_the_reported_interval():
+    """Eq. 2's mid-interval rule on the report's interval: the same state as a tamping known
+    at the middle, whatever other events fall inside the interval."""
+    base = [*MODELS, trc(0.0), index(5.0, 2.0, 2.0), index(11.0, 2.1, 2.0)]
+    after = [index(25.0, 2.3, 2.1)]
+    interval = MaintenanceEvent(
+        line="L1", segment="s1", event_id="m", t_start=T0 + 4 * DAY_S, t_end=T0 + 20 * DAY_S
+    )
+    known = MaintenanceEvent(
+        line="L1", segment="s1", event_id="m", t_start=T0 + 12 * DAY_S, t_end=T0 + 12 * DAY_S
+    )
+    a, _ = run([*base, interval, *after])
+    b, _ = run([*base, known, *after])
+    assert_same_states(a, b)
+    assert [e.t_s for e in a.tracks[("L1", "s1")].log if e.identity[0] == "maintenance"] == [
+        T0 + 12 * DAY_S  # not the middle of the filter interval (11, 25]: day 18
+    ]
