@@ -175,7 +175,7 @@ class Probe:
 
     def on_raw(self, sample: zenoh.Sample) -> None:
         wall = time.time()
-        _, _, train, unit = str(sample.key_expr).split("/")
+        train, unit = keys.parse_raw(str(sample.key_expr))
         head = self.raw_head.decode(sample.payload.to_bytes())
         n = head.samples.shape[0] if head.samples.shape else 0
         span = (head.t0, head.t0 + n / head.rate_hz, wall)
@@ -186,7 +186,7 @@ class Probe:
 
     def on_accel(self, sample: zenoh.Sample) -> None:
         wall = time.time()
-        _, _, train, unit = str(sample.key_expr).split("/")
+        train, unit = keys.parse_accel(str(sample.key_expr))
         head = self.accel_head.decode(sample.payload.to_bytes())
         knots = (head.line, head.knot_t.array(), head.knot_chainage_m.array())
         with self.lock:
@@ -214,11 +214,12 @@ class Probe:
                 self.latency.append((wall, *hit))
 
     def on_other(self, sample: zenoh.Sample) -> None:
-        parts = str(sample.key_expr).split("/")
+        key = str(sample.key_expr)
+        kind = keys.kind(key)
         with self.lock:
-            self.counts[parts[1]] += 1
-            if parts[1] == "deadletter":
-                self.deadletters[parts[2]] += 1
+            self.counts[kind] += 1
+            if kind == "deadletter":
+                self.deadletters[keys.parse_deadletter(key)] += 1
                 if len(self.deadletter_reasons) < 10:
                     self.deadletter_reasons.append(
                         sample.payload.to_bytes()[:300].decode("utf-8", "replace")
@@ -417,14 +418,16 @@ def run(args: argparse.Namespace, trains: int, stop: threading.Event) -> dict:
         session.liveliness().declare_subscriber(
             keys.alive_all(ns),
             lambda s: (
-                alive.add(str(s.key_expr).split("/")[2]) if s.kind == zenoh.SampleKind.PUT else None
+                alive.add(keys.parse_alive(str(s.key_expr))[0])
+                if s.kind == zenoh.SampleKind.PUT
+                else None
             ),
             history=True,
         )
-        session.declare_subscriber(f"{ns}/raw/**", probe.on_raw)
-        session.declare_subscriber(f"{ns}/accel/**", probe.on_accel)
-        session.declare_subscriber(f"{ns}/index/**", probe.on_index)
-        session.declare_subscriber(f"{ns}/state/**", probe.on_state)
+        session.declare_subscriber(keys.raw_all(ns), probe.on_raw)
+        session.declare_subscriber(keys.accel_all(ns), probe.on_accel)
+        session.declare_subscriber(keys.segment_keys(ns, "index"), probe.on_index)
+        session.declare_subscriber(keys.segment_keys(ns, "state"), probe.on_state)
         for kind in ("gps", "trc", "maintenance", "alert", "deadletter", "model"):
             session.declare_subscriber(f"{ns}/{kind}/**", probe.on_other)
         db = {name: str(logdir / f"{name}.sqlite") for name in SERVICES}

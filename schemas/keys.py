@@ -1,12 +1,29 @@
-"""Key expressions of DESIGN's key table: the only place they are spelled out.
+"""Key expressions of DESIGN's key table: the only place they are spelled out or taken apart.
 
 Every builder checks its id chunks, so a key never carries `/ * $ ? #` by accident.
-Wildcard variants (``*_all``) are for subscribers.
+Wildcard variants (``*_all``, ``*_keys`` with a selector) are for subscribers and queryables.
+Each ``parse_*`` reverses its builder and raises :class:`~schemas.wire.SchemaError` (a
+``ValueError``) for a key of another form; :func:`check_key` says whether a message's ids are
+its key's.
 """
 
 from __future__ import annotations
 
-from schemas.wire import check_id
+from schemas.messages import (
+    Alert,
+    Calibration,
+    DeadLetter,
+    DegradationPosterior,
+    GpsFix,
+    MaintenanceEvent,
+    Message,
+    OnboardIndex,
+    PositionedChunk,
+    RawChunk,
+    SegmentState,
+    TrcRecord,
+)
+from schemas.wire import SchemaError, check_id
 
 DEFAULT_NS = "tf"
 
@@ -24,6 +41,11 @@ def raw(ns: str, train: str, unit: str) -> str:
 
 def raw_all(ns: str) -> str:
     return f"{_key(ns, 'raw')}/**"
+
+
+def raw_of_train(ns: str, train: str) -> str:
+    """The raw keys of every unit of one train."""
+    return f"{_key(ns, 'raw', train)}/**"
 
 
 def gps(ns: str, train: str) -> str:
@@ -62,12 +84,15 @@ def alert(ns: str, line: str, segment: str) -> str:
     return _key(ns, "alert", line, segment)
 
 
+SEGMENT_KINDS = ("index", "trc", "maintenance", "state", "alert")  # {ns}/{kind}/{line}/{segment}
+
+
 def segment_keys(ns: str, kind: str, selector: str = "**") -> str:
     """Subscriber key for a per-segment kind (index, trc, maintenance, state, alert).
 
     ``selector`` narrows to part of the network, e.g. ``"L1/**"`` for one line.
     """
-    if kind not in {"index", "trc", "maintenance", "state", "alert"}:
+    if kind not in SEGMENT_KINDS:
         raise ValueError(f"kind: {kind!r} is not a per-segment key kind")
     return f"{_key(ns, kind)}/{selector}"
 
@@ -104,8 +129,14 @@ def q_state(ns: str, line: str, segment: str) -> str:
     return _key(ns, "q", "state", line, segment)
 
 
+def q_state_keys(ns: str, selector: str = "**") -> str:
+    """Queryable key of the states of part of the network (``selector`` as in
+    :func:`segment_keys`, e.g. ``"L1/**"``)."""
+    return f"{_key(ns, 'q', 'state')}/{selector}"
+
+
 def q_state_all(ns: str) -> str:
-    return f"{_key(ns, 'q', 'state')}/**"
+    return q_state_keys(ns)
 
 
 def q_alerts(ns: str) -> str:
@@ -116,10 +147,137 @@ def q_plan(ns: str) -> str:
     return _key(ns, "q", "plan")
 
 
-def parse_segment_key(key: str) -> tuple[str, str, str, str]:
-    """Split ``{ns}/{kind}/{line}/{segment}`` into its four chunks; ValueError otherwise."""
+# --- taking keys apart --------------------------------------------------------------------
+
+
+def kind(key: str) -> str:
+    """The kind chunk (the second) of a key or key expression: ``raw``, ``index``, ``model``,
+    ``q`` …"""
     parts = str(key).split("/")
-    if len(parts) != 4:
-        raise ValueError(f"key: {key!r} is not of the form ns/kind/line/segment")
-    ns, kind, line, segment = parts
-    return ns, kind, line, segment
+    if len(parts) < 2 or not parts[1]:
+        raise SchemaError(f"key: {key!r} has no kind chunk ({{ns}}/{{kind}}/...)")
+    return parts[1]
+
+
+def _ids(key: str, head: tuple[str, ...], names: tuple[str, ...]) -> list[str]:
+    """The id chunks of ``{ns}/{head...}/{names...}``; SchemaError for another form."""
+    parts = str(key).split("/")
+    if (
+        len(parts) != 1 + len(head) + len(names)
+        or tuple(parts[1 : 1 + len(head)]) != head
+        or not all(parts)
+    ):
+        form = "/".join(("{ns}", *head, *(f"{{{n}}}" for n in names)))
+        raise SchemaError(f"key: {key!r} is not of the form {form}")
+    return parts[1 + len(head) :]
+
+
+def parse_raw(key: str) -> tuple[str, str]:
+    """``(train, unit)`` of ``{ns}/raw/{train}/{unit}``."""
+    train, unit = _ids(key, ("raw",), ("train", "unit"))
+    return train, unit
+
+
+def parse_gps(key: str) -> str:
+    """``train`` of ``{ns}/gps/{train}``."""
+    return _ids(key, ("gps",), ("train",))[0]
+
+
+def parse_accel(key: str) -> tuple[str, str]:
+    """``(train, unit)`` of ``{ns}/accel/{train}/{unit}``."""
+    train, unit = _ids(key, ("accel",), ("train", "unit"))
+    return train, unit
+
+
+def parse_segment_key(key: str) -> tuple[str, str, str, str]:
+    """``(ns, kind, line, segment)`` of ``{ns}/{kind}/{line}/{segment}``, ``kind`` one of
+    :data:`SEGMENT_KINDS`."""
+    parts = str(key).split("/")
+    if len(parts) != 4 or parts[1] not in SEGMENT_KINDS or not all(parts):
+        raise SchemaError(
+            f"key: {key!r} is not of the form {{ns}}/{{kind}}/{{line}}/{{segment}} "
+            f"with kind one of {', '.join(SEGMENT_KINDS)}"
+        )
+    ns, kind_, line, segment = parts
+    return ns, kind_, line, segment
+
+
+def model_kind(key: str) -> str:
+    """The model chunk of ``{ns}/model/{model}/...``: ``calibration``, ``degradation`` or one
+    this version does not know."""
+    parts = str(key).split("/")
+    if len(parts) < 3 or parts[1] != "model" or not parts[2]:
+        raise SchemaError(f"key: {key!r} is not of the form {{ns}}/model/{{model}}/...")
+    return parts[2]
+
+
+def parse_degradation(key: str) -> str:
+    """``group`` of ``{ns}/model/degradation/{group}``."""
+    return _ids(key, ("model", "degradation"), ("group",))[0]
+
+
+def parse_deadletter(key: str) -> str:
+    """``service`` of ``{ns}/deadletter/{service}``."""
+    return _ids(key, ("deadletter",), ("service",))[0]
+
+
+def parse_alive(key: str) -> tuple[str, str]:
+    """``(service, instance)`` of ``{ns}/alive/{service}/{instance}``."""
+    service, instance = _ids(key, ("alive",), ("service", "instance"))
+    return service, instance
+
+
+def parse_q_state(key: str) -> tuple[str, str]:
+    """``(line, segment)`` of ``{ns}/q/state/{line}/{segment}``."""
+    line, segment = _ids(key, ("q", "state"), ("line", "segment"))
+    return line, segment
+
+
+# --- a message and its key -----------------------------------------------------------------
+
+# Each message type: the fixed chunks of its key after {ns}, and the fields its ids come from.
+_MESSAGE_KEYS: dict[type[Message], tuple[tuple[str, ...], tuple[str, ...]]] = {
+    RawChunk: (("raw",), ("train", "unit")),
+    GpsFix: (("gps",), ("train",)),
+    PositionedChunk: (("accel",), ("train", "unit")),
+    OnboardIndex: (("index",), ("line", "segment")),
+    TrcRecord: (("trc",), ("line", "segment")),
+    MaintenanceEvent: (("maintenance",), ("line", "segment")),
+    Calibration: (("model", "calibration"), ()),
+    DegradationPosterior: (("model", "degradation"), ("group",)),
+    SegmentState: (("state",), ("line", "segment")),
+    Alert: (("alert",), ("line", "segment")),
+    DeadLetter: (("deadletter",), ("service",)),
+}
+_ALSO = {SegmentState: (("q", "state"),)}  # a state is also a reply of the state queryable
+
+
+def key_of(ns: str, message: Message) -> str:
+    """The key ``message`` is published on: its kind and its own ids."""
+    head, fields = _MESSAGE_KEYS[type(message)]
+    return _key(ns, *head, *(getattr(message, f) for f in fields))
+
+
+def check_key(key: str, message: Message) -> None:
+    """Refuse a message whose key is not its kind's or carries other ids than the message.
+
+    The namespace chunk is not compared (the subscription chose it). A SegmentState may
+    also come on ``{ns}/q/state/{line}/{segment}``. Raises SchemaError with the reason, e.g.
+    ``OnboardIndex: key says L1/s2, message says L1/s1``, so an adapter makes a dead letter.
+    """
+    message_type = type(message)
+    name = message_type.__name__
+    head, fields = _MESSAGE_KEYS[message_type]
+    parts = str(key).split("/")
+    for kind_chunks in (head, *_ALSO.get(message_type, ())):
+        if tuple(parts[1 : 1 + len(kind_chunks)]) == kind_chunks:
+            got = parts[1 + len(kind_chunks) :]
+            if len(got) == len(fields):
+                want = [str(getattr(message, f)) for f in fields]
+                if got != want:
+                    raise SchemaError(
+                        f"{name}: key says {'/'.join(got)}, message says {'/'.join(want)}"
+                    )
+                return
+    form = "/".join(("{ns}", *head, *(f"{{{f}}}" for f in fields)))
+    raise SchemaError(f"{name}: key {key} is not of the form {form}")

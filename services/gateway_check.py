@@ -71,6 +71,14 @@ class _Unit:
     vertical_g: list[float] = field(default_factory=lambda: [math.inf, -math.inf])
 
 
+def _gateway_train(key: str) -> str | None:
+    """The train of a gateway's key (raw or GPS); None for another key."""
+    try:
+        return keys.parse_raw(key)[0] if keys.kind(key) == "raw" else keys.parse_gps(key)
+    except SchemaError:
+        return None
+
+
 class GatewayCheck:
     """Everything one train's gateway sends, checked; :meth:`report` says what was found."""
 
@@ -121,8 +129,7 @@ class GatewayCheck:
             letter = decode(payload, DeadLetter)
         except SchemaError:
             return
-        parts = letter.key.split("/")
-        if parts[1:3] in (["raw", self.train], ["gps", self.train]):
+        if _gateway_train(letter.key) == self.train:
             self._deviation(f"ingestion refused ({letter.key}): {letter.reason}", "ingestion")
 
     def _deviation(self, reason: str, rule: str | None = None) -> None:
@@ -250,7 +257,7 @@ def main(
     inbox: queue.SimpleQueue[tuple[str, str, bytes, float]] = queue.SimpleQueue()
     ns = conf.ns
     subscriptions = {
-        "raw": f"{ns}/raw/{train}/**",
+        "raw": keys.raw_of_train(ns, train),
         "gps": keys.gps(ns, train),
         "deadletter": keys.deadletter(ns, INGESTION),
     }

@@ -58,11 +58,12 @@ def main_status(
 ) -> int:
     """Every live service instance (liveliness tokens under ``{ns}/alive/**``)."""
     with _session(conf) as session:
-        alive = sorted(
-            tuple(str(reply.ok.key_expr).split("/")[2:4])
+        tokens = [
+            str(reply.ok.key_expr)
             for reply in session.liveliness().get(keys.alive_all(conf.ns), timeout=timeout)
             if reply.ok is not None
-        )
+        ]
+    alive = sorted(_alive_ids(tokens))
     if not alive:
         print(f"no service alive in namespace {conf.ns!r}", file=out)
         return 1
@@ -70,6 +71,15 @@ def main_status(
     for service, instance in alive:
         print(f"{service:14} {instance}", file=out)
     return 0
+
+
+def _alive_ids(tokens: Iterable[str]) -> Iterator[tuple[str, str]]:
+    """``(service, instance)`` of each token of a service (others under alive/** are skipped)."""
+    for token in tokens:
+        try:
+            yield keys.parse_alive(token)
+        except SchemaError:
+            continue
 
 
 # --- state ----------------------------------------------------------------------------------

@@ -383,14 +383,20 @@ class StatusBoard:
         self.viewer_url = ""  # the web viewer's address, once the viewer has printed it
 
     def on_sample(self, sample: zenoh.Sample) -> None:
-        parts = str(sample.key_expr).split("/")
-        payload = sample.payload.to_bytes() if parts[1] == "alert" else b""
+        key = str(sample.key_expr)
+        kind = keys.kind(key)  # the subscriptions are {ns}/{kind}/**
+        payload = sample.payload.to_bytes() if kind == "alert" else b""
+        try:
+            ids = keys.parse_segment_key(key)[2:] if kind == "state" else ()
+            train = keys.parse_gps(key) if kind == "gps" else ""
+        except SchemaError:
+            ids, train = (), ""  # a key of another form: counted, not listed
         with self.lock:
-            self.counts[parts[1]] += 1
-            if parts[1] == "state":
-                self.segments.add("/".join(parts[2:4]))
-            elif parts[1] == "gps":
-                self.trains.add(parts[2])
+            self.counts[kind] += 1
+            if ids:
+                self.segments.add("/".join(ids))
+            elif train:
+                self.trains.add(train)
             elif payload:
                 self.alerts.append(payload)  # decoded by the main loop, off the Zenoh thread
 
@@ -411,7 +417,10 @@ class StatusBoard:
                     self.raised.discard(ident)
 
     def on_alive(self, sample: zenoh.Sample) -> None:
-        _, _, service, instance = str(sample.key_expr).split("/")[:4]
+        try:
+            service, instance = keys.parse_alive(str(sample.key_expr))
+        except SchemaError:
+            return  # not a service's token
         with self.lock:
             if sample.kind == zenoh.SampleKind.PUT:
                 self.alive.add((service, instance))

@@ -20,8 +20,7 @@ import json5
 import msgspec
 import zenoh
 
-from schemas import Alert, SchemaError, SegmentState, TrcRecord, decode, encode, keys
-from schemas.keys import parse_segment_key
+from schemas import Alert, SegmentState, TrcRecord, decode, encode, keys
 from services.alerting.core import AlertingConfig, AlertingCore
 from services.alerting.store import AlertStore
 from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits
@@ -76,12 +75,7 @@ class AlertingAdapter:
             SegmentState if kind == "state" else TrcRecord
         )
         message = decode(payload, message_type)
-        _, _, line, segment = parse_segment_key(key)
-        if (line, segment) != (message.line, message.segment):
-            raise SchemaError(
-                f"{type(message).__name__}: key says {line}/{segment}, "
-                f"message says {message.line}/{message.segment}"
-            )
+        keys.check_key(key, message)
         with self.lock:
             run = None
             memory = None

@@ -206,13 +206,9 @@ def _serve(
             log.info("published %s version %d", key, model.version)
 
     def decode_sample(key: str, payload: bytes) -> Event:
-        _, kind, line, segment = keys.parse_segment_key(key)
-        message = decode(payload, _KINDS[kind])
-        if (message.line, message.segment) != (line, segment):
-            raise SchemaError(
-                f"{type(message).__name__}: line/segment {message.line}/{message.segment} "
-                f"do not match the key {key}"
-            )
+        message = decode(payload, _KINDS[keys.kind(key)])
+        keys.check_key(key, message)
+        line, segment = message.line, message.segment
         if segments is not None and (line, segment) not in segments:
             raise SchemaError(
                 f"{type(message).__name__}: segment {line}/{segment} is not in the network "

@@ -16,7 +16,7 @@ import threading
 import time
 from pathlib import Path
 
-from schemas import PositionedChunk, SchemaError, decode, encode, keys
+from schemas import PositionedChunk, decode, encode, keys
 from services.extraction.pipeline import ExtractionConfig, Extractor, SegmentTable
 from services.runtime.config import DEPLOY_DIR, RuntimeConfig
 from services.runtime.service import ServiceRuntime
@@ -46,12 +46,7 @@ class ExtractionAdapter:
 
     def handle(self, key: str, payload: bytes) -> None:
         chunk = decode(payload, PositionedChunk)
-        parts = key.split("/")
-        if parts[1:] != ["accel", chunk.train, chunk.unit]:
-            raise SchemaError(
-                f"PositionedChunk: key {key} is not {{ns}}/accel/{chunk.train}/{chunk.unit}, "
-                f"as the message's train and unit say"
-            )
+        keys.check_key(key, chunk)
         for index in self.extractor.process(chunk):
             self.indices.put(keys.index(self.rt.ns, index.line, index.segment), encode(index))
             self.published += 1

@@ -125,8 +125,7 @@ class FilteringAdapter:
         self.inbox = self.rt.subscribe_batches(
             subscriptions, self._handle_batch, max_batch=BATCH, reliable=True
         )
-        q_key = keys.q_state_all(ns).removesuffix("**") + self.selector
-        self.rt.declare_queryable(q_key, self._on_query)
+        self.rt.declare_queryable(keys.q_state_keys(ns, self.selector), self._on_query)
         # After subscribing, so a model published meanwhile is not missed either; and
         # before the liveliness token (ready), so the latest models are queued ahead of
         # any event a producer sends once it sees this instance ready.

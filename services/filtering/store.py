@@ -35,6 +35,7 @@ from schemas import (
     TrcRecord,
     decode,
     encode,
+    keys,
 )
 from services.filtering.tracker import (
     KIND_NAMES,
@@ -166,6 +167,7 @@ class Store:
 
 
 _EVENT_TYPES = {"index": OnboardIndex, "trc": TrcRecord, "maintenance": MaintenanceEvent}
+_MODEL_TYPES = {"calibration": Calibration, "degradation": DegradationPosterior}
 
 
 def decode_keyed(key: str, payload: bytes) -> EventMessage | ModelMessage | None:
@@ -173,26 +175,19 @@ def decode_keyed(key: str, payload: bytes) -> EventMessage | ModelMessage | None
 
     Raises SchemaError when the payload is malformed or disagrees with its key.
     """
-    parts = str(key).split("/")
-    kind = parts[1] if len(parts) > 1 else ""
+    kind = keys.kind(key)
+    message_type: type[EventMessage | ModelMessage]
     if kind in _EVENT_TYPES:
-        msg = decode(payload, _EVENT_TYPES[kind])
-        if parts[2:] != [msg.line, msg.segment]:
-            raise SchemaError(
-                f"{type(msg).__name__}: line/segment {msg.line}/{msg.segment} "
-                f"do not match the key {key}"
-            )
-        return msg
-    if parts[1:] == ["model", "calibration"]:
-        return decode(payload, Calibration)
-    if parts[1:3] == ["model", "degradation"]:
-        msg = decode(payload, DegradationPosterior)
-        if parts[3:] != [msg.group]:
-            raise SchemaError(f"DegradationPosterior: group {msg.group} does not match key {key}")
-        return msg
-    if kind == "model":
+        message_type = _EVENT_TYPES[kind]
+    elif kind != "model":
+        raise SchemaError(f"key {key}: not an index, trc, maintenance or model key")
+    elif keys.model_kind(key) in _MODEL_TYPES:
+        message_type = _MODEL_TYPES[keys.model_kind(key)]
+    else:
         return None
-    raise SchemaError(f"key {key}: not an index, trc, maintenance or model key")
+    message = decode(payload, message_type)
+    keys.check_key(key, message)
+    return message
 
 
 @dataclass(frozen=True)

@@ -74,7 +74,7 @@ class LastEvents:
         self.t: dict[tuple[str, str], float] = {}
 
     def __call__(self, sample: zenoh.Sample) -> None:
-        kind = str(sample.key_expr).split("/")[1]
+        kind = keys.kind(sample.key_expr)
         event = event_of(decode(sample.payload.to_bytes(), EVENT_TYPES[kind]))
         sid = (event.message.line, event.message.segment)
         with self.lock:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import zenoh
 
-from schemas import GpsFix, PositionedChunk, RawChunk, SchemaError, decode, encode, keys
+from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode, keys
 from services.ingestion.core import IngestionConfig, IngestionCore, Output, Rejection
 from services.runtime.config import DEPLOY_DIR, RuntimeConfig
 from services.runtime.service import ServiceRuntime
@@ -41,19 +41,9 @@ def load_network(path: str | Path) -> Network:
 def decode_gateway(kind: str, key: str, payload: bytes) -> RawChunk | GpsFix:
     """A gateway's payload (``kind`` "raw" or "gps") decoded and checked against its key;
     SchemaError says what is wrong. ``trackfusion gateway check`` uses it too."""
-    parts = key.split("/")
-    if kind == "raw":
-        chunk = decode(payload, RawChunk)
-        if parts[1:] != ["raw", chunk.train, chunk.unit]:
-            raise SchemaError(
-                f"RawChunk: key {key} is not {{ns}}/raw/{chunk.train}/{chunk.unit}, "
-                f"as the message's train and unit say"
-            )
-        return chunk
-    fix = decode(payload, GpsFix)
-    if parts[-1] != fix.train:
-        raise SchemaError(f"GpsFix: key says {parts[-1]}, message says {fix.train}")
-    return fix
+    message = decode(payload, RawChunk if kind == "raw" else GpsFix)
+    keys.check_key(key, message)
+    return message
 
 
 class IngestionAdapter:

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from schemas import keys
 from schemas.wire import check_id
 
 GATEWAY_PREFIX = "gateway-"
@@ -164,8 +165,7 @@ def gateway_name(train: str) -> str:
 
 def _subtree(ns: str, key: str) -> str:
     """``{ns}/{kind}/**`` of a key: where the subscribers a publisher must see declare."""
-    kind = key.split("/")[1]
-    return f"{ns}/{kind}/**"
+    return f"{ns}/{keys.kind(key)}/**"
 
 
 def _rules(rule_id: str, grant: Grant, ns: str, service: str) -> list[dict[str, Any]]:

@@ -138,7 +138,7 @@ def test_every_fault_in_turn_leaves_the_uninterrupted_states(
     alive_changed = threading.Condition()
 
     def on_token(sample: zenoh.Sample) -> None:
-        name = str(sample.key_expr).split("/")[-1]
+        name = keys.parse_alive(str(sample.key_expr))[1]
         with alive_changed:
             if sample.kind == zenoh.SampleKind.PUT:
                 alive_now.add(name)

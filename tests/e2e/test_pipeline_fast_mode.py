@@ -29,7 +29,7 @@ def disagreement(replies: dict[str, dict[str, bytes]], last: LastEvents) -> str:
         behind = [
             k
             for k, p in states.items()
-            if decode(p, SegmentState).t != seen.get(tuple(k.split("/")[3:5]))
+            if decode(p, SegmentState).t != seen.get(keys.parse_q_state(k))
         ]
         lines.append(f"{zid}: {len(states)} states, {len(behind)} behind the newest event")
     if len(replies) == 2:
@@ -56,7 +56,7 @@ def drained(
         caught_up = len(replies) == instances and all(
             len(states) > 0
             and all(
-                decode(payload, SegmentState).t == seen.get(tuple(key.split("/")[3:5]))
+                decode(payload, SegmentState).t == seen.get(keys.parse_q_state(key))
                 for key, payload in states.items()
             )
             for states in replies.values()
@@ -108,7 +108,7 @@ def test_pipeline_survives_a_filtering_kill(
     while len(up) < 4:
         kind, key = alive.get(timeout=30)
         if kind == zenoh.SampleKind.PUT:
-            up.add(key.split("/")[3])
+            up.add(keys.parse_alive(key)[1])
 
     def simulate(*days: str) -> None:
         world = ["--network", str(network), "--days", str(DAYS), "--trains", "2"]

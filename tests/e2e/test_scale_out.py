@@ -24,7 +24,7 @@ SELECTORS = {"all": "**", "L1": "L1/**", "L2": "L2/**"}
 
 
 def lines_of(states: dict[str, bytes]) -> frozenset[str]:
-    return frozenset(key.split("/")[3] for key in states)
+    return frozenset(keys.parse_q_state(key)[0] for key in states)
 
 
 def settled(
@@ -41,7 +41,7 @@ def settled(
         whole = [s for s in replies if lines_of(s) == {"L1", "L2"}]
         split = {next(iter(lines_of(s))): s for s in replies if len(lines_of(s)) == 1}
         behind = sum(
-            decode(payload, SegmentState).t != seen.get(tuple(key.split("/")[3:5]))
+            decode(payload, SegmentState).t != seen.get(keys.parse_q_state(key))
             for states in replies
             for key, payload in states.items()
         )
@@ -99,7 +99,7 @@ def test_split_instances_equal_one_instance(
     while len(up) < 1 + len(filtering):
         kind, key = alive.get(timeout=30)
         if kind == zenoh.SampleKind.PUT:
-            up.add(key.split("/")[3])
+            up.add(keys.parse_alive(key)[1])
 
     world = ["--network", str(network), "--days", str(DAYS), "--trains", "2", "--seed", "2"]
     simulate = spawn(
@@ -117,7 +117,7 @@ def test_split_instances_equal_one_instance(
 
     whole, split = settled(session, namespace, last)
     assert not set(split["L1"]) & set(split["L2"])  # each segment has exactly one owner
-    assert all(key.split("/")[3] == line for line, s in split.items() for key in s)
+    assert all(lines_of(s) == {line} for line, s in split.items())
     assert {**split["L1"], **split["L2"]} == whole  # byte for byte
     assert len(whole) >= 25  # both 3 km lines have states (15 segments of 200 m each)
     states = [decode(p, SegmentState) for p in whole.values()]

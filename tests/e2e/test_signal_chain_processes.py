@@ -74,7 +74,7 @@ def test_every_segment_passed_at_speed_gets_an_index(
     while len(up) < 2:
         kind, key = alive.get(timeout=30)
         if kind == zenoh.SampleKind.PUT:
-            up.add(key.split("/")[2])
+            up.add(keys.parse_alive(key)[0])
 
     world = ["--fidelity", "raw", "--trains", "1", "--days", str(SECONDS / 86400)]
     simulate = spawn(

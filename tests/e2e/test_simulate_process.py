@@ -11,7 +11,7 @@ import threading
 
 import zenoh
 
-from schemas import OnboardIndex, TrcRecord, decode
+from schemas import OnboardIndex, TrcRecord, decode, keys
 from simulators.groundtruth import load_truth
 
 
@@ -21,7 +21,7 @@ def test_simulate_index_fidelity_publishes_everything(open_session, router, name
     arrived = threading.Condition()
 
     def on_sample(sample: zenoh.Sample) -> None:
-        kind = str(sample.key_expr).split("/")[1]
+        kind = keys.kind(sample.key_expr)
         try:
             if kind == "index":
                 decode(sample.payload.to_bytes(), OnboardIndex)

@@ -60,11 +60,11 @@ def test_up_runs_the_stack_and_answers_every_command(
         services = set()
         while not {"calibration", "filtering", "alerting"} <= services:
             kind, key = alive.get(timeout=60)
-            services.add(key.split("/")[2])
+            services.add(keys.parse_alive(key)[0])
         states = collector()
         s.declare_subscriber(keys.segment_keys(namespace, "state"), states)
         first = states.get(timeout=60)  # a TRC run and the initial models make states
-        line, segment = str(first.key_expr).split("/")[2:4]
+        _, _, line, segment = keys.parse_segment_key(str(first.key_expr))
 
         # The simulator outruns filtering on purpose: a query waits behind the queued events
         # (under load, more than the default 10 s), so the commands get a longer bound.

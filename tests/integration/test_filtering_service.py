@@ -202,7 +202,7 @@ def test_malformed_payload_is_dead_lettered_and_the_service_goes_on(
     # the index and trc subscriptions run on their own threads: the letters in either order
     reasons = {letter.key: letter.reason for letter in (letters.get(), letters.get())}
     assert reasons[bad_key].startswith("OnboardIndex:")
-    assert "do not match the key" in reasons[keys.trc(namespace, "L1", "other")]
+    assert "key says L1/other, message says" in reasons[keys.trc(namespace, "L1", "other")]
     assert states.get().n_updates == 0  # still serving
 
 

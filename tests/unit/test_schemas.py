@@ -394,8 +394,89 @@ def test_keys_refuse_unsafe_chunks(bad):
 
 def test_parse_segment_key():
     assert keys.parse_segment_key("tf/index/L1/s1") == ("tf", "index", "L1", "s1")
-    with pytest.raises(ValueError):
-        keys.parse_segment_key("tf/index/L1")
+    for bad in ("tf/index/L1", "tf/index/L1/s1/x", "tf/raw/L1/s1", "tf/index//s1"):
+        with pytest.raises(SchemaError, match="is not of the form"):
+            keys.parse_segment_key(bad)
+
+
+# (builder, its arguments after ns, parser, what the parser returns)
+PARSERS = [
+    (keys.raw, ("T1", "b1"), keys.parse_raw, ("T1", "b1")),
+    (keys.gps, ("T1",), keys.parse_gps, "T1"),
+    (keys.accel, ("T1", "b1"), keys.parse_accel, ("T1", "b1")),
+    *[
+        (getattr(keys, kind), ("L1", "s1"), keys.parse_segment_key, ("tf", kind, "L1", "s1"))
+        for kind in keys.SEGMENT_KINDS
+    ],
+    (keys.degradation, ("class-fast",), keys.parse_degradation, "class-fast"),
+    (keys.deadletter, ("ingestion",), keys.parse_deadletter, "ingestion"),
+    (keys.alive, ("filtering", "i0"), keys.parse_alive, ("filtering", "i0")),
+    (keys.q_state, ("L1", "s1"), keys.parse_q_state, ("L1", "s1")),
+]
+
+
+@pytest.mark.parametrize(
+    "builder, args, parse, ids", PARSERS, ids=lambda x: getattr(x, "__name__", None)
+)
+def test_parsers_reverse_their_builders_and_refuse_other_keys(builder, args, parse, ids):
+    key = builder("tf", *args)
+    assert parse(key) == ids
+    others = [b("tf", *a) for b, a, p, _ in PARSERS if p is not parse]
+    others += [key + "/x", key.rsplit("/", 1)[0], keys.calibration("tf")]
+    for other in others:
+        with pytest.raises(SchemaError):
+            parse(other)
+
+
+def test_kind_and_model_kind():
+    assert keys.kind(keys.raw("tf", "T1", "b1")) == "raw"
+    assert keys.kind(keys.q_state("tf", "L1", "s1")) == "q"
+    assert keys.kind(keys.segment_keys("tf", "index", "L1/**")) == "index"
+    assert keys.model_kind(keys.calibration("tf")) == "calibration"
+    assert keys.model_kind(keys.degradation("tf", "g")) == "degradation"
+    for bad in ("tf", "tf/"):
+        with pytest.raises(SchemaError):
+            keys.kind(bad)
+    with pytest.raises(SchemaError):
+        keys.model_kind(keys.state("tf", "L1", "s1"))
+
+
+def test_selectors_narrow_the_queryable_and_the_subscriptions_alike():
+    ke = zenoh.KeyExpr
+    l1 = ke(keys.q_state_keys("tf", "L1/**"))
+    assert keys.q_state_keys("tf") == keys.q_state_all("tf") == "tf/q/state/**"
+    assert l1.includes(ke(keys.q_state("tf", "L1", "s1")))
+    assert not l1.intersects(ke(keys.q_state("tf", "L2", "s1")))
+    assert not l1.intersects(ke(keys.state("tf", "L1", "s1")))
+    assert ke(keys.q_state_all("tf")).includes(l1)
+    one_train = ke(keys.raw_of_train("tf", "T1"))
+    assert one_train.includes(ke(keys.raw("tf", "T1", "b1")))
+    assert not one_train.intersects(ke(keys.raw("tf", "T2", "b1")))
+    assert ke(keys.raw_all("tf")).includes(one_train)
+
+
+@pytest.mark.parametrize("message", examples(), ids=lambda m: type(m).__name__)
+def test_every_message_has_its_key_and_refuses_another(message):
+    key = keys.key_of("tf", message)
+    keys.check_key(key, message)
+    assert zenoh.KeyExpr(key).intersects(zenoh.KeyExpr(f"tf/{keys.kind(key)}/**"))
+    moved = key.rsplit("/", 1)[0] + "/other"
+    if moved != key:
+        with pytest.raises(SchemaError, match=f"^{type(message).__name__}: key (says )?.*other"):
+            keys.check_key(moved, message)
+    for other in examples():
+        if type(other) is not type(message) and not (
+            isinstance(other, SegmentState) and isinstance(message, SegmentState)
+        ):
+            with pytest.raises(SchemaError, match=f"^{type(message).__name__}: key "):
+                keys.check_key(keys.key_of("tf", other), message)
+
+
+def test_a_state_is_checked_on_its_queryable_key_too():
+    state = next(m for m in examples() if isinstance(m, SegmentState))
+    keys.check_key(keys.q_state("tf", state.line, state.segment), state)
+    with pytest.raises(SchemaError, match="SegmentState: key says L1/s9, message says L1/s0001"):
+        keys.check_key(keys.q_state("tf", "L1", "s9"), state)
 
 
 # --- the wire reference stays in step ------------------------------------------------------
