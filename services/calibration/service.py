@@ -30,7 +30,6 @@ from pathlib import Path
 from typing import Any, cast
 
 import json5
-import zenoh
 
 from schemas import (
     Calibration,
@@ -52,6 +51,7 @@ from services.calibration.calibrator import (
 )
 from services.calibration.store import SqliteStore
 from services.runtime.config import RuntimeConfig, default_db
+from services.runtime.latest import LatestValues
 from services.runtime.service import ServiceRuntime
 
 log = logging.getLogger(__name__)
@@ -138,22 +138,6 @@ def model_key(ns: str, model: Model) -> str:
     return keys.degradation(ns, model.group)
 
 
-class _Latest:
-    """The latest payload per model key, shared by the worker and the queryable callback."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._payloads: dict[str, bytes] = {}
-
-    def set(self, key: str, payload: bytes) -> None:
-        with self._lock:
-            self._payloads[key] = payload
-
-    def items(self) -> list[tuple[str, bytes]]:
-        with self._lock:
-            return sorted(self._payloads.items())
-
-
 def main(
     conf: RuntimeConfig,
     settings: Settings | None = None,
@@ -195,13 +179,13 @@ def _serve(
     network: Path | None = None,
 ) -> int:
     ns = rt.ns
-    latest = _Latest()
+    latest = LatestValues()
     models_out = rt.reliable_publisher()  # cached: filtering instances that return get them
 
     def publish(models: list[Model]) -> None:
         for model in models:
             key, payload = model_key(ns, model), encode(model)
-            latest.set(key, payload)
+            latest.put(key, payload)
             models_out.put(key, payload)
             log.info("published %s version %d", key, model.version)
 
@@ -232,13 +216,8 @@ def _serve(
             rt.deadletters.reject(quarantine_key(ns, q), q.reason, payload)
         publish(models)
 
-    def on_query(query: zenoh.Query) -> None:
-        for key, payload in latest.items():
-            if zenoh.KeyExpr(key).intersects(query.key_expr):
-                query.reply(key, payload)
-
     publish(core.models())  # restored and initial models, for those already listening
-    rt.declare_queryable(keys.model_all(ns), on_query)
+    rt.declare_queryable(keys.model_all(ns), latest.on_query)
     subscriptions = {kind: keys.segment_keys(ns, kind) for kind in _KINDS}
     rt.subscribe_batches(subscriptions, handle_batch, max_batch=BATCH, reliable=True)
     return rt.run()  # leaving: the worker handles what is queued, persists, then ends

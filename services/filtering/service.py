@@ -37,13 +37,12 @@ import threading
 from contextlib import ExitStack
 from pathlib import Path
 
-import zenoh
-
 from schemas import SegmentState, encode, keys
 from services.filtering.store import PersistentTracker, Store
 from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_limits
 from services.runtime.config import RuntimeConfig, default_db
+from services.runtime.latest import LatestValues
 from services.runtime.service import ServiceRuntime
 
 log = logging.getLogger(__name__)
@@ -109,8 +108,7 @@ class FilteringAdapter:
         self.rt = rt
         self.node = node
         self.selector = selector
-        self._latest: dict[tuple[str, str], tuple[str, bytes]] = {}  # -> (q key, payload)
-        self._lock = threading.Lock()
+        self.latest = LatestValues()  # q/state key -> the segment's newest state
 
     def start(self) -> None:
         ns = self.rt.ns
@@ -125,7 +123,7 @@ class FilteringAdapter:
         self.inbox = self.rt.subscribe_batches(
             subscriptions, self._handle_batch, max_batch=BATCH, reliable=True
         )
-        self.rt.declare_queryable(keys.q_state_keys(ns, self.selector), self._on_query)
+        self.rt.declare_queryable(keys.q_state_keys(ns, self.selector), self.latest.on_query)
         # After subscribing, so a model published meanwhile is not missed either; and
         # before the liveliness token (ready), so the latest models are queued ahead of
         # any event a producer sends once it sees this instance ready.
@@ -134,15 +132,6 @@ class FilteringAdapter:
                 self.inbox.put("model", str(reply.ok.key_expr), reply.ok.payload.to_bytes())
             else:
                 log.warning("model query: error reply %r", reply.err.payload.to_bytes()[:200])
-
-    # --- Zenoh threads: short, no Zenoh calls except replies ----------------------------
-
-    def _on_query(self, query: zenoh.Query) -> None:
-        with self._lock:
-            latest = list(self._latest.values())
-        for key, payload in latest:
-            if query.key_expr.intersects(zenoh.KeyExpr(key)):
-                query.reply(key, payload)
 
     # --- the worker ---------------------------------------------------------------------
 
@@ -165,9 +154,7 @@ class FilteringAdapter:
 
     def _publish(self, state: SegmentState) -> None:
         payload = encode(state)
-        q_key = keys.q_state(self.rt.ns, state.line, state.segment)
-        with self._lock:
-            self._latest[(state.line, state.segment)] = (q_key, payload)
+        self.latest.put(keys.q_state(self.rt.ns, state.line, state.segment), payload)
         # cached per segment (alerting restarted gets what it missed); BLOCK: a slow
         # consumer slows the worker down rather than losing states
         self.states_out.put(keys.state(self.rt.ns, state.line, state.segment), payload)
