@@ -19,7 +19,10 @@ from schemas.messages import (
     PositionedChunk,
     RawChunk,
     SegmentState,
+    ServiceHealth,
+    StackHealth,
     TrcRecord,
+    ViewerSelect,
 )
 from schemas.wire import NDArray, SchemaError, decode, encode
 
@@ -43,7 +46,10 @@ __all__ = [
     "RawChunk",
     "SchemaError",
     "SegmentState",
+    "ServiceHealth",
+    "StackHealth",
     "TrcRecord",
+    "ViewerSelect",
     "decode",
     "encode",
     "keys",

@@ -147,6 +147,16 @@ def q_plan(ns: str) -> str:
     return _key(ns, "q", "plan")
 
 
+def stack_health(ns: str) -> str:
+    """``trackfusion up``'s StackHealth report, once a second."""
+    return _key(ns, "health", "stack")
+
+
+def viewer_select(ns: str) -> str:
+    """ViewerSelect: the segment a running viewer pins into its "selected" plots."""
+    return _key(ns, "viewer", "select")
+
+
 # --- taking keys apart --------------------------------------------------------------------
 
 

@@ -383,6 +383,52 @@ class DeadLetter(Message, frozen=True, kw_only=True):
         check_finite("received_at", self.received_at)
 
 
+class ServiceHealth(msgspec.Struct, frozen=True, kw_only=True):
+    """One process of ``trackfusion up`` in a :class:`StackHealth` report."""
+
+    name: str  # the stack file's process name
+    state: str  # starting, running, stopping, waiting, exited, finished or failed
+    alive: bool  # its liveliness token is present
+    restarts: int
+    last_restart_reason: str = ""
+    pid: int | None = None
+    uptime_s: float | None = None  # of the current run, wall s
+
+
+class StackHealth(Message, frozen=True, kw_only=True):
+    """What ``trackfusion up`` sees each second: its processes, stalled flows, counts."""
+
+    MAX_BYTES: ClassVar[int] = 64 * KIB
+    written_at: float  # wall-clock epoch s of the report (not an event time)
+    processes: list[ServiceHealth]
+    stalled: list[str]  # one sentence per stalled flow, e.g. "index arriving but no state …"
+    counts: dict[str, int]  # messages seen on the bus since `up` started, per key kind
+    healthy: bool
+    viewer_url: str = ""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_finite("written_at", self.written_at)
+        for process in self.processes:
+            check_id("process name", process.name)
+            check_int("restarts", process.restarts)
+        for kind, count in self.counts.items():
+            check_id("counts key", kind)
+            check_int(f"counts[{kind}]", count)
+
+
+class ViewerSelect(Message, frozen=True, kw_only=True):
+    """Pin one segment into the viewer's "selected segment" plots."""
+
+    line: str
+    segment: str
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_id("line", self.line)
+        check_id("segment", self.segment)
+
+
 ALL_MESSAGES: tuple[type[Message], ...] = (
     RawChunk,
     GpsFix,
@@ -395,4 +441,6 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     SegmentState,
     Alert,
     DeadLetter,
+    StackHealth,
+    ViewerSelect,
 )

@@ -27,7 +27,10 @@ from schemas import (
     RawChunk,
     SchemaError,
     SegmentState,
+    ServiceHealth,
+    StackHealth,
     TrcRecord,
+    ViewerSelect,
     decode,
     encode,
     keys,
@@ -144,6 +147,14 @@ def examples() -> list[schemas.Message]:
             payload_head=b"\x00",
             received_at=T0,
         ),
+        StackHealth(
+            written_at=T0,
+            processes=[ServiceHealth(name="filtering", state="running", alive=True, restarts=1)],
+            stalled=["index arriving but no state published for 31 s"],
+            counts={"index": 12, "state": 0},
+            healthy=False,
+        ),
+        ViewerSelect(line="L1", segment="s0001"),
     ]
 
 
@@ -361,6 +372,8 @@ def test_keys_follow_the_design_table():
     assert keys.q_state(ns, "L1", "s1") == "tf/q/state/L1/s1"
     assert keys.q_alerts(ns) == "tf/q/alerts"
     assert keys.q_plan(ns) == "tf/q/plan"
+    assert keys.stack_health(ns) == "tf/health/stack"
+    assert keys.viewer_select(ns) == "tf/viewer/select"
 
 
 def test_wildcards_include_their_concrete_keys():
