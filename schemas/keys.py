@@ -21,7 +21,9 @@ from schemas.messages import (
     PositionedChunk,
     RawChunk,
     SegmentState,
+    StackHealth,
     TrcRecord,
+    ViewerSelect,
 )
 from schemas.wire import SchemaError, check_id
 
@@ -258,6 +260,8 @@ _MESSAGE_KEYS: dict[type[Message], tuple[tuple[str, ...], tuple[str, ...]]] = {
     SegmentState: (("state",), ("line", "segment")),
     Alert: (("alert",), ("line", "segment")),
     DeadLetter: (("deadletter",), ("service",)),
+    StackHealth: (("health", "stack"), ()),
+    ViewerSelect: (("viewer", "select"), ()),
 }
 _ALSO = {SegmentState: (("q", "state"),)}  # a state is also a reply of the state queryable
 
