@@ -16,8 +16,14 @@ segments   seg, line, segment, idx, start_m, end_m, class, mu_top, mu_align, sig
 truth      seg, line, segment, t, z_top, z_align, epoch: snapshots of every segment on the
            truth's grid (every ``snapshot_every_days``), the first at ``start_t``
 tamping    seg, line, segment, t, t_start, t_end, event_id, epoch, cause, z_top_before,
-           z_align_before, z_top_after, z_align_after: every true tamping (t the true time,
-           [t_start, t_end] what the MaintenanceEvent reported)
+           z_align_before, z_top_after, z_align_after, report, t_reported: every true
+           tamping (t the true time, [t_start, t_end] what the MaintenanceEvent reported,
+           ``report`` ``on_time``, ``late`` or ``never``, t_reported when it was published,
+           NULL if never)
+units      train, unit, vehicle_class, h_tt, h_ta, h_at, h_aa, b_top, b_align, gain,
+           offset_top, offset_align: the observation model of every on-board unit that
+           published an index (fast mode; ``simulators/fleet.py``): H, b of its vehicle
+           class with its sensor's gain and mounting offset in b
 trc        seg, line, segment, t, run_id, top6_mm, align10_mm, z_top, z_align: every
            published TrcRecord with the true z at its time
 onboard    seg, line, segment, t, train, unit, run_id, top6_mm, align10_mm, z_top, z_align:
@@ -44,11 +50,13 @@ from pathlib import Path
 import numpy as np
 
 from schemas import Message, OnboardIndex, TrcRecord
+from simulators.fleet import Fleet
 from simulators.network import Network
 from simulators.truth import DAY_S, Tamping, Truth
 
-SCHEMA_VERSION = 1
-_TEXT = {"line", "segment", "class", "run_id", "train", "unit", "event_id", "cause"}
+SCHEMA_VERSION = 2
+_TEXT = {"line", "segment", "class", "run_id", "train", "unit", "event_id", "cause", "report"}
+_TEXT |= {"vehicle_class"}
 _TABLES = {
     "meta": "key TEXT PRIMARY KEY, value TEXT",
     "segments": (
@@ -61,7 +69,7 @@ _TABLES = {
     "tamping": (
         "seg INTEGER, line TEXT, segment TEXT, t REAL, t_start REAL, t_end REAL, event_id TEXT, "
         "epoch INTEGER, cause TEXT, z_top_before REAL, z_align_before REAL, z_top_after REAL, "
-        "z_align_after REAL"
+        "z_align_after REAL, report TEXT, t_reported REAL"
     ),
     "trc": (
         "seg INTEGER, line TEXT, segment TEXT, t REAL, run_id TEXT, top6_mm REAL, "
@@ -70,6 +78,10 @@ _TABLES = {
     "onboard": (
         "seg INTEGER, line TEXT, segment TEXT, t REAL, train TEXT, unit TEXT, run_id TEXT, "
         "top6_mm REAL, align10_mm REAL, z_top REAL, z_align REAL"
+    ),
+    "units": (
+        "train TEXT, unit TEXT, vehicle_class TEXT, h_tt REAL, h_ta REAL, h_at REAL, h_aa REAL, "
+        "b_top REAL, b_align REAL, gain REAL, offset_top REAL, offset_align REAL"
     ),
 }
 
@@ -102,6 +114,8 @@ class GroundTruthWriter:
     ):
         self.path = Path(path)
         self.truth = Truth(network, config, start_t, seed)
+        self._fleet = Fleet.from_config(config, seed)
+        self._units: set[tuple[str, str]] = set()
         self.end_t = start_t + days * DAY_S
         self._every = max(1, round(snapshot_every_days * DAY_S / self.truth.step_s))
         self._steps = 0
@@ -156,6 +170,7 @@ class GroundTruthWriter:
         self._rows["tamping"].extend(
             (tp.seg, tp.line, tp.segment, tp.t, tp.t_start, tp.t_end, tp.event_id, tp.epoch)
             + (tp.cause, *map(float, tp.z_before), *map(float, tp.z_after))
+            + (tp.report, tp.t_reported)
             for tp in taps
         )
 
@@ -187,6 +202,16 @@ class GroundTruthWriter:
             else:
                 row = (i, m.line, m.segment, m.t, m.train, m.unit, m.run_id)
                 self._rows["onboard"].append(row + (m.top6_mm, m.align10_mm, z_top, z_align))
+                if not m.run_id and (m.train, m.unit) not in self._units:
+                    self._add_unit(m.train, m.unit)
+
+    def _add_unit(self, train: str, unit: str) -> None:
+        u = self._fleet.unit(train, unit)
+        self._units.add((train, unit))
+        self._rows["units"].append(
+            (train, unit, u.vehicle_class, *u.model.H.ravel().tolist(), *u.model.b.tolist())
+            + (u.gain, *u.offset.tolist())
+        )
 
     def _flush(self) -> None:
         for name, rows in self._rows.items():
@@ -251,6 +276,8 @@ def load_truth(path: str | Path) -> dict:
         rows = db.execute("SELECT t, z_top, z_align, epoch FROM truth ORDER BY t, seg").fetchall()
         snap = np.asarray(rows, dtype=np.float64).reshape(-1, n_seg, 4)
         out["t"], out["z"], out["epoch"] = snap[:, 0, 0], snap[..., 1:3], snap[..., 3].astype(int)
+        for c, values in _columns(db, "units", "train, unit").items():
+            out[f"units_{c}"] = np.asarray(values, dtype=str if c in _TEXT else np.float64)
         for table in ("tamping", "trc", "onboard"):
             for c, values in _columns(db, table, "t, seg").items():
                 out[f"{table}_{c}"] = np.asarray(values, dtype=str if c in _TEXT else np.float64)

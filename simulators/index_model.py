@@ -80,19 +80,31 @@ def index_pass_events(
     ``trains_per_line_per_day`` passes, departures evenly spread over the ``index.service_hours``
     with a random offset, alternating direction (even slots run up the chainage, odd
     down). A pass runs at ``line_speed_mps * U(index.speed_factor)`` and reaches a
-    segment's middle at ``departure + distance / speed``; its indices come from ``model``
-    applied to the truth at that instant. Train ids are ``T{line}-{slot}`` (the same
-    timetable slot every day), the unit is ``index.unit``; coverage and quality are 1.
+    segment's middle at ``departure + distance / speed``; its indices come from the
+    observation model of the train's unit (:class:`simulators.fleet.Fleet`: its vehicle
+    class and its sensor; ``model`` instead, if given, for every train) applied to the
+    truth at that instant, and its speed factor is its vehicle class's. Train ids are
+    ``T{line}-{slot}`` (the same timetable slot every day), the unit is ``index.unit``;
+    coverage and quality are 1.
 
     ``truth`` is advanced by this generator: give it a replica of its own
     (:meth:`Truth.copy` or a new Truth with the same seed) when other generators read
     the truth too.
     """
-    model = model or IndexSensorModel.from_config(config)
+    from simulators.fleet import Fleet  # fleet builds on this module's IndexSensorModel
+
+    fleet = Fleet.from_config(config, seed)
     sec = config["index"]
     h0, h1 = config_pair(sec, "service_hours", "index")
-    f0, f1 = config_pair(sec, "speed_factor", "index")
     unit = str(sec.get("unit", "bogie1"))
+    units = {}
+
+    def unit_of(line_id: str, k: int):
+        train = f"T{line_id}-{k:02d}"
+        if train not in units:
+            units[train] = fleet.unit(train, unit)
+        return units[train]
+
     start, n = truth.t, int(trains_per_line_per_day)
     if n < 0:
         raise ValueError(f"trains_per_line_per_day: must be >= 0, got {n}")
@@ -103,7 +115,10 @@ def index_pass_events(
         t_all, seg_all, meta = [], [], []
         for line in lines if n else ():  # no service passes: nothing to draw
             rng = stable_rng(seed, "index-passes", line.id, day)
-            speed = line.line_speed_mps * rng.uniform(f0, f1, n)
+            factor = np.array([unit_of(line.id, k).speed_factor for k in range(n)]).reshape(n, 2)
+            speed = line.line_speed_mps * (
+                factor[:, 0] + (factor[:, 1] - factor[:, 0]) * rng.random(n)
+            )
             last = h1 * 3600 - line.length_m / speed.min()
             if last < h0 * 3600:
                 raise ValueError(f"line {line.id}: a pass does not fit into service hours")
@@ -124,7 +139,7 @@ def index_pass_events(
         y = np.empty_like(z)
         lo = 0
         for line_id, k, _, m in meta:  # noise keyed per pass: independent of loop order
-            y[lo : lo + m] = model.indices(
+            y[lo : lo + m] = (model or unit_of(line_id, k).model).indices(
                 z[lo : lo + m], stable_rng(seed, "index", line_id, day, k)
             )
             lo += m

@@ -21,7 +21,11 @@ Tamping happens (``maintenance`` section) ``delay_days`` after a grid day on whi
 Align10 exceeds its limit, and on a fixed schedule per track section (every
 ``scheduled_period_days``, random phase per section), whichever comes first. A share
 ``interval_fraction`` of the MaintenanceEvents is reported only as an interval containing
-the true time, published at the interval's end.
+the true time, published at the interval's end. Maintenance records are not always kept:
+a share ``unreported_fraction`` of the tampings is never reported (the ground truth still
+has them), and a share ``late_fraction`` of the reported ones is published
+``late_days`` after it would have been (the report itself is unchanged). Both are drawn
+per tamping from keys of their own, so turning them on changes no other draw.
 
 Between grid points :meth:`Truth.z_at` interpolates linearly (across a tamping: the
 untamped path up to :math:`t_m`, then from :math:`z^+` at :math:`t_m`), so the truth at
@@ -109,6 +113,9 @@ class TruthConfig:
     section_segments: int
     interval_fraction: float
     interval_days: tuple[float, float]
+    unreported_fraction: float = 0.0
+    late_fraction: float = 0.0
+    late_days: tuple[float, float] = (3.0, 21.0)
 
     @classmethod
     def from_config(cls, config: Mapping) -> TruthConfig:
@@ -159,11 +166,19 @@ class TruthConfig:
             section_segments=int(m.get("section_segments", 25)),
             interval_fraction=float(m.get("interval_fraction", 0.0)),
             interval_days=config_pair(m, "interval_days", "maintenance"),
+            unreported_fraction=float(m.get("unreported_fraction", 0.0)),
+            late_fraction=float(m.get("late_fraction", 0.0)),
+            late_days=config_pair(m, "late_days", "maintenance")
+            if "late_days" in m
+            else (3.0, 21.0),
         )
         if not cfg.step_days > 0 or cfg.section_segments < 1 or cfg.scheduled_period_days < 0:
             raise ValueError("truth.step_days > 0, section_segments >= 1, period >= 0 required")
         if not 0 <= cfg.interval_fraction <= 1 or cfg.mu_spread < 0 or cfg.sigma_spread < 0:
             raise ValueError("interval_fraction in [0, 1], mu_spread and sigma_spread >= 0")
+        for name in ("unreported_fraction", "late_fraction"):
+            if not 0 <= getattr(cfg, name) <= 1:
+                raise ValueError(f"maintenance.{name}: a share in [0, 1]")
         return cfg
 
 
@@ -181,6 +196,8 @@ class Tamping:
     cause: str  # "limit" or "scheduled"
     z_before: np.ndarray  # (2,) state just before
     z_after: np.ndarray  # (2,) state just after (the drawn z+)
+    report: str = "on_time"  # "on_time", "late" or "never" (no MaintenanceEvent published)
+    t_reported: float | None = None  # when the MaintenanceEvent is published; None: never
 
     @property
     def event_id(self) -> str:
@@ -311,6 +328,18 @@ class Truth:
     def _event_rng(self, kind: str, i: int) -> np.random.Generator:
         return stable_rng(self.seed, kind, self.keys[i][0], self.segment_index[i], self.epoch[i])
 
+    def _report(self, i: int, t_end: float) -> tuple[str, float | None]:
+        """Whether and when segment ``i``'s tamping (epoch already counted) is reported."""
+        cfg = self.config
+        if not (cfg.unreported_fraction or cfg.late_fraction):
+            return "on_time", t_end
+        rng = self._event_rng("report", i)
+        if rng.random() < cfg.unreported_fraction:
+            return "never", None
+        if rng.random() < cfg.late_fraction:
+            return "late", t_end + rng.uniform(*cfg.late_days) * DAY_S
+        return "on_time", t_end
+
     def _schedule_crossings(self) -> None:
         """Schedule a tamping for segments over a limit with none pending."""
         lo, hi = self.config.delay_days
@@ -351,9 +380,11 @@ class Truth:
                 self._next_sched[i] += cfg.scheduled_period_days * DAY_S
             tamped[int(i)] = (t_m, z_pre, zp)
             line, seg = self.keys[i]
+            report, t_reported = self._report(int(i), t_end)
             out.append(
                 Tamping(
-                    int(i), line, seg, t_m, t_start, t_end, int(self.epoch[i]), cause, z_pre, zp
+                    *(int(i), line, seg, t_m, t_start, t_end, int(self.epoch[i]), cause),
+                    *(z_pre, zp, report, t_reported),
                 )
             )
         self.z, self.t = z_new, t_new
@@ -426,7 +457,8 @@ def truth_events(
     """Tamping MaintenanceEvents of ``days`` from ``start_t``, as ``(t, [events])`` in order.
 
     ``t`` is when the event is reported: the tamping time, or the interval's end for an
-    interval-only report (reports due after the simulated period are dropped).
+    interval-only report, plus the delay of a late report; an unreported tamping gives
+    nothing (reports due after the simulated period are dropped).
     ``on_step(truth, tampings)`` is called with the initial state and after every grid
     step (the ground-truth hook). Pass ``truth`` to use a replica built elsewhere; it is
     advanced by this generator.
@@ -442,8 +474,9 @@ def truth_events(
         if on_step:
             on_step(truth, taps)
         for tp in taps:
-            heapq.heappush(queue, (tp.t_end, n, tp.message()))
-            n += 1
+            if tp.t_reported is not None:
+                heapq.heappush(queue, (tp.t_reported, n, tp.message()))
+                n += 1
         # Every later tamping happens after truth.t, so reports up to it are final.
         while queue and queue[0][0] <= min(truth.t, end):
             t = queue[0][0]

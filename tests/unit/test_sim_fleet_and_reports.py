@@ -1,0 +1,132 @@
+"""The simulator's unkind world: unreported and late maintenance, a mixed fleet (issue 18)."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from schemas import OnboardIndex
+from simulators.fleet import MIXED, Fleet
+from simulators.groundtruth import GroundTruthWriter, load_truth
+from simulators.index_model import index_pass_events
+from simulators.network import demo_network
+from simulators.truth import DAY_S, Truth, load_config, truth_events
+
+T0 = 1767225600.0  # 2026-01-01T00:00:00Z
+
+
+@pytest.fixture(scope="module")
+def net():
+    return demo_network()
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config()
+
+
+def unkind(cfg, unreported=0.3, late=0.4):
+    out = copy.deepcopy(cfg)
+    out["maintenance"].update(unreported_fraction=unreported, late_fraction=late, late_days=[5, 9])
+    return out
+
+
+def run_truth(net, cfg, days=3 * 365, seed=31):
+    seen: list = []
+    events = list(
+        truth_events(net, cfg, T0, days, seed, on_step=lambda tr, taps: seen.extend(taps))
+    )
+    return seen, events
+
+
+def test_unreported_and_late_tampings_change_only_the_reports(net, cfg):
+    kind_taps, kind_events = run_truth(net, cfg)
+    taps, events = run_truth(net, unkind(cfg))
+    # the same tampings happen (the reporting draws have keys of their own)
+    assert [(tp.event_id, tp.t, tp.t_start, tp.t_end) for tp in taps] == [
+        (tp.event_id, tp.t, tp.t_start, tp.t_end) for tp in kind_taps
+    ]
+    assert {tp.report for tp in kind_taps} == {"on_time"}
+    reports = np.array([tp.report for tp in taps])
+    assert len(taps) > 300
+    never = np.mean(reports == "never")
+    assert 0.24 < never < 0.36  # configured 0.3
+    assert 0.33 < np.sum(reports == "late") / np.sum(reports != "never") < 0.47  # 0.4
+    published = {m.event_id: t for t, ms in events for m in ms}
+    by_id = {tp.event_id: tp for tp in taps}
+    end = T0 + 3 * 365 * DAY_S
+    for tp in taps:
+        if tp.report == "never":
+            assert tp.event_id not in published and tp.t_reported is None
+        elif tp.t_reported < end:
+            assert published[tp.event_id] == tp.t_reported
+            delay = (tp.t_reported - tp.t_end) / DAY_S
+            assert delay == 0 if tp.report == "on_time" else 5 <= delay <= 9
+    assert all(by_id[i].report != "never" for i in published)
+    assert [t for t, _ in events] == sorted(t for t, _ in events)
+
+
+def test_the_default_fleet_is_the_index_model_for_every_unit(cfg):
+    fleet = Fleet.from_config(cfg, 3)
+    for train in ("TL1-00", "TL2-05"):
+        u = fleet.unit(train, "bogie1")
+        assert u.vehicle_class == "standard" and u.gain == 1.0
+        np.testing.assert_array_equal(u.model.H, fleet.base.H)
+        np.testing.assert_array_equal(u.model.b, fleet.base.b)
+
+
+def test_a_mixed_fleet_draws_classes_by_share_and_sensors_within_their_spread(cfg):
+    fleet = Fleet.from_config({**cfg, "fleet": MIXED}, 3)
+    units = [fleet.unit(f"T{i:04d}", "bogie1") for i in range(3000)]
+    classes = np.array([u.vehicle_class for u in units])
+    for name, c in MIXED["classes"].items():
+        assert abs(np.mean(classes == name) - c["share"]) < 0.03
+    gains = np.array([u.gain for u in units])
+    assert 0.9 <= gains.min() < 0.91 and 1.09 < gains.max() <= 1.1
+    offsets = np.array([u.offset for u in units])
+    np.testing.assert_allclose(offsets.std(axis=0), MIXED["offset_sd"], rtol=0.08)
+    again = fleet.unit("T0007", "bogie1")  # a unit keeps its model
+    assert again.gain == units[7].gain and np.array_equal(again.model.b, units[7].model.b)
+    u = units[7]
+    klass = next(c for n, c in MIXED["classes"].items() if n == u.vehicle_class)
+    np.testing.assert_allclose(
+        u.model.b, fleet.base.b + klass["b_shift"] + np.log(u.gain) + u.offset
+    )
+    with pytest.raises(ValueError, match="gain_spread"):
+        Fleet.from_config({**cfg, "fleet": {**MIXED, "gain_spread": 1.5}}, 3)
+
+
+def test_passes_follow_their_units_model_and_the_ground_truth_records_it(net, cfg, tmp_path):
+    mixed = {**cfg, "fleet": MIXED}
+    days, seed = 20, 5
+    path = tmp_path / "truth.sqlite"
+    events = list(index_pass_events(net, Truth(net, mixed, T0, seed), 4, days, seed, config=mixed))
+    with GroundTruthWriter(path, net, mixed, T0, days, seed) as gt:
+        for t, msgs in events:
+            gt.record(t, msgs)
+    d = load_truth(path)
+    assert len(set(d["units_train"])) == 4 * len(net.lines)
+    fleet = Fleet.from_config(mixed, seed)
+    for k, train in enumerate(d["units_train"]):
+        u = fleet.unit(str(train), str(d["units_unit"][k]))
+        assert d["units_vehicle_class"][k] == u.vehicle_class and d["units_gain"][k] == u.gain
+        sel = d["onboard_train"] == train
+        # residual of each pass against its own unit's model: mean ~0, spread ~sqrt(R)
+        y = np.log(d["onboard_mm"][sel])
+        r = y - (d["onboard_z"][sel] @ u.model.H.T + u.model.b)
+        assert (
+            np.abs(r.mean(axis=0)).max()
+            < 4 * np.sqrt(np.diag(u.model.R)).max() / np.sqrt(sel.sum()) + 1e-9
+        )
+    # different units read the same track differently
+    b = np.stack([d["units_b_top"], d["units_b_align"]], -1)
+    assert np.ptp(b[:, 0]) > 0.1
+
+
+def test_onboard_messages_are_unchanged_by_the_default_fleet_section(net, cfg):
+    explicit = {**cfg, "fleet": {"classes": {"standard": {"share": 1.0}}}}
+    a = list(index_pass_events(net, Truth(net, cfg, T0, 2), 2, 2, 2, config=cfg))
+    b = list(index_pass_events(net, Truth(net, explicit, T0, 2), 2, 2, 2, config=explicit))
+    assert a == b and all(isinstance(m, OnboardIndex) for _, ms in a for m in ms)
