@@ -38,8 +38,14 @@ HORIZON_MAX_DAYS = 36_525.0  # 100 years
 KIB = 1024
 
 
-class Message(msgspec.Struct, frozen=True, kw_only=True):
-    """Base: the schema version ``v`` and its check."""
+class Message(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Base: the schema version ``v`` and its check.
+
+    A field the type does not have is refused (``forbid_unknown_fields``): no message type's
+    payload decodes as another's (an OnboardIndex carrying a ``run_id`` is not a TrcRecord),
+    whatever key it came on. A new field therefore reaches receivers before senders send it
+    (schemas/README.md, "Changing a message").
+    """
 
     MAX_BYTES: ClassVar[int] = 4 * KIB  # payload size limit, checked before decoding
 

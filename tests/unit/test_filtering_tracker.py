@@ -383,12 +383,11 @@ def test_a_batch_equals_its_messages_one_by_one(tmp_path):
         node.store.close()
 
 
-def test_the_store_keeps_the_message_not_unknown_fields_and_refuses_what_it_cannot_store(
-    tmp_path,
-):
-    """Issue 14: a valid message with a large unknown field is stored re-encoded (the field
-    dropped); a model version beyond SQLite's INTEGER, or a payload nested 10,000 deep, is a
-    dead letter naming the field, not an exception out of the batch."""
+def test_the_store_keeps_the_message_and_refuses_what_it_cannot_store(tmp_path):
+    """Issue 14: a valid message is stored re-encoded; a message with a large unknown field
+    (issue 15: every type refuses a field it does not have), a model version beyond SQLite's
+    INTEGER, or a payload nested 10,000 deep, is a dead letter naming the field, not an
+    exception out of the batch."""
     node = PersistentTracker(new_tracker(), Store(tmp_path / "f.sqlite"))
     post = posterior()
     index = OnboardIndex(line="L1", segment="s1", train="T1", unit="u1", t=T0 + DAY_S,
@@ -408,13 +407,17 @@ def test_the_store_keeps_the_message_not_unknown_fields_and_refuses_what_it_cann
     deep_key, deep_payload = keyed(index)
     deep = b"\xde" + (len(msgpack.unpackb(deep_payload)) + 1).to_bytes(2, "big")
     deep += msgpack.packb("extra") + b"\x91" * 10_000 + b"\x90" + deep_payload[1:]
-    done = node.handle_batch([*padded, (keys.calibration("tf"), big), (deep_key, deep)])
+    valid = [keyed(m) for m in (calibration(), post, trc, index)]
+    done = node.handle_batch([*padded, *valid, (keys.calibration("tf"), big), (deep_key, deep)])
 
     assert done.accepted == 4 and len(done.states) == 1
     reasons = [reason for _key, reason, _payload in done.rejected]
-    assert len(reasons) == 2
-    assert reasons[0].startswith("Calibration: version: 9223372036854775808 outside")
-    assert reasons[1].startswith("OnboardIndex:")  # beyond its size limit, or too deep
+    assert len(reasons) == 6
+    for reason, name in zip(reasons, ("Calibration", "DegradationPosterior", "TrcRecord",
+                                      "OnboardIndex"), strict=False):  # fmt: skip
+        assert reason.startswith(f"{name}: ") and "unknown field `blob`" in reason, reason
+    assert reasons[4].startswith("Calibration: version: 9223372036854775808 outside")
+    assert reasons[5].startswith("OnboardIndex:")  # beyond its size limit, or too deep
     stored = [payload for _kind, _key, payload in [*node.store.models(), *node.store.events()]]
     assert sorted(stored) == sorted(encode(m) for m in (calibration(), post, trc, index))
     node.store.close()

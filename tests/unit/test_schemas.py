@@ -190,6 +190,33 @@ def test_plain_msgpack_defaults_may_be_left_out():
     assert fix.v == 1 and fix.fix_quality == 1 and fix.speed_mps is None
 
 
+def _required_only(message) -> bytes:
+    """A plain map of ``message`` without the fields that have a default (``v`` too)."""
+    required = {f.name for f in msgspec.structs.fields(message) if f.required}
+    return msgpack.packb({k: v for k, v in _plain(message).items() if k in required})
+
+
+@pytest.mark.parametrize("message", examples(), ids=lambda m: type(m).__name__)
+def test_every_message_type_refuses_every_other_types_payload(message):
+    """Issue 15: an OnboardIndex carrying a run_id decoded as a TrcRecord; now no payload of
+    one type, complete or with only its required fields, decodes as another type."""
+    complete, minimal = encode(message), _required_only(message)
+    assert decode(minimal, type(message)) is not None  # valid as its own type
+    for other in ALL_MESSAGES:
+        if other is type(message):
+            continue
+        for payload in (complete, minimal):
+            with pytest.raises(SchemaError, match=f"^{other.__name__}: "):
+                decode(payload, other)
+
+
+def test_an_index_with_a_run_id_is_not_a_trc_record():
+    index = next(m for m in examples() if isinstance(m, OnboardIndex))
+    tagged = msgspec.structs.replace(index, run_id="r7")
+    with pytest.raises(SchemaError, match="TrcRecord: Object contains unknown field `train`"):
+        decode(encode(tagged), TrcRecord)
+
+
 def test_arrays_are_little_endian_bytes():
     a = NDArray.of([[1.0, 2.0], [3.0, 4.0]], "f4")
     assert a.data == np.array([[1, 2], [3, 4]], "<f4").tobytes()
@@ -309,20 +336,21 @@ def test_constructing_an_invalid_message_raises_the_same_error():
         MaintenanceEvent(line="L1", segment="s1", event_id="e", t_start=T0, t_end=T0 - 1)
 
 
-def test_nesting_within_the_bound_and_unknown_fields_are_accepted():
-    deep = _with_first(_gps(), msgpack.packb("extra"), b"\x91" * 30 + b"\x90")
-    assert decode(deep, GpsFix) == decode(_gps(), GpsFix)
+def test_an_unknown_field_is_refused_by_name():
+    extra = _with_first(_gps(), msgpack.packb("extra"), b"\x91" * 30 + b"\x90")
+    with pytest.raises(SchemaError, match="GpsFix: Object contains unknown field `extra`"):
+        decode(extra, GpsFix)
 
 
 def test_a_deep_unknown_field_beyond_the_scanned_items_is_refused_not_raised():
-    # the nesting scan stops after NESTING_SCAN_ITEMS items; the decoder's RecursionError
-    # is then turned into a SchemaError
+    # the nesting scan stops after NESTING_SCAN_ITEMS items; the decoder then refuses the
+    # first unknown field before it descends into anything deep
     chunk = encode(examples()[0])
     many = msgpack.packb(list(range(20_000)))
     deep = b"\x91" * 5000 + b"\x90"
     payload = _with_first(chunk, msgpack.packb("many"), many, msgpack.packb("deep"), deep)
     assert len(payload) <= RawChunk.MAX_BYTES
-    with pytest.raises(SchemaError, match="RawChunk: nested too deep"):
+    with pytest.raises(SchemaError, match="RawChunk: Object contains unknown field `many`"):
         decode(payload, RawChunk)
 
 
