@@ -157,6 +157,10 @@ def decode(payload: bytes | bytearray | memoryview, message_type: type[T]) -> T:
         return decoder.decode(payload)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:
         raise SchemaError(f"{name}: {exc}") from None
+    except UnicodeDecodeError as exc:  # a string (a field name too: unknown ones are named)
+        raise SchemaError(
+            f"{name}: a string is not UTF-8: {exc.reason} at byte {exc.start}"
+        ) from None
     except RecursionError:  # deep nesting beyond the items scanned
         raise SchemaError(f"{name}: nested too deep to decode") from None
 

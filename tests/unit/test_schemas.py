@@ -309,6 +309,16 @@ BAD_PAYLOADS = {
     "id with tab": (_gps(train="T\t1"), GpsFix, "whitespace or control"),
     "id with NUL": (_gps(train="T\x001"), GpsFix, "whitespace or control"),
     "id of 65 characters": (_gps(train="T" * 65), GpsFix, "train: 65 characters > 64"),
+    "field name not UTF-8": (
+        _with_first(_gps(), b"\xa2\xfd3", msgpack.packb(1)),
+        GpsFix,
+        "GpsFix: a string is not UTF-8",
+    ),
+    "string not UTF-8": (
+        _with_first(_gps(), msgpack.packb("train"), b"\xa2\xfd3"),
+        GpsFix,
+        "UTF-8",
+    ),
     "deep nesting": (
         _with_first(_gps(), msgpack.packb("deep"), b"\x91" * 3000 + b"\x90"),
         GpsFix,
