@@ -1,18 +1,16 @@
 """Shared fixtures: a free port, a unique namespace, an in-process Zenoh router on loopback,
-client sessions and service configs connected to it, and event-based waits.
+client sessions and service configs connected to it, event-based waits, `trackfusion`
+processes (``spawn``) and services in threads (``service_thread``), both from
+``tests/support.py``.
 
-Every session opened here is closed at teardown; nothing waits with ``time.sleep``.
+Every session, process and thread started here is closed or stopped at teardown.
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
 import queue
-import signal
 import socket
-import subprocess
-import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -22,11 +20,9 @@ from typing import Any
 import pytest
 import zenoh
 from linkproxy import LinkProxy
+from support import TIMEOUT_S, Process, ServiceThread
 
 from services.runtime.config import RuntimeConfig, zenoh_config
-
-TIMEOUT_S = 5.0  # upper bound of every wait; tests normally go on in milliseconds
-STOP_GRACE_S = 15.0  # teardown: SIGTERM, then SIGKILL; `up` gives its children 5 s of it
 
 
 @pytest.fixture
@@ -49,6 +45,13 @@ def link_proxy() -> Iterator[Callable[[int], LinkProxy]]:
     yield start
     for proxy in proxies:
         proxy.close()
+
+
+@pytest.fixture
+def stack() -> Iterator[contextlib.ExitStack]:
+    """An ExitStack for what a test opens itself (sessions, declarations), closed at teardown."""
+    with contextlib.ExitStack() as stack:
+        yield stack
 
 
 @pytest.fixture
@@ -189,53 +192,50 @@ def liveliness_events() -> Iterator[Callable[[zenoh.Session, str], Collector]]:
             subscriber.undeclare()
 
 
-class TrackfusionProcess:
-    """A `trackfusion …` subprocess in its own process group, its output to a log file."""
-
-    def __init__(self, log_path: Path, *args: str) -> None:
-        self.log_path = log_path
-        with log_path.open("w") as log:
-            self.popen = subprocess.Popen(
-                [sys.executable, "-m", "services.cli", *args],
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                start_new_session=True,
-            )
-
-    def signal(self, signum: int) -> None:
-        os.killpg(self.popen.pid, signum)
-
-    def wait(self, timeout: float) -> int:
-        return self.popen.wait(timeout)
-
-    def log(self) -> str:
-        return f"\n--- {self.log_path.name} ---\n{self.log_path.read_text()}"
-
-    def stop(self) -> None:
-        """SIGTERM, then SIGKILL after a grace period. `up` must be asked: it stops its
-        children, which run in sessions of their own that a SIGKILL to it would orphan."""
-        if self.popen.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(self.popen.pid, signal.SIGTERM)
-            try:
-                self.popen.wait(STOP_GRACE_S)
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(self.popen.pid, signal.SIGKILL)
-                self.popen.wait(5)
-
-
 @pytest.fixture
-def spawn(tmp_path: Path) -> Iterator[Callable[..., TrackfusionProcess]]:
-    """Start `trackfusion ARGS…` processes; every one still running is stopped at teardown."""
-    started: list[TrackfusionProcess] = []
+def spawn(tmp_path: Path) -> Iterator[Callable[..., Process]]:
+    """``spawn(name, *args)``: start `trackfusion ARGS…` (:class:`support.Process`, its log in
+    ``{tmp_path}/{name}-{n}.log``); every one still running is stopped at teardown."""
+    started: list[Process] = []
 
-    def start(name: str, *args: str) -> TrackfusionProcess:
-        process = TrackfusionProcess(tmp_path / f"{name}-{len(started)}.log", *args)
+    def start(name: str, *args: str) -> Process:
+        process = Process(tmp_path / f"{name}-{len(started)}.log", *args)
         started.append(process)
         return process
 
     yield start
     for process in started:
         process.stop()
+
+
+@pytest.fixture
+def service_thread(
+    open_session: Callable[..., zenoh.Session],
+    liveliness_events: Callable[[zenoh.Session, str], Collector],
+) -> Iterator[Callable[..., ServiceThread]]:
+    """``service_thread(name, main, alive=key)``: ``main(stop_event)`` in a thread
+    (:class:`support.ServiceThread`); with ``alive``, returned once that liveliness token is
+    up (again, after a restart). Each one still running is stopped at teardown; one that
+    does not then exit with 0, or raised, fails the test there."""
+    started: list[ServiceThread] = []
+    tokens: dict[str, Collector] = {}
+    observer: list[zenoh.Session] = []
+
+    def start(
+        name: str, main: Callable[[threading.Event], int | None], *, alive: str | None = None
+    ) -> ServiceThread:
+        if alive is not None and alive not in tokens:
+            if not observer:
+                observer.append(open_session())
+            tokens[alive] = liveliness_events(observer[0], alive)
+        service = ServiceThread(name, main).start()
+        started.append(service)
+        if alive is not None:
+            while tokens[alive].get() != (zenoh.SampleKind.PUT, alive):
+                pass  # the DELETE of the previous run's token
+        return service
+
+    yield start
+    for service in started:
+        if service.running:  # told to stop, a service exits with 0
+            assert service.stop() == 0, f"{service.name} did not exit with 0 on its stop event"

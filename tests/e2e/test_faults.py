@@ -11,21 +11,21 @@ from __future__ import annotations
 
 import json
 import signal
-import socket
 import threading
-import time
 from collections.abc import Callable
 from datetime import datetime
 
 import msgpack
 import zenoh
 from linkproxy import LinkProxy
+from support import accepts_connections, wait_for
 
 from schemas import (
     Calibration,
     DegradationPosterior,
     MaintenanceEvent,
     OnboardIndex,
+    SegmentState,
     TrcRecord,
     decode,
     encode,
@@ -90,6 +90,15 @@ def models_of(session: zenoh.Session, ns: str) -> dict[str, bytes]:
     return {str(r.ok.key_expr): r.ok.payload.to_bytes() for r in replies if r.ok}
 
 
+def plan_state_times(session: zenoh.Session, ns: str) -> dict[tuple[str, str], float]:
+    """{(line, segment): time of the state its row was computed from} of alerting's plan."""
+    replies = [r for r in session.get(keys.q_plan(ns), timeout=10) if r.ok is not None]
+    if not replies:
+        return {}
+    rows = msgpack.unpackb(replies[0].ok.payload.to_bytes())["rows"]
+    return {(row["line"], row["segment"]): row["state_t"] for row in rows}
+
+
 def test_every_fault_in_turn_leaves_the_uninterrupted_states(
     free_port, namespace, spawn, link_proxy: Callable[[int], LinkProxy], tmp_path
 ):
@@ -104,14 +113,8 @@ def test_every_fault_in_turn_leaves_the_uninterrupted_states(
 
     def router():
         process = spawn("router", "router", "--listen", endpoint, "--ns", ns)
-        deadline = time.monotonic() + WAIT_S
-        while True:  # until it accepts connections (each try is a real connect, not a sleep)
-            try:
-                socket.create_connection(("127.0.0.1", free_port), timeout=1).close()
-                return process
-            except OSError:
-                assert time.monotonic() < deadline, process.log()
-                threading.Event().wait(0.05)
+        process.until(lambda: accepts_connections(free_port), WAIT_S, "the router listening")
+        return process
 
     def service(name: str, *args: str, via: str = endpoint):
         return spawn(name, *args, "--instance", name, "--connect", via, "--ns", ns)
@@ -202,30 +205,35 @@ def test_every_fault_in_turn_leaves_the_uninterrupted_states(
         assert proxy.wait_connections(connections + 1, WAIT_S), "A did not reconnect"
 
         progress.reach(distinct)  # the test's own subscriber has seen the whole world
-        deadline = time.monotonic() + WAIT_S
         reference: dict[str, bytes] = {}
         replies: dict[str, dict[str, bytes]] = {}
-        done = threading.Event()
-        while time.monotonic() < deadline:
-            models = models_of(session, ns)
-            reference = uninterrupted_states(ns, world, models)
+
+        def converged() -> bool:
+            nonlocal reference, replies
+            reference = uninterrupted_states(ns, world, models_of(session, ns))
             replies = states_by_instance(session, ns)
-            if len(replies) == 2 and all(states == reference for states in replies.values()):
-                done.set()
-                break
-            done.wait(0.5)  # poll the queryables; the condition, not the clock, ends it
-        summary = {
-            zid: (len(s), sum(s.get(k) == v for k, v in reference.items()))
-            for zid, s in replies.items()
-        }
-        assert done.is_set(), (
-            f"{len(reference)} reference states; per instance (states, equal): {summary}"
-        )
+            return len(replies) == 2 and all(states == reference for states in replies.values())
+
+        def summary() -> str:
+            equal = {
+                zid: (len(s), sum(s.get(k) == v for k, v in reference.items()))
+                for zid, s in replies.items()
+            }
+            return f"{len(reference)} reference states; per instance (states, equal): {equal}"
+
+        wait_for(converged, WAIT_S, summary, poll_s=0.5)  # each poll folds the whole world
         assert len(reference) >= 25
 
-        alerts = [r for r in session.get(keys.q_alerts(ns), timeout=10) if r.ok is not None]
-        assert alerts, "alerting does not answer after its restart"
-        assert isinstance(msgpack.unpackb(alerts[0].ok.payload.to_bytes()), list)
+        # alerting, restarted mid-run, holds the newest state of every segment
+        newest = {
+            (state.line, state.segment): state.t
+            for state in (decode(p, SegmentState) for p in reference.values())
+        }
+        wait_for(
+            lambda: plan_state_times(session, ns) == newest,
+            WAIT_S,
+            "alerting's plan at the newest state of every segment",
+        )
         simulate.signal(signal.SIGTERM)
         assert simulate.wait(20) == 0, simulate.log()
         for name in ("A", "B", "cal", "al"):

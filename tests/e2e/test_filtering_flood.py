@@ -13,10 +13,8 @@ from __future__ import annotations
 
 import threading
 import time
-from contextlib import ExitStack
 
 import numpy as np
-import pytest
 import zenoh
 
 from schemas import Calibration, OnboardIndex, SegmentState, TrcRecord, decode, encode, keys
@@ -28,12 +26,6 @@ SEGMENTS, PASSES = 1000, 30  # 30,000 indices: the old code lost most of them
 FOLD_S = 600.0  # an upper bound on a loaded 2-core machine (unloaded: about a minute)
 T0 = 1_767_225_600.0
 BLOCK = zenoh.CongestionControl.BLOCK
-
-
-@pytest.fixture
-def stack():
-    with ExitStack() as stack:
-        yield stack
 
 
 def test_a_flood_is_folded_whole_and_the_instance_stays_alive(

@@ -5,11 +5,8 @@ from __future__ import annotations
 
 import queue
 import signal
-from collections.abc import Iterator
-from contextlib import ExitStack
 
 import numpy as np
-import pytest
 import zenoh
 
 from schemas import (
@@ -33,12 +30,6 @@ WAIT_S = 20.0
 T0 = 1_767_225_600.0
 NS = 50
 SEGMENTS = ("s1", "s2", "s3")
-
-
-@pytest.fixture
-def stack() -> Iterator[ExitStack]:
-    with ExitStack() as stack:
-        yield stack
 
 
 def models() -> list[Calibration | DegradationPosterior]:

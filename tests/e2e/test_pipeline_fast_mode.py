@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import json
 import signal
-import threading
 
 import msgpack
 import zenoh
+from support import wait_for
 
 from schemas import SegmentState, decode, keys
 from services.filtering.testing import EVENT_TYPES, LastEvents, states_by_instance
@@ -48,9 +48,10 @@ def drained(
 ) -> dict[str, dict[str, bytes]]:
     """Wait until every instance's states are at the newest event of their segment (and,
     with ``agree``, the instances answer the same states: the models have settled too)."""
-    stop = threading.Event()
     replies: dict[str, dict[str, bytes]] = {}
-    for _ in range(int(WAIT_S / 0.25)):
+
+    def poll() -> bool:
+        nonlocal replies
         seen = last.snapshot()
         replies = states_by_instance(session, ns)
         caught_up = len(replies) == instances and all(
@@ -61,10 +62,12 @@ def drained(
             )
             for states in replies.values()
         )
-        if caught_up and (not agree or len({frozenset(s.items()) for s in replies.values()}) == 1):
-            return replies
-        stop.wait(0.25)  # poll the queryables; the condition, not the clock, ends the wait
-    raise AssertionError(f"no agreement within {WAIT_S} s: {disagreement(replies, last)}")
+        return caught_up and (
+            not agree or len({frozenset(s.items()) for s in replies.values()}) == 1
+        )
+
+    wait_for(poll, WAIT_S, lambda: f"no agreement: {disagreement(replies, last)}", poll_s=0.25)
+    return replies
 
 
 def next_change_of(alive, suffix: str):
@@ -130,7 +133,8 @@ def test_pipeline_survives_a_filtering_kill(
     assert a == b  # drained(agree=True) waited for it: the restarted A equals the reference B
     assert len(a) >= 25  # every segment of the 6 km line has a state
     states = [decode(p, SegmentState) for p in a.values()]
-    assert all(s.calibration_version >= 1 and s.n_updates >= 0 for s in states)
+    assert all(s.calibration_version >= 1 for s in states)  # the fitted models are in use
+    assert any(s.n_updates > 0 for s in states)  # on-board indices folded, not only TRC runs
 
     plan = [r for r in session.get(keys.q_plan(namespace), timeout=10) if r.ok is not None]
     assert plan and msgpack.unpackb(plan[0].ok.payload.to_bytes())["rows"]

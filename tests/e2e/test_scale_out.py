@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import json
 import signal
-import threading
 
 import zenoh
+from support import wait_for
 
 from schemas import SegmentState, decode, keys
 from services.filtering.testing import EVENT_TYPES, LastEvents, states_by_instance
@@ -33,9 +33,11 @@ def settled(
     """Wait until the three instances are drained (each state at the newest event of its
     segment) and the split instances' union equals the single instance's states (the
     models have settled everywhere); returns (single, {line: split instance's states})."""
-    stop = threading.Event()
     status = "no replies"
-    for _ in range(int(WAIT_S / 0.25)):
+    found: tuple[dict[str, bytes], dict[str, dict[str, bytes]]] | None = None
+
+    def poll() -> bool:
+        nonlocal status, found
         seen = last.snapshot()
         replies = list(states_by_instance(session, ns).values())
         whole = [s for s in replies if lines_of(s) == {"L1", "L2"}]
@@ -52,10 +54,14 @@ def settled(
         if len(replies) == 3 and len(whole) == 1 and set(split) == {"L1", "L2"} and not behind:
             union = {**split["L1"], **split["L2"]}
             if union == whole[0] and len(whole[0]) == len(seen):
-                return whole[0], split
+                found = whole[0], split
+                return True
             status += f"; union differs from the single instance on {len(union)} keys"
-        stop.wait(0.25)  # poll the queryables; the condition, not the clock, ends the wait
-    raise AssertionError(f"not settled within {WAIT_S} s: {status}")
+        return False
+
+    wait_for(poll, WAIT_S, lambda: f"not settled: {status}", poll_s=0.25)
+    assert found is not None
+    return found
 
 
 def test_split_instances_equal_one_instance(

@@ -4,9 +4,6 @@ published arrives and decodes, and the ground-truth file holds the same records.
 from __future__ import annotations
 
 import json
-import signal
-import subprocess
-import sys
 import threading
 
 import zenoh
@@ -15,7 +12,9 @@ from schemas import OnboardIndex, TrcRecord, decode, keys
 from simulators.groundtruth import load_truth
 
 
-def test_simulate_index_fidelity_publishes_everything(open_session, router, namespace, tmp_path):
+def test_simulate_index_fidelity_publishes_everything(
+    open_session, router, namespace, spawn, tmp_path
+):
     received: dict[str, int] = {}
     bad: list[str] = []
     arrived = threading.Condition()
@@ -36,19 +35,14 @@ def test_simulate_index_fidelity_publishes_everything(open_session, router, name
     session = open_session()
     subscriber = session.declare_subscriber(f"{namespace}/**", on_sample)
     truth = tmp_path / "truth.sqlite"
-    cmd = [
-        sys.executable, "-m", "services.cli", "simulate", "--fidelity", "index",
+    process = spawn(
+        "simulate",
+        "simulate", "--fidelity", "index",
         "--days", "20", "--trains", "2", "--speedup", "inf", "--seed", "5",
         "--connect", router, "--ns", namespace, "--truth", str(truth), "--no-progress",
-    ]  # fmt: skip
-    process = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        out, _ = process.communicate(timeout=120)
-    finally:
-        if process.poll() is None:
-            process.send_signal(signal.SIGKILL)
-            process.wait()
-    assert process.returncode == 0
+    )  # fmt: skip
+    assert process.wait(120) == 0, process.log()
+    out = process.stdout()
     summary = json.loads(out.strip().splitlines()[-1])
     published = summary["published"]
     assert published > 1000 and summary["by_type"]["OnboardIndex"] > 0

@@ -10,8 +10,6 @@ import contextlib
 import json
 import os
 import signal
-import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -41,16 +39,14 @@ class Up:
 
     def until(self, condition: Callable[[dict[str, Any]], bool], timeout: float = START_S) -> dict:
         """Poll the health file until ``condition`` holds; its last content otherwise fails."""
-        deadline = time.monotonic() + timeout
-        idle = threading.Event()
         health = None
-        while time.monotonic() < deadline:
-            assert self.process.popen.poll() is None, self.process.log()
+
+        def met() -> dict | None:
+            nonlocal health
             health = self.health()
-            if health is not None and condition(health):
-                return health
-            idle.wait(POLL_S)
-        raise AssertionError(f"condition not met in {timeout} s; health: {health}")
+            return health if health is not None and condition(health) else None
+
+        return self.process.until(met, timeout, lambda: f"health: {health}", poll_s=POLL_S)
 
     def client(self) -> zenoh.Session:
         conf = {"mode": "client", "connect": {"endpoints": [self.endpoint], "timeout_ms": 60000}}
@@ -166,7 +162,6 @@ def test_indices_without_states_are_flagged_stalled(up):
     stack = up([], stalled_state_s=1.5)
     stack.until(lambda h: h["up"]["running"])
     index_key = keys.index(stack.ns, "L1", "s00001")
-    idle = threading.Event()
     with stack.client() as session:
         publisher = session.declare_publisher(index_key)
 
@@ -178,13 +173,16 @@ def test_indices_without_states_are_flagged_stalled(up):
         assert health["stalled"][0].startswith("index arriving but no state published for")
         assert [f["stalled"] for f in health["flows"]] == [True, False]
         assert not health["healthy"]
-        board = ""
-        deadline = time.monotonic() + 30  # the board is printed every 5 s when not a terminal
-        while "STALLED: index arriving" not in board and time.monotonic() < deadline:
+
+        def board_says_stalled() -> bool:
             publisher.put(b"index")
-            idle.wait(POLL_S)
-            board = stack.process.log_path.read_text()
-        assert "STALLED: index arriving but no state published" in board
+            return (
+                "STALLED: index arriving but no state published"
+                in stack.process.log_path.read_text()
+            )
+
+        # the board is printed every 5 s when not a terminal
+        stack.process.until(board_says_stalled, 30, "the board showing the stall", poll_s=POLL_S)
 
         session.put(keys.state(stack.ns, "L1", "s00001"), b"state")
         health = stack.until(lambda h: not h["stalled"], timeout=10)

@@ -7,20 +7,13 @@ import csv
 import io
 import json
 import signal
-import subprocess
-import sys
 
 import json5
 import zenoh
+from support import run_cli
 
 from schemas import keys
 from services.runtime.config import zenoh_config
-
-
-def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args], capture_output=True, text=True, timeout=120
-    )
 
 
 def test_up_runs_the_stack_and_answers_every_command(

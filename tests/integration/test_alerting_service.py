@@ -3,45 +3,35 @@ dead letters, and a restart that keeps the raised set."""
 
 from __future__ import annotations
 
-import threading
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 
 import msgpack
 import numpy as np
+import pytest
 import zenoh
+from support import ServiceThread
 
 from schemas import Alert, DeadLetter, TrcRecord, decode, encode, keys
 from services.alerting import service as alerting
 from services.alerting.core import DAY_S
 from services.alerting.testing import T0, make_state, p_top6
-from services.runtime.config import RuntimeConfig
 
-PUT = zenoh.SampleKind.PUT
 TIMEOUT_S = 5.0
 
 
-@contextmanager
-def running(
-    conf: RuntimeConfig, db: Path, observer: zenoh.Session, liveliness_events: Callable
-) -> Iterator[None]:
-    """The service in a thread until the block ends; entered once its token is alive."""
-    events = liveliness_events(observer, keys.alive(conf.ns, alerting.SERVICE, "test"))
-    stop = threading.Event()
-    result: list[int] = []
-    thread = threading.Thread(
-        target=lambda: result.append(alerting.main(conf, db=db, stop=stop, handle_signals=False)),
-        name="alerting-under-test",
-    )
-    thread.start()
-    try:
-        assert events.get() == (PUT, keys.alive(conf.ns, alerting.SERVICE, "test"))
-        yield
-    finally:
-        stop.set()
-        thread.join(TIMEOUT_S)
-    assert not thread.is_alive() and result == [0]
+@pytest.fixture
+def running(service_config, service_thread) -> Callable[[Path], ServiceThread]:
+    """``with running(db):`` the service in a thread, entered once its token is alive."""
+
+    def start(db: Path) -> ServiceThread:
+        return service_thread(
+            "alerting",
+            lambda stop: alerting.main(service_config, db=db, stop=stop, handle_signals=False),
+            alive=keys.alive(service_config.ns, alerting.SERVICE, "test"),
+        )
+
+    return start
 
 
 def query(session: zenoh.Session, key: str) -> list[bytes]:
@@ -50,7 +40,7 @@ def query(session: zenoh.Session, key: str) -> list[bytes]:
 
 
 def test_state_raises_alert_queryables_answer_and_restart_keeps_it(
-    open_session, service_config, liveliness_events, collector, until_matched, tmp_path
+    open_session, service_config, running, collector, until_matched, tmp_path
 ):
     ns = service_config.ns
     db = tmp_path / "alerting.sqlite"
@@ -62,7 +52,7 @@ def test_state_raises_alert_queryables_answer_and_restart_keeps_it(
     state_pub = client.declare_publisher(keys.state(ns, "L1", "s1"))
     trc_pub = client.declare_publisher(keys.trc(ns, "L1", "s1"))
 
-    with running(service_config, db, client, liveliness_events):
+    with running(db):
         until_matched(state_pub)
         until_matched(trc_pub)
         trc_pub.put(
@@ -99,7 +89,7 @@ def test_state_raises_alert_queryables_answer_and_restart_keeps_it(
         (bad,) = client.get(keys.q_plan(ns) + "?limit=x", timeout=TIMEOUT_S)
         assert bad.err is not None and b"limit" in bad.err.payload.to_bytes()
 
-    with running(service_config, db, client, liveliness_events):
+    with running(db):
         # restarted: the raised alert is still there and the same condition does not repeat it
         (body,) = query(client, keys.q_alerts(ns))
         assert [Alert(**a) for a in msgpack.unpackb(body)] == [alert]
@@ -118,7 +108,7 @@ def test_state_raises_alert_queryables_answer_and_restart_keeps_it(
 
 
 def test_malformed_payload_goes_to_dead_letter(
-    open_session, service_config, liveliness_events, collector, until_matched, tmp_path
+    open_session, service_config, running, collector, until_matched, tmp_path
 ):
     ns = service_config.ns
     client = open_session()
@@ -128,7 +118,7 @@ def test_malformed_payload_goes_to_dead_letter(
     client.declare_subscriber(keys.segment_keys(ns, "alert"), alerts)
     pub = client.declare_publisher(keys.state(ns, "L1", "s1"))
 
-    with running(service_config, tmp_path / "a.sqlite", client, liveliness_events):
+    with running(tmp_path / "a.sqlite"):
         until_matched(pub)
         pub.put(b"\x81\xa1v\x01")  # a map {v: 1}: fields missing
         pub.put(msgpack.packb({**msgpack.unpackb(encode(make_state(T0))), "v": 2}))

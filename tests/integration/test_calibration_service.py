@@ -3,12 +3,13 @@ dead letters, restart from its SQLite file."""
 
 from __future__ import annotations
 
-import threading
+from collections.abc import Callable
 
 import msgpack
 import numpy as np
 import pytest
 import zenoh
+from support import ServiceThread
 
 from schemas import (
     Calibration,
@@ -23,7 +24,6 @@ from schemas import (
 from services.calibration import service
 from services.calibration.calibrator import CalibratorConfig
 
-PUT = zenoh.SampleKind.PUT
 BLOCK = zenoh.CongestionControl.BLOCK  # a fast burst of puts is otherwise dropped
 DAY = 86400.0
 T0 = 1_735_689_600.0  # 2025-01-01
@@ -80,43 +80,21 @@ def generate(seed: int = 42):
     return [(k, p) for _, k, p in out]
 
 
-class Running:
-    """The service in a thread; ``stop()`` returns its exit code."""
-
-    def __init__(self, conf, settings):
-        self.stop_event = threading.Event()
-        self.result: list[int] = []
-        self.thread = threading.Thread(
-            target=lambda: self.result.append(
-                service.main(conf, settings, stop_event=self.stop_event, handle_signals=False)
-            ),
-            name="calibration-under-test",
-        )
-        self.thread.start()
-
-    def stop(self) -> int:
-        self.stop_event.set()
-        self.thread.join(10)
-        assert not self.thread.is_alive()
-        return self.result[0]
-
-
 @pytest.fixture
-def run_service(service_config, liveliness_events, open_session):
-    running: list[Running] = []
-    alive = liveliness_events(open_session(), keys.alive(service_config.ns, "calibration", "test"))
+def run_service(service_config, service_thread) -> Callable[[service.Settings], ServiceThread]:
+    """``run_service(settings)``: the service in a thread, returned once its token is alive
+    (subscriptions and queryable declared); ``.stop()`` gives its exit code."""
 
-    def start(settings) -> Running:
-        r = Running(service_config, settings)
-        running.append(r)
-        while alive.get()[0] != PUT:  # ready: subscriptions and queryable declared
-            pass  # the previous run's DELETE
-        return r
+    def start(settings: service.Settings) -> ServiceThread:
+        return service_thread(
+            "calibration",
+            lambda stop: service.main(
+                service_config, settings, stop_event=stop, handle_signals=False
+            ),
+            alive=keys.alive(service_config.ns, "calibration", "test"),
+        )
 
-    yield start
-    for r in running:
-        if r.thread.is_alive():
-            r.stop()
+    return start
 
 
 def decode_model(sample: zenoh.Sample):

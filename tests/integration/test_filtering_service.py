@@ -3,7 +3,6 @@ dead letters and the selector."""
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable, Iterator
 
 import numpy as np
@@ -76,39 +75,23 @@ def expected(messages) -> SegmentState:
 
 
 @pytest.fixture
-def start_filtering(
-    service_config, tmp_path, liveliness_events, open_session
-) -> Iterator[Callable[..., None]]:
+def start_filtering(service_config, tmp_path, service_thread) -> Callable[..., None]:
     """``start_filtering(selector)``: the service in a thread, ready when it returns."""
-    stops: list[tuple[threading.Event, threading.Thread]] = []
-    observer = open_session()
-    alive = liveliness_events(observer, keys.alive_all(service_config.ns))
 
     def start(selector: str = "**") -> None:
-        stop = threading.Event()
-        thread = threading.Thread(
-            target=service.main,
-            args=(service_config,),
-            kwargs={
-                "selector": selector,
-                "db": tmp_path / "filtering.sqlite",
-                "stop": stop,
-                "handle_signals": False,
-            },
-            name="filtering-under-test",
+        service_thread(
+            "filtering",
+            lambda stop: service.main(
+                service_config,
+                selector=selector,
+                db=tmp_path / "filtering.sqlite",
+                stop=stop,
+                handle_signals=False,
+            ),
+            alive=keys.alive(service_config.ns, service.SERVICE, "test"),
         )
-        thread.start()
-        stops.append((stop, thread))
-        key = keys.alive(service_config.ns, service.SERVICE, "test")
-        assert alive.get() == (zenoh.SampleKind.PUT, key)
 
-    try:
-        yield start
-    finally:
-        for stop, thread in stops:
-            stop.set()
-            thread.join(10)
-            assert not thread.is_alive()
+    return start
 
 
 @pytest.fixture

@@ -10,7 +10,7 @@ import threading
 import msgspec
 import numpy as np
 import zenoh
-from conftest import TIMEOUT_S
+from support import TIMEOUT_S
 
 from schemas import GpsFix, NDArray, RawChunk, keys
 from services import gateway_check
@@ -34,59 +34,54 @@ def gateway_messages(train: str, seconds: int) -> list[RawChunk | GpsFix]:
     return out
 
 
-def run_check(service_config, open_session, until_matched, train, messages) -> tuple[int, str]:
+def run_check(
+    service_config, open_session, until_matched, service_thread, train, messages
+) -> tuple[int, str]:
     """Start the check, publish ``messages`` as a gateway does, stop once all were seen."""
-    out, stop, seen = io.StringIO(), threading.Event(), threading.Event()
-    result: list[int] = []
+    out, seen = io.StringIO(), threading.Event()
 
     def on_message(check: gateway_check.GatewayCheck) -> None:
         if check.messages >= len(messages):
             seen.set()
 
-    thread = threading.Thread(
-        target=lambda: result.append(
-            gateway_check.main(
-                service_config,
-                train,
-                out=out,
-                stop=stop,
-                handle_signals=False,
-                on_message=on_message,
-            )
-        )
+    check = service_thread(
+        "gateway-check",
+        lambda stop: gateway_check.main(
+            service_config, train, out=out, stop=stop, handle_signals=False, on_message=on_message
+        ),
     )
-    thread.start()
-    try:
-        session = open_session()
-        ns = service_config.ns
-        publishers = {
-            # BLOCK, as a gateway sends (simulators/gateway.py): nothing dropped
-            key: session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
-            for key in {key_and_payload(ns, m)[0] for m in messages}
-        }
-        for publisher in publishers.values():
-            until_matched(publisher)
-        for message in messages:
-            key, payload = key_and_payload(ns, message)
-            publishers[key].put(payload)
-        assert seen.wait(TIMEOUT_S), out.getvalue()
-    finally:
-        stop.set()
-        thread.join(TIMEOUT_S)
-    assert not thread.is_alive()
-    return result[0], out.getvalue()
+    session = open_session()
+    ns = service_config.ns
+    publishers = {
+        # BLOCK, as a gateway sends (simulators/gateway.py): nothing dropped
+        key: session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+        for key in {key_and_payload(ns, m)[0] for m in messages}
+    }
+    for publisher in publishers.values():
+        until_matched(publisher)
+    for message in messages:
+        key, payload = key_and_payload(ns, message)
+        publishers[key].put(payload)
+    assert seen.wait(TIMEOUT_S), out.getvalue()
+    code = check.stop()
+    assert code is not None
+    return code, out.getvalue()
 
 
-def test_a_good_gateway_is_clean(service_config, open_session, until_matched):
+def test_a_good_gateway_is_clean(service_config, open_session, until_matched, service_thread):
     messages = gateway_messages("T5", 6)
-    code, report = run_check(service_config, open_session, until_matched, "T5", messages)
+    code, report = run_check(
+        service_config, open_session, until_matched, service_thread, "T5", messages
+    )
     assert code == 0, report
     assert "no deviation from the gateway contract" in report
     assert f"{keys.raw(service_config.ns, 'T5', 'u0')}: 6" in report
     assert "sample rate measured 2000.0 Hz" in report
 
 
-def test_a_bad_gateway_is_reported_rule_by_rule(service_config, open_session, until_matched):
+def test_a_bad_gateway_is_reported_rule_by_rule(
+    service_config, open_session, until_matched, service_thread
+):
     messages = gateway_messages("T6", 6)
     bad: list[RawChunk | GpsFix] = []
     for m in messages:
@@ -97,7 +92,7 @@ def test_a_bad_gateway_is_reported_rule_by_rule(service_config, open_session, un
         if isinstance(m, GpsFix) and m.t == T0 + 4:  # a clock jump of a day
             m = msgspec.structs.replace(m, t=m.t + 86_400.0)
         bad.append(m)
-    code, report = run_check(service_config, open_session, until_matched, "T6", bad)
+    code, report = run_check(service_config, open_session, until_matched, service_thread, "T6", bad)
     assert code == 1, report
     assert "[RawChunk samples] ×1: RawChunk: samples: vertical mean 9.8" in report
     assert "[GpsFix t] ×1: GpsFix: t: " in report and "clock jump" in report

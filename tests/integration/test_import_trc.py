@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
+from support import run_cli
 
 from schemas import TrcRecord, decode
 
@@ -21,10 +20,8 @@ def test_import_trc_publishes_good_rows_and_reports_bad_ones(
         "L1,s00002,2026-03-01T10:00:09Z,0,3.1,r1\n"
         "L1,s00003,2026-03-01T10:00:18Z,3.9,2.8,r1\n"
     )
-    cmd = [sys.executable, "-m", "services.cli", "import-trc", str(export)]
-    result = subprocess.run(
-        [*cmd, "--connect", router, "--ns", namespace], capture_output=True, text=True, timeout=60
-    )
+    wiring = ("--connect", router, "--ns", namespace)
+    result = run_cli("import-trc", str(export), *wiring, timeout=60)
     assert result.returncode == 1, result.stderr  # bad rows were reported
     assert f"{export}:3: TrcRecord" not in result.stderr  # the reason is the message's own
     assert f"{export}:3:" in result.stderr and "top6_mm" in result.stderr
@@ -32,10 +29,5 @@ def test_import_trc_publishes_good_rows_and_reports_bad_ones(
     got = sorted((received.get().segment, received.get().segment))
     assert got == ["s00001", "s00003"]
     subscriber.undeclare()
-    missing = subprocess.run(
-        [*cmd[:-1], str(tmp_path / "nope.csv"), "--connect", router, "--ns", namespace],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    missing = run_cli("import-trc", str(tmp_path / "nope.csv"), *wiring, timeout=60)
     assert missing.returncode != 0 and "cannot read" in missing.stderr

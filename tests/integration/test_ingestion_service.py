@@ -4,48 +4,36 @@ letters out."""
 
 from __future__ import annotations
 
-import threading
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 
 import msgpack
 import numpy as np
+import pytest
 import zenoh
+from support import ServiceThread
 
 from schemas import DeadLetter, PositionedChunk, decode, keys
 from services.ingestion import service as ingestion
-from services.runtime.config import RuntimeConfig
 from simulators.gateway import key_and_payload
 from simulators.network import demo_network
 from simulators.profile import LineProfile
 from simulators.train import RAW_CHANNELS, TrainSimulator
 
-PUT = zenoh.SampleKind.PUT
-TIMEOUT_S = 5.0
 T0 = 1_767_225_600.0
 
 
-@contextmanager
-def running(
-    conf: RuntimeConfig, observer: zenoh.Session, liveliness_events: Callable
-) -> Iterator[None]:
-    """The service in a thread until the block ends; entered once its token is alive."""
-    alive = keys.alive(conf.ns, ingestion.SERVICE, "test")
-    events = liveliness_events(observer, alive)
-    stop = threading.Event()
-    result: list[int] = []
-    thread = threading.Thread(
-        target=lambda: result.append(ingestion.main(conf, stop=stop, handle_signals=False)),
-        name="ingestion-under-test",
-    )
-    thread.start()
-    try:
-        assert events.get() == (PUT, alive)
-        yield
-    finally:
-        stop.set()
-        thread.join(TIMEOUT_S)
-    assert not thread.is_alive() and result == [0]
+@pytest.fixture
+def running(service_config, service_thread) -> Callable[[], ServiceThread]:
+    """``with running():`` the service in a thread, entered once its token is alive."""
+
+    def start() -> ServiceThread:
+        return service_thread(
+            "ingestion",
+            lambda stop: ingestion.main(service_config, stop=stop, handle_signals=False),
+            alive=keys.alive(service_config.ns, ingestion.SERVICE, "test"),
+        )
+
+    return start
 
 
 def simulated(seconds: int):
@@ -61,14 +49,14 @@ def simulated(seconds: int):
 
 
 def test_raw_and_gps_in_positioned_chunks_out(
-    open_session, service_config, liveliness_events, collector, until_matched
+    open_session, service_config, running, collector, until_matched
 ):
     ns = service_config.ns
     client = open_session()
     accel = collector(lambda s: (str(s.key_expr), decode(s.payload.to_bytes(), PositionedChunk)))
     client.declare_subscriber(keys.accel_all(ns), accel)
     messages = simulated(4)
-    with running(service_config, client, liveliness_events):
+    with running():
         # BLOCK, like a gateway: the default (drop) may lose 56 kB chunks on a busy machine
         block = zenoh.CongestionControl.BLOCK
         raw_pub = client.declare_publisher(keys.raw(ns, "T7", "u0"), congestion_control=block)
@@ -95,14 +83,14 @@ def test_raw_and_gps_in_positioned_chunks_out(
 
 
 def test_malformed_payload_and_invalid_chunk_go_to_dead_letters(
-    open_session, service_config, liveliness_events, collector, until_matched
+    open_session, service_config, running, collector, until_matched
 ):
     ns = service_config.ns
     client = open_session()
     letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
     client.declare_subscriber(keys.deadletter(ns, ingestion.SERVICE), letters)
     messages = simulated(1)
-    with running(service_config, client, liveliness_events):
+    with running():
         raw_pub = client.declare_publisher(keys.raw(ns, "T7", "u0"))
         until_matched(raw_pub)
         raw_pub.put(b"\x93not a map")

@@ -3,22 +3,15 @@ the message says what to do (a real router, the CLI as a real process)."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import threading
 
 import zenoh
+from support import run_cli
 
 from schemas import encode, keys
 from services.alerting.testing import make_state
 from services.cli import build_parser
 from services.operator import QUERY_TIMEOUT_S
-
-
-def trackfusion(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args], capture_output=True, text=True, timeout=60
-    )
 
 
 def test_an_answer_later_than_the_timeout_says_what_to_do(open_session, router, namespace):
@@ -32,7 +25,7 @@ def test_an_answer_later_than_the_timeout_says_what_to_do(open_session, router, 
     session = open_session()
     queryable = session.declare_queryable(keys.q_state_all(namespace), busy)
     try:
-        late = trackfusion("state", "L1/s1", "--timeout", "0.5", "--connect", router,
+        late = run_cli("state", "L1/s1", "--timeout", "0.5", "--connect", router,
                            "--ns", namespace)  # fmt: skip
     finally:
         released.set()
@@ -42,7 +35,7 @@ def test_an_answer_later_than_the_timeout_says_what_to_do(open_session, router, 
     # the same question with a timeout longer than the delay gets the state
     released.clear()
     threading.Timer(1.0, released.set).start()
-    patient = trackfusion("state", "L1/s1", "--timeout", "20", "--connect", router,
+    patient = run_cli("state", "L1/s1", "--timeout", "20", "--connect", router,
                           "--ns", namespace)  # fmt: skip
     assert patient.returncode == 0 and "L1/s1" in patient.stdout, patient.stderr
     queryable.undeclare()
@@ -53,5 +46,5 @@ def test_timeout_flag_default_and_bad_values():
     for command in (["status"], ["state", "L1/s1"], ["alerts"], ["plan"], ["export", "states"]):
         assert parser.parse_args(command).timeout == QUERY_TIMEOUT_S
     for bad in ("0", "-1", "nan", "inf", "soon"):
-        refused = trackfusion("alerts", "--timeout", bad)
+        refused = run_cli("alerts", "--timeout", bad)
         assert refused.returncode == 2 and "positive number of seconds" in refused.stderr

@@ -4,14 +4,12 @@
 from __future__ import annotations
 
 import io
-import subprocess
-import sys
-import threading
 from pathlib import Path
 
 import msgpack
 import pytest
 import zenoh
+from support import run_cli
 
 from schemas import Alert, decode, encode, keys
 from services import report
@@ -100,10 +98,9 @@ def test_report_without_filtering_exits_1_saying_what_to_check(
     with pytest.raises(SystemExit, match=r"filtering service running \(`trackfusion status`\)"):
         report.main(service_config, out_path=out_path, timeout=5, out=io.StringIO())
     # the command itself: exit code 1, the message on stderr, no file
-    done = subprocess.run(
-        [sys.executable, "-m", "services.cli", "report", "--out", str(out_path), "--line", "L1",
-         "--connect", router, "--ns", service_config.ns, "--timeout", "5"],
-        capture_output=True, text=True, timeout=60,
+    done = run_cli(
+        "report", "--out", str(out_path), "--line", "L1",
+        "--connect", router, "--ns", service_config.ns, "--timeout", "5", timeout=60,
     )  # fmt: skip
     assert done.returncode == 1, done.stderr
     assert "no segment state for line L1" in done.stderr and "trackfusion status" in done.stderr
@@ -111,39 +108,30 @@ def test_report_without_filtering_exits_1_saying_what_to_check(
 
 
 def test_report_with_the_real_alerting_service(
-    open_session, service_config, liveliness_events, collector, until_matched, tmp_path
+    open_session, service_config, service_thread, collector, until_matched, tmp_path
 ):
     ns = service_config.ns
     client = open_session()
     filtering_stand_in(client, ns)
     raised = collector(lambda s: decode(s.payload.to_bytes(), Alert))
     client.declare_subscriber(keys.segment_keys(ns, "alert"), raised)
-    token = liveliness_events(client, keys.alive(ns, alerting.SERVICE, "test"))
-    stop, result = threading.Event(), []
-    service = threading.Thread(
-        target=lambda: result.append(
-            alerting.main(
-                service_config, db=tmp_path / "a.sqlite", stop=stop, handle_signals=False
-            )  # fmt: skip
+    service = service_thread(
+        "alerting",
+        lambda stop: alerting.main(
+            service_config, db=tmp_path / "a.sqlite", stop=stop, handle_signals=False
         ),
-        name="alerting-under-test",
+        alive=keys.alive(ns, alerting.SERVICE, "test"),
     )
-    service.start()
-    try:
-        assert token.get()[0] == zenoh.SampleKind.PUT
-        for state in STATES:  # what filtering would have published
-            publisher = client.declare_publisher(keys.state(ns, state.line, state.segment))
-            until_matched(publisher)
-            publisher.put(encode(state))
-        # once L1/s00002's alert is out, alerting has it in its plan too
-        while (alert := raised.get()).segment != "s00002" or alert.line != "L1":
-            pass  # L2 has other limits in deploy/limits.json5: its state may raise or not
-        out_path = tmp_path / "report.html"
-        assert report.main(service_config, out_path=out_path, line="L1", timeout=5) == 0
-    finally:
-        stop.set()
-        service.join(10)
-    assert not service.is_alive() and result == [0]
+    for state in STATES:  # what filtering would have published
+        publisher = client.declare_publisher(keys.state(ns, state.line, state.segment))
+        until_matched(publisher)
+        publisher.put(encode(state))
+    # once L1/s00002's alert is out, alerting has it in its plan too
+    while (alert := raised.get()).segment != "s00002" or alert.line != "L1":
+        pass  # L2 has other limits in deploy/limits.json5: its state may raise or not
+    out_path = tmp_path / "report.html"
+    assert report.main(service_config, out_path=out_path, line="L1", timeout=5) == 0
+    assert service.stop() == 0
     html = out_path.read_text()
     assert "missing" not in html
     assert "Top6 likely above intervention limit 8.0 mm (p=0.95)" in html

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import threading
 from pathlib import Path
 
 import pytest
@@ -59,26 +58,19 @@ def test_liveliness_token_visible_then_gone_after_stop(
     assert events.get() == (DELETE, key)
 
 
-def test_run_service_returns_0_on_stop(open_session, service_config, liveliness_events):
+def test_run_service_returns_0_on_stop(
+    open_session, service_config, liveliness_events, service_thread
+):
     events = liveliness_events(open_session(), keys.alive_all(service_config.ns))
-    stop = threading.Event()
     setup_done: list[ServiceRuntime] = []
-    result: list[int] = []
-    thread = threading.Thread(
-        target=lambda: result.append(
-            run_service("probe", service_config, setup_done.append, stop_event=stop)
-        )
+    probe = service_thread(
+        "probe",
+        lambda stop: run_service("probe", service_config, setup_done.append, stop_event=stop),
     )
-    thread.start()
-    try:
-        kind, key = events.get()
-        assert kind == PUT and key.endswith("/alive/probe/test")
-        assert setup_done and setup_done[0].session is not None
-    finally:
-        stop.set()
-        thread.join(5)
-    assert not thread.is_alive()
-    assert result == [0]
+    kind, key = events.get()
+    assert kind == PUT and key.endswith("/alive/probe/test")
+    assert setup_done and setup_done[0].session is not None
+    assert probe.stop() == 0
     assert events.get() == (DELETE, key)
 
 
@@ -144,7 +136,7 @@ def test_subscribe_worker_dead_letters_bad_input_and_keeps_going(
 
 
 def test_deadletters_service_prints_one_line_per_letter(
-    open_session, service_config, until_matched, liveliness_events, collector
+    open_session, service_config, until_matched, liveliness_events, collector, service_thread
 ):
     class Lines:
         def __init__(self) -> None:
@@ -158,39 +150,33 @@ def test_deadletters_service_prints_one_line_per_letter(
             pass
 
     out = Lines()
-    stop = threading.Event()
     observer = open_session()
     events = liveliness_events(observer, keys.alive(service_config.ns, "deadletters", "test"))
-    thread = threading.Thread(
-        target=deadletters.main, args=(service_config, out), kwargs={"stop": stop}
+    printer = service_thread(
+        "deadletters", lambda stop: deadletters.main(service_config, out, stop=stop)
     )
-    thread.start()
-    try:
-        assert events.get()[0] == PUT
-        publisher = observer.declare_publisher(keys.deadletter(service_config.ns, "ingestion"))
-        until_matched(publisher)
-        letter = DeadLetter(
-            service="ingestion",
-            key=f"{service_config.ns}/raw/t1/u1",
-            reason="GpsFix: Expected `float`,\n got `str`",
-            payload_head=b"\x81",
-            received_at=1.0,
-        )
-        publisher.put(encode(letter))
-        publisher.put(b"not a dead letter")  # logged, not printed, not dead-lettered again
-        publisher.put(encode(letter))
-        line = out.lines.get()
-        assert line.split(" ", 2) == [
-            "ingestion",
-            f"{service_config.ns}/raw/t1/u1",
-            "GpsFix: Expected `float`, got `str`",
-        ]
-        assert out.lines.get() == line
-        publisher.undeclare()
-    finally:
-        stop.set()
-        thread.join(5)
-    assert not thread.is_alive()
+    assert events.get()[0] == PUT
+    publisher = observer.declare_publisher(keys.deadletter(service_config.ns, "ingestion"))
+    until_matched(publisher)
+    letter = DeadLetter(
+        service="ingestion",
+        key=f"{service_config.ns}/raw/t1/u1",
+        reason="GpsFix: Expected `float`,\n got `str`",
+        payload_head=b"\x81",
+        received_at=1.0,
+    )
+    publisher.put(encode(letter))
+    publisher.put(b"not a dead letter")  # logged, not printed, not dead-lettered again
+    publisher.put(encode(letter))
+    line = out.lines.get()
+    assert line.split(" ", 2) == [
+        "ingestion",
+        f"{service_config.ns}/raw/t1/u1",
+        "GpsFix: Expected `float`, got `str`",
+    ]
+    assert out.lines.get() == line
+    publisher.undeclare()
+    assert printer.stop() == 0
     assert events.get()[0] == DELETE
 
 
