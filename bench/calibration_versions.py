@@ -1,9 +1,9 @@
 """Model versions the calibration service publishes on the demo (issue 12, item 4).
 
-Runs the demo world of ``deploy/stack.json5`` (the demo network, fast mode
+Runs the demo world of ``services/defaults/stack.json5`` (the demo network, fast mode
 ``fidelity="index"``, 4 service passes per line and day, seed 1, one year from 2026-01-01)
 through the :class:`~services.calibration.calibrator.Calibrator` core in process, started
-from ``deploy/initial-models.json5`` with the service's default settings, and counts the
+from ``services/defaults/initial-models.json5`` with the service's default settings, and counts the
 models :meth:`Calibrator.flush` returns (what the service publishes, and what makes the
 filtering service re-run its segments) per simulated calendar month.
 
@@ -31,6 +31,7 @@ import json5
 
 from schemas import Calibration
 from services.calibration.calibrator import Calibrator, CalibratorConfig, initial_models
+from services.defaults import default_file
 from simulators.network import demo_network
 from simulators.truth import load_config
 from simulators.world import WorldSpec, world_events
@@ -38,7 +39,7 @@ from simulators.world import WorldSpec, world_events
 DAY_S = 86_400.0
 START_T = 1_767_225_600.0  # 2026-01-01T00:00Z, the simulator's default start
 ROOT = Path(__file__).resolve().parents[1]
-INITIAL_MODELS = ROOT / "deploy" / "initial-models.json5"
+INITIAL_MODELS = default_file("initial-models.json5")
 
 
 def month_of(t: float) -> str:

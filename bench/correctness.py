@@ -7,13 +7,13 @@ in the simulator's fast mode (``fidelity="index"``) on the demo network (295 seg
    core (TRC records, on-board indices, tampings). Its events are ingested one by one and its
    models flushed **once per simulated day** (at the first event of a new day; the service
    flushes once per queued batch), and the models that changed are given to the trackers.
-   Both start from the deployed initial models (``deploy/initial-models.json5``, as
-   ``deploy/stack.json5`` does).
+   Both start from the deployed initial models (``services/defaults/initial-models.json5``, as
+   ``services/defaults/stack.json5`` does).
 2. Two :class:`~services.filtering.tracker.Tracker` cores: **fused** (TRC records, tampings,
    on-board indices, models) and **model alone** (the same minus every OnboardIndex). The
    SegmentStates of each go to an :class:`~services.alerting.core.AlertingCore` of its own
-   (``deploy/alerting.json5`` defaults, ``deploy/limits.json5``); ``check_stale`` is called
-   once per simulated day.
+   (``services/defaults/alerting.json5`` defaults, ``services/defaults/limits.json5``);
+   ``check_stale`` is called once per simulated day.
 3. **TRC cut-off**: TRC records after ``--cutoff-days`` (default 120: the calibration
    campaign's first runs) are withheld from both trackers and the alerting, together with
    the OnboardIndex the TRC train itself produces on those runs (the run did not happen for
@@ -82,6 +82,7 @@ import numpy as np
 from schemas import INDICATORS, MaintenanceEvent, OnboardIndex, TrcRecord
 from services.alerting.core import AlertingConfig, AlertingCore, Hysteresis
 from services.calibration.calibrator import Calibrator, CalibratorConfig, initial_models
+from services.defaults import default_file
 from services.filtering.degradation import transition_unchecked
 from services.filtering.mixture import effective_sample_size, summarize
 from services.filtering.tracker import Tracker, state_weights, tamping_time
@@ -94,8 +95,8 @@ from simulators.world import WorldSpec, world_events
 DAY_S = 86_400.0
 START_T = 1_767_225_600.0  # 2026-01-01T00:00Z
 ROOT = Path(__file__).resolve().parents[1]
-INITIAL_MODELS = ROOT / "deploy" / "initial-models.json5"
-ALERTING_CONFIG = ROOT / "deploy" / "alerting.json5"
+INITIAL_MODELS = default_file("initial-models.json5")
+ALERTING_CONFIG = default_file("alerting.json5")
 TRC_TRAIN = "TRC"
 ALERT_KINDS = ("predicted_exceedance", "exceedance")
 LEVEL = "intervention"

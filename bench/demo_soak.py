@@ -1,7 +1,7 @@
 """`make soak`: what `make run` starts, left running, watched like an operator would.
 
-Runs ``trackfusion up`` on a copy of ``deploy/stack.json5`` — the same processes and flags
-(fast-mode world at 15,000×, four raw trains, the web viewer), moved to a free router port,
+Runs ``trackfusion up`` on a copy of ``services/defaults/stack.json5`` — the same processes and
+flags (fast-mode world at 15,000×, four raw trains, the web viewer), moved to a free router port,
 its own namespace, state directory and viewer ports so that it can run beside another
 stack — for ``--minutes`` (30 by default), and watches it from outside:
 
@@ -47,6 +47,7 @@ from pathlib import Path
 import zenoh
 
 from schemas import keys
+from services.defaults import default_file
 from services.runtime.config import zenoh_config
 
 REPO = Path(__file__).resolve().parents[1]
@@ -65,15 +66,17 @@ def free_port() -> int:
 def stack_copy(
     out: Path, *, endpoint: str, ns: str, web_port: int, grpc_port: int, viewer_args: str = ""
 ) -> Path:
-    """``deploy/stack.json5`` with its endpoint, namespace, state files and viewer moved
+    """``services/defaults/stack.json5`` with its endpoint, namespace, state files and viewer moved
     (and ``viewer_args`` added to the viewer's arguments)."""
-    text = (REPO / "deploy" / "stack.json5").read_text()
+    text = default_file("stack.json5").read_text()
     text = text.replace('"var/', f'"{out}/').replace('state_dir: "var"', f'state_dir: "{out}"')
     text = re.sub(r'ns: "\w+"', f'ns: "{ns}"', text, count=1)
     text = re.sub(r"tcp/127\.0\.0\.1:\d+", endpoint, text, count=1)
     viewer = re.search(r'\{ name: "viewer".*?args: \[(.*?)\]', text, flags=re.S)
     if viewer is None:
-        raise SystemExit("deploy/stack.json5: no viewer entry; update bench/demo_soak.py")
+        raise SystemExit(
+            "services/defaults/stack.json5: no viewer entry; update bench/demo_soak.py"
+        )
     args = viewer.group(1) + f', "--web", "--web-port", "{web_port}", "--grpc-port", "{grpc_port}"'
     args += "".join(f', "{arg}"' for arg in viewer_args.split())
     text = text[: viewer.start(1)] + args + text[viewer.end(1) :]

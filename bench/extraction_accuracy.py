@@ -1,7 +1,7 @@
 """Accuracy of the signal chain on simulated raw data of the demo network.
 
 Simulates trains with the full bogie physics (``simulators.train``, ``simulators.bogie``)
-on ``deploy/demo-network.geojson`` with the profiles scaled to the true state, runs a
+on ``services/defaults/demo-network.geojson`` with the profiles scaled to the true state, runs a
 minimal stand-in for ingestion (supply-voltage correction ``5.0 / V``, g -> m/s^2, knots
 at each chunk's ends from the train's true position), extracts on-board indices with
 :class:`services.extraction.pipeline.Extractor` and compares them with the truth (the

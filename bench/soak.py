@@ -432,7 +432,7 @@ def run(args: argparse.Namespace, trains: int, stop: threading.Event) -> dict:
             session.declare_subscriber(f"{ns}/{kind}/**", probe.on_other)
         db = {name: str(logdir / f"{name}.sqlite") for name in SERVICES}
         service_args = {
-            "calibration": ["--initial-models", "deploy/initial-models.json5"],
+            "calibration": ["--initial-models", "services/defaults/initial-models.json5"],
         }
         if args.ingestion:  # settings of the ingestion core, through a config file
             path = logdir / "ingestion.json5"

@@ -1,6 +1,6 @@
 """The viewer under `make run`: memory and time to the first picture in a late browser.
 
-Runs ``trackfusion up`` on a copy of ``deploy/stack.json5`` with its own router endpoint,
+Runs ``trackfusion up`` on a copy of ``services/defaults/stack.json5`` with its own router endpoint,
 namespace, state directory and viewer ports (so it runs beside another stack), samples the
 viewer's VmRSS every ``--sample`` seconds, and at each ``--open`` minute opens the web
 viewer in a fresh headless Chromium (``tests/browser.py``) and times the first screenshot

@@ -10,6 +10,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from services.defaults import default_file
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="trackfusion", description=__doc__.splitlines()[0])
@@ -19,18 +21,18 @@ def build_parser() -> argparse.ArgumentParser:
     from services.runtime.config import ROUTER_CONFIG, add_zenoh_arguments
 
     def _router(args: argparse.Namespace) -> int:
-        from services.runtime import router
         from services.runtime.config import config_from_args
         from services.runtime.service import configure_logging
+        from services.tools import router
 
         configure_logging(args.log_level)
         default = ROUTER_CONFIG if ROUTER_CONFIG.is_file() else None  # else built-in defaults
         return router.main(config_from_args(args, default_file=default, mode="router"))
 
     def _deadletters(args: argparse.Namespace) -> int:
-        from services.runtime import deadletters
         from services.runtime.config import config_from_args
         from services.runtime.service import configure_logging
+        from services.tools import deadletters
 
         configure_logging(args.log_level)
         return deadletters.main(config_from_args(args))
@@ -87,7 +89,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="SQLite file of the accepted events and models "
         "(default: ./var/filtering-{instance}.sqlite, instance 'default' without --instance)",
     )
-    p.add_argument("--limits", metavar="FILE", help="limits file (default: deploy/limits.json5)")
+    p.add_argument(
+        "--limits", metavar="FILE", help="limits file (default: services/defaults/limits.json5)"
+    )
     add_zenoh_arguments(p)
     p.set_defaults(func=_filtering)
 
@@ -127,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         metavar="FILE.json5",
         help="prior models published as version 1 until data gives better ones "
-        "(e.g. deploy/initial-models.json5; default: none)",
+        "(e.g. services/defaults/initial-models.json5; default: none)",
     )
     p.add_argument(
         "--network",
@@ -207,7 +211,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--to-day", type=float, help="publish only up to this day of the world")
     p.add_argument("--start", default="2026-01-01T00:00:00+00:00", help="ISO start time (UTC)")
     p.add_argument("--truth", metavar="FILE.sqlite", help="write the ground truth here")
-    p.add_argument("--sim-config", metavar="FILE.json5", help="default: deploy/simulator.json5")
+    p.add_argument(
+        "--sim-config", metavar="FILE.json5", help="default: services/defaults/simulator.json5"
+    )
     p.add_argument("--no-progress", action="store_true")
     p.add_argument(
         "--linger",
@@ -241,10 +247,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="FILE.geojson", help="default: stdout")
     p.set_defaults(func=_network_generate)
 
-    # --- up (services/stack.py) -------------------------------------------------------------
+    # --- up (services/tools/stack.py) -------------------------------------------------------------
     def _up(args: argparse.Namespace) -> int:
-        from services import stack
         from services.runtime.service import configure_logging
+        from services.tools import stack
 
         configure_logging(args.log_level)
         return stack.main(args.stack, ns=args.ns, listen=args.listen)
@@ -257,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--stack",
-        default=str(Path(__file__).resolve().parents[1] / "deploy" / "stack.json5"),
+        default=str(default_file("stack.json5")),
         help="stack file (default: %(default)s)",
     )
     p.add_argument("--ns", help="namespace (stack file's by default)")
@@ -265,11 +271,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--log-level", default="warning", choices=["debug", "info", "warning"])
     p.set_defaults(func=_up)
 
-    # --- operator commands (services/operator.py) ------------------------------------------
+    # --- operator commands (services/tools/operator.py) ------------------------------------------
     def _operator(command: str):
         def run(args: argparse.Namespace) -> int:
-            from services import operator
             from services.runtime.config import config_from_args
+            from services.tools import operator
 
             conf = config_from_args(args)
             match command:
@@ -304,7 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(
             "--timeout",
             type=_seconds,
-            default=10.0,  # services.operator.QUERY_TIMEOUT_S, not imported for --help's speed
+            default=10.0,  # services.tools.operator.QUERY_TIMEOUT_S (not imported: --help's speed)
             metavar="S",
             help="seconds to wait for the whole answer (default: %(default)g)",
         )
@@ -344,10 +350,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_timeout_argument(p)
     p.set_defaults(func=_operator("export"))
 
-    # --- report (services/report.py) -----------------------------------------------------
+    # --- report (services/tools/report.py) -----------------------------------------------------
     def _report(args: argparse.Namespace) -> int:
-        from services import report
         from services.runtime.config import config_from_args
+        from services.tools import report
 
         return report.main(
             config_from_args(args),
@@ -394,7 +400,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--config",
-        default=str(Path(__file__).resolve().parents[1] / "deploy" / "study.json5"),
+        default=str(default_file("study.json5")),
         help="study config (JSON5): scenarios, intervals, sizes (default: %(default)s)",
     )
     p.add_argument("--paths", type=int, help="Monte Carlo paths per scenario (config: 1000)")
@@ -418,7 +424,6 @@ def build_parser() -> argparse.ArgumentParser:
             db=args.db,
         )
 
-    deploy = Path(__file__).resolve().parents[1] / "deploy"
     p = sub.add_parser(
         "alerting",
         help="raise and clear alerts from segment states; answer q/alerts and q/plan",
@@ -429,14 +434,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--config-alerting",
         metavar="FILE",
         type=Path,
-        default=deploy / "alerting.json5",
+        default=default_file("alerting.json5"),
         help="alerting thresholds, JSON5 (default: %(default)s)",
     )
     p.add_argument(
         "--limits",
         metavar="FILE",
         type=Path,
-        default=deploy / "limits.json5",
+        default=default_file("limits.json5"),
         help="alert and intervention limits per line, JSON5 (default: %(default)s)",
     )
     p.add_argument(
@@ -468,7 +473,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--network",
         metavar="FILE.geojson",
         type=Path,
-        default=Path(__file__).resolve().parents[1] / "deploy" / "demo-network.geojson",
+        default=default_file("demo-network.geojson"),
         help="network to map-match on (default: %(default)s)",
     )
     add_zenoh_arguments(p)
@@ -512,7 +517,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--network",
         metavar="FILE.geojson",
         type=Path,
-        default=Path(__file__).resolve().parents[1] / "deploy" / "demo-network.geojson",
+        default=default_file("demo-network.geojson"),
         help="the map (default: %(default)s)",
     )
     viewer_sink = p.add_mutually_exclusive_group()
@@ -559,16 +564,17 @@ def build_parser() -> argparse.ArgumentParser:
         "--network",
         metavar="FILE",
         type=Path,
-        help="network GeoJSON with the segment bounds (default: deploy/demo-network.geojson)",
+        help="network GeoJSON with the segment bounds "
+        "(default: services/defaults/demo-network.geojson)",
     )
     add_zenoh_arguments(p)
     p.set_defaults(func=_extraction)
 
-    # --- gateway check (services/gateway_check.py) ----------------------------------------
+    # --- gateway check (services/tools/gateway_check.py) ----------------------------------------
     def _gateway_check(args: argparse.Namespace) -> int:
-        from services import gateway_check
         from services.runtime.config import config_from_args
         from services.runtime.service import configure_logging
+        from services.tools import gateway_check
 
         configure_logging(args.log_level)
         return gateway_check.main(config_from_args(args), args.train, args.seconds)
@@ -587,9 +593,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_zenoh_arguments(p)
     p.set_defaults(func=_gateway_check)
 
-    # --- secure-config (services/runtime/security.py) ------------------------------------
+    # --- secure-config (services/tools/security.py) ------------------------------------
     def _secure_config(args: argparse.Namespace) -> int:
-        from services.runtime import security
+        from services.tools import security
 
         trains = [t.strip() for t in args.trains.split(",") if t.strip()]
         if not trains:

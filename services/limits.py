@@ -1,4 +1,4 @@
-"""Alert and intervention limits per line, read from ``deploy/limits.json5``.
+"""Alert and intervention limits per line, read from ``services/defaults/limits.json5``.
 
 One deploy-time config read by the services that need it (filtering computes exceedance
 probabilities against the limits; alerting raises alerts on them). Limits are in mm on the
@@ -13,7 +13,9 @@ from pathlib import Path
 import json5
 import numpy as np
 
-DEFAULT_LIMITS_FILE = Path(__file__).resolve().parents[1] / "deploy" / "limits.json5"
+from services.defaults import default_file
+
+DEFAULT_LIMITS_FILE = default_file("limits.json5")
 
 
 @dataclass(frozen=True)

@@ -60,7 +60,8 @@ _HUNT_TAG, _SUPPLY_TAG = 0x48554E54, 0x53555050  # "HUNT", "SUPP": per-unit fixe
 
 @dataclass(frozen=True)
 class BogiePhysics:
-    """Physics and sensor constants of a bogie unit (deploy/simulator.json5 may override).
+    """Physics and sensor constants of a bogie unit (``simulator.json5`` of services/defaults/
+    may override).
 
     Rates are per second of running time; durations are ``(min, max)`` in seconds.
     """

@@ -9,7 +9,7 @@ indices of a train pass are drawn from the paper's observation model (Eq. 3-4):
     [\\text{Top6}, \\text{Align10}]_{\\text{on-board}} = \\exp(y)\\ \\text{mm},
 
 with z the true state at the time of the pass. The numbers live in the ``index`` section
-of ``deploy/simulator.json5`` (the study's observation model): on-board indices read low
+of ``services/defaults/simulator.json5`` (the study's observation model): on-board indices read low
 (b < 0, H below 1 on the diagonal) and Align10 is noisier than Top6, as in the paper's
 section 3.2. The calibration service should recover H, b, R from TRC-paired passes.
 """

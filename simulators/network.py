@@ -30,8 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
+from services.defaults import default_file
+
 EARTH_RADIUS_M = 6_371_008.8  # mean radius (IUGG)
-DEMO_NETWORK = Path(__file__).resolve().parents[1] / "deploy" / "demo-network.geojson"
+DEMO_NETWORK = default_file("demo-network.geojson")
 DEFAULT_ORIGIN = (153.02, -27.47)  # Brisbane, lon/lat degrees
 _ID_FORBIDDEN = set("/*$?# ")
 
@@ -372,7 +374,8 @@ def _feature(lonlat: np.ndarray, props: dict) -> dict:
 
 
 def demo_network(segment_length_m: float = 200.0) -> Network:
-    """The demo network of ``deploy/demo-network.geojson`` (3 lines, ~60 km, Brisbane)."""
+    """The demo network of ``services/defaults/demo-network.geojson`` (3 lines, ~60 km,
+    Brisbane)."""
     return Network.from_geojson(DEMO_NETWORK, segment_length_m)
 
 

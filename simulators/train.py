@@ -42,7 +42,7 @@ EARTH_RADIUS_M = 6_371_000.0
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Operation and GPS constants of a train (deploy/simulator.json5 may override)."""
+    """Operation and GPS constants of a train (services/defaults/simulator.json5 may override)."""
 
     accel_mps2: float = 0.8
     brake_mps2: float = 1.0

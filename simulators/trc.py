@@ -1,6 +1,6 @@
 """Track Recording Car runs: a TrcRecord per segment every 8-11 weeks per line.
 
-The schedule follows the paper's Table 1 (``trc`` section of ``deploy/simulator.json5``):
+The schedule follows the paper's Table 1 (``trc`` section of ``services/defaults/simulator.json5``):
 each line's first run starts ``first_run_days`` after the simulation start, the next ones
 follow after gaps drawn uniformly from ``interval_weeks``, independently per line. A run
 records the whole line in chainage order at ``speed_mps``; it passes a segment's middle

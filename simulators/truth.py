@@ -1,7 +1,8 @@
 """The true degradation of every segment: the same Wiener model with tamping as the filter.
 
-Each segment belongs to a degradation class (fast, typical, slow; ``deploy/simulator.json5``,
-section ``truth``) and draws its own drift and diffusion around the class values. Its state
+Each segment belongs to a degradation class (fast, typical, slow;
+``services/defaults/simulator.json5``, section ``truth``) and draws its own drift and
+diffusion around the class values. Its state
 ``z = [ln Top6_mm, ln Align10_mm]`` follows the multivariate Wiener model of the paper's
 Eq. 1 on a fixed grid of ``step_days`` (default one day):
 
@@ -55,10 +56,11 @@ import json5
 import numpy as np
 
 from schemas import MaintenanceEvent
+from services.defaults import default_file
 from simulators.network import Network, stable_rng
 
 DAY_S = 86400.0
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "deploy" / "simulator.json5"
+DEFAULT_CONFIG = default_file("simulator.json5")
 
 
 def load_config(path: str | Path | None = None) -> dict:

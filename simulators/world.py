@@ -32,7 +32,7 @@ class WorldSpec:
     """What to simulate."""
 
     network: Network
-    config: Mapping  # deploy/simulator.json5
+    config: Mapping  # services/defaults/simulator.json5
     start_t: float  # epoch s
     days: float
     seed: int

@@ -108,7 +108,7 @@ PREDICTED_HYSTERESIS = Hysteresis(0.3, 0.18)
 @dataclass(frozen=True)
 class AlertingConfig:
     """Thresholds of every alert kind and of the plan; :meth:`from_dict` reads the
-    ``deploy/alerting.json5`` layout."""
+    ``services/defaults/alerting.json5`` layout."""
 
     exceedance: Mapping[str, Hysteresis] = field(
         default_factory=lambda: {
@@ -146,7 +146,8 @@ class AlertingConfig:
 
     @classmethod
     def from_dict(cls, raw: Mapping[str, Any]) -> AlertingConfig:
-        """Build from the ``deploy/alerting.json5`` object; ValueError names what is wrong."""
+        """Build from the object of ``services/defaults/alerting.json5``; ValueError names what
+        is wrong."""
         sections = {"exceedance", "predicted_exceedance", "sudden_change", "stale", "plan"}
         unknown = set(raw) - sections
         if unknown:

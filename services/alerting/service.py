@@ -23,21 +23,22 @@ import zenoh
 from schemas import Alert, SegmentState, TrcRecord, decode, encode, keys
 from services.alerting.core import AlertingConfig, AlertingCore
 from services.alerting.store import AlertStore
+from services.defaults import default_file
 from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits
-from services.runtime.config import DEPLOY_DIR, RuntimeConfig, default_db
+from services.runtime.config import RuntimeConfig, default_db
 from services.runtime.service import ServiceRuntime
 
 log = logging.getLogger(__name__)
 
 SERVICE = "alerting"
-DEFAULT_ALERTING_FILE = DEPLOY_DIR / "alerting.json5"
+DEFAULT_ALERTING_FILE = default_file("alerting.json5")
 PLAN_VERSION = 1
 
 _list_encoder = msgspec.msgpack.Encoder()
 
 
 def load_alerting_config(path: str | Path = DEFAULT_ALERTING_FILE) -> AlertingConfig:
-    """Read ``deploy/alerting.json5`` (or ``path``); SystemExit says what to fix."""
+    """Read ``services/defaults/alerting.json5`` (or ``path``); SystemExit says what to fix."""
     try:
         raw = json5.loads(Path(path).read_text(encoding="utf-8"))
         if not isinstance(raw, dict):

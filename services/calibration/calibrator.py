@@ -460,7 +460,7 @@ def _sample_prior(prior: NIWPrior, ns: int, rng: np.random.Generator):
 def initial_models(
     spec: Mapping[str, Any], *, samples: int, seed: int
 ) -> tuple[Calibration | None, list[DegradationPosterior]]:
-    """Version-1 models from a prior specification (``deploy/initial-models.json5``).
+    """Version-1 models from a prior specification (``services/defaults/initial-models.json5``).
 
     ``spec["calibration"]``: ``H``, ``b``, ``R``, optionally ``r2`` (default 0) and ``n_pairs``
     (default 1: the schema needs > 0; the pairs behind a prior model are not ours). ``t`` is 0.

@@ -17,7 +17,7 @@ segments it does not have are dead-lettered before they reach the core.
 
 At start the store is loaded (the same models, versions and samples are republished), then
 the optional initial models (``initial_models``: a JSON5 file, see
-``deploy/initial-models.json5``) are installed as version 1 where no model exists yet.
+``services/defaults/initial-models.json5``) are installed as version 1 where no model exists yet.
 """
 
 from __future__ import annotations

@@ -17,14 +17,15 @@ import time
 from pathlib import Path
 
 from schemas import PositionedChunk, decode, encode, keys
+from services.defaults import default_file
 from services.extraction.pipeline import ExtractionConfig, Extractor, SegmentTable
-from services.runtime.config import DEPLOY_DIR, RuntimeConfig
+from services.runtime.config import RuntimeConfig
 from services.runtime.service import ServiceRuntime
 
 log = logging.getLogger(__name__)
 
 SERVICE = "extraction"
-DEFAULT_NETWORK = DEPLOY_DIR / "demo-network.geojson"
+DEFAULT_NETWORK = default_file("demo-network.geojson")
 LOG_EVERY_S = 60.0  # wall clock: only for the log line, never for the data
 
 

@@ -29,12 +29,13 @@ import json5
 import numpy as np
 
 from services.calibration.posterior import posterior_drift_diffusion
+from services.defaults import default_file
 from services.filtering.bank import update_unchecked
 from services.filtering.degradation import DegradationParams, transition_unchecked
 from services.filtering.mixture import summarize
 
 INDICATOR_NAMES = ("Top", "Align")
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "deploy" / "study.json5"
+DEFAULT_CONFIG = default_file("study.json5")
 WEEK_DAYS = 7.0
 
 

@@ -29,7 +29,7 @@ def example_models(
     samples: int, seed: int, *, z_plus_sd: float = 0.0, t: float = T0
 ) -> list[Calibration | DegradationPosterior]:
     """A Calibration (the study's H, b, R) and a ``net`` DegradationPosterior of ``samples``
-    draws around the typical scenario (deploy/study.json5), both version 1."""
+    draws around the typical scenario (services/defaults/study.json5), both version 1."""
     rng = np.random.default_rng(seed)
     sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((samples, 1)))
     sigma = np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None]

@@ -19,15 +19,16 @@ from pathlib import Path
 import zenoh
 
 from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode, keys
+from services.defaults import default_file
 from services.ingestion.core import IngestionConfig, IngestionCore, Output, Rejection
-from services.runtime.config import DEPLOY_DIR, RuntimeConfig
+from services.runtime.config import RuntimeConfig
 from services.runtime.service import ServiceRuntime
 from simulators.network import Network
 
 log = logging.getLogger(__name__)
 
 SERVICE = "ingestion"
-DEFAULT_NETWORK = DEPLOY_DIR / "demo-network.geojson"
+DEFAULT_NETWORK = default_file("demo-network.geojson")
 
 
 def load_network(path: str | Path) -> Network:

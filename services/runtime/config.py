@@ -11,7 +11,7 @@ level, which are taken out before the rest is handed to Zenoh:
 ``services``
     per-service settings, ``{"filtering": {...}, ...}``, read with :meth:`RuntimeConfig.options`.
 
-A file without these keys (``deploy/router.json5``) is therefore also a valid ``zenohd``
+A file without these keys (``services/defaults/router.json5``) is therefore also a valid ``zenohd``
 configuration. Whatever the file says, multicast scouting is turned off: every process
 connects or listens on explicit endpoints.
 """
@@ -30,6 +30,8 @@ from typing import TYPE_CHECKING, Any
 
 import json5
 
+from services.defaults import default_file
+
 if TYPE_CHECKING:
     import zenoh  # imported when a config is built, so that `trackfusion --help` stays fast
 
@@ -38,10 +40,8 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 MODES = ("client", "peer", "router")
 TRACKFUSION_KEYS = ("ns", "instance", "services")
 
-_REPO = Path(__file__).resolve().parents[2]
-DEPLOY_DIR = _REPO / "deploy"
-ROUTER_CONFIG = DEPLOY_DIR / "router.json5"
-SERVICE_CONFIG = DEPLOY_DIR / "service.json5"
+ROUTER_CONFIG = default_file("router.json5")
+SERVICE_CONFIG = default_file("service.json5")
 
 _FORBIDDEN = set("*$?# ")
 

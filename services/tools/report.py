@@ -6,7 +6,7 @@ worst segments, and the open alerts. Inline CSS and SVG only: no script, no exte
 resource, so it renders offline from a mail attachment.
 
 Pure part: :func:`render` (``ReportData`` → HTML text) and its helpers, tested without
-Zenoh. Thin part: :func:`main` asks the running system like :mod:`services.operator` does.
+Zenoh. Thin part: :func:`main` asks the running system like :mod:`services.tools.operator` does.
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ from typing import TextIO
 import msgpack
 
 from schemas import Alert, SegmentState, decode, keys
-from services import operator
 from services.runtime.config import RuntimeConfig
+from services.tools import operator
 
 INTERVENTION = "intervention"
 WORST_N = 6

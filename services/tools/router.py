@@ -2,7 +2,7 @@
 
 It routes pub/sub, queries and liveliness between client services and enforces TLS and
 access control from its configuration; it cannot load zenohd plugins (storages, REST), for
-which the real ``zenohd -c deploy/router.json5`` takes the same file.
+which the real ``zenohd -c services/defaults/router.json5`` takes the same file.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ log = logging.getLogger(__name__)
 def main(conf: RuntimeConfig, stop: threading.Event | None = None) -> int:
     """Run a router session from ``conf`` until ``stop`` is set or SIGINT/SIGTERM; exit 0.
 
-    ``conf`` is normally ``deploy/router.json5`` overlaid with ``--listen``/``--connect``;
-    its mode is forced to router.
+    ``conf`` is normally ``services/defaults/router.json5`` overlaid with ``--listen`` and
+    ``--connect``; its mode is forced to router.
     """
     conf = RuntimeConfig(
         ns=conf.ns,

@@ -1,4 +1,4 @@
-"""`trackfusion up`: the whole system on one machine, from ``deploy/stack.json5``.
+"""`trackfusion up`: the whole system on one machine, from ``services/defaults/stack.json5``.
 
 An embedded Zenoh router (this process), every service and simulator of the stack file as
 a child process connected to it, and a live status table: services alive (liveliness
@@ -34,11 +34,12 @@ import json5
 import zenoh
 
 from schemas import Alert, SchemaError, decode, keys
+from services.defaults import default_file
 from services.runtime.config import default_instance, zenoh_config
 
 log = logging.getLogger(__name__)
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_STACK = REPO / "deploy" / "stack.json5"
+REPO = Path(__file__).resolve().parents[2]  # holds the packages: the checkout, or site-packages
+DEFAULT_STACK = default_file("stack.json5")
 WATCHED = ("state", "index", "alert", "gps", "trc", "maintenance", "deadletter")
 RESTART_POLICIES = ("always", "on-failure", "never")
 TICK_S = 0.5  # supervision step

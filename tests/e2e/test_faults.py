@@ -124,7 +124,7 @@ def test_every_fault_in_turn_leaves_the_uninterrupted_states(
         return service(name, "filtering", "--db", db, via=via)
 
     def calibration():
-        db, initial = str(tmp_path / "cal.sqlite"), "deploy/initial-models.json5"
+        db, initial = str(tmp_path / "cal.sqlite"), "services/defaults/initial-models.json5"
         return service("cal", "calibration", "--db", db, "--initial-models", initial)
 
     def alerting():

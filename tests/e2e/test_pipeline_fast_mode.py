@@ -100,7 +100,7 @@ def test_pipeline_survives_a_filtering_kill(
         "--db",
         str(tmp_path / "calibration.sqlite"),
         "--initial-models",
-        "deploy/initial-models.json5",
+        "services/defaults/initial-models.json5",
         "--instance",
         "cal",
         *wiring,

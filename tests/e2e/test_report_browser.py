@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from browser import CHROMIUM, MIN_PIXELS, DevTools, hue_pixels
 
-from services import report
 from services.alerting.testing import T0, make_state, p_top6
+from services.tools import report
 
 pytestmark = pytest.mark.skipif(
     not CHROMIUM.exists(), reason="no /usr/bin/chromium (apt-get install -y chromium)"

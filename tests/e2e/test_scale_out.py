@@ -82,7 +82,7 @@ def test_split_instances_equal_one_instance(
         "--db",
         str(tmp_path / "calibration.sqlite"),
         "--initial-models",
-        "deploy/initial-models.json5",
+        "services/defaults/initial-models.json5",
         "--instance",
         "cal",
         *wiring,

@@ -135,7 +135,7 @@ def test_a_late_browser_draws_the_demo_world_within_seconds(
                 "name": "calibration",
                 "args": [
                     "--db", str(state_dir / "cal.sqlite"), "--instance", "calibration",
-                    "--initial-models", "deploy/initial-models.json5",
+                    "--initial-models", "services/defaults/initial-models.json5",
                 ],
             },
             {"name": "filtering",

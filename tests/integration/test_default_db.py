@@ -14,8 +14,9 @@ import pytest
 from services.alerting import service as alerting
 from services.calibration import service as calibration
 from services.calibration.store import SqliteStore
+from services.defaults import default_file
 from services.filtering import service as filtering
-from services.runtime.config import DEPLOY_DIR, RuntimeConfig
+from services.runtime.config import RuntimeConfig
 
 
 def _run_calibration(conf: RuntimeConfig, stop: threading.Event, **options: object) -> int:
@@ -56,7 +57,7 @@ def test_calibration_restarted_without_db_has_the_models_it_stored(
 ):
     monkeypatch.chdir(tmp_path)
     conf = dataclasses.replace(service_config, instance=None)
-    initial = DEPLOY_DIR / "initial-models.json5"
+    initial = default_file("initial-models.json5")
     assert _run_calibration(conf, _stopped(), initial_models=initial) == 0
     assert _run_calibration(conf, _stopped()) == 0  # no initial models this time
     store = SqliteStore(tmp_path / "var" / "calibration-default.sqlite")

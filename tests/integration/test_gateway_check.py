@@ -13,8 +13,8 @@ import zenoh
 from support import TIMEOUT_S
 
 from schemas import GpsFix, NDArray, RawChunk, keys
-from services import gateway_check
 from services.ingestion.core import G_MPS2
+from services.tools import gateway_check
 from simulators.gateway import key_and_payload
 from simulators.network import demo_network
 from simulators.profile import LineProfile

@@ -11,7 +11,7 @@ from support import run_cli
 from schemas import encode, keys
 from services.alerting.testing import make_state
 from services.cli import build_parser
-from services.operator import QUERY_TIMEOUT_S
+from services.tools.operator import QUERY_TIMEOUT_S
 
 
 def test_an_answer_later_than_the_timeout_says_what_to_do(open_session, router, namespace):

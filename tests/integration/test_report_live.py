@@ -12,9 +12,9 @@ import zenoh
 from support import run_cli
 
 from schemas import Alert, decode, encode, keys
-from services import report
 from services.alerting import service as alerting
 from services.alerting.testing import T0, make_state, p_top6
+from services.tools import report
 
 DAY_S = 86_400.0
 STATES = [
@@ -128,7 +128,7 @@ def test_report_with_the_real_alerting_service(
         publisher.put(encode(state))
     # once L1/s00002's alert is out, alerting has it in its plan too
     while (alert := raised.get()).segment != "s00002" or alert.line != "L1":
-        pass  # L2 has other limits in deploy/limits.json5: its state may raise or not
+        pass  # L2 has other limits in the default limits: its state may raise or not
     out_path = tmp_path / "report.html"
     assert report.main(service_config, out_path=out_path, line="L1", timeout=5) == 0
     assert service.stop() == 0

@@ -9,7 +9,6 @@ import pytest
 import zenoh
 
 from schemas import DeadLetter, decode, encode, keys
-from services.runtime import deadletters
 from services.runtime.config import (
     DEFAULT_ENDPOINT,
     ROUTER_CONFIG,
@@ -22,6 +21,7 @@ from services.runtime.config import (
 )
 from services.runtime.deadletter import PAYLOAD_HEAD_BYTES
 from services.runtime.service import ServiceRuntime, run_service
+from services.tools import deadletters
 
 PUT, DELETE = zenoh.SampleKind.PUT, zenoh.SampleKind.DELETE
 

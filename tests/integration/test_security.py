@@ -1,4 +1,4 @@
-"""The TLS + access-control profile (deploy/router-tls.json5, services/runtime/security.py)
+"""The TLS + access-control profile (deploy/router-tls.json5, services/tools/security.py)
 against a real router: an in-process Python router with the generated configuration, and
 client sessions holding certificates issued here, in tmp_path, by a throw-away CA (the
 ``openssl`` command line; no Python crypto package needed).
@@ -24,10 +24,10 @@ import pytest
 import zenoh
 
 from services.cli import main as cli_main
-from services.runtime import security
 from services.runtime.config import RuntimeConfig, load_config, zenoh_config
 from services.runtime.delivery import ReliablePublisher, declare_reliable_subscriber
 from services.runtime.service import ServiceRuntime
+from services.tools import security
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
 

@@ -35,6 +35,7 @@ from services.calibration.calibrator import (
 from services.calibration.regression import fit_observation
 from services.calibration.robust import check_model
 from services.calibration.store import MemoryStore, SqliteStore
+from services.defaults import default_file
 
 DAY = 86400.0
 T0 = 1_700_000_000.0
@@ -221,7 +222,7 @@ def test_swap_rule_loglik_threshold():
 
 
 def test_initial_calibration_replaced_by_first_fit():
-    spec = json5.loads((REPO / "deploy" / "initial-models.json5").read_text())
+    spec = json5.loads((default_file("initial-models.json5")).read_text())
     cal0, posts = initial_models(spec, samples=50, seed=4)
     assert cal0 is not None and cal0.version == 1 and [p.group for p in posts] == ["net"]
     assert posts[0].mu.shape == [50, 2]
@@ -563,7 +564,7 @@ def test_a_99_mm_record_does_not_move_the_network_posterior(outlier_at):
 def test_the_incident_seven_records_on_one_segment_from_the_initial_models():
     """Issue 14's case (1e308 then, 99 mm now): only the initial models and seven records of
     one segment, one of them 99 mm."""
-    spec = json5.loads((REPO / "deploy" / "initial-models.json5").read_text())
+    spec = json5.loads((default_file("initial-models.json5")).read_text())
     cal0, posts = initial_models(spec, samples=200, seed=0)
     core = Calibrator(CalibratorConfig(samples=200))
     core.install_initial(cal0, posts)
@@ -697,7 +698,7 @@ def test_no_nan_inf_or_indefinite_model_is_ever_published(seed):
 def test_service_network_setting_and_dead_letter_keys():
     from services.calibration import service
 
-    network = REPO / "deploy" / "demo-network.geojson"
+    network = default_file("demo-network.geojson")
     settings = service.settings_from({"network": str(network)})
     assert settings.network == network
     known = service.known_segments(settings.network)

@@ -24,6 +24,7 @@ import pytest
 import yaml
 
 from services.cli import build_parser
+from services.defaults import default_file
 
 REPO = Path(__file__).resolve().parents[2]
 GOLDEN = Path(__file__).with_name("cli_lines.json")
@@ -94,10 +95,13 @@ def _compose_lines() -> list[tuple[str, list[str]]]:
 
 
 def _stack_lines() -> list[tuple[str, list[str]]]:
-    stack = json5.loads((REPO / "deploy" / "stack.json5").read_text())
+    stack = json5.loads(default_file("stack.json5").read_text())
     wiring = ["--connect", stack["router"]["listen"], "--ns", stack["ns"]]
     return [
-        (f"deploy/stack.json5: {p['name']}", [p["command"], *wiring, *map(str, p["args"])])
+        (
+            f"services/defaults/stack.json5: {p['name']}",
+            [p["command"], *wiring, *map(str, p["args"])],
+        )
         for p in stack["processes"]
     ]
 

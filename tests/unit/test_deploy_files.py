@@ -1,5 +1,5 @@
-"""deploy/: the compose file and the stack file run the same processes with the same
-settings; every config file there parses."""
+"""deploy/ and services/defaults/: the compose file and the default stack file run the same
+processes with the same settings; every config file there parses."""
 
 from __future__ import annotations
 
@@ -10,9 +10,11 @@ import json5
 import pytest
 import yaml
 
-from services.stack import load_stack
+from services.defaults import default_file
+from services.tools.stack import load_stack
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
+DEFAULTS = default_file("stack.json5").parent
 WIRING = {"--connect", "--ns"}  # the stack adds these itself
 
 
@@ -31,7 +33,7 @@ def normalised(args) -> tuple[str, ...]:
 
 
 def test_compose_and_stack_run_the_same_processes():
-    stack = load_stack(DEPLOY / "stack.json5")
+    stack = load_stack(DEFAULTS / "stack.json5")
     compose = yaml.safe_load((DEPLOY / "compose.yaml").read_text())["services"]
     assert "router" in compose
     in_compose = {
@@ -49,7 +51,9 @@ def test_compose_router_uses_the_router_config():
     assert any("router.json5" in volume for volume in router["volumes"])
 
 
-@pytest.mark.parametrize("path", sorted(DEPLOY.glob("*.json5")), ids=lambda p: p.name)
+@pytest.mark.parametrize(
+    "path", sorted([*DEPLOY.glob("*.json5"), *DEFAULTS.glob("*.json5")]), ids=lambda p: p.name
+)
 def test_every_config_file_parses(path):
     assert isinstance(json5.loads(path.read_text()), dict)
 

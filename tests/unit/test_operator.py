@@ -8,7 +8,7 @@ import json
 import numpy as np
 
 from schemas import NDArray, SegmentState, TrcRecord
-from services.operator import (
+from services.tools.operator import (
     ALERT_COLUMNS,
     STATE_COLUMNS,
     RowError,

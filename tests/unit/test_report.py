@@ -9,7 +9,7 @@ import pytest
 
 from schemas import Alert
 from services.alerting.testing import T0, forecast_top6, make_state, p_top6
-from services.report import (
+from services.tools.report import (
     BINS,
     NO_STATE,
     NetworkMap,

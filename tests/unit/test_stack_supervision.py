@@ -10,7 +10,7 @@ import json5
 import pytest
 
 from schemas import Alert, encode
-from services.stack import (
+from services.tools.stack import (
     Child,
     Flow,
     ProcessSpec,
@@ -178,7 +178,7 @@ def test_a_flow_that_stopped_arriving_is_not_stalled():
 def test_health_of_a_child_through_its_runs(tmp_path, monkeypatch):
     started: list[FakeProcess] = []
     monkeypatch.setattr(
-        "services.stack.subprocess.Popen",
+        "services.tools.stack.subprocess.Popen",
         lambda *a, **kw: started.append(FakeProcess(43)) or started[-1],
     )
     child = running_child(tmp_path, "on-failure")
