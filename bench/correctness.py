@@ -85,7 +85,7 @@ from services.calibration.calibrator import Calibrator, CalibratorConfig, initia
 from services.defaults import default_file
 from services.filtering.degradation import transition_unchecked
 from services.filtering.mixture import effective_sample_size, summarize
-from services.filtering.tracker import Tracker, state_weights, tamping_time
+from services.filtering.tracker import TAMPING, Tracker, state_weights, tamping_time
 from services.limits import load_limits
 from simulators.fleet import MIXED
 from simulators.network import demo_network
@@ -129,6 +129,7 @@ class Settings:
     unreported: float = 0.0  # share of tampings never reported (maintenance.unreported_fraction)
     late: float = 0.0  # share of reported tampings reported late (maintenance.late_fraction)
     fleet: str = "uniform"  # "uniform": one sensor model; "mixed": simulators.fleet.MIXED
+    detect: bool = True  # the trackers look for unreported tampings (Tracker.detect_maintenance)
 
 
 def world_config(st: Settings) -> dict:
@@ -181,8 +182,9 @@ class _Crossings:
             z_prev, t_prev = truth.z.copy(), truth.t
             taps = truth.step()
             tamped = {tp.seg: tp for tp in taps}
-            for tp in taps:
-                self.tampings.append((tp.seg, tp.t, tp.t_end))
+            for tp in taps:  # reported at: inf if never
+                reported = math.inf if tp.t_reported is None else tp.t_reported
+                self.tampings.append((tp.seg, tp.t, reported))
             plain = np.array([s for s in self.own if s not in tamped], dtype=int)
             self._scan(z_prev[plain], truth.z[plain], t_prev, truth.t, plain)
             for s, tp in tamped.items():
@@ -258,7 +260,11 @@ def run_shard(settings: Settings, shard: int, n_shards: int) -> dict:
     if st.predicted_raise is not None:  # clear at 0.6 x raise, the shipped thresholds' ratio
         clear = 0.6 * st.predicted_raise
         alert_cfg = replace(alert_cfg, predicted=Hysteresis(st.predicted_raise, clear))
-    trackers = {name: Tracker(limits.for_line, limits.levels) for name in TRACKERS}
+    trackers = {
+        name: Tracker(limits.for_line, limits.levels, detect_maintenance=st.detect)
+        for name in TRACKERS
+    }
+    detections: list[tuple[int, float, float, float]] = []  # (seg, t_start, t_end, emitted)
     alerting = {name: AlertingCore(alert_cfg, limits) for name in TRACKERS}
     alerts: dict[str, list[tuple]] = {name: [] for name in TRACKERS}
     n_states = dict.fromkeys(TRACKERS, 0)
@@ -271,6 +277,9 @@ def run_shard(settings: Settings, shard: int, n_shards: int) -> dict:
 
     def feed(name: str, msg, now: float) -> None:
         step = trackers[name].step(msg)
+        if name == "fused":
+            for d in step.detected:
+                detections.append((own_keys[(d.line, d.segment)], d.t_start, d.t_end, now))
         for state in step.states:
             n_states[name] += 1
             for a in alerting[name].on_state(state):
@@ -363,6 +372,7 @@ def run_shard(settings: Settings, shard: int, n_shards: int) -> dict:
         "alerts": alerts,
         "crossings": truth.found,
         "tampings": [tp for tp in truth.tampings if tp[0] in truth.own_set],
+        "detections": detections,
         "last_tamp_t": {int(i): float(last_tamp_t[i]) for i in own},
         "tamp_times": _tamp_times(trackers["fused"], own_keys),
         "keys": keys,
@@ -383,7 +393,7 @@ def _tamp_times(tracker: Tracker, own_keys: dict) -> dict[int, list[float]]:
     """Assumed tamping times of the events still in each track's log (diagnostics)."""
     out: dict[int, list[float]] = {}
     for sid, track in tracker.tracks.items():
-        out[own_keys[sid]] = [e.t_s for e in track.log if e.kind == 1]
+        out[own_keys[sid]] = [e.t_s for e in track.log if e.kind == TAMPING]
     return out
 
 
@@ -417,7 +427,7 @@ def _merge(shards: list[dict]) -> dict:
             for f in shards[0]["evals"][name]
         }
         out["alerts"][name] = [a for s in shards for a in s["alerts"][name]]
-    for k in ("crossings", "tampings"):
+    for k in ("crossings", "tampings", "detections"):
         out[k] = [x for s in shards for x in s[k]]
     out["last_tamp_t"] = {k: v for s in shards for k, v in s["last_tamp_t"].items()}
     out["keys"] = shards[0]["keys"]
@@ -674,6 +684,7 @@ def figures(merged: dict, st: Settings) -> dict:
         )
         out[f"ess_{name}"] = _ess_figures(ev, since, st.samples)
     out["rmse"] = _rmse_at_horizon(merged, st)
+    out["detection"] = _detection_figures(merged, st)
     out["calibration"] = merged["calibration"]
     out["counts"] = merged["counts"]
     out["versions_per_month"] = _versions_per_month(merged["published"])
@@ -682,6 +693,57 @@ def figures(merged: dict, st: Settings) -> dict:
     out["n_segments"] = len(merged["own"])
     out["n_tampings"] = len(merged["tampings"])
     out["timing"] = merged["timing"]
+    return out
+
+
+DETECT_TOL_S = DAY_S  # a detection matches a true tamping within a day of its interval
+
+
+def _detection_figures(merged: dict, st: Settings) -> dict:
+    """Detected maintenance against the truth's tampings of the evaluated segments.
+
+    A detection ``[t_a, t_b]`` matches a true tamping of its segment at ``t`` when
+    ``t_a - 1 d <= t <= t_b + 1 d``. Recall counts the tampings never reported (and,
+    separately, those reported late) that happened at least 30 days before the end; the
+    delay is from the true time to when the pipeline emitted the detection; a detection
+    that matches no true tamping is false, counted per 1,000 segment-years.
+    """
+    end = START_T + st.days * DAY_S
+    found = defaultdict(list)
+    for seg, t_a, t_b, emitted in merged["detections"]:
+        found[seg].append((t_a, t_b, emitted))
+    true_t = defaultdict(list)
+    for seg, t, _reported in merged["tampings"]:
+        true_t[seg].append(t)
+
+    def match(seg: int, t: float):
+        hits = [e for a, b, e in found[seg] if a - DETECT_TOL_S <= t <= b + DETECT_TOL_S]
+        return min(hits) if hits else None
+
+    out: dict = {"n_detections": len(merged["detections"])}
+    for label, pick in (
+        ("unreported", lambda t, rep: math.isinf(rep)),
+        ("late", lambda t, rep: math.isfinite(rep) and rep > t + DAY_S),
+    ):
+        cases = [
+            (seg, t) for seg, t, rep in merged["tampings"] if pick(t, rep) and t < end - 30 * DAY_S
+        ]
+        delays = [(e - t) / DAY_S for seg, t in cases if (e := match(seg, t)) is not None]
+        out[label] = {
+            "n": len(cases),
+            "detected": len(delays),
+            "recall": len(delays) / len(cases) if cases else math.nan,
+            "median_delay_days": float(np.median(delays)) if delays else math.nan,
+            "p90_delay_days": float(np.percentile(delays, 90)) if delays else math.nan,
+        }
+    false = sum(
+        1
+        for seg, t_a, t_b, _ in merged["detections"]
+        if not any(t_a - DETECT_TOL_S <= t <= t_b + DETECT_TOL_S for t in true_t[seg])
+    )
+    segment_years = len(merged["own"]) * st.days / 365.25
+    out["false"] = false
+    out["false_per_1000_segment_years"] = 1000 * false / segment_years if segment_years else 0
     return out
 
 
@@ -802,6 +864,17 @@ def _table(fig: dict) -> str:
         f"Ns={s['samples']}, TRC cut-off day {s['cutoff_days']:g} (calibrator: "
         f"{s['calibrator_trc']}), {fig['n_tampings']} tampings, seed {s['seed']}"
     )
+    d = fig["detection"]
+    extra.append(
+        f"detected maintenance ({'on' if s['detect'] else 'off'}): {d['n_detections']} "
+        f"detections, {d['false']} false ({d['false_per_1000_segment_years']:.1f} per 1,000 "
+        "segment-years); "
+        + "; ".join(
+            f"{k} tampings {d[k]['detected']}/{d[k]['n']} detected, median delay "
+            f"{d[k]['median_delay_days']:.1f} d (p90 {d[k]['p90_delay_days']:.1f})"
+            for k in ("unreported", "late")
+        )
+    )
     extra.append(
         f"world: {s['unreported']:.0%} of tampings unreported, {s['late']:.0%} of the reported "
         f"late, {s['fleet']} fleet"
@@ -851,6 +924,7 @@ def parse_args(argv=None) -> tuple[Settings, argparse.Namespace]:
     p.add_argument("--unreported", type=float, default=0.0, help="tampings never reported")
     p.add_argument("--late", type=float, default=0.0, help="reported tampings reported late")
     p.add_argument("--fleet", choices=("uniform", "mixed"), default="uniform")
+    p.add_argument("--no-detect", action="store_true", help="no detected maintenance")
     p.add_argument("--quick", action="store_true", help="smoke test: 120 days, small")
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
     a = p.parse_args(argv)
@@ -887,6 +961,7 @@ def parse_args(argv=None) -> tuple[Settings, argparse.Namespace]:
         unreported=a.unreported,
         late=a.late,
         fleet=a.fleet,
+        detect=not a.no_detect,
         **{k: v for k, v in given.items() if v is not None},
     )
     return st, a

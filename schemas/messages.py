@@ -218,6 +218,7 @@ class MaintenanceEvent(Message, frozen=True, kw_only=True):
     t_start: float  # epoch s
     t_end: float  # epoch s, >= t_start
     revision: int = 0  # a correction of the same event_id carries a higher revision
+    detected: bool = False  # found by filtering in the on-board data, not reported by a feed
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -80,7 +80,7 @@ def main(
             ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop)
         )
         tracker = Tracker(limits_table.for_line, limits_table.levels)
-        node = PersistentTracker(tracker, store, **known_segments(network))
+        node = PersistentTracker(tracker, store, ns=conf.ns, **known_segments(network))
         FilteringAdapter(rt, node, selector).start()
         log.info("filtering %s: selector %s, store %s", rt.instance, selector, store.path)
         return rt.run()
@@ -151,6 +151,16 @@ class FilteringAdapter:
             self.rt.deadletters.reject(key, reason, payload)
         for state in done.states:
             self._publish(state)
+        for found in done.detected:  # stored with the batch; for alerting, calibration, viewer
+            key = keys.maintenance(self.rt.ns, found.line, found.segment)
+            self.states_out.put(key, encode(found))
+            log.info(
+                "detected an unreported tamping on %s/%s in [%s, %s]",
+                found.line,
+                found.segment,
+                found.t_start,
+                found.t_end,
+            )
 
     def _publish(self, state: SegmentState) -> None:
         payload = encode(state)

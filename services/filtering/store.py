@@ -38,8 +38,11 @@ from schemas import (
     keys,
 )
 from services.filtering.tracker import (
+    DAY_S,
     KIND_NAMES,
     RESTART,
+    SUPERSEDE_DAYS,
+    TAMPING,
     EventMessage,
     ModelMessage,
     Step,
@@ -137,6 +140,18 @@ class Store:
             (line, segment, kind, key, json.dumps(list(identity)), t, bytes(payload)),
         )
 
+    def delete_detected(self, line: str, segment: str, t: float, within_s: float) -> int:
+        """Delete the segment's detected tampings within ``within_s`` of ``t`` (a reported
+        tamping replaces them); returns how many."""
+        rows = self._db.execute(
+            "SELECT rowid, payload FROM events WHERE line = ? AND segment = ?"
+            " AND kind = 'maintenance' AND t BETWEEN ? AND ?",
+            (line, segment, t - within_s, t + within_s),
+        ).fetchall()
+        gone = [(rowid,) for rowid, payload in rows if decode(payload, MaintenanceEvent).detected]
+        self._db.executemany("DELETE FROM events WHERE rowid = ?", gone)
+        return len(gone)
+
     def prune(self, line: str, segment: str, before_t: float) -> int:
         """Delete the segment's events older than ``before_t`` (its latest TRC record)."""
         cur = self._db.execute(
@@ -197,6 +212,7 @@ class BatchResult:
     states: tuple[SegmentState, ...]
     rejected: tuple[tuple[str, str, bytes], ...]  # (key, reason, payload): dead letters
     accepted: int
+    detected: tuple[MaintenanceEvent, ...] = ()  # tamping found in the data: to publish
 
 
 class PersistentTracker:
@@ -213,9 +229,11 @@ class PersistentTracker:
         *,
         segments: Collection[tuple[str, str]] | None = None,
         network_name: str = "the network",
+        ns: str = keys.DEFAULT_NS,
     ) -> None:
         self.tracker = tracker
         self.store = store
+        self.ns = ns  # the key a detected tamping is stored under
         self.segments = None if segments is None else frozenset(segments)
         self._network_name = network_name
 
@@ -237,7 +255,12 @@ class PersistentTracker:
         step = self.tracker.step(msg)
         if step.accepted:
             self._commit(msg, str(key))
+            self._commit_detected(step.detected)
         return step
+
+    def _commit_detected(self, found: Iterable[MaintenanceEvent]) -> None:
+        for msg in found:
+            self._commit(msg, keys.maintenance(self.ns, msg.line, msg.segment))
 
     def handle_batch(self, items: Iterable[tuple[str, bytes]]) -> BatchResult:
         """Several ``(key, payload)`` in one store transaction.
@@ -280,6 +303,7 @@ class PersistentTracker:
                 states[(state.line, state.segment)] = state
 
         accepted = 0
+        detected: list[MaintenanceEvent] = []
         with self.store.transaction():
             if models:
                 origin = {id(msg): (key, payload) for msg, key, payload in models}
@@ -292,7 +316,9 @@ class PersistentTracker:
                 accepted += len(update.accepted)
                 keep(update.states)
             try:
-                reasons, event_states = self.tracker.step_events([msg for msg, _, _ in events])
+                reasons, event_states, found = self.tracker.step_events(
+                    [msg for msg, _, _ in events]
+                )
             except Exception:  # one of them cannot be folded: find it, one at a time
                 log.info("a batch of %d events failed; stepping them one by one", len(events))
                 for msg, key, payload in events:
@@ -308,14 +334,20 @@ class PersistentTracker:
                     if step.accepted:
                         accepted += 1
                         self._commit(msg, key)
+                        self._commit_detected(step.detected)
+                        detected.extend(step.detected)
                         keep(step.states)
             else:
+                # detected ones first: a report later in the batch that supersedes one of
+                # them then deletes its row, as the tracker dropped it from the log
+                self._commit_detected(found)
+                detected.extend(found)
                 for (msg, key, _payload), reason in zip(events, reasons, strict=True):
                     if not reason:
                         accepted += 1
                         self._commit(msg, key)
                 keep(event_states)
-        return BatchResult(tuple(states.values()), tuple(rejected), accepted)
+        return BatchResult(tuple(states.values()), tuple(rejected), accepted, tuple(detected))
 
     def _commit(self, msg: EventMessage | ModelMessage, key: str) -> None:
         payload = encode(msg)  # not what was received: unknown fields are not kept
@@ -349,6 +381,10 @@ class PersistentTracker:
                 )
                 if event.kind == RESTART:
                     self.store.prune(msg.line, msg.segment, event.t_s)
+                elif event.kind == TAMPING and not msg.detected:
+                    self.store.delete_detected(
+                        msg.line, msg.segment, event.t_s, SUPERSEDE_DAYS * DAY_S
+                    )
 
     def rebuild(self) -> list[SegmentState]:
         """Load every stored model and event into the tracker: the publishable states.

@@ -111,6 +111,12 @@ HORIZONS_DAYS = (30.0, 90.0, 180.0)
 TAMPING, RESTART, INDEX = 0, 1, 2  # kind priority at equal times: a TRC record after a tamping
 KIND_NAMES = {RESTART: "trc", TAMPING: "maintenance", INDEX: "index"}
 SUMMARY_SEGMENTS = 8  # segments per batched summary: temporaries below the mmap threshold
+# Detected maintenance (see :func:`detect`): a one-sided CUSUM of how far below their
+# prediction the indices read, in predictive standard deviations.
+CUSUM_DRIFT = 1.0  # kappa: a reading 1 sd low adds nothing
+CUSUM_CLIP = 6.0  # one index adds at most 6 - kappa = 5: a detection needs two at least
+CUSUM_THRESHOLD = 8.0  # h
+SUPERSEDE_DAYS = 30.0  # a reported tamping this close to a detected one replaces it
 
 SegmentId = tuple[str, str]  # (line, segment)
 EventMessage = OnboardIndex | TrcRecord | MaintenanceEvent
@@ -289,6 +295,9 @@ class Filtered:
     n_updates: int
     nis: float | None
     log_w: np.ndarray  # (Ns,) log-likelihood of the on-board data since the TRC restart
+    cusum: float = 0.0  # one-sided CUSUM of the indices reading lower than predicted
+    cusum_t0: float = float("nan")  # the last index (or start) at which the CUSUM was 0
+    cusum_t1: float = float("nan")  # the first index after it (NaN while the CUSUM is 0)
 
 
 class _Banks:
@@ -312,10 +321,15 @@ class _Banks:
         self.n_updates = np.zeros(size, dtype=np.int64)
         self.nis = np.full(size, np.nan)  # NaN: None
         self.started = np.zeros(size, dtype=bool)
+        self.cusum = np.zeros(size)
+        self.cusum_t0 = np.full(size, np.nan)
+        self.cusum_t1 = np.full(size, np.nan)
         for row, state in enumerate(starts):
             if state is None:
                 continue
             self.z[row], self.P[row], self.log_w[row] = state.z, state.P, state.log_w
+            self.cusum[row], self.cusum_t0[row] = state.cusum, state.cusum_t0
+            self.cusum_t1[row] = state.cusum_t1
             self.t_s[row], self.n_updates[row] = state.t_s, state.n_updates
             self.last_trc_t[row] = np.nan if state.last_trc_t is None else state.last_trc_t
             self.nis[row] = np.nan if state.nis is None else state.nis
@@ -335,6 +349,9 @@ class _Banks:
             int(self.n_updates[row]),
             None if np.isnan(nis) else nis,
             self.log_w[row],
+            float(self.cusum[row]),
+            float(self.cusum_t0[row]),
+            float(self.cusum_t1[row]),
         )
 
     def _blocks(self, rows: np.ndarray):
@@ -352,6 +369,31 @@ class _Banks:
         self.n_updates[rows] = 0
         self.nis[rows] = np.nan
         self.started[rows] = True
+        self._cusum_reset(rows, t_s)
+
+    def _cusum_step(self, rows: np.ndarray, t_s: np.ndarray, score: np.ndarray) -> None:
+        r"""One index of the one-sided CUSUM of low readings (see :func:`detect`):
+
+        .. math:: g_k = \max(0,\ g_{k-1} - \max(s_k, -c) - \kappa)
+
+        with :math:`c` = ``CUSUM_CLIP`` (one wild index cannot make a detection alone) and
+        :math:`\kappa` = ``CUSUM_DRIFT``; ``cusum_t0`` is the last index at which g was 0 and
+        ``cusum_t1`` the first index after it.
+        """
+        g_prev = self.cusum[rows]
+        g = np.maximum(0.0, g_prev - np.maximum(score, -CUSUM_CLIP) - CUSUM_DRIFT)
+        zero = g == 0.0
+        self.cusum[rows] = g
+        self.cusum_t0[rows] = np.where(zero, t_s, self.cusum_t0[rows])
+        self.cusum_t1[rows] = np.where(
+            zero, np.nan, np.where(g_prev == 0.0, t_s, self.cusum_t1[rows])
+        )
+
+    def _cusum_reset(self, rows: np.ndarray, t_s: np.ndarray) -> None:
+        """A start (TRC record or tamping) at ``t_s``: nothing has read low since."""
+        self.cusum[rows] = 0.0
+        self.cusum_t0[rows] = t_s
+        self.cusum_t1[rows] = np.nan
 
     def tamping(self, rows: np.ndarray, t_s: np.ndarray, params) -> None:
         r"""Tamping at ``t_s``: the transition with tamping age 0 (Eq. 2), a reset to
@@ -373,6 +415,7 @@ class _Banks:
                 self.z[sel], self.P[sel], params(sel), dt, 0.0
             )
         self.t_s[rows] = t_s
+        self._cusum_reset(rows, t_s)
 
     def index(self, rows, t_s, y, params, obs: ObservationModel, last=None) -> None:
         r"""On-board index ``y`` (k, m) at ``t_s`` on started rows (paper Eq. 7-12).
@@ -393,6 +436,7 @@ class _Banks:
         for part, sel in self._blocks(rows):
             dt = (t_s[part] - self.t_s[sel]) / DAY_S
             z, P = transition_unchecked(self.z[sel], self.P[sel], params(sel), dt)
+            self._cusum_step(rows[part], t_s[part], low_score(z, P, y[part], obs, self.log_w[sel]))
             z, P, nis, loglik = update_unchecked(z, P, y[part], obs.H, obs.b, obs.R, loglik=True)
             want = slice(None) if last is None else last[part]
             at = rows[part][want]
@@ -407,6 +451,32 @@ class _Banks:
             self.log_w[sel] += loglik
             self.n_updates[sel] += 1
         self.t_s[rows] = t_s
+
+
+def low_score(z, P, y, obs: ObservationModel, log_w) -> np.ndarray:
+    r"""How far below its prediction an index reads, in predictive standard deviations.
+
+    For the sum of the indicators :math:`u = \mathbf 1^T y` the mixture predictive has, per
+    sample :math:`j`, mean :math:`\mathbf 1^T (H \hat z_j + b)` and variance
+    :math:`v_j = h^T P_j h + \mathbf 1^T R \mathbf 1` with :math:`h = H^T \mathbf 1`; with
+    the weights :math:`w_j` and :math:`\nu_j = u - \mathbf 1^T (H \hat z_j + b)`,
+
+    .. math::
+
+        s = \frac{\bar\nu}{\sqrt{\sum_j w_j (v_j + \nu_j^2) - \bar\nu^2}}, \qquad
+        \bar\nu = \sum_j w_j \nu_j .
+
+    A tamping lowers every indicator at once, so its indices give :math:`s \ll 0`.
+    ``z`` (k, Ns, n), ``P`` (k, Ns, n, n) predicted; ``y`` (k, m); ``log_w`` (k, Ns).
+    """
+    h = obs.H.sum(axis=0)  # H^T 1
+    nu = y.sum(-1)[:, None] - (z @ h + obs.b.sum())
+    v = np.einsum("i,ksij,j->ks", h, P, h) + obs.R.sum()
+    w = np.exp(log_w - log_w.max(-1, keepdims=True))
+    w /= w.sum(-1, keepdims=True)
+    mean = (w * nu).sum(-1)
+    var = (w * (v + nu * nu)).sum(-1) - mean * mean
+    return mean / np.sqrt(np.maximum(var, 1e-300))
 
 
 def _params_of(params: Sequence[DegradationParams]):
@@ -581,6 +651,15 @@ def add_event(track: Track, event: Event) -> tuple[Track, str]:
     """
     held = next((e for e in track.log if e.identity == event.identity), None)
     log, trc_t = track.log, track.trc_t
+    if event.kind == TAMPING and held is None:
+        near = [
+            e for e in log if e.kind == TAMPING and abs(e.t_s - event.t_s) <= SUPERSEDE_DAYS * DAY_S
+        ]
+        if event.message.detected:
+            if any(not e.message.detected for e in near):
+                return track, "a reported tamping is within 30 days"
+        else:  # a reported tamping replaces the detected ones near it
+            log = tuple(e for e in log if not (e in near and e.message.detected))
     if held is not None:
         if event.kind != TAMPING or report_rank(event.message) <= report_rank(held.message):
             return track, "duplicate"
@@ -613,13 +692,55 @@ def step_segment(track: Track, event: Event, models: Models) -> tuple[Track, str
     return replay(new, models), ""
 
 
+def detect(track: Track, models: Models) -> tuple[Track, MaintenanceEvent | None]:
+    r"""A tamping that no feed reported, found in the segment's on-board indices.
+
+    The fold keeps a one-sided CUSUM (Page's test) of the standardised amount by which each
+    index reads below the mixture's prediction (:func:`low_score`):
+    :math:`g_k = \max(0, g_{k-1} - \max(s_k, -c) - \kappa)`, reset to 0 by a TRC record or a
+    tamping. A tamping lowers both indicators to about :math:`z^+` at once, so the indices
+    after it read several standard deviations low and :math:`g` grows; degradation and noise
+    do not. When :math:`g \ge h` the tamping lies in one of the intervals between the
+    consecutive events since the CUSUM last was 0 (``cusum_t0``); for each the segment is
+    re-run with a tamping there (Eq. 2: at the interval's middle), and the interval whose
+    re-run gives the on-board data the highest marginal likelihood
+    :math:`\log \frac{1}{N_s}\sum_j e^{\log w_j}` is reported as the detected
+    maintenance ``[t_a, t_b]``. ``(track, None)`` when nothing is detected, or when a
+    reported tamping within ``SUPERSEDE_DAYS`` already explains the data.
+    """
+    state = track.state
+    if state is None or state.cusum < CUSUM_THRESHOLD or np.isnan(state.cusum_t1):
+        return track, None
+    times = sorted({e.t_s for e in track.log if e.t_s >= state.cusum_t0})
+    best: tuple[float, Track, MaintenanceEvent] | None = None
+    for t_a, t_b in zip(times, times[1:], strict=False):
+        msg = MaintenanceEvent(
+            line=track.line,
+            segment=track.segment,
+            event_id=f"detected-{int(t_b)}",
+            t_start=t_a,
+            t_end=t_b,
+            detected=True,
+        )
+        new, reason = step_segment(track, event_of(msg), models)
+        if reason or new.state is None:
+            continue
+        log_w = new.state.log_w
+        evidence = float(log_w.max() + np.log(np.exp(log_w - log_w.max()).mean()))
+        if best is None or evidence > best[0]:
+            best = (evidence, new, msg)
+    return (track, None) if best is None else (best[1], best[2])
+
+
 @dataclass(frozen=True)
 class Step:
-    """What one message did: accepted (else ``reason``), and the states to publish."""
+    """What one message did: accepted (else ``reason``), the states to publish, and the
+    tampings it made :func:`detect` find (to be stored and published like a report)."""
 
     accepted: bool
     reason: str = ""
     states: tuple[SegmentState, ...] = ()
+    detected: tuple[MaintenanceEvent, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -649,6 +770,8 @@ class Tracker:
         The ``L`` level names, e.g. ``Limits.levels``.
     horizons_days
         Forecast horizons.
+    detect_maintenance
+        Look for unreported tampings in the on-board data after each index (:func:`detect`).
     """
 
     def __init__(
@@ -656,7 +779,10 @@ class Tracker:
         limits_mm,
         limit_levels: Iterable[str],
         horizons_days: Iterable[float] = HORIZONS_DAYS,
+        *,
+        detect_maintenance: bool = True,
     ) -> None:
+        self.detect_maintenance = detect_maintenance  # :func:`detect` after each index
         self.tracks: dict[SegmentId, Track] = {}
         self.models = Models()
         self._limits_mm = limits_mm
@@ -682,32 +808,40 @@ class Tracker:
         track, reason = step_segment(track, event, self.models)
         if reason:
             return Step(False, reason)
+        track, found = self._detect(track)
         out = self.segment_state(track)  # before the swap: if it raises, nothing changed
         self.tracks[sid] = track
-        return Step(True, "", () if out is None else (out,))
+        return Step(True, "", () if out is None else (out,), () if found is None else (found,))
 
-    def step_events(self, msgs: Sequence[EventMessage]) -> tuple[list[str], tuple]:
+    def _detect(self, track: Track) -> tuple[Track, MaintenanceEvent | None]:
+        return detect(track, self.models) if self.detect_maintenance else (track, None)
+
+    def step_events(self, msgs: Sequence[EventMessage]) -> tuple[list[str], tuple, list]:
         """Fold several events and summarise each changed segment once, in batches.
 
-        Returns ``(reasons, states)``: per message ``""`` if accepted, else why not; and the
-        newest SegmentState of each changed, publishable segment. The tracks are the same
+        Returns ``(reasons, states, detected)``: per message ``""`` if accepted, else why
+        not; the newest SegmentState of each changed, publishable segment; and the tampings
+        :func:`detect` found on the way. The tracks are the same
         as after stepping the messages one by one (same fold), and so are the final states
         (:meth:`segment_states` is :meth:`segment_state` in batches, bit for bit); only the
         intermediate states of a segment are not summarised. If anything raises, nothing
         is changed.
         """
         changed: dict[SegmentId, Track] = {}
-        reasons = []
+        reasons, detected = [], []
         for msg in msgs:
             sid = (msg.line, msg.segment)
             track = changed.get(sid) or self.tracks.get(sid) or Track(msg.line, msg.segment)
             track, reason = step_segment(track, event_of(msg), self.models)
             reasons.append(reason)
             if not reason:
+                track, found = self._detect(track)
+                if found is not None:
+                    detected.append(found)
                 changed[sid] = track
         states = self.segment_states(list(changed.values()))  # before the swap
         self.tracks.update(changed)
-        return reasons, tuple(state for state in states if state is not None)
+        return reasons, tuple(state for state in states if state is not None), detected
 
     def update_models(self, msgs: Sequence[ModelMessage]) -> ModelUpdate:
         """Apply several model messages at once, re-running each affected segment once.

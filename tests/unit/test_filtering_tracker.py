@@ -617,3 +617,85 @@ def test_an_interval_only_tamping_sits_at_the_middle_of_the_reported_interval():
     assert [e.t_s for e in a.tracks[("L1", "s1")].log if e.identity[0] == "maintenance"] == [
         T0 + 12 * DAY_S  # not the middle of the filter interval (11, 25]: day 18
     ]
+
+
+def onboard_days(rng, days, z0, mu, t_tamp=None, z_plus=None):
+    """Daily on-board indices y = H z + b + e of a segment degrading at ``mu`` from ``z0``,
+    tamped (to ``z_plus``) at day ``t_tamp`` if given."""
+    out = []
+    chol = np.linalg.cholesky(R)
+    for day in days:
+        z = z0 + mu * day
+        if t_tamp is not None and day > t_tamp:
+            z = z_plus + mu * (day - t_tamp)
+        y = H @ z + B + chol @ rng.standard_normal(2)
+        out.append(index(float(day), *np.exp(y).tolist()))
+    return out
+
+
+Z_WORN = np.log([4.5, 3.5])
+MU = np.array([7e-4, 4e-4])
+Z_PLUS = np.log([2.0, 1.8])
+
+
+def test_an_unreported_tamping_is_detected_and_the_segment_restarts_there():
+    rng = np.random.default_rng(7)
+    record = trc(0.0, *np.exp(Z_WORN).tolist())
+    passes = onboard_days(rng, np.arange(1, 90), Z_WORN, MU, t_tamp=50.3, z_plus=Z_PLUS)
+    tracker = new_tracker()
+    found = []
+    for msg in [*MODELS, record, *passes]:
+        found.extend(tracker.step(msg).detected)
+    assert len(found) == 1, found
+    (detected,) = found
+    assert detected.detected and detected.t_start <= T0 + 50.3 * DAY_S <= detected.t_end
+    assert detected.t_end - detected.t_start == DAY_S  # between two daily passes
+    delay = max(m.t for m in passes if m.t <= T0 + 53 * DAY_S) - T0 - 50.3 * DAY_S
+    assert delay <= 3 * DAY_S
+    # the state is the one a reported tamping at the detected interval gives
+    reported = replace_msg(detected, event_id="m1", detected=False)
+    with_report, _ = run([*MODELS, record, *passes[:50], reported, *passes[50:]])
+    a, b = tracker.tracks[("L1", "s1")].state, with_report.tracks[("L1", "s1")].state
+    for name in ("z", "P", "log_w"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    # and it does not raise a second time
+    assert not any(tracker.step(m).detected for m in onboard_days(rng, [90, 91], Z_PLUS, MU))
+
+
+def replace_msg(msg, **changes):
+    import msgspec
+
+    return msgspec.structs.replace(msg, **changes)
+
+
+def test_two_years_of_honest_indices_give_no_detection():
+    rng = np.random.default_rng(8)
+    tracker = new_tracker()
+    for msg in [*MODELS, trc(0.0, *np.exp(Z_PLUS).tolist())]:
+        tracker.step(msg)
+    for msg in onboard_days(rng, np.arange(1, 730, 0.5), Z_PLUS, MU):
+        assert not tracker.step(msg).detected
+
+
+def test_a_reported_tamping_supersedes_a_detected_one_whatever_the_order(tmp_path):
+    rng = np.random.default_rng(7)
+    record = trc(0.0, *np.exp(Z_WORN).tolist())
+    passes = onboard_days(rng, np.arange(1, 70), Z_WORN, MU, t_tamp=50.3, z_plus=Z_PLUS)
+    report = tamping(50.0, 51.0)  # a maintenance record arriving late (interval: mid 50.5)
+    truth, _ = run([*MODELS, record, report, *passes])  # the report first: nothing detected
+    assert not any(e.message.detected for e in truth.tracks[("L1", "s1")].log if e.kind == 0)
+    db = tmp_path / "f.sqlite"
+    node = PersistentTracker(new_tracker(), Store(db))
+    detected = []
+    for msg in [*MODELS, record, *passes]:
+        detected.extend(node.handle(*keyed(msg)).detected)
+    assert len(detected) == 1
+    assert node.handle(*keyed(report)).accepted  # late report: replaces the detection
+    assert_same_states(node.tracker, truth)
+    rebuilt = PersistentTracker(new_tracker(), Store(db))
+    rebuilt.rebuild()
+    assert_same_states(rebuilt.tracker, truth)  # the detected row is gone from the store
+    # a detection arriving after the report (its own echo from the bus) is refused
+    assert node.handle(*keyed(detected[0])).reason == "a reported tamping is within 30 days"
+    for n in (node, rebuilt):
+        n.store.close()
