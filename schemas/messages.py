@@ -356,7 +356,9 @@ class Alert(Message, frozen=True, kw_only=True):
     line: str
     segment: str
     t: float  # event time
-    kind: Literal["exceedance", "predicted_exceedance", "sudden_change", "stale"]
+    kind: Literal[
+        "exceedance", "predicted_exceedance", "sudden_change", "stale", "detected_maintenance"
+    ]
     status: Literal["raised", "cleared"]
     indicator: str  # "top6", "align10" or "" when not about one indicator
     level: str = ""  # "alert" or "intervention" for exceedance kinds

@@ -59,12 +59,13 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
 from scipy import stats
 
-from schemas import INDICATORS, Alert, SegmentState, TrcRecord
+from schemas import INDICATORS, Alert, MaintenanceEvent, SegmentState, TrcRecord
 from services.limits import Limits
 
 DAY_S = 86_400.0
@@ -72,6 +73,11 @@ _Z975 = float(stats.norm.ppf(0.975))
 INDICATOR_LABELS = {"top6": "Top6", "align10": "Align10"}
 
 AlertKey = tuple[str, str, str, str, str]  # line, segment, kind, indicator, level
+CONFIRM_DAYS = 30.0  # a reported tamping this close to a detected one confirms it
+
+
+def _day(t: float) -> str:
+    return datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%d %H:%M")
 
 
 def alert_key(alert: Alert) -> AlertKey:
@@ -354,6 +360,36 @@ class AlertingCore:
         out += self._predicted(state)
         out += self._sudden(state, memory, new_update)
         return out
+
+    def on_maintenance(self, event: MaintenanceEvent) -> list[Alert]:
+        """A detected tamping raises ``detected_maintenance`` for an operator to confirm; a
+        reported tamping of the segment within ``CONFIRM_DAYS`` of it clears it."""
+        key = (event.line, event.segment, "detected_maintenance", "", "")
+        held = self.raised.get(key)
+        if event.detected:
+            if held is not None:
+                return []
+            alert = Alert(
+                line=event.line,
+                segment=event.segment,
+                t=event.t_end,
+                kind="detected_maintenance",
+                status="raised",
+                indicator="",
+                level="",
+                probability=1.0,
+                message=(
+                    f"Tamping detected in the on-board data between {_day(event.t_start)} and "
+                    f"{_day(event.t_end)}, not reported: confirm with a maintenance record "
+                    f"({event.event_id})"
+                ),
+            )
+            self.raised[key] = alert
+            return [alert]
+        middle = 0.5 * (event.t_start + event.t_end)
+        if held is None or abs(middle - held.t) > CONFIRM_DAYS * DAY_S:
+            return []
+        return self._clear(held, max(held.t, event.t_end), 1.0, f"Reported: {event.event_id}")
 
     def on_trc(self, record: TrcRecord) -> bool:
         """Learn the line's TRC schedule; True if it changed (to persist)."""

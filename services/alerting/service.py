@@ -20,7 +20,7 @@ import json5
 import msgspec
 import zenoh
 
-from schemas import Alert, SegmentState, TrcRecord, decode, encode, keys
+from schemas import Alert, MaintenanceEvent, SegmentState, TrcRecord, decode, encode, keys
 from services.alerting.core import AlertingConfig, AlertingCore
 from services.alerting.store import AlertStore
 from services.defaults import default_file
@@ -48,6 +48,9 @@ def load_alerting_config(path: str | Path = DEFAULT_ALERTING_FILE) -> AlertingCo
         raise SystemExit(f"alerting config {path}: {exc}") from None
 
 
+_TYPES = {"state": SegmentState, "trc": TrcRecord, "maintenance": MaintenanceEvent}
+
+
 class AlertingAdapter:
     """Decode → core → encode → put, persisted; one instance per running service."""
 
@@ -65,6 +68,7 @@ class AlertingAdapter:
         subscriptions = {
             "state": keys.segment_keys(ns, "state"),
             "trc": keys.segment_keys(ns, "trc"),
+            "maintenance": keys.segment_keys(ns, "maintenance"),
         }
         self.rt.subscribe_in_order(subscriptions, self.handle, reliable=True)
         self.rt.declare_queryable(keys.q_alerts(ns), self.on_query_alerts)
@@ -72,9 +76,7 @@ class AlertingAdapter:
 
     def handle(self, kind: str, key: str, payload: bytes) -> list[Alert]:
         """One message through the core; publishes and persists what it changes."""
-        message_type: type[SegmentState | TrcRecord] = (
-            SegmentState if kind == "state" else TrcRecord
-        )
+        message_type = _TYPES[kind]
         message = decode(payload, message_type)
         keys.check_key(key, message)
         with self.lock:
@@ -88,6 +90,8 @@ class AlertingAdapter:
                     alerts = []
                     if self.core.on_trc(message):
                         run = (message.line, message.run_id, message.t)
+                case MaintenanceEvent():
+                    alerts = self.core.on_maintenance(message)
             if self.core.newest_t is not None:
                 alerts += self.core.check_stale(self.core.newest_t)
         # publish, then persist: a kill in between repeats an alert rather than losing it

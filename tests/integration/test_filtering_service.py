@@ -13,6 +13,7 @@ from schemas import (
     Calibration,
     DeadLetter,
     DegradationPosterior,
+    MaintenanceEvent,
     NDArray,
     OnboardIndex,
     SegmentState,
@@ -246,3 +247,32 @@ def test_a_refused_model_is_dead_lettered_and_the_one_in_force_stays(
         last = states.get()
     assert last.calibration_version == good.version
     assert encode(last) == encode(expected([*models(), trc, *indices]))
+
+
+def test_an_unreported_tamping_is_published_as_detected_maintenance(
+    namespace, open_session, collector, until_matched, model_queryable, start_filtering
+):
+    session = open_session()
+    found = collector(lambda s: (str(s.key_expr), decode(s.payload.to_bytes(), MaintenanceEvent)))
+    session.declare_subscriber(keys.segment_keys(namespace, "maintenance"), found)
+    start_filtering()
+    cal, post = models()[0], models()[1]
+    H, b = cal.H.array(), cal.b.array()
+    worn, fresh = np.log([4.5, 3.5]), post.z_plus.array().mean(axis=0)
+    record = TrcRecord(line="L1", segment="s1", t=T0, top6_mm=4.5, align10_mm=3.5, run_id="r1")
+    passes = []
+    for day in range(1, 31):
+        top6, align10 = np.exp(H @ (worn if day <= 20 else fresh) + b).tolist()
+        passes.append(
+            OnboardIndex(
+                line="L1", segment="s1", train="T1", unit="u1", t=T0 + day * DAY_S,
+                top6_mm=top6, align10_mm=align10, speed_mps=30.0, coverage=1.0,
+            )
+        )  # fmt: skip
+    items = [(keys.trc(namespace, "L1", "s1"), encode(record))]
+    items += [(keys.index(namespace, "L1", "s1"), encode(m)) for m in passes]
+    put_all(session, until_matched, items[:1])
+    put_all(session, until_matched, items[1:])
+    key, event = found.get()
+    assert key == keys.maintenance(namespace, "L1", "s1") and event.detected
+    assert event.t_start == T0 + 20 * DAY_S and event.t_end == T0 + 21 * DAY_S

@@ -375,3 +375,32 @@ def test_restart_neither_reraises_nor_forgets(tmp_path):
     # stale detection still knows s2 after the restart
     assert [a.segment for a in second.check_stale(T0 + 30 * DAY_S)] == ["s1", "s2"]
     store.close()
+
+
+def test_a_detected_tamping_waits_for_an_operator_and_a_report_confirms_it(core):
+    from schemas import MaintenanceEvent
+
+    t0 = 1_767_225_600.0
+    detected = MaintenanceEvent(
+        line="L1",
+        segment="s7",
+        event_id="detected-1",
+        t_start=t0,
+        t_end=t0 + 86_400.0,
+        detected=True,
+    )
+    (raised,) = core.on_maintenance(detected)
+    assert (raised.kind, raised.status, raised.segment) == ("detected_maintenance", "raised", "s7")
+    assert "2026-01-01 00:00" in raised.message and "confirm" in raised.message
+    assert core.on_maintenance(detected) == []  # its echo raises nothing new
+    far = MaintenanceEvent(
+        line="L1", segment="s7", event_id="m0", t_start=t0 - 60 * 86_400.0,
+        t_end=t0 - 60 * 86_400.0,
+    )  # fmt: skip
+    assert core.on_maintenance(far) == []  # another tamping, long before: not a confirmation
+    report = MaintenanceEvent(
+        line="L1", segment="s7", event_id="m1", t_start=t0 + 3600.0, t_end=t0 + 3600.0
+    )
+    (cleared,) = core.on_maintenance(report)
+    assert cleared.status == "cleared" and cleared.message == "Reported: m1"
+    assert core.raised_alerts() == []
