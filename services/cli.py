@@ -488,6 +488,13 @@ def build_parser() -> argparse.ArgumentParser:
         from services.viewer import service as viewer
 
         configure_logging(args.log_level)
+        if args.action == "select":  # a tool: tell the running viewer, then exit
+            if args.segment is None:
+                raise SystemExit("viewer select: which segment? e.g. viewer select L1/s00042")
+            try:
+                return viewer.main_select(config_from_args(args), args.segment)
+            except ValueError as exc:
+                raise SystemExit(f"viewer select: {exc}") from None
         ports = {"web_port": args.web_port, "grpc_port": args.grpc_port}
         if args.rrd is not None:
             sink = viewer.Sink("rrd", path=args.rrd, **ports)
@@ -502,7 +509,6 @@ def build_parser() -> argparse.ArgumentParser:
             args.network,
             sink,
             worst_n=args.worst,
-            blueprint_interval_s=args.blueprint_interval,
         )
 
     p = sub.add_parser(
@@ -536,12 +542,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--worst", type=int, default=3, help="worst segments plotted beside the map (%(default)s)"
     )
     p.add_argument(
-        "--blueprint-interval",
-        type=float,
-        default=5.0,
-        metavar="S",
-        help="minimum wall seconds between two layout updates (%(default)s)",
+        "action",
+        nargs="?",
+        choices=["select"],
+        help="select LINE/SEGMENT: plot that segment in the running viewer's selected row",
     )
+    p.add_argument("segment", nargs="?", metavar="LINE/SEGMENT", help="e.g. L1/s00042")
     add_zenoh_arguments(p)
     p.set_defaults(func=_viewer)
 

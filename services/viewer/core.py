@@ -8,89 +8,104 @@ Time: every temporal row is stamped on the timeline :data:`TIMELINE` (``"event_t
 a timestamp timeline holding each message's own event time ``t`` (UTC epoch seconds), so
 late or replayed messages land where they belong.
 
-Volume: what a viewer holds, and what a browser that connects late must take in before it
-draws, is what is logged; so superseded messages are thinned and rows are batched into few
-chunks (:meth:`ViewerCore.take` only updates buffers and the ranking; :meth:`ViewerCore.flush`
-writes what is due; services/viewer/README.md has the figures):
+One blueprint, sent once at start: a browser that connects late replays every blueprint
+ever sent (about 0.8 s each on a software renderer), so the layout never changes. Its plot
+rows are fixed **slots** (``worst/1`` … ``worst/N``, ``selected``) that the core fills: each
+time a slot shows another segment, the segment's kept history goes to a new **generation**
+of entities under the slot (``{slot}/{ind}/g{n}/…``) and the previous generation is hidden
+by a static ``visible_series = false`` (a time series plot draws every row in its window
+whatever Clear says, so one entity cannot be re-used for another segment).
 
-* series (states, on-board indices): per segment and **event-day**, the newest message of
-  that day is buffered; the plotted segments' buffers are written every ``plot_flush_s``
-  wall seconds, every segment's every ``series_flush_s``, one ``send_columns`` chunk per
-  entity. So a plot gets at most one row per event-day per write. On-board indices of a
-  segment never plotted are kept (90 days) and written when it is first plotted; TRC
-  records (a few per segment and year) are all written.
-* live (map colours, alerts, trains): every ``live_flush_s`` wall seconds; the network's
-  colours are re-logged (one row) only when one changed, all trains' latest positions go in one
-  row; every alert is written.
-* static series styles only for the segments ever plotted (static data reaches a browser
-  before anything else).
+Volume: the core keeps, per segment and event-day, the newest state and on-board index
+(:data:`HISTORY_DAYS` days) and every TRC record, compactly; it writes the slots' new rows
+every ``plot_flush_s`` wall seconds (one chunk per entity) and the map colours, trains,
+alerts and health every ``live_flush_s``. Segments not in a slot are not written: an
+operator pins one with ``trackfusion viewer select`` (services/viewer/README.md).
 
 Entity paths (values in mm; ``{ind}`` is ``top6`` or ``align10``):
 
 ================================================  ==========================================
-``segments/{line}/{segment}/{ind}/state``         Scalars, one instance per series: estimate
+``{slot}/{ind}/g{n}/state``                       Scalars, one instance per series: estimate
                                                   (exp of the mixture mean of ln mm), 95 %
                                                   band low and high, then one per limit level
-``segments/{line}/{segment}/{ind}/onboard``       raw on-board index (points; not de-biased)
-``segments/{line}/{segment}/{ind}/trc``           TRC record (points)
+``{slot}/{ind}/g{n}/onboard``                     raw on-board index (points; not de-biased)
+``{slot}/{ind}/g{n}/trc``                         TRC record (points)
+``worst/ranking``                                 TextDocument: which segment each slot shows
 ``map/segments``                                  one line strip per segment of the network
                                                   (labelled ``{line}/{segment}``), coloured
                                                   by exceedance probability (green → red)
+``map/tunnels``, ``map/stations``, ``map/lines``  static: tunnels (dark strips under the
+                                                  segments), stations and line names
+``map/legend``                                    static colour scale of the map
 ``map/trains``                                    last GPS fix of every train (fix_quality > 0)
 ``alerts``                                        TextLog: raised = WARN, cleared = INFO
+``health``                                        TextDocument: services alive, restarts,
+                                                  stalled flows
 ================================================  ==========================================
 
 Map frame: local metres of :meth:`simulators.network.Network.to_xy` (x east, y north)
 with y negated on logging, because Rerun's 2D view draws y downwards (rerun#1387): north
-is up on screen. Strip geometry and labels are static; only the colours are temporal, so
-the map is drawn before the first state and a colour change re-logs one colour array.
+is up on screen.
 """
 
 from __future__ import annotations
 
 import heapq
 import math
-from collections import defaultdict
+import re
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 from rerun.encodings import TimeRange
 
-from schemas import INDICATORS, Alert, GpsFix, Message, OnboardIndex, SegmentState, TrcRecord
+from schemas import (
+    INDICATORS,
+    Alert,
+    GpsFix,
+    Message,
+    OnboardIndex,
+    SegmentState,
+    StackHealth,
+    TrcRecord,
+    ViewerSelect,
+)
 from simulators.network import Network
 
 TIMELINE = "event_time"  # timestamp timeline of the messages' event time t (epoch s)
 MAP_PATH = "map/segments"  # every segment of the network, one line strip each
+RANKING_PATH = "worst/ranking"
+HEALTH_PATH = "health"
+SELECTED = "selected"
 INTERVENTION = "intervention"  # the limit level the map colour and the worst ranking use
 DAY_S = 86_400.0
 DEFAULT_WORST_N = 3
-# Rerun's gRPC server keeps every blueprint ever sent (~100 KB each) and replays them all
-# to each browser that connects: re-send rarely.
-DEFAULT_BLUEPRINT_INTERVAL_S = 60.0  # wall seconds between two blueprint re-sends, at least
-DEFAULT_SERIES_FLUSH_S = 300.0  # wall seconds between two writes of the other segments' rows
 WORST_MARGIN = 0.25  # a segment replaces a plotted one if its p is higher by more than this
-DEFAULT_PLOT_FLUSH_S = 10.0  # wall seconds between two writes of the plotted segments' rows
+DEFAULT_PLOT_FLUSH_S = 10.0  # wall seconds between two writes of the slots' rows
 DEFAULT_LIVE_FLUSH_S = 3.0  # wall seconds between two writes of map colours, alerts, trains
-ONBOARD_KEPT_DAYS = 90  # event days of on-board points kept for a segment not plotted yet
+HISTORY_DAYS = 365  # event days of states and on-board indices kept per segment
 PLOT_WINDOW_DAYS = 90.0  # event days before the time cursor that the plots show
+STACK_REPORT_STALE_S = 5.0  # wall s without a StackHealth: `up` is taken as gone
 
 UNKNOWN_RGB = (128, 128, 128)  # a segment without a state yet
 _STOPS_P = np.array([0.0, 0.5, 1.0])
 _STOPS_RGB = np.array([(40, 170, 60), (240, 200, 30), (220, 40, 40)], dtype=float)  # green→red
+LEGEND_P = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 SegmentKey = tuple[str, str]  # (line, segment)
 
 _BAND_RGBA = (80, 160, 255, 110)
-_POINTS: dict[str, rr.AsComponents] = {
-    "onboard": rr.SeriesPoints(
-        colors=(255, 150, 40), markers="circle", marker_sizes=2.5, names="on-board"
-    ),
-    "trc": rr.SeriesPoints(colors=(230, 80, 230), markers="diamond", marker_sizes=5.0, names="TRC"),
+_POINT_STYLE = {
+    "onboard": {"colors": (255, 150, 40), "markers": "circle", "marker_sizes": 2.5},
+    "trc": {"colors": (230, 80, 230), "markers": "diamond", "marker_sizes": 5.0},
 }
+_POINT_NAMES = {"onboard": "on-board", "trc": "TRC"}
+_SECONDS = re.compile(r" (after|for) \d+ s$")  # "… after 12 s": changes every second
 _LIMIT_RGB = {"alert": (255, 190, 0), "intervention": (230, 40, 40)}
+# draw order on the map, bottom to top
+_ORDER = {"tunnels": 10.0, "segments": 20.0, "stations": 30.0, "trains": 40.0, "labels": 50.0}
 
 
 def exceedance_color(p: float | np.ndarray) -> np.ndarray:
@@ -152,42 +167,58 @@ def event_day(t: float) -> int:
 
 def coalesce_key(msg: Message) -> tuple[str, ...] | None:
     """What a newer message of the same key supersedes before it is written (the thinning
-    rule of the series and the trains); None for messages that are all kept (alerts, TRC)."""
+    rule of the series, the trains and the latest-only inputs); None for messages that are
+    all kept (alerts, TRC records)."""
     match msg:
         case SegmentState() | OnboardIndex():
             kind = "state" if isinstance(msg, SegmentState) else "onboard"
             return (kind, msg.line, msg.segment, str(event_day(msg.t)))
         case GpsFix():
             return ("gps", msg.train)
+        case StackHealth():
+            return ("health",)
+        case ViewerSelect():
+            return ("select",)
     return None
 
 
 def state_series(levels: Sequence[str]) -> list[str]:
-    """Instance names of a ``…/{ind}/state`` row: estimate, the band, then one per limit."""
+    """Instance names of a ``…/state`` row: estimate, the band, then one per limit."""
     return ["estimate", "95% low", "95% high", *(f"{level} limit" for level in levels)]
 
 
-def state_style(levels: Sequence[str]) -> rr.SeriesLines:
-    """One line style per instance of a ``…/{ind}/state`` row (see :func:`state_series`)."""
+def state_style(levels: Sequence[str], prefix: str = "") -> rr.SeriesLines:
+    """One line style per instance of a ``…/state`` row (see :func:`state_series`), the
+    names prefixed with ``prefix`` (the segment, shown when hovering a line)."""
     colors = [(80, 160, 255), _BAND_RGBA, _BAND_RGBA]
     colors += [_LIMIT_RGB.get(level, (200, 200, 200)) for level in levels]
     widths = [2.0, 1.0, 1.0, *([1.5] * len(levels))]
-    return rr.SeriesLines(colors=colors, widths=widths, names=state_series(levels))
+    names = [f"{prefix}{name}" for name in state_series(levels)]
+    return rr.SeriesLines(colors=colors, widths=widths, names=names)
 
 
-def build_blueprint(
-    worst: Sequence[tuple[str, str, float]], bounds: np.ndarray | None = None
-) -> rrb.Blueprint:
-    """The map, the worst segments' plots beside it (one row per segment, one plot per
-    indicator, titled with P(exceed intervention)), the alert log below.
+def point_style(kind: str, prefix: str = "") -> rr.SeriesPoints:
+    """The style of an ``onboard`` or ``trc`` entity."""
+    return rr.SeriesPoints(**_POINT_STYLE[kind], names=f"{prefix}{_POINT_NAMES[kind]}")
+
+
+def slot_names(worst_n: int) -> list[str]:
+    """The plot rows of the blueprint, top to bottom: ``worst/1`` … ``worst/N``, ``selected``."""
+    return [*(f"worst/{rank}" for rank in range(1, worst_n + 1)), SELECTED]
+
+
+def build_blueprint(worst_n: int, bounds: np.ndarray | None = None) -> rrb.Blueprint:
+    """The map with the alert log, which segment each plot row shows, and the health board
+    below it; on the right one plot row per worst rank and one for the selected segment (a
+    plot per indicator). Sent once: the rows are slots the core fills.
 
     ``bounds``: ``[[x_min, y_min], [x_max, y_max]]`` of the map in logged coordinates, so
-    that the map opens on the whole network.
+    that the map opens on the whole network and its legend.
     """
     map_view = rrb.Spatial2DView(
         origin="map",
         contents="$origin/**",
-        name="Network: P(exceed intervention)",
+        name="Network: P(exceed intervention limit)",
         visual_bounds=None
         if bounds is None
         else rrb.VisualBounds2D(x_range=bounds[:, 0], y_range=bounds[:, 1]),
@@ -203,24 +234,31 @@ def build_blueprint(
         rrb.Horizontal(
             *(
                 rrb.TimeSeriesView(
-                    origin=f"segments/{line}/{segment}/{indicator}",
+                    origin=f"{slot}/{indicator}",
                     contents="$origin/**",
-                    name=f"{line}/{segment} {indicator} mm (p={p:.2f})",
+                    name=f"{'selected' if slot == SELECTED else '#' + slot.split('/')[1]} "
+                    f"{indicator} mm",
                     plot_legend=rrb.PlotLegend(visible=False),  # small plots: hover for names
                     axis_x=rrb.TimeAxis(view_range=window),
                 )
                 for indicator in INDICATORS
             )
         )
-        for line, segment, p in worst
+        for slot in slot_names(worst_n)
     ]
-    top: rrb.Container = (
-        rrb.Horizontal(map_view, rrb.Vertical(*rows, name="Worst segments"), column_shares=[3, 2])
-        if rows
-        else rrb.Horizontal(map_view)
+    left = rrb.Vertical(
+        map_view,
+        rrb.Horizontal(
+            rrb.TextLogView(origin="alerts", name="Alerts"),
+            rrb.TextDocumentView(origin=RANKING_PATH, name="Plotted segments"),
+            rrb.TextDocumentView(origin=HEALTH_PATH, name="Health"),
+            column_shares=[5, 3, 4],
+        ),
+        row_shares=[5, 2],
     )
+    right = rrb.Vertical(*rows)
     return rrb.Blueprint(
-        rrb.Vertical(top, rrb.TextLogView(origin="alerts", name="Alerts"), row_shares=[3, 1]),
+        rrb.Horizontal(left, right, column_shares=[3, 2]),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
         rrb.TimePanel(timeline=TIMELINE),
@@ -229,12 +267,95 @@ def build_blueprint(
     )
 
 
+def health_markdown(
+    stack: StackHealth | None,
+    alive: Mapping[tuple[str, str], bool],
+) -> str:
+    """The health board: ``up``'s report (a table of its processes, stalled flows in bold)
+    when ``stack`` is given, else the liveliness tokens seen (``alive``: (service,
+    instance) → present now). Seconds are left out, so that the text changes only when the
+    health does."""
+    lines: list[str] = []
+    if stack is not None:
+        verdict = "healthy" if stack.healthy else "**not healthy**"
+        lines += [
+            f"**trackfusion up**: {verdict}",
+            "",
+            "| service | state | alive | restarts | last restart reason |",
+            "|---|---|---|---|---|",
+        ]
+        for p in stack.processes:
+            alive_text = "yes" if p.alive else "**no**"
+            reason = _SECONDS.sub("", p.last_restart_reason)
+            lines.append(f"| {p.name} | {p.state} | {alive_text} | {p.restarts} | {reason} |")
+        for text in stack.stalled:
+            lines += ["", f"**STALLED: {_SECONDS.sub('', text)}**"]
+    else:
+        lines += [
+            "No report from `trackfusion up`: liveliness tokens seen",
+            "",
+            "| service | instance | alive |",
+            "|---|---|---|",
+        ]
+        for (service, instance), present in sorted(alive.items()):
+            lines.append(f"| {service} | {instance} | {'yes' if present else '**no**'} |")
+        if not alive:
+            lines += ["", "none yet"]
+    return "\n".join(lines)
+
+
 @dataclass
 class _Map:
     keys: list[SegmentKey]  # strip order: the network's lines, each in chainage order
     index: dict[SegmentKey, int]  # segment -> strip
     colors: np.ndarray  # (k, 3) uint8, the current colours
     changed_t: float | None = None  # newest event time of a colour change not yet logged
+
+
+@dataclass
+class _History:
+    """What the core keeps of one segment: per event-day the newest state row and
+    on-board index, and every TRC record (rows in :data:`INDICATORS` order, NaN where a
+    message lacks an indicator)."""
+
+    states: dict[int, tuple[float, tuple[str, ...], np.ndarray]] = field(default_factory=dict)
+    onboard: dict[int, tuple[float, np.ndarray]] = field(default_factory=dict)
+    trc: list[tuple[float, np.ndarray]] = field(default_factory=list)
+
+    def rows(self, kind: str, after: float) -> list[tuple[float, tuple[str, ...], np.ndarray]]:
+        """``(t, levels, values)`` of ``kind`` newer than ``after``, oldest first."""
+        if kind == "state":
+            items = list(self.states.values())
+        elif kind == "onboard":
+            items = [(t, (), v) for t, v in self.onboard.values()]
+        else:
+            items = [(t, (), v) for t, v in self.trc]
+        return sorted((row for row in items if row[0] > after), key=lambda row: row[0])
+
+    def prune(self) -> None:
+        """Keep the newest :data:`HISTORY_DAYS` days (amortised: once 10 % over)."""
+        for rows in (self.states, self.onboard):
+            if len(rows) > HISTORY_DAYS * 1.1:
+                for day in sorted(rows)[:-HISTORY_DAYS]:
+                    del rows[day]
+        if self.trc and len(self.trc) > 64:
+            newest = max(t for t, _ in self.trc)
+            self.trc = [(t, v) for t, v in self.trc if t > newest - HISTORY_DAYS * DAY_S]
+
+
+@dataclass
+class _Slot:
+    """One plot row of the blueprint: the segment it shows and the generation of entities
+    that holds that segment's rows."""
+
+    name: str  # "worst/1" … or "selected"
+    key: SegmentKey | None = None
+    generation: int = 0
+    written: dict[str, float] = field(default_factory=dict)  # kind -> newest t written
+    styled: dict[str, tuple[str, ...]] = field(default_factory=dict)  # entity -> levels
+
+    def path(self, indicator: str, kind: str) -> str:
+        return f"{self.name}/{indicator}/g{self.generation}/{kind}"
 
 
 class ViewerCore:
@@ -248,14 +369,13 @@ class ViewerCore:
     rec
         Where the log calls go.
     network
-        The map; states, indices and TRC records of lines not in it still get their plots.
+        The map; states, indices and TRC records of lines not in it are still kept and
+        plotted.
     worst_n
-        Segments shown beside the map.
-    blueprint_interval_s
-        Minimum wall time between two blueprint sends (see :meth:`maybe_send_blueprint`).
-    series_flush_s, plot_flush_s, live_flush_s
-        Wall seconds between two writes of every segment's rows, of the plotted segments'
-        rows, of the map colours, alerts and trains.
+        Plot rows of the worst segments (a row for the selected segment comes below).
+    plot_flush_s, live_flush_s
+        Wall seconds between two writes of the plots' rows, and of the map colours,
+        alerts, trains and health.
     """
 
     def __init__(
@@ -264,98 +384,202 @@ class ViewerCore:
         network: Network | None = None,
         *,
         worst_n: int = DEFAULT_WORST_N,
-        blueprint_interval_s: float = DEFAULT_BLUEPRINT_INTERVAL_S,
-        series_flush_s: float = DEFAULT_SERIES_FLUSH_S,
         plot_flush_s: float = DEFAULT_PLOT_FLUSH_S,
         live_flush_s: float = DEFAULT_LIVE_FLUSH_S,
     ) -> None:
         if worst_n < 0:
             raise ValueError(f"worst_n: must be >= 0, got {worst_n}")
-        if min(series_flush_s, plot_flush_s, live_flush_s) < 0:
-            raise ValueError("series_flush_s, plot_flush_s, live_flush_s: must be >= 0")
+        if min(plot_flush_s, live_flush_s) < 0:
+            raise ValueError("plot_flush_s, live_flush_s: must be >= 0")
         self.rec = rec
         self.network = network
         self.worst_n = worst_n
-        self.blueprint_interval_s = blueprint_interval_s
-        self.series_flush_s = series_flush_s
         self.plot_flush_s = plot_flush_s
         self.live_flush_s = live_flush_s
         self.p_exceed: dict[SegmentKey, float] = {}
         self.handled = 0  # messages taken (GPS fixes without a fix included)
-        self.rows_written = 0  # rows of the plots' entities written (thinning's result)
+        self.rows_written = 0  # rows of the plots' entities written
         self.blueprints_sent = 0
+        self.generations = 0  # plot generations started (a slot showing another segment)
         self._newest_t: dict[SegmentKey, float] = {}
-        # Series styles are static, and every static chunk goes to each browser that
-        # connects before any data: only the segments ever plotted get them.
-        self._styled: dict[str, tuple[str, ...]] = {}  # entity -> styled limit levels
-        self._levels: dict[str, tuple[str, ...]] = {}  # state entity -> its limit levels
-        self._plotted: set[SegmentKey] = set()  # segments that were ever in a blueprint
+        self._newest_event_t: float | None = None
+        self._history: dict[SegmentKey, _History] = {}
+        self._slots = [_Slot(name) for name in slot_names(worst_n)]
+        self._selected: SegmentKey | None = None
         self._map: _Map | None = None
         self._map_start_t: float | None = None  # first state's event time on the map
         self._map_started = False
-        self._blueprint_keys: list[SegmentKey] | None = None
-        self._blueprint_at: float | None = None
         self._bounds: np.ndarray | None = None
-        # buffers, emptied by flush
-        self._series: dict[tuple[str, ...], SegmentState | OnboardIndex] = {}
-        self._trc: list[TrcRecord] = []
+        self._ranking_text = ""
+        # live buffers, emptied by flush
         self._alerts: list[Alert] = []
         self._fixes: dict[str, GpsFix] = {}  # newest fix per train
         self._fixes_new = False
-        self._series_at: float | None = None
+        self._plots_due = True
         self._plot_at: float | None = None
         self._live_at: float | None = None
-        # on-board points of segments not plotted: written when a segment is first plotted
-        self._onboard_kept: dict[SegmentKey, dict[int, OnboardIndex]] = defaultdict(dict)
+        # health: the newest report of `up` and when (wall, monotonic) it was taken
+        self._stack: StackHealth | None = None
+        self._stack_new = False
+        self._stack_at: float | None = None
+        self._alive: dict[tuple[str, str], bool] = {}
+        self._health_text = ""
 
     # --- setup ---------------------------------------------------------------------------
 
     def start(self, now: float) -> None:
-        """Log the static map geometry and send the first blueprint (map and alerts)."""
+        """Log the static map (segments, tunnels, stations, line names, legend) and send
+        the one blueprint."""
         if self.network is not None:
-            xy = _screen(np.concatenate([ln.xy for ln in self.network.lines.values()]))
-            margin = 0.05 * (xy.max(axis=0) - xy.min(axis=0)).max()
-            self._bounds = np.stack([xy.min(axis=0) - margin, xy.max(axis=0) + margin])
-            lines = list(self.network.lines.values())
-            keys = [(line.id, seg.id) for line in lines for seg in line.segments]
-            strips = [
-                _screen(self.network.to_xy(line.segment_lonlat(seg)))
-                for line in lines
-                for seg in line.segments
-            ]
-            # one entity for the whole network: one chunk per colour change, not one per line
+            self._log_static_map(self.network)
+        self.rec.send_blueprint(
+            build_blueprint(self.worst_n, self._bounds), make_active=True, make_default=True
+        )
+        self.blueprints_sent += 1
+        self._log_health()
+
+    def _log_static_map(self, network: Network) -> None:
+        lines = list(network.lines.values())
+        xy = _screen(np.concatenate([ln.xy for ln in lines]))
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        span = float((hi - lo).max())
+        keys = [(line.id, seg.id) for line in lines for seg in line.segments]
+        strips = [
+            _screen(network.to_xy(line.segment_lonlat(seg)))
+            for line in lines
+            for seg in line.segments
+        ]
+        # one entity for the whole network: one chunk per colour change, not one per segment
+        self.rec.log(
+            MAP_PATH,
+            rr.LineStrips2D(
+                strips,
+                radii=rr.Radius.ui_points(3.5),
+                labels=[f"{line}/{segment}" for line, segment in keys],
+                show_labels=False,
+                draw_order=_ORDER["segments"],
+            ),
+            static=True,
+        )
+        self._map = _Map(
+            keys,
+            {key: i for i, key in enumerate(keys)},
+            np.full((len(keys), 3), UNKNOWN_RGB, np.uint8),
+        )
+        tunnels, tunnel_labels = [], []
+        stations, station_labels = [], []
+        names, name_labels = [], []
+        for line in lines:
+            for a, b in line.tunnels:
+                chainage = np.r_[
+                    a, line.chainage_m[(line.chainage_m > a) & (line.chainage_m < b)], b
+                ]
+                tunnels.append(_screen(line.xy_at(chainage)))
+                tunnel_labels.append(f"{line.id} tunnel {a / 1e3:.1f}–{b / 1e3:.1f} km")
+            for c in line.stations:
+                stations.append(_screen(line.xy_at(c)))
+                station_labels.append(f"{line.id} km {c / 1e3:.1f}")
+            # the line's name beyond both of its ends
+            for end, inward in ((0.0, 1.0), (line.length_m, -1.0)):
+                ahead = line.xy_at(np.clip(end + inward * 0.02 * span, 0, line.length_m))
+                at = line.xy_at(end)
+                direction = (at - ahead) / max(1e-9, float(np.hypot(*(at - ahead))))
+                names.append(_screen(at + direction * 0.025 * span))
+                name_labels.append(line.id)
+        if tunnels:
             self.rec.log(
-                MAP_PATH,
+                "map/tunnels",
                 rr.LineStrips2D(
-                    strips,
-                    radii=rr.Radius.ui_points(3.5),
-                    labels=[f"{line}/{segment}" for line, segment in keys],
+                    tunnels,
+                    radii=rr.Radius.ui_points(8.0),
+                    colors=(35, 35, 45),
+                    labels=tunnel_labels,
                     show_labels=False,
+                    draw_order=_ORDER["tunnels"],
                 ),
                 static=True,
             )
-            self._map = _Map(
-                keys,
-                {key: i for i, key in enumerate(keys)},
-                np.full((len(keys), 3), UNKNOWN_RGB, np.uint8),
+        if stations:
+            self.rec.log(
+                "map/stations",
+                rr.Points2D(
+                    np.array(stations),
+                    radii=rr.Radius.ui_points(4.0),
+                    colors=(70, 70, 80),
+                    labels=station_labels,
+                    show_labels=False,  # on hover: names on the map would hide the colours
+                    draw_order=_ORDER["stations"],
+                ),
+                static=True,
             )
-        self.maybe_send_blueprint(now, force=True)
+        self.rec.log(
+            "map/lines",
+            rr.Points2D(
+                np.array(names),
+                radii=rr.Radius.ui_points(1.0),
+                colors=(20, 20, 30),
+                labels=name_labels,
+                show_labels=True,
+                draw_order=_ORDER["labels"],
+            ),
+            static=True,
+        )
+        # the colour scale below the network, at its left: small swatches, their labels in
+        # a neutral colour beside them (coloured text would add to the colours of the map)
+        step = 0.045 * span
+        legend_at = (
+            np.array([lo[0], hi[1] + 2 * step])
+            + np.array([0.0, step]) * np.arange(len(LEGEND_P) + 1)[:, None]
+        )
+        labels = [f"p = {p:g}" for p in LEGEND_P] + ["no state yet"]
+        colors = np.vstack([exceedance_color(np.array(LEGEND_P)), [UNKNOWN_RGB]])
+        self.rec.log(
+            "map/legend/colors",
+            rr.Points2D(
+                legend_at,
+                radii=rr.Radius.ui_points(4.0),
+                colors=colors,
+                draw_order=_ORDER["labels"],
+            ),
+            static=True,
+        )
+        self.rec.log(
+            "map/legend/labels",
+            rr.Points2D(
+                legend_at + [0.12 * span, 0.0],
+                radii=rr.Radius.ui_points(0.5),
+                colors=(20, 20, 30),
+                labels=labels,
+                show_labels=True,
+                draw_order=_ORDER["labels"],
+            ),
+            static=True,
+        )
+        everything = np.vstack([xy, legend_at, np.array(names)])
+        margin = 0.05 * span
+        self._bounds = np.stack([everything.min(axis=0) - margin, everything.max(axis=0) + margin])
 
     # --- messages ------------------------------------------------------------------------
 
     def take(self, messages: Iterable[Message]) -> int:
-        """Buffer a batch, keeping per :func:`coalesce_key` only the newest message; update
-        the ranking and the map's current colours. No Rerun call. Returns the count."""
+        """Keep a batch (per segment and event-day the newest state and index), update the
+        ranking, the map's current colours, the selection and the health. No Rerun call.
+        Returns the count."""
         n = 0
         for msg in messages:
             n += 1
             match msg:
-                case SegmentState() | OnboardIndex():
-                    self._buffer_series(msg)
-                    if isinstance(msg, SegmentState):
-                        self._take_state(msg)
+                case SegmentState():
+                    self._keep_state(msg)
+                    self._take_state(msg)
+                case OnboardIndex():
+                    self._keep_onboard(msg)
                 case TrcRecord():
-                    self._trc.append(msg)
+                    values = np.array([msg.top6_mm, msg.align10_mm], dtype=float)
+                    history = self._history_of((msg.line, msg.segment))
+                    history.trc.append((msg.t, values))
+                    history.prune()
+                    self._event_time(msg.t)
                 case GpsFix():
                     newest = self._fixes.get(msg.train)
                     if msg.fix_quality > 0 and (newest is None or msg.t >= newest.t):
@@ -363,10 +587,20 @@ class ViewerCore:
                         self._fixes_new = True
                 case Alert():
                     self._alerts.append(msg)
+                case StackHealth():
+                    if self._stack is None or msg.written_at >= self._stack.written_at:
+                        self._stack, self._stack_new = msg, True
+                case ViewerSelect():
+                    self._selected = (msg.line, msg.segment)
+                    self._plots_due = True
                 case _:
                     raise TypeError(f"viewer: cannot log a {type(msg).__name__}")
         self.handled += n
         return n
+
+    def set_alive(self, alive: Mapping[tuple[str, str], bool]) -> None:
+        """The liveliness tokens seen: (service, instance) → present now."""
+        self._alive = dict(alive)
 
     def log_batch(self, messages: Iterable[Message], now: float | None = None) -> int:
         """:meth:`take` then :meth:`flush` at ``now`` (everything when ``now`` is None)."""
@@ -374,17 +608,46 @@ class ViewerCore:
         self.flush(0.0 if now is None else now, force=now is None)
         return n
 
-    def _buffer_series(self, msg: SegmentState | OnboardIndex) -> None:
-        key = coalesce_key(msg)
-        assert key is not None
-        held = self._series.get(key)
-        if held is None or msg.t >= held.t:
-            self._series[key] = msg
+    def _history_of(self, key: SegmentKey) -> _History:
+        history = self._history.get(key)
+        if history is None:
+            history = self._history[key] = _History()
+        return history
+
+    def _event_time(self, t: float) -> None:
+        if self._newest_event_t is None or t > self._newest_event_t:
+            self._newest_event_t = t
+
+    def _keep_state(self, state: SegmentState) -> None:
+        history = self._history_of((state.line, state.segment))
+        day = event_day(state.t)
+        held = history.states.get(day)
+        if held is not None and held[0] > state.t:
+            return
+        mean, low, high = state.mean.array(), state.ci_low_mm.array(), state.ci_high_mm.array()
+        limits = state.limits_mm.array()
+        values = np.full((len(INDICATORS), 3 + len(state.limit_levels)), np.nan)
+        for row, indicator in enumerate(INDICATORS):
+            if indicator in state.indicators:
+                i = state.indicators.index(indicator)
+                values[row] = [math.exp(mean[i]), low[i], high[i], *limits[:, i]]
+        history.states[day] = (state.t, tuple(state.limit_levels), values)
+        history.prune()
+        self._event_time(state.t)
+
+    def _keep_onboard(self, index: OnboardIndex) -> None:
+        history = self._history_of((index.line, index.segment))
+        day = event_day(index.t)
+        held = history.onboard.get(day)
+        if held is None or held[0] <= index.t:
+            history.onboard[day] = (index.t, np.array([index.top6_mm, index.align10_mm]))
+            history.prune()
+        self._event_time(index.t)
 
     def _take_state(self, state: SegmentState) -> None:
         key = (state.line, state.segment)
         if state.t < self._newest_t.get(key, -math.inf):
-            return  # a late state: its day's row is written, the ranking keeps the newest
+            return  # a late state: its day's row is kept, the ranking keeps the newest
         self._newest_t[key] = state.t
         self.p_exceed[key] = p = segment_exceedance(state)
         i = self._map.index.get(key) if self._map is not None else None
@@ -398,94 +661,100 @@ class ViewerCore:
             self._map.changed_t = max(self._map.changed_t or -math.inf, state.t)
 
     def flush(self, now: float, *, force: bool = False) -> None:
-        """Write what is due at wall time ``now``: every segment's rows each
-        ``series_flush_s``, the plotted segments' rows each ``plot_flush_s``, the map
-        colours, trains and alerts each ``live_flush_s`` (``force``: all, now)."""
+        """Write what is due at wall time ``now`` (monotonic s): the plots' rows each
+        ``plot_flush_s`` (at once when a slot can be filled or a segment was selected), the
+        map colours, trains, alerts and health each ``live_flush_s`` (``force``: all, now)."""
 
         def due(at: float | None, interval: float) -> bool:
             return force or at is None or now - at >= interval
 
-        series = due(self._series_at, self.series_flush_s)
-        plots = series or due(self._plot_at, self.plot_flush_s)
-        if plots or due(self._live_at, self.live_flush_s):
+        if self._stack_new:
+            self._stack_at, self._stack_new = now, False
+        if due(self._live_at, self.live_flush_s):
             self._live_at = now
-            self._flush_live()
-        if series:
-            self._series_at = self._plot_at = now
-            self._flush_series()
-        elif plots:
+            self._flush_live(now)
+        if self._plots_due or self._slot_can_fill() or due(self._plot_at, self.plot_flush_s):
             self._plot_at = now
-            self._flush_series(set(self._blueprint_keys or ()))
+            self._plots_due = False
+            self._flush_plots()
 
-    # --- series --------------------------------------------------------------------------
+    # --- plots ---------------------------------------------------------------------------
 
-    def _flush_series(self, only: set[SegmentKey] | None = None) -> None:
-        """Write the buffered rows (of the ``only`` segments, if given)."""
-        states: dict[SegmentKey, list[SegmentState]] = defaultdict(list)
-        points: dict[tuple[SegmentKey, str], list[OnboardIndex | TrcRecord]] = defaultdict(list)
-        if only is None:
-            taken, self._series = self._series, {}
-            trcs, self._trc = self._trc, []
-        else:
-            taken = {k: m for k, m in self._series.items() if (m.line, m.segment) in only}
-            for k in taken:
-                del self._series[k]
-            trcs = [m for m in self._trc if (m.line, m.segment) in only]
-            self._trc = [m for m in self._trc if (m.line, m.segment) not in only]
-        for msg in taken.values():
-            key = (msg.line, msg.segment)
-            if isinstance(msg, SegmentState):
-                states[key].append(msg)
-            elif key in self._plotted:
-                points[(key, "onboard")].append(msg)
-            else:  # kept for when the segment is plotted: half the chunks of the history
-                kept = self._onboard_kept[key]
-                day = event_day(msg.t)
-                if day not in kept or kept[day].t <= msg.t:
-                    kept[day] = msg
-                for old in sorted(kept)[:-ONBOARD_KEPT_DAYS]:
-                    del kept[old]
-        for trc in trcs:
-            points[((trc.line, trc.segment), "trc")].append(trc)
-        for key, batch in states.items():
-            self._log_states(key, sorted(batch, key=lambda s: s.t))
-        for (key, kind), batch in points.items():
-            self._log_points(key, kind, sorted(batch, key=lambda m: m.t))
+    def worst(self) -> list[SegmentKey]:
+        """The segments to plot: :func:`select_worst_sticky` around the plotted ones."""
+        shown = [slot.key for slot in self._slots[: self.worst_n] if slot.key is not None]
+        return select_worst_sticky(self.p_exceed, self.worst_n, shown, WORST_MARGIN)
 
-    def _log_states(self, key: SegmentKey, states: list[SegmentState]) -> None:
-        line, segment = key
-        base = f"segments/{line}/{segment}"
-        for levels in dict.fromkeys(tuple(s.limit_levels) for s in states):
-            same = [s for s in states if tuple(s.limit_levels) == levels]
-            for i, indicator in enumerate(same[-1].indicators):
-                rows = [s for s in same if i < len(s.indicators) and s.indicators[i] == indicator]
-                path = f"{base}/{indicator}/state"
-                self._levels[path] = levels
-                if key in self._plotted and self._styled.get(path) != levels:
-                    self.rec.log(path, state_style(levels), static=True)
-                    self._styled[path] = levels
-                values = np.array(
-                    [
-                        [
-                            math.exp(s.mean.array()[i]),
-                            s.ci_low_mm.array()[i],
-                            s.ci_high_mm.array()[i],
-                            *s.limits_mm.array()[:, i],
-                        ]
-                        for s in rows
-                    ]
+    def shown(self) -> dict[str, SegmentKey | None]:
+        """Slot → the segment it shows."""
+        return {slot.name: slot.key for slot in self._slots}
+
+    def _slot_can_fill(self) -> bool:
+        empty = sum(slot.key is None for slot in self._slots[: self.worst_n])
+        return empty > 0 and len(self.p_exceed) > self.worst_n - empty
+
+    def _flush_plots(self) -> None:
+        worst = self.worst()
+        # a segment keeps its slot when it only moves in the ranking: no new generation
+        by_key = {slot.key: slot for slot in self._slots[: self.worst_n] if slot.key}
+        free = [slot for slot in self._slots[: self.worst_n] if slot.key not in worst]
+        for key in worst:
+            if key not in by_key:
+                slot = free.pop(0)
+                self._show(slot, key)
+        self._show(self._slots[-1], self._selected)
+        for slot in self._slots:
+            if slot.key is not None:
+                self._write_slot(slot)
+        self._log_ranking()
+
+    def _show(self, slot: _Slot, key: SegmentKey | None) -> None:
+        """Let ``slot`` show ``key``: hide the current generation, start a new one."""
+        if slot.key == key:
+            return
+        if slot.key is not None:
+            for path in slot.styled:
+                hidden = (
+                    rr.SeriesLines.from_fields(visible_series=[False])
+                    if path.endswith("/state")
+                    else rr.SeriesPoints.from_fields(visible_series=[False])
                 )
-                self._send(path, np.array([s.t for s in rows]), values)
+                self.rec.log(path, hidden, static=True)
+        slot.key = key
+        slot.written, slot.styled = {}, {}
+        if key is not None:
+            self.generations += 1
+            slot.generation = self.generations
 
-    def _log_points(self, key: SegmentKey, kind: str, msgs: list[OnboardIndex | TrcRecord]) -> None:
-        t = np.array([m.t for m in msgs])
-        base = f"segments/{key[0]}/{key[1]}"
-        for indicator in INDICATORS:
-            path = f"{base}/{indicator}/{kind}"
-            if key in self._plotted and path not in self._styled:
-                self.rec.log(path, _POINTS[kind], static=True)
-                self._styled[path] = ()
-            self._send(path, t, np.array([getattr(m, f"{indicator}_mm") for m in msgs]))
+    def _write_slot(self, slot: _Slot) -> None:
+        assert slot.key is not None
+        history = self._history.get(slot.key)
+        if history is None:
+            return
+        prefix = f"{slot.key[0]}/{slot.key[1]} "
+        for kind in ("state", "onboard", "trc"):
+            rows = history.rows(kind, slot.written.get(kind, -math.inf))
+            if not rows:
+                continue
+            slot.written[kind] = rows[-1][0]
+            for levels in dict.fromkeys(levels for _, levels, _ in rows):
+                same = [row for row in rows if row[1] == levels]
+                t = np.array([row[0] for row in same])
+                values = np.stack([row[2] for row in same])  # (rows, indicators[, series])
+                for i, indicator in enumerate(INDICATORS):
+                    path = slot.path(indicator, kind)
+                    if slot.styled.get(path) != levels:
+                        style = (
+                            state_style(levels, prefix)
+                            if kind == "state"
+                            else point_style(kind, prefix)
+                        )
+                        self.rec.log(path, style, static=True)
+                        slot.styled[path] = levels
+                    column = values[:, i]
+                    keep = ~np.isnan(column).all(axis=-1) if column.ndim > 1 else ~np.isnan(column)
+                    if keep.any():
+                        self._send(path, t[keep], column[keep])
 
     def _send(self, path: str, t: np.ndarray, values: np.ndarray) -> None:
         """Rows of scalars at event times ``t``: one chunk (``values`` is (rows,) or
@@ -497,9 +766,36 @@ class ViewerCore:
         )
         self.rows_written += len(t)
 
-    # --- live: map colours, trains, alerts ------------------------------------------------
+    def _log_ranking(self) -> None:
+        """Which segment each plot row shows, with its P(exceed intervention); temporal, at
+        the newest event time, so it is written only when it changed."""
+        if self._newest_event_t is None:
+            return
+        lines = ["| row | segment | p |", "|---|---|---|"]
+        for slot in self._slots:
+            row = "selected" if slot.name == SELECTED else f"#{slot.name.split('/')[1]}"
+            if slot.key is None:
+                lines.append(f"| {row} | - | |")
+                continue
+            p = self.p_exceed.get(slot.key)
+            lines.append(
+                f"| {row} | {slot.key[0]}/{slot.key[1]} | {'-' if p is None else f'{p:.2f}'} |"
+            )
+        lines += [
+            "",
+            "p: P(exceed intervention limit)",
+            "",
+            "`trackfusion viewer select L1/s00042`",
+        ]
+        text = "\n".join(lines)
+        if text != self._ranking_text:
+            self._ranking_text = text
+            self.rec.set_time(TIMELINE, timestamp=self._newest_event_t)
+            self.rec.log(RANKING_PATH, rr.TextDocument(text, media_type="text/markdown"))
 
-    def _flush_live(self) -> None:
+    # --- live: map colours, trains, alerts, health -----------------------------------------
+
+    def _flush_live(self, now: float) -> None:
         if not self._map_started and self._map_start_t is not None:
             self._start_map_colors(self._map_start_t)
         if self._map is not None and self._map.changed_t is not None:
@@ -517,12 +813,26 @@ class ViewerCore:
                     radii=rr.Radius.ui_points(6.0),
                     colors=(0, 200, 255),
                     labels=[f.train for f in fixes],
+                    show_labels=True,
+                    draw_order=_ORDER["trains"],
                 ),
             )
         self._fixes_new = False
         for alert in sorted(self._alerts, key=lambda a: a.t):
             self._log_alert(alert)
         self._alerts.clear()
+        stale = self._stack_at is None or now - self._stack_at > STACK_REPORT_STALE_S
+        self._log_health(None if stale else self._stack)
+
+    def _log_health(self, stack: StackHealth | None = None) -> None:
+        """The health board as a static document, re-logged only when its text changed
+        (the server keeps every static message: a handful per restart or stall)."""
+        text = health_markdown(stack, self._alive)
+        if text != self._health_text:
+            self._health_text = text
+            self.rec.log(
+                HEALTH_PATH, rr.TextDocument(text, media_type="text/markdown"), static=True
+            )
 
     def _log_alert(self, alert: Alert) -> None:
         raised = alert.status == "raised"
@@ -554,64 +864,6 @@ class ViewerCore:
             self.rec.set_time(TIMELINE, timestamp=t)
             grey = np.full((len(self._map.keys), 3), UNKNOWN_RGB, np.uint8)
             self.rec.log(MAP_PATH, rr.LineStrips2D.from_fields(colors=grey))
-
-    # --- blueprint -----------------------------------------------------------------------
-
-    def _style(self, keys: Iterable[SegmentKey]) -> None:
-        """The static series styles of newly plotted segments' entities."""
-        for key in keys:
-            if key in self._plotted:
-                continue
-            self._plotted.add(key)
-            base = f"segments/{key[0]}/{key[1]}"
-            for indicator in INDICATORS:
-                path = f"{base}/{indicator}/state"
-                levels = self._levels.get(path)
-                if levels is not None:
-                    self.rec.log(path, state_style(levels), static=True)
-                    self._styled[path] = levels
-                for kind, style in _POINTS.items():
-                    self.rec.log(f"{base}/{indicator}/{kind}", style, static=True)
-                    self._styled[f"{base}/{indicator}/{kind}"] = ()
-            kept = self._onboard_kept.pop(key, {})
-            if kept:
-                self._log_points(key, "onboard", sorted(kept.values(), key=lambda m: m.t))
-
-    def worst(self) -> list[SegmentKey]:
-        """The segments to plot: :func:`select_worst_sticky` around the plotted ones."""
-        return select_worst_sticky(
-            self.p_exceed, self.worst_n, self._blueprint_keys or [], WORST_MARGIN
-        )
-
-    def maybe_send_blueprint(self, now: float, *, force: bool = False) -> bool:
-        """Send the blueprint if the worst set changed and ``blueprint_interval_s`` of wall
-        time ``now`` (monotonic seconds) passed since the last send, or at once if it fills
-        the plots for the first time (``worst_n`` segments known); ``force``: if it changed
-        (or was never sent), now. True if sent.
-
-        Rerun's gRPC server keeps every blueprint and a browser that connects replays them
-        all before any data (about 15 s for 7 of them on SwiftShader): send few."""
-        worst = self.worst()
-        first_full = len(worst) == self.worst_n and len(self._blueprint_keys or ()) < len(worst)
-        if (
-            not force
-            and not first_full
-            and self._blueprint_at is not None
-            and now - self._blueprint_at < self.blueprint_interval_s
-        ):
-            return False
-        if self._blueprint_keys is not None and set(worst) == set(self._blueprint_keys):
-            return False
-        self.rec.send_blueprint(
-            build_blueprint([(*key, self.p_exceed[key]) for key in worst], self._bounds),
-            make_active=True,
-            make_default=True,
-        )
-        self._blueprint_keys = worst
-        self._blueprint_at = now
-        self._style(worst)
-        self.blueprints_sent += 1
-        return True
 
 
 def _screen(xy: np.ndarray) -> np.ndarray:

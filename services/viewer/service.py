@@ -1,15 +1,19 @@
 """`trackfusion viewer`: the thin adapter around :mod:`services.viewer.core`.
 
-Subscribes ``{ns}/state/**``, ``{ns}/index/**``, ``{ns}/trc/**``, ``{ns}/alert/**`` and
-``{ns}/gps/*`` latest-only (``ServiceRuntime.subscribe``: a Zenoh ``RingChannel`` each:
-when the viewer falls behind, the oldest samples are dropped and the pipeline never waits
-for it). The runtime's
+Subscribes ``{ns}/state/**``, ``{ns}/index/**``, ``{ns}/trc/**``, ``{ns}/alert/**``,
+``{ns}/gps/*``, ``{ns}/health/stack`` and ``{ns}/viewer/select`` latest-only
+(``ServiceRuntime.subscribe``: a Zenoh ``RingChannel`` each: when the viewer falls behind,
+the oldest samples are dropped and the pipeline never waits for it). The runtime's
 per-subscription workers decode (errors become dead letters) and hand them to one bounded
 inbox in which a newer state or index of a segment and event-day, or a newer fix of a
 train, replaces the held one (alerts and TRC records queue); ONE worker thread takes
 everything held at once, hands it to the core and lets the core write what is due, so
 only that thread touches the recording. A slow browser makes Rerun's log calls wait; the
-inbox then coalesces and the Zenoh callbacks still never wait.
+inbox then coalesces and the Zenoh callbacks still never wait. The liveliness tokens
+(``{ns}/alive/**``) go to a set the worker hands to the core for the health board.
+
+:func:`main_select` is ``trackfusion viewer select LINE/SEGMENT``: it publishes a
+ViewerSelect that a running viewer answers by plotting that segment in its "selected" row.
 
 Sinks (:class:`Sink`): ``rrd`` writes a recording file, ``web`` serves the gRPC log
 stream and the web viewer and prints the viewer's URL on stdout, ``spawn`` starts the
@@ -40,17 +44,18 @@ from schemas import (
     OnboardIndex,
     SchemaError,
     SegmentState,
+    StackHealth,
     TrcRecord,
+    ViewerSelect,
     decode,
+    encode,
     keys,
 )
-from services.runtime.config import RuntimeConfig
+from services.runtime.config import RuntimeConfig, zenoh_config
 from services.runtime.service import ServiceRuntime
 from services.viewer.core import (
-    DEFAULT_BLUEPRINT_INTERVAL_S,
     DEFAULT_LIVE_FLUSH_S,
     DEFAULT_PLOT_FLUSH_S,
-    DEFAULT_SERIES_FLUSH_S,
     DEFAULT_WORST_N,
     ViewerCore,
     coalesce_key,
@@ -191,7 +196,10 @@ _SUBSCRIPTIONS: dict[str, type[Message]] = {
     "trc": TrcRecord,
     "alert": Alert,
     "gps": GpsFix,
+    "health": StackHealth,
+    "select": ViewerSelect,
 }
+SELECT_TIMEOUT_S = 5.0  # `viewer select`: how long to wait for a running viewer to listen
 
 
 class ViewerAdapter:
@@ -209,6 +217,8 @@ class ViewerAdapter:
         self.inbox = _Inbox(INBOX_CAPACITY)
         self._on_logged = on_logged
         self._worker: threading.Thread | None = None
+        self._alive_lock = threading.Lock()
+        self._alive: dict[tuple[str, str], bool] = {}  # (service, instance) -> token present
         network = core.network
         # what the map draws: a message on a segment it does not have is a dead letter, so
         # a sender cannot grow the viewer's per-segment memory with ids that do not exist
@@ -224,22 +234,33 @@ class ViewerAdapter:
 
     def start(self) -> None:
         ns = self.rt.ns
+        special = {
+            "gps": keys.gps_all(ns),
+            "health": keys.stack_health(ns),
+            "select": keys.viewer_select(ns),
+        }
         for kind, message_type in _SUBSCRIPTIONS.items():
-            key = keys.gps_all(ns) if kind == "gps" else keys.segment_keys(ns, kind)
+            key = special.get(kind) or keys.segment_keys(ns, kind)
             self.rt.subscribe(
                 key,
                 self._decoder(kind, message_type),
                 capacity=SUBSCRIPTION_CAPACITY,
             )
+        self.rt.track(
+            self.rt.session.liveliness().declare_subscriber(
+                keys.alive_all(ns), self._on_alive, history=True
+            )
+        )
         self._worker = self.rt.spawn(self._work, name=f"{SERVICE}:rerun")
 
     def _decoder(self, kind: str, message_type: type[Message]) -> Callable[[zenoh.Sample], None]:
         def on_sample(sample: zenoh.Sample) -> None:
             # runs in the runtime's worker for this subscription; SchemaError -> dead letter
             message = decode(sample.payload.to_bytes(), message_type)
-            _check_key(kind, str(sample.key_expr), message)
+            keys.check_key(str(sample.key_expr), message)
             segment = (getattr(message, "line", None), getattr(message, "segment", None))
-            if self._known is not None and kind != "gps" and segment not in self._known:
+            on_map = kind not in ("gps", "health")
+            if self._known is not None and on_map and segment not in self._known:
                 raise SchemaError(
                     f"{type(message).__name__}: segment {segment[0]}/{segment[1]} is not in "
                     "the viewer's network"
@@ -247,6 +268,15 @@ class ViewerAdapter:
             self.inbox.put(message)
 
         return on_sample
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        """A liveliness token appeared or went (Zenoh's callback: only a set update)."""
+        try:
+            service, instance = keys.parse_alive(str(sample.key_expr))
+        except ValueError:
+            return  # not a service token
+        with self._alive_lock:
+            self._alive[(service, instance)] = sample.kind == zenoh.SampleKind.PUT
 
     def _work(self) -> None:
         core = self.core
@@ -256,17 +286,18 @@ class ViewerAdapter:
             if batch is None:
                 break
             now = time.monotonic()
+            with self._alive_lock:
+                alive = dict(self._alive)
             try:
+                core.set_alive(alive)
                 core.take(batch)
                 core.flush(now)
             except Exception:  # a bad batch must not end the viewer
                 log.exception("%s: logging a batch of %d failed", SERVICE, len(batch))
                 core.handled += len(batch)
-            core.maybe_send_blueprint(now)
             if batch and self._on_logged is not None:
                 self._on_logged(core.handled)
         core.flush(time.monotonic(), force=True)
-        core.maybe_send_blueprint(time.monotonic(), force=True)  # the final worst set
 
     def finish(self) -> None:
         """Log what is queued, then end the worker (before the recording is closed)."""
@@ -276,28 +307,11 @@ class ViewerAdapter:
         if self.inbox.dropped:
             log.warning("%s: dropped %d messages (viewer behind)", SERVICE, self.inbox.dropped)
         log.info(
-            "%s: %d messages superseded before logging, %d plot rows written, %d blueprints sent",
+            "%s: %d messages superseded before logging, %d plot rows written, %d plot generations",
             SERVICE,
             self.inbox.superseded,
             self.core.rows_written,
-            self.core.blueprints_sent,
-        )
-
-
-def _check_key(kind: str, key: str, message: Message) -> None:
-    """The key's ids must be the message's (a misrouted message is a dead letter)."""
-    parts = key.split("/")
-    if kind == "gps":
-        if not isinstance(message, GpsFix) or parts[1:] != ["gps", message.train]:
-            raise SchemaError(f"GpsFix: key {key} is not {{ns}}/gps/{{train}} of its train")
-        return
-    if len(parts) != 4:
-        raise SchemaError(f"{type(message).__name__}: key {key} is not {{ns}}/{kind}/LINE/SEG")
-    line, segment = parts[-2], parts[-1]
-    if (line, segment) != (getattr(message, "line", None), getattr(message, "segment", None)):
-        raise SchemaError(
-            f"{type(message).__name__}: key says {line}/{segment}, message says "
-            f"{getattr(message, 'line', '?')}/{getattr(message, 'segment', '?')}"
+            self.core.generations,
         )
 
 
@@ -307,8 +321,6 @@ def main(
     sink: Sink,
     *,
     worst_n: int = DEFAULT_WORST_N,
-    blueprint_interval_s: float = DEFAULT_BLUEPRINT_INTERVAL_S,
-    series_flush_s: float = DEFAULT_SERIES_FLUSH_S,
     plot_flush_s: float = DEFAULT_PLOT_FLUSH_S,
     live_flush_s: float = DEFAULT_LIVE_FLUSH_S,
     stop: threading.Event | None = None,
@@ -332,8 +344,6 @@ def main(
             rec,
             network,
             worst_n=worst_n,
-            blueprint_interval_s=blueprint_interval_s,
-            series_flush_s=series_flush_s,
             plot_flush_s=plot_flush_s,
             live_flush_s=live_flush_s,
         )
@@ -349,3 +359,35 @@ def main(
     finally:
         rec.flush(timeout_sec=10.0)
         rec.disconnect()  # closes the file (with its footer), the gRPC server or connection
+
+
+def parse_segment(text: str) -> tuple[str, str]:
+    """``LINE/SEGMENT`` (e.g. ``L1/s00042``) → ``(line, segment)``; ValueError otherwise."""
+    line, _, segment = text.partition("/")
+    if not line or not segment or "/" in segment:
+        raise ValueError(f"segment: expected LINE/SEGMENT (e.g. L1/s00042), got {text!r}")
+    ViewerSelect(line=line, segment=segment)  # the id checks (SchemaError is a ValueError)
+    return line, segment
+
+
+def main_select(conf: RuntimeConfig, segment: str, timeout_s: float = SELECT_TIMEOUT_S) -> int:
+    """``trackfusion viewer select LINE/SEGMENT``: publish a ViewerSelect once a viewer
+    listens; 0, or 1 if no viewer subscribed within ``timeout_s``."""
+    line, seg = parse_segment(segment)
+    with zenoh.open(zenoh_config(conf)) as session:
+        publisher = session.declare_publisher(keys.viewer_select(conf.ns))
+        matched = threading.Event()
+        listener = publisher.declare_matching_listener(
+            lambda status: status.matching and matched.set()
+        )
+        try:
+            # the router knows a viewer's subscription: the put reaches it
+            if not publisher.matching_status.matching and not matched.wait(timeout_s):
+                print(f"viewer select: no viewer listens in namespace {conf.ns}", file=sys.stderr)
+                return 1
+            publisher.put(encode(ViewerSelect(line=line, segment=seg)))
+        finally:
+            listener.undeclare()
+            publisher.undeclare()
+    print(f"viewer: plotting {line}/{seg} in the selected row")
+    return 0

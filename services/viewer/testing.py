@@ -58,3 +58,11 @@ def blueprint_views(path: Path) -> set[tuple[str, str]]:
     result = rerun_cli("rrd", "print", "-vvv", path)
     assert result.returncode == 0, f"rerun rrd print -vvv {path}:\n{result.stderr}"
     return {(m[1], m[3]) for m in _VIEW_ROW.finditer(result.stdout)}
+
+
+def rrd_printout(path: Path) -> str:
+    """``rerun rrd print -vvv`` of a recording: every chunk's cells (long texts cut after
+    their first lines)."""
+    result = rerun_cli("rrd", "print", "-vvv", path)
+    assert result.returncode == 0, f"rerun rrd print -vvv {path}:\n{result.stderr}"
+    return result.stdout

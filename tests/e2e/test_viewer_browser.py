@@ -72,8 +72,6 @@ def test_headless_chromium_renders_the_web_viewer(
                 sink,
                 stop=stop,
                 handle_signals=False,
-                blueprint_interval_s=0.0,  # the worst segments' plots at once
-                series_flush_s=0.0,
                 on_logged=lambda total: total >= expected and logged.set(),
                 out=out,
             )

@@ -1,17 +1,31 @@
 """The viewer service in-process on a real router, writing ``--rrd``: what is published
-lands in the recording under the documented entity paths, bad payloads become dead letters."""
+lands in the recording under the documented entity paths, bad payloads become dead letters,
+``viewer select`` pins a segment and the health board shows liveliness tokens, then what
+``trackfusion up`` reports."""
 
 from __future__ import annotations
 
+import re
 import threading
 from pathlib import Path
 
 import zenoh
 
-from schemas import Alert, DeadLetter, GpsFix, OnboardIndex, TrcRecord, decode, encode, keys
+from schemas import (
+    Alert,
+    DeadLetter,
+    GpsFix,
+    OnboardIndex,
+    ServiceHealth,
+    StackHealth,
+    TrcRecord,
+    decode,
+    encode,
+    keys,
+)
 from services.alerting.testing import T0, make_state, p_top6
 from services.viewer import service as viewer
-from services.viewer.testing import blueprint_views, rrd_contents, verify_rrd
+from services.viewer.testing import blueprint_views, rrd_contents, rrd_printout, verify_rrd
 from simulators.network import DEMO_NETWORK, demo_network
 
 PUT = zenoh.SampleKind.PUT
@@ -43,7 +57,7 @@ def test_viewer_records_published_messages(
     ns = service_config.ns
     rrd = tmp_path / "viewer.rrd"
     line = demo_network().lines["L2"]
-    seg, hot = line.segments[1].id, line.segments[7].id
+    seg, hot, picked = line.segments[1].id, line.segments[7].id, line.segments[20].id
     lon, lat = map(float, line.lonlat_at(line.segments[1].mid_m))
     client = open_session()
     dead = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
@@ -74,6 +88,10 @@ def test_viewer_records_published_messages(
             ],
             keys.state(ns, "L2", hot): [
                 make_state(T0, line="L2", segment=hot, p_exceed=p_top6(1, 0.95))
+            ],
+            keys.state(ns, "L2", picked): [
+                make_state(T0 + k * DAY_S, line="L2", segment=picked, p_exceed=p_top6(1, 0.0))
+                for k in range(2)
             ],
             keys.index(ns, "L2", seg): [
                 OnboardIndex(
@@ -116,7 +134,21 @@ def test_viewer_records_published_messages(
 
         letter = dead.get()
         assert letter.key == keys.trc(ns, "L2", seg) and "TrcRecord" in letter.reason
-        logged.wait_for(sum(map(len, messages.values())))
+        n = sum(map(len, messages.values()))
+        logged.wait_for(n)
+        # what an operator types to see another segment: answered by the running viewer
+        assert viewer.main_select(service_config, f"L2/{picked}") == 0
+        logged.wait_for(n + 1)
+        # what `trackfusion up` publishes each second
+        report = StackHealth(
+            written_at=T0,
+            processes=[ServiceHealth(name="filtering", state="waiting", alive=False, restarts=2)],
+            stalled=[],
+            counts={"state": 6},
+            healthy=False,
+        )
+        client.put(keys.stack_health(ns), encode(report))
+        logged.wait_for(n + 2)
     finally:
         stop.set()
         thread.join(TIMEOUT_S)
@@ -124,19 +156,38 @@ def test_viewer_records_published_messages(
 
     verify_rrd(rrd)
     contents = rrd_contents(rrd)
+
+    def rows(pattern: str, column: str = "Scalars:scalars") -> int:
+        return sum(
+            columns.get(column, 0)
+            for entity, columns in contents.items()
+            if re.fullmatch(pattern, entity)
+        )
+
     for indicator in ("top6", "align10"):
-        base = f"segments/L2/{seg}/{indicator}"
-        assert contents[f"{base}/state"]["Scalars:scalars"] == 3  # 3 days, written at stop
-        assert contents[f"{base}/onboard"]["Scalars:scalars"] == 1
-        assert contents[f"{base}/trc"]["Scalars:scalars"] == 1
+        # three segments, three worst rows: seg's 3 days, hot's one, picked's 2
+        assert rows(rf"worst/\d/{indicator}/g\d+/state") == 3 + 1 + 2
+        assert rows(rf"worst/\d/{indicator}/g\d+/onboard") == 1
+        assert rows(rf"worst/\d/{indicator}/g\d+/trc") == 1
+        assert rows(rf"selected/{indicator}/g\d+/state") == 2  # the selected segment's history
     assert contents["map/segments"]["LineStrips2D:strips"] == 1  # the network, static
     assert contents["map/segments"]["LineStrips2D:colors"] >= 2  # grey, then coloured
     assert contents["map/trains"]["Points2D:positions"] == 1
     assert contents["alerts"]["TextLog:text"] == 2
-    # the blueprint: the initial one and the final one with the worst segments' plots
+    printout = rrd_printout(rrd)
+    assert f"L2/{picked}" in printout  # in the plotted-segments table
+    assert "No report from `trackfusion up`" in printout  # first the liveliness tokens
+    assert "**trackfusion up**: **not healthy**" in printout  # then up's report
+    # the one blueprint: map, alert log, health, the slots' plots
     views = blueprint_views(rrd)
-    assert {("2D", "map"), ("TextLog", "alerts")} <= views
+    assert {("2D", "map"), ("TextLog", "alerts"), ("TextDocument", "health")} <= views
     assert {
-        ("TimeSeries", f"segments/L2/{hot}/top6"),
-        ("TimeSeries", f"segments/L2/{seg}/align10"),
+        ("TimeSeries", "worst/1/top6"),
+        ("TimeSeries", "worst/3/align10"),
+        ("TimeSeries", "selected/top6"),
     } <= views
+
+
+def test_viewer_select_without_a_viewer_says_so(service_config, capsys):
+    assert viewer.main_select(service_config, "L1/s00001", timeout_s=0.5) == 1
+    assert "no viewer listens" in capsys.readouterr().err

@@ -1,5 +1,6 @@
-"""The viewer core: colour map, worst-segment selection, blueprint rate limit, and what it
-writes to a recording (read back with the ``rerun`` CLI)."""
+"""The viewer core: colour map, worst-segment selection, the one blueprint and its plot
+slots, the health board, and what it writes to a recording (read back with the ``rerun``
+CLI)."""
 
 from __future__ import annotations
 
@@ -10,15 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rerun as rr
-from msgspec.structs import replace
 
-from schemas import Alert, GpsFix, OnboardIndex, TrcRecord
+from schemas import Alert, GpsFix, OnboardIndex, ServiceHealth, StackHealth, TrcRecord, ViewerSelect
 from services.alerting.testing import T0, make_state, p_top6
 from services.viewer.core import (
     UNKNOWN_RGB,
     ViewerCore,
     build_blueprint,
     exceedance_color,
+    health_markdown,
     segment_exceedance,
     select_worst,
     select_worst_sticky,
@@ -67,17 +68,20 @@ def test_select_worst_highest_first_ties_by_key():
     assert select_worst(p, 0) == [] and select_worst({}, 3) == []
 
 
-def test_blueprint_has_map_one_row_per_worst_segment_and_alert_log():
-    blueprint = build_blueprint([("L1", "s00001", 0.8), ("L2", "s00005", 0.4)])
-    top, alerts = blueprint.root_container.contents  # Vertical(top, alerts)
-    map_view, worst = top.contents
-    assert map_view.origin == "map" and alerts.origin == "alerts"
-    assert [[v.origin for v in row.contents] for row in worst.contents] == [
-        ["segments/L1/s00001/top6", "segments/L1/s00001/align10"],
-        ["segments/L2/s00005/top6", "segments/L2/s00005/align10"],
+def test_one_blueprint_map_logs_and_a_fixed_row_per_slot():
+    blueprint = build_blueprint(2)
+    (root,) = [blueprint.root_container]
+    left, right = root.contents
+    map_view, below = left.contents
+    alerts, ranking, health = below.contents
+    assert map_view.origin == "map" and alerts.origin == "alerts" and health.origin == "health"
+    assert ranking.origin == "worst/ranking"
+    rows = right.contents
+    assert [[v.origin for v in row.contents] for row in rows] == [
+        ["worst/1/top6", "worst/1/align10"],
+        ["worst/2/top6", "worst/2/align10"],
+        ["selected/top6", "selected/align10"],
     ]
-    (only_map,) = build_blueprint([]).root_container.contents[0].contents
-    assert only_map.origin == "map"
 
 
 @pytest.fixture
@@ -91,22 +95,96 @@ def recording(tmp_path: Path) -> Iterator[tuple[rr.RecordingStream, Path]]:
         rec.disconnect()
 
 
-def test_blueprint_resent_only_when_worst_set_changes_and_interval_passed(recording):
+def test_slots_keep_their_segment_and_a_new_one_gets_a_new_generation(recording):
     rec, _ = recording
-    core = ViewerCore(rec, None, worst_n=2, blueprint_interval_s=5.0)
+    core = ViewerCore(rec, None, worst_n=2, plot_flush_s=5.0, live_flush_s=1.0)
     core.start(now=0.0)
-    assert core.blueprints_sent == 1  # the map and the alert log, no segment yet
+    assert core.blueprints_sent == 1
     core.take([make_state(T0, segment="s1", p_exceed=p_top6(1, 0.7))])
-    assert not core.maybe_send_blueprint(1.0)  # one plot of two: wait for the interval
+    core.flush(0.0)
+    assert core.shown() == {"worst/1": ("L1", "s1"), "worst/2": None, "selected": None}
     core.take([make_state(T0, segment="s2", p_exceed=p_top6(1, 0.2))])
-    assert core.maybe_send_blueprint(1.5)  # the plots filled for the first time: at once
-    assert not core.maybe_send_blueprint(20.0)  # same worst set: nothing to send
-    core.take([make_state(T0 + DAY_S, segment="s3", p_exceed=p_top6(1, 0.9))])
-    assert not core.maybe_send_blueprint(3.0)  # changed: too soon
-    assert core.maybe_send_blueprint(7.0) and core.worst() == [("L1", "s3"), ("L1", "s1")]
-    core.take([make_state(T0 + DAY_S, segment="s2", p_exceed=p_top6(1, 1.0))])  # > 0.7 + 0.25
-    assert core.maybe_send_blueprint(8.0, force=True)
-    assert core.blueprints_sent == 4
+    core.flush(0.5)  # a slot can be filled: at once, not after plot_flush_s
+    assert core.shown()["worst/2"] == ("L1", "s2") and core.generations == 2
+    core.take([make_state(T0 + DAY_S, segment="s3", p_exceed=p_top6(1, 0.4))])  # +0.2: sticky
+    core.flush(10.0)
+    assert set(core.shown().values()) == {("L1", "s1"), ("L1", "s2"), None}
+    core.take([make_state(T0 + DAY_S, segment="s3", p_exceed=p_top6(1, 0.9))])  # > 0.2 + 0.25
+    core.flush(12.0)  # not due: plot_flush_s
+    assert core.shown()["worst/2"] == ("L1", "s2")
+    core.flush(15.0)
+    assert core.shown() == {"worst/1": ("L1", "s1"), "worst/2": ("L1", "s3"), "selected": None}
+    assert core.generations == 3  # s1 stayed where it was
+    core.take([ViewerSelect(line="L1", segment="s2")])
+    core.flush(15.5)  # a selection is answered at once
+    assert core.shown()["selected"] == ("L1", "s2") and core.generations == 4
+    assert core.blueprints_sent == 1
+
+
+def test_a_slot_that_changes_segment_hides_the_previous_generation(recording):
+    rec, path = recording
+    core = ViewerCore(rec, None, worst_n=1)
+    core.start(now=0.0)
+    old = [make_state(T0 + k * DAY_S, segment="old", p_exceed=p_top6(1, 0.3)) for k in range(3)]
+    core.log_batch(old)
+    new = [make_state(T0 + k * DAY_S, segment="new", p_exceed=p_top6(1, 0.9)) for k in range(5)]
+    core.log_batch(new)
+    core.log_batch([make_state(T0 + 5 * DAY_S, segment="new", p_exceed=p_top6(1, 0.9))])
+    rec.flush()
+    rec.disconnect()
+    contents = rrd_contents(path)
+    for indicator in ("top6", "align10"):
+        # the first generation: its 3 rows, its style, then hidden
+        assert contents[f"worst/1/{indicator}/g1/state"]["Scalars:scalars"] == 3
+        assert contents[f"worst/1/{indicator}/g1/state"]["SeriesLines:visible_series"] == 1
+        # the second: the new segment's whole history at once, then its next row
+        assert contents[f"worst/1/{indicator}/g2/state"]["Scalars:scalars"] == 6
+        assert "SeriesLines:visible_series" not in contents[f"worst/1/{indicator}/g2/state"]
+    assert contents["worst/ranking"]["TextDocument:text"] == 2
+
+
+def test_health_board_from_up_or_from_liveliness_tokens():
+    stack = StackHealth(
+        written_at=T0,
+        processes=[
+            ServiceHealth(name="filtering", state="running", alive=True, restarts=0),
+            ServiceHealth(
+                name="alerting",
+                state="waiting",
+                alive=False,
+                restarts=2,
+                last_restart_reason="exited with 1 after 12 s",
+            ),
+        ],
+        stalled=["index arriving but no state published for 31 s"],
+        counts={},
+        healthy=False,
+    )
+    text = health_markdown(stack, {})
+    assert "| alerting | waiting | **no** | 2 | exited with 1 |" in text
+    assert "| filtering | running | yes | 0 |  |" in text
+    assert "**STALLED: index arriving but no state published**" in text  # no seconds
+    tokens = health_markdown(None, {("filtering", "f0"): True, ("alerting", "a0"): False})
+    assert "| alerting | a0 | **no** |" in tokens and "| filtering | f0 | yes |" in tokens
+    assert "none yet" in health_markdown(None, {})
+
+
+def test_health_is_logged_when_it_changes_and_up_goes_stale(recording):
+    rec, path = recording
+    core = ViewerCore(rec, None, live_flush_s=1.0)
+    core.start(now=0.0)  # "none yet"
+    core.set_alive({("filtering", "f0"): True})
+    core.flush(1.0)
+    core.flush(2.0)  # the same text: not logged again
+    report = StackHealth(written_at=T0, processes=[], stalled=[], counts={}, healthy=True)
+    core.take([report])
+    core.flush(3.0)
+    assert "trackfusion up" in core._health_text
+    core.flush(4.0 + 5.0)  # no report for more than 5 s: the tokens again
+    assert "liveliness tokens" in core._health_text
+    rec.flush()
+    rec.disconnect()
+    assert rrd_contents(path)["health"]["TextDocument:text"] == 4
 
 
 def test_core_writes_series_map_trains_and_alerts(recording):
@@ -149,37 +227,39 @@ def test_core_writes_series_map_trains_and_alerts(recording):
         ),  # fmt: skip
     ]
     assert core.log_batch(batch) == len(batch)
-    assert core.maybe_send_blueprint(1.0, force=True)  # plotted: static styles, kept points
-    never_plotted = line.segments[9].id  # its state rows, no style, its on-board points kept
-    core.log_batch(
-        [make_state(T0, segment=never_plotted), replace(batch[3], segment=never_plotted)]
-    )
-    # the same colour again: the line's colours are not re-logged
+    assert core.shown()["worst/1"] == ("L1", seg)
+    # the same colour again: the colours are not re-logged; a newer state is one more row
     core.log_batch([make_state(T0 + 4 * DAY_S, segment=seg, p_exceed=p_top6(1, 0.6))])
     rec.flush()
     rec.disconnect()
 
     verify_rrd(path)
     contents = rrd_contents(path)
-    base = f"segments/L1/{seg}"
+    base = "worst/1/{}/g1"
     for indicator in ("top6", "align10"):
         # estimate, band, limits: one row per state (days 0, 1, 2 and 4), one static style
-        assert contents[f"{base}/{indicator}/state"]["Scalars:scalars"] == 4
-        assert contents[f"{base}/{indicator}/state"]["SeriesLines:colors"] == 1
+        assert contents[f"{base.format(indicator)}/state"]["Scalars:scalars"] == 4
+        assert contents[f"{base.format(indicator)}/state"]["SeriesLines:colors"] == 1
         for series in ("onboard", "trc"):
-            assert contents[f"{base}/{indicator}/{series}"]["Scalars:scalars"] == 1
-            assert contents[f"{base}/{indicator}/{series}"]["SeriesPoints:markers"] == 1
-    assert contents[f"segments/L1/{never_plotted}/top6/state"] == {"Scalars:scalars": 1}
-    assert f"segments/L1/{never_plotted}/top6/onboard" not in contents
+            assert contents[f"{base.format(indicator)}/{series}"]["Scalars:scalars"] == 1
+            assert contents[f"{base.format(indicator)}/{series}"]["SeriesPoints:markers"] == 1
+    assert not any(entity.startswith("segments/") for entity in contents)  # only the slots
     assert contents["map/segments"]["LineStrips2D:strips"] == 1  # static geometry, all lines
-    assert contents["map/segments"]["LineStrips2D:colors"] == 3  # grey, two changes
+    assert contents["map/segments"]["LineStrips2D:colors"] == 2  # grey, then one change
     assert contents["map/trains"]["Points2D:positions"] == 1  # T1 only: T2 had no fix
     assert contents["alerts"]["TextLog:level"] == 1
+    # what an operator reads on the map: tunnels, stations, line names, the colour scale
+    n_tunnels = sum(len(ln.tunnels) for ln in network.lines.values())
+    assert contents["map/tunnels"]["LineStrips2D:strips"] == 1 and n_tunnels == 2
+    assert contents["map/stations"]["Points2D:labels"] == 1
+    assert contents["map/lines"]["Points2D:labels"] == 1
+    assert contents["map/legend/colors"]["Points2D:colors"] == 1
+    assert contents["map/legend/labels"]["Points2D:labels"] == 1
 
 
-def test_series_thinned_to_the_newest_per_segment_and_event_day_per_flush(recording):
+def test_history_thinned_to_the_newest_per_segment_and_event_day(recording):
     rec, path = recording
-    core = ViewerCore(rec, None, series_flush_s=10.0, live_flush_s=1.0)
+    core = ViewerCore(rec, None, worst_n=1, plot_flush_s=10.0, live_flush_s=1.0)
     core.start(now=0.0)
     hour = 3600.0
     day0 = [make_state(T0 + k * hour, p_exceed=p_top6(1, 0.1 * k)) for k in range(4)]
@@ -187,17 +267,16 @@ def test_series_thinned_to_the_newest_per_segment_and_event_day_per_flush(record
     core.take([day0[3], day0[0], day1, day0[2], day0[1]])  # order of arrival does not matter
     core.flush(0.0)  # the first flush writes at once: one row for day 0 (its last), one for day 1
     assert core.rows_written == 2 * 2  # two rows, two indicators
-    late = make_state(T0 + 2 * hour, p_exceed=p_top6(1, 0.9))  # day 0 again, after day 1
-    core.take([make_state(T0 + DAY_S + 5 * hour, p_exceed=p_top6(1, 0.6)), late])
-    assert core.p_exceed[("L1", "s1")] == pytest.approx(0.6)  # the ranking keeps the newest
+    core.take([make_state(T0 + DAY_S + 5 * hour, p_exceed=p_top6(1, 0.6))])
+    assert core.p_exceed[("L1", "s1")] == pytest.approx(0.6)
     core.flush(5.0)  # not due yet
     assert core.rows_written == 4
     core.take([make_state(T0 + DAY_S + 6 * hour, p_exceed=p_top6(1, 0.7))])
-    core.flush(10.0)  # day 1's newest and the late day-0 state
-    assert core.rows_written == 4 + 2 * 2
+    core.flush(10.0)  # day 1's newest
+    assert core.rows_written == 4 + 2
     rec.flush()
     rec.disconnect()
-    assert rrd_contents(path)["segments/L1/s1/top6/state"]["Scalars:scalars"] == 4
+    assert rrd_contents(path)["worst/1/top6/g1/state"]["Scalars:scalars"] == 3
 
 
 def test_inbox_keeps_the_newest_per_key_and_every_alert():
@@ -231,26 +310,6 @@ def test_inbox_keeps_the_newest_per_key_and_every_alert():
     assert inbox.dropped == 1
     inbox.close()
     assert inbox.take(timeout=None) is None
-
-
-def test_plotted_segments_written_every_plot_flush_the_rest_every_series_flush(recording):
-    rec, _ = recording
-    core = ViewerCore(
-        rec, None, worst_n=1, series_flush_s=60.0, plot_flush_s=10.0, live_flush_s=1.0
-    )
-    core.start(now=0.0)
-    core.flush(0.0)  # the first flush: everything (nothing yet)
-    hot = make_state(T0, segment="hot", p_exceed=p_top6(1, 0.9))
-    core.take([hot, make_state(T0, segment="cold", p_exceed=p_top6(1, 0.1))])
-    assert core.maybe_send_blueprint(0.5) and core.worst() == [("L1", "hot")]
-    core.flush(1.0)  # live only: map colours
-    assert core.rows_written == 0
-    core.flush(10.0)  # the plotted segment's row (two indicators)
-    assert core.rows_written == 2
-    core.flush(30.0)
-    assert core.rows_written == 2
-    core.flush(60.0)  # the series flush: the rest
-    assert core.rows_written == 4
 
 
 def test_select_worst_sticky_keeps_plotted_segments_through_near_ties():
