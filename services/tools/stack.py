@@ -8,7 +8,8 @@ tokens), trains seen, messages per second, segments tracked, alerts raised.
 policy), and so is one whose liveliness token has been missing for ``token_missing_s``
 after it was first seen (SIGTERM, SIGKILL after the grace period), with an exponential
 backoff. The board flags stalled flows (indices arriving but no state published, GPS but
-no index) and is written each second to ``{state_dir}/health.json`` for programs to read.
+no index) and is written each second to ``{state_dir}/health.json`` for programs to read
+and published on ``{ns}/health/stack`` (a StackHealth) for the viewer's health board.
 Supervision runs on ``time.monotonic()``: it is about wall time, not event time.
 Ctrl-C (or SIGTERM) stops the children (SIGTERM, SIGKILL after 5 s) and then the router.
 """
@@ -33,7 +34,7 @@ from typing import Any, TextIO
 import json5
 import zenoh
 
-from schemas import Alert, SchemaError, decode, keys
+from schemas import Alert, SchemaError, ServiceHealth, StackHealth, decode, encode, keys
 from services.defaults import default_file
 from services.runtime.config import default_instance, zenoh_config
 
@@ -621,6 +622,10 @@ def main(stack_path: str | Path = DEFAULT_STACK, *, out: TextIO = sys.stdout, **
                 if not board.viewer_url:
                     board.viewer_url = viewer_url(stack.state_dir / "viewer.log")
                 health = supervisor.health(now)
+                try:  # on the bus too, for the viewer's health board
+                    session.put(keys.stack_health(stack.ns), encode(health_message(health)))
+                except zenoh.ZError as exc:
+                    log.warning("cannot publish the health report: %s", exc)
                 try:
                     supervisor.write_health(health)
                 except OSError as exc:  # a full disk must not stop the supervision
@@ -639,6 +644,29 @@ def main(stack_path: str | Path = DEFAULT_STACK, *, out: TextIO = sys.stdout, **
             signal.signal(sig, handler)
     print("stack stopped", file=out)
     return 0
+
+
+def health_message(health: dict[str, Any]) -> StackHealth:
+    """The StackHealth message of a :meth:`Supervisor.health` dict (what the viewer shows)."""
+    return StackHealth(
+        written_at=health["written_at"],
+        processes=[
+            ServiceHealth(
+                name=name,
+                state=p["state"],
+                alive=bool(p["alive"]),
+                restarts=p["restarts"],
+                last_restart_reason=p["last_restart_reason"] or "",
+                pid=p["pid"],
+                uptime_s=p["uptime_s"],
+            )
+            for name, p in health["processes"].items()
+        ],
+        stalled=list(health["stalled"]),
+        counts=dict(health["counts"]),
+        healthy=bool(health["healthy"]),
+        viewer_url=health["viewer_url"] or "",
+    )
 
 
 def viewer_url(log_path: Path) -> str:

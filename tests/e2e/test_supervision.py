@@ -18,7 +18,7 @@ import json5
 import pytest
 import zenoh
 
-from schemas import keys
+from schemas import StackHealth, decode, keys
 from services.runtime.config import zenoh_config
 
 START_S = 60.0  # upper bound for processes to start on two loaded cores
@@ -79,7 +79,7 @@ def alive(name: str) -> Callable[[dict], bool]:
     return lambda h: h["processes"][name]["alive"]
 
 
-def test_a_killed_child_is_started_again_and_its_token_comes_back(up, liveliness_events):
+def test_a_killed_child_is_started_again_and_its_token_comes_back(up, liveliness_events, collector):
     stack = up([{"name": "ingestion", "args": ["--instance", "ingestion"]}])
     first = stack.until(alive("ingestion"))["processes"]["ingestion"]
     with stack.client() as session:
@@ -98,6 +98,15 @@ def test_a_killed_child_is_started_again_and_its_token_comes_back(up, liveliness
     child_log = (stack.state_dir / "ingestion.log").read_text()
     assert "restarted by up: exited with SIGKILL" in child_log
     assert "ingestion: restart 1 (exited with SIGKILL" in stack.process.log_path.read_text()
+    # the same report on the bus, for the viewer's health board
+    with stack.client() as session:
+        reports = collector(lambda sample: decode(sample.payload.to_bytes(), StackHealth))
+        subscriber = session.declare_subscriber(keys.stack_health(stack.ns), reports)
+        report = reports.get(START_S)
+        subscriber.undeclare()
+    (ingestion,) = report.processes
+    assert (ingestion.name, ingestion.alive, ingestion.restarts) == ("ingestion", True, 1)
+    assert "SIGKILL" in ingestion.last_restart_reason and report.healthy
 
 
 def test_a_child_whose_token_is_gone_is_stopped_and_started_again(up, liveliness_events):
