@@ -17,6 +17,7 @@ import threading
 import time
 
 import zenoh
+from support import wait_for
 
 from schemas import keys
 from services.runtime.service import EXIT_SESSION_LOST, ServiceRuntime
@@ -56,12 +57,15 @@ def test_a_stalled_worker_neither_loses_its_session_nor_messages(
         started = time.monotonic()
         for _ in range(FLOOD):
             publisher.put(PAYLOAD)
-        # the flood is in flight; hold the worker past the router's 5 s wait_before_close
-        # as measured from the last put, so a blocked session would have been cut by now
+        # the flood is in flight; hold the worker until all of it is in the inbox (a session
+        # whose callbacks blocked would have been cut by the router's 5 s wait_before_close
+        # long before, and what was queued on it lost)
         flood_s = time.monotonic() - started
-        deadline = time.monotonic() + 6.0
-        while time.monotonic() < deadline and inbox.stats().received < FLOOD:
-            rt.stop_event.wait(0.05)  # poll the inbox's counter, not a fixed sleep
+        wait_for(
+            lambda: inbox.stats().received >= FLOOD,
+            WAIT_S,
+            lambda: f"the flood in the inbox ({inbox.stats()})",
+        )
         gate.set()
 
         assert all_handled.wait(WAIT_S), f"handled {handled} of {FLOOD} ({inbox.stats()})"

@@ -43,7 +43,7 @@ def _bytes(events) -> list[bytes]:
     return [encode(m) for _, msgs in events for m in msgs]
 
 
-def _all_events(net, cfg, seed, days=90):
+def _all_events(net, cfg, seed, days=30):
     return list(
         heapq.merge(
             truth_events(net, cfg, T0, days, seed),
@@ -56,7 +56,7 @@ def _all_events(net, cfg, seed, days=90):
 
 def test_same_seed_same_bytes_other_seed_other_bytes(net, cfg):
     a, b = _all_events(net, cfg, 5), _all_events(net, cfg, 5)
-    assert _bytes(a) == _bytes(b) and len(a) > 20_000
+    assert _bytes(a) == _bytes(b) and len(a) > 5_000
     assert {type(m) for _, msgs in a for m in msgs} == {MaintenanceEvent, TrcRecord, OnboardIndex}
     assert _bytes(a) != _bytes(_all_events(net, cfg, 6))
     t = [t for t, _ in a]
@@ -264,7 +264,7 @@ def test_index_passes_cover_every_segment(net, cfg):
 
 
 def test_ground_truth_file_round_trip(net, cfg, tmp_path):
-    days, seed = 100, 9
+    days, seed = 30, 9
     path = tmp_path / "truth.sqlite"
     published = _all_events(net, cfg, seed, days)
     with GroundTruthWriter(path, net, cfg, T0, days, seed) as gt:
@@ -279,7 +279,7 @@ def test_ground_truth_file_round_trip(net, cfg, tmp_path):
     np.testing.assert_array_equal(d["mu"], truth.mu)
     np.testing.assert_array_equal(d["sigma"], truth.sigma)
     assert d["line"].tolist() == [k[0] for k in truth.keys]
-    assert d["tamping_event_id"].tolist() == [tp.event_id for tp in taps]
+    assert taps and d["tamping_event_id"].tolist() == [tp.event_id for tp in taps]
     assert d["meta"]["seed"] == str(seed) and float(d["meta"]["days"]) == days
     trc = [m for _, ms in published for m in ms if isinstance(m, TrcRecord)]
     assert len(d["trc_t"]) == len(trc)

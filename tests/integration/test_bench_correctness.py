@@ -1,7 +1,8 @@
 """Smoke test of bench/correctness.py: the --quick run computes finite figures.
 
 No performance or target assertions (the real figures come from the default run, see the
-README); only that the machinery works end to end on the pure cores.
+README); only that the machinery works end to end on the pure cores. An integration test:
+it runs the simulator and every core over weeks of a world, as a process (tens of seconds).
 """
 
 from __future__ import annotations
@@ -47,7 +48,11 @@ def test_quick_run_computes_finite_figures():
     for key in ("fused", "alone"):
         assert all(x is not None and math.isfinite(x) and x > 0 for x in rmse[key])
     crossings = fig["crossings_fused"]
-    assert crossings["n"] >= 0 and 0 <= crossings["preceded"] <= crossings["n"]
+    assert crossings["n"] > 0, "the quick world's truth crosses no limit: nothing checked"
+    assert crossings["n"] == len(crossings["detail"])
+    assert crossings["n"] == sum(line["crossings"] for line in crossings["by_line"].values())
+    assert crossings["preceded"] == sum(line["preceded"] for line in crossings["by_line"].values())
+    assert 0 <= crossings["preceded"] <= crossings["n"]
     assert fig["n_states"]["fused"] > fig["n_states"]["alone"] > 0
     assert fig["calibration"]["version"] >= 2  # fitted on the campaign's pairs
     assert fig["counts"]["withheld_TrcRecord"] > 0  # the TRC cut-off is in effect
