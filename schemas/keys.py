@@ -103,6 +103,11 @@ def calibration(ns: str) -> str:
     return _key(ns, "model", "calibration")
 
 
+def unit_calibration(ns: str, train: str, unit: str) -> str:
+    """The calibration of one on-board unit (a Calibration with ``train``, ``unit``)."""
+    return _key(ns, "model", "calibration", train, unit)
+
+
 def degradation(ns: str, group: str) -> str:
     return _key(ns, "model", "degradation", group)
 
@@ -266,9 +271,16 @@ _MESSAGE_KEYS: dict[type[Message], tuple[tuple[str, ...], tuple[str, ...]]] = {
 _ALSO = {SegmentState: (("q", "state"),)}  # a state is also a reply of the state queryable
 
 
+def _key_form(message: Message) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    head, fields = _MESSAGE_KEYS[type(message)]
+    if isinstance(message, Calibration) and message.train:  # a unit's own model
+        fields = ("train", "unit")
+    return head, fields
+
+
 def key_of(ns: str, message: Message) -> str:
     """The key ``message`` is published on: its kind and its own ids."""
-    head, fields = _MESSAGE_KEYS[type(message)]
+    head, fields = _key_form(message)
     return _key(ns, *head, *(getattr(message, f) for f in fields))
 
 
@@ -281,7 +293,7 @@ def check_key(key: str, message: Message) -> None:
     """
     message_type = type(message)
     name = message_type.__name__
-    head, fields = _MESSAGE_KEYS[message_type]
+    head, fields = _key_form(message)
     parts = str(key).split("/")
     for kind_chunks in (head, *_ALSO.get(message_type, ())):
         if tuple(parts[1 : 1 + len(kind_chunks)]) == kind_chunks:

@@ -243,11 +243,19 @@ class Calibration(Message, frozen=True, kw_only=True):
     R: NDArray  # (m, m) f8, symmetric positive definite
     n_pairs: int
     r2: NDArray  # (m,) f8, coefficient of determination per index
+    # The on-board unit this model is of (its indices' train and unit ids); both empty: the
+    # fleet's model, used for every unit without a model of its own.
+    train: str = ""
+    unit: str = ""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_int("version", self.version, 1, INT_MAX)
         _check_model_time("t", self.t)
+        check(bool(self.train) == bool(self.unit), "train/unit: both given or both empty")
+        if self.train:
+            check_id("train", self.train)
+            check_id("unit", self.unit)
         n, m = len(self.indicators), len(self.indices)
         check(n > 0 and m > 0, "indicators/indices: must not be empty")
         check_array("H", self.H, (m, n))

@@ -183,6 +183,17 @@ class Models:
     observation: ObservationModel | None = None
     posteriors: Mapping[str, DegradationPosterior] = field(default_factory=dict)
     params: Mapping[str, DegradationParams] = field(default_factory=dict)
+    # the units' own calibrations, by (train, unit); a unit without one uses the fleet's
+    unit_calibrations: Mapping[tuple[str, str], Calibration] = field(default_factory=dict)
+    unit_observations: Mapping[tuple[str, str], ObservationModel] = field(default_factory=dict)
+
+    def observation_for(self, train: str, unit: str) -> ObservationModel | None:
+        """The model an index of ``(train, unit)`` is read with: its own, else the fleet's."""
+        return self.unit_observations.get((train, unit), self.observation)
+
+    def observation_for_event(self, event: Event) -> ObservationModel | None:
+        msg = event.message
+        return self.observation_for(msg.train, msg.unit)
 
     def group_for(self, line: str, segment: str) -> str | None:
         """The most specific posterior group available for the segment, or None."""
@@ -196,7 +207,7 @@ def model_name(msg: ModelMessage) -> str:
     """The name a model is versioned under: ``calibration`` or ``degradation/{group}``."""
     match msg:
         case Calibration():
-            return "calibration"
+            return f"calibration/{msg.train}/{msg.unit}" if msg.train else "calibration"
         case DegradationPosterior():
             return f"degradation/{msg.group}"
     raise TypeError(f"not a model: {type(msg).__name__}")
@@ -261,6 +272,13 @@ def parse_model(msg: ModelMessage) -> ObservationModel | DegradationParams:
 
 
 def _with_parsed(models: Models, msg: ModelMessage, parsed) -> Models:
+    if isinstance(msg, Calibration) and msg.train:
+        unit = (msg.train, msg.unit)
+        return replace(
+            models,
+            unit_calibrations={**models.unit_calibrations, unit: msg},
+            unit_observations={**models.unit_observations, unit: parsed},
+        )
     if isinstance(msg, Calibration):
         return replace(models, calibration=msg, observation=parsed)
     return replace(
@@ -272,7 +290,12 @@ def _with_parsed(models: Models, msg: ModelMessage, parsed) -> Models:
 
 def held_version(models: Models, msg: ModelMessage) -> int | None:
     """The version of the model held under ``msg``'s name, None if none is held."""
-    held = models.calibration if isinstance(msg, Calibration) else models.posteriors.get(msg.group)
+    if isinstance(msg, Calibration):
+        held = (
+            models.unit_calibrations.get((msg.train, msg.unit)) if msg.train else models.calibration
+        )
+    else:
+        held = models.posteriors.get(msg.group)
     return None if held is None else held.version
 
 
@@ -471,7 +494,7 @@ def low_score(z, P, y, obs: ObservationModel, log_w) -> np.ndarray:
     """
     h = obs.H.sum(axis=0)  # H^T 1
     nu = y.sum(-1)[:, None] - (z @ h + obs.b.sum())
-    v = np.einsum("i,ksij,j->ks", h, P, h) + obs.R.sum()
+    v = (P @ h) @ h + obs.R.sum()
     w = np.exp(log_w - log_w.max(-1, keepdims=True))
     w /= w.sum(-1, keepdims=True)
     mean = (w * nu).sum(-1)
@@ -499,16 +522,19 @@ def fold_many(
     starts: Sequence[Filtered | None],
     logs: Sequence[Sequence[Event]],
     params: Sequence[DegradationParams],
-    obs: ObservationModel | None,
+    obs: ObservationModel | Models | None,
 ) -> list[Filtered | None]:
     """Fold each ``logs[i]`` from ``starts[i]`` with ``params[i]``, all segments at once.
 
     One vectorised step per event position ``k``: the segments are ordered by decreasing
     log length, so those still holding a k-th event are a prefix, and split by the kind of
-    that event. Bit-identical to folding each segment alone (see :class:`_Banks`). Every
-    ``params[i]`` must have the same ``(Ns, n)``; ``obs`` must not be None if an index
-    follows a start (the caller checks it, see :func:`_publishable`).
+    that event (and an index's rows by the observation model of its unit). Bit-identical to
+    folding each segment alone (see :class:`_Banks`). Every ``params[i]`` must have the same
+    ``(Ns, n)``; ``obs`` is one observation model for every index, or the :class:`Models`
+    whose :meth:`~Models.observation_for` gives each index its unit's; there must be one
+    for an index that follows a start (the caller checks it, see :func:`_publishable`).
     """
+    obs_for = obs.observation_for_event if isinstance(obs, Models) else (lambda _e: obs)
     size = len(logs)
     if size == 0:
         return []
@@ -518,6 +544,9 @@ def fold_many(
     kinds = np.full((size, depth), -1, dtype=np.int8)
     times = np.zeros((size, depth))
     values = np.zeros((size, depth, n))
+    obs_ids = np.full((size, depth), -1, dtype=np.int32)  # an index's model in ``observations``
+    observations: list[ObservationModel] = []
+    known: dict[int, int] = {}
     for row, i in enumerate(order):
         log = logs[i]
         kinds[row, : len(log)] = [e.kind for e in log]
@@ -525,6 +554,13 @@ def fold_many(
         for k, e in enumerate(log):
             if e.value is not None:
                 values[row, k] = e.value
+            if e.kind == INDEX:
+                model = obs_for(e)
+                if model is not None:
+                    if id(model) not in known:
+                        known[id(model)] = len(observations)
+                        observations.append(model)
+                    obs_ids[row, k] = known[id(model)]
     banks = _Banks([starts[i] for i in order], ns, n)
     rows_params = _params_of([params[i] for i in order])
     lengths = np.array([len(logs[i]) for i in order])
@@ -544,9 +580,14 @@ def fold_many(
             elif code == TAMPING:
                 banks.tamping(rows, times[rows, k], rows_params)
             else:
-                assert obs is not None
-                last = last_index[rows] == k
-                banks.index(rows, times[rows, k], values[rows, k], rows_params, obs, last)
+                ids = obs_ids[rows, k]
+                assert (ids >= 0).all()
+                for j in np.unique(ids):  # the rows whose index is read by model j
+                    sub = rows if len(observations) == 1 else rows[ids == j]
+                    last = last_index[sub] == k
+                    banks.index(
+                        sub, times[sub, k], values[sub, k], rows_params, observations[j], last
+                    )
     out: list[Filtered | None] = [None] * size
     for row, i in enumerate(order):
         out[i] = banks.state(row)
@@ -586,15 +627,19 @@ class Track:
     group: str | None = None  # posterior group of ``state``
 
 
-def _publishable(log: Sequence[Event], obs: ObservationModel | None, started=False) -> bool:
+def _has_index_of(log: Sequence[Event], units: set[tuple[str, str]]) -> bool:
+    return any(e.kind == INDEX and (e.message.train, e.message.unit) in units for e in log)
+
+
+def _publishable(log: Sequence[Event], models: Models, started=False) -> bool:
     """False if the fold of ``log`` (from a started state if ``started``) needs an update
-    without a calibration."""
-    if obs is not None:
+    without a calibration (neither the index's unit's nor the fleet's)."""
+    if models.observation is not None:
         return True
     for event in log:
         if event.kind != INDEX:
             started = True
-        elif started:
+        elif started and models.observation_for_event(event) is None:
             return False
     return True
 
@@ -604,10 +649,9 @@ def _fold(track: Track, models: Models, events: Sequence[Event], start: Filtered
     group = models.group_for(track.line, track.segment)
     if group is None:
         return None, group
-    obs = models.observation
-    if not _publishable(events, obs, started=start is not None):
+    if not _publishable(events, models, started=start is not None):
         return None, group
-    return fold_many([start], [events], [models.params[group]], obs)[0], group
+    return fold_many([start], [events], [models.params[group]], models)[0], group
 
 
 def replay_many(tracks: Sequence[Track], models: Models) -> list[Track]:
@@ -621,7 +665,7 @@ def replay_many(tracks: Sequence[Track], models: Models) -> list[Track]:
     jobs: dict[int, list[tuple[int, str]]] = {}
     for i, track in enumerate(tracks):
         group = models.group_for(track.line, track.segment)
-        if group is None or not _publishable(track.log, models.observation):
+        if group is None or not _publishable(track.log, models):
             out[i] = replace(track, state=None, group=group)
         else:
             jobs.setdefault(models.params[group].ns, []).append((i, group))
@@ -630,7 +674,7 @@ def replay_many(tracks: Sequence[Track], models: Models) -> list[Track]:
             [None] * len(job),
             [tracks[i].log for i, _ in job],
             [models.params[group] for _, group in job],
-            models.observation,
+            models,
         )
         for (i, group), state in zip(job, states, strict=True):
             out[i] = replace(tracks[i], state=state, group=group)
@@ -858,9 +902,18 @@ class Tracker:
         models, newest, ignored, refused = self._newest_models(msgs)
         if not newest:
             return ModelUpdate([], ignored, refused)
-        calibrated = any(isinstance(msg, Calibration) for msg in newest.values())
+        calibrated = any(isinstance(m, Calibration) and not m.train for m in newest.values())
+        units = {
+            (m.train, m.unit) for m in newest.values() if isinstance(m, Calibration) and m.train
+        }
         groups = {msg.group for msg in newest.values() if isinstance(msg, DegradationPosterior)}
-        affected = [sid for sid in self.tracks if calibrated or models.group_for(*sid) in groups]
+        affected = [
+            sid
+            for sid, track in self.tracks.items()
+            if calibrated
+            or models.group_for(*sid) in groups
+            or (units and _has_index_of(track.log, units))
+        ]
         accepted = [msg for msg in msgs if newest.get(model_name(msg)) is msg]
         try:
             tracks, states = self._rerun(models, affected)

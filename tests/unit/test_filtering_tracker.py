@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import msgpack
+import msgspec
 import numpy as np
 import pytest
 
@@ -12,6 +13,7 @@ from schemas import (
     MaintenanceEvent,
     NDArray,
     OnboardIndex,
+    SchemaError,
     SegmentState,
     TrcRecord,
     encode,
@@ -668,13 +670,13 @@ def replace_msg(msg, **changes):
     return msgspec.structs.replace(msg, **changes)
 
 
-def test_two_years_of_honest_indices_give_no_detection():
+def test_a_year_of_honest_indices_gives_no_detection():
     rng = np.random.default_rng(8)
     tracker = new_tracker()
     for msg in [*MODELS, trc(0.0, *np.exp(Z_PLUS).tolist())]:
         tracker.step(msg)
-    for msg in onboard_days(rng, np.arange(1, 730, 0.5), Z_PLUS, MU):
-        assert not tracker.step(msg).detected
+    reasons, _, detected = tracker.step_events(onboard_days(rng, np.arange(1, 366), Z_PLUS, MU))
+    assert not any(reasons) and detected == []
 
 
 def test_a_reported_tamping_supersedes_a_detected_one_whatever_the_order(tmp_path):
@@ -699,3 +701,64 @@ def test_a_reported_tamping_supersedes_a_detected_one_whatever_the_order(tmp_pat
     assert node.handle(*keyed(detected[0])).reason == "a reported tamping is within 30 days"
     for n in (node, rebuilt):
         n.store.close()
+
+
+def unit_calibration(train: str, unit: str, version: int = 1, shift=(0.1, -0.05)) -> Calibration:
+    return Calibration(
+        version=version,
+        t=T0,
+        indicators=["top6", "align10"],
+        indices=["top6", "align10"],
+        H=NDArray.of(H * 1.05),
+        b=NDArray.of(B + np.asarray(shift)),
+        R=NDArray.of(R * 0.8),
+        n_pairs=20,
+        r2=NDArray.of([0.8, 0.7]),
+        train=train,
+        unit=unit,
+    )
+
+
+def test_an_index_is_read_with_its_units_model_else_the_fleets():
+    own = unit_calibration("T2", "u1")
+    fleet_like_own = replace_msg(own, train="", unit="")
+    passes = [index(d, 2.0 + 0.01 * d, 1.9, train="T2") for d in (3.0, 9.0, 15.0)]
+    with_unit, _ = run([calibration(), own, posterior(), trc(0.0), *passes])
+    as_fleet, _ = run([fleet_like_own, posterior(), trc(0.0), *passes])
+    a, b = with_unit.tracks[("L1", "s1")].state, as_fleet.tracks[("L1", "s1")].state
+    for name in ("z", "P", "log_w"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    # T1 has no model of its own: its index is read with the fleet's
+    others = [index(d, 2.0, 1.9, train="T1") for d in (3.0, 9.0)]
+    fleet_only, _ = run([calibration(), posterior(), trc(0.0), *others])
+    mixed, _ = run([calibration(), own, posterior(), trc(0.0), *others])
+    assert_same_states(fleet_only, mixed)
+
+
+def test_a_units_model_reruns_only_the_segments_it_read_and_matches_one_by_one():
+    rng = np.random.default_rng(3)
+    base = [calibration(), posterior(), trc(0.0), trc(0.0, segment="s2")]
+    msgs = []
+    for d in range(1, 40):
+        msgs.append(index(float(d), *np.exp(rng.normal(0.7, 0.1, 2)).tolist(), train="T2"))
+        msgs.append(index(d + 0.5, *np.exp(rng.normal(0.7, 0.1, 2)).tolist(), segment="s2"))
+    tracker, _ = run([*base, *msgs])
+    update = tracker.update_models([unit_calibration("T2", "u1")])
+    assert [(s.line, s.segment) for s in update.states] == [("L1", "s1")]  # s2: T1 only
+    one_by_one, _ = run([*base, unit_calibration("T2", "u1"), *msgs])
+    assert_same_states(tracker, one_by_one)
+    # a newer version replaces it; an older one is ignored, by the unit's own name
+    assert tracker.update_models([unit_calibration("T2", "u1", 2, (0.2, 0.0))]).accepted
+    assert tracker.update_models([unit_calibration("T2", "u1", 1)]).ignored
+
+
+def test_a_units_calibration_key_carries_its_ids():
+    own = unit_calibration("T2", "u1")
+    assert keys.key_of("tf", own) == "tf/model/calibration/T2/u1"
+    keys.check_key("tf/model/calibration/T2/u1", own)
+    with pytest.raises(SchemaError, match="key says T3/u1"):
+        keys.check_key("tf/model/calibration/T3/u1", own)
+    with pytest.raises(SchemaError):
+        keys.check_key(keys.calibration("tf"), own)  # a unit's model on the fleet's key
+    with pytest.raises(SchemaError, match="both given or both empty"):
+        Calibration(**{**msgspec.structs.asdict(own), "unit": ""})
