@@ -15,10 +15,12 @@ from schemas.messages import (
     DeadLetter,
     DegradationPosterior,
     GpsFix,
+    InspectionPlan,
     MaintenanceEvent,
     Message,
     OnboardIndex,
     PositionedChunk,
+    RaisedAlerts,
     RawChunk,
     SegmentState,
     StackHealth,
@@ -267,6 +269,8 @@ _MESSAGE_KEYS: dict[type[Message], tuple[tuple[str, ...], tuple[str, ...]]] = {
     DeadLetter: (("deadletter",), ("service",)),
     StackHealth: (("health", "stack"), ()),
     ViewerSelect: (("viewer", "select"), ()),
+    RaisedAlerts: (("q", "alerts"), ()),  # replies of the alerting queryables
+    InspectionPlan: (("q", "plan"), ()),
 }
 _ALSO = {SegmentState: (("q", "state"),)}  # a state is also a reply of the state queryable
 

@@ -400,7 +400,7 @@ class DeadLetter(Message, frozen=True, kw_only=True):
         check_finite("received_at", self.received_at)
 
 
-class ServiceHealth(msgspec.Struct, frozen=True, kw_only=True):
+class ServiceHealth(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """One process of ``trackfusion up`` in a :class:`StackHealth` report."""
 
     name: str  # the stack file's process name
@@ -446,6 +446,61 @@ class ViewerSelect(Message, frozen=True, kw_only=True):
         check_id("segment", self.segment)
 
 
+class RaisedAlerts(Message, frozen=True, kw_only=True):
+    """The reply of ``{ns}/q/alerts``: the raised alerts (their ``raised`` messages), by line,
+    segment, kind, indicator and level; empty when nothing is raised."""
+
+    MAX_BYTES: ClassVar[int] = 64 * KIB * KIB  # 100,000 segments with a few ~300-byte alerts each
+    alerts: list[Alert]
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for alert in self.alerts:
+            check(alert.status == "raised", f"alerts: {alert.line}/{alert.segment} is cleared")
+
+
+class PlanRow(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One segment of an :class:`InspectionPlan`."""
+
+    line: str
+    segment: str
+    probability: float  # P(exceeding `level` before next_trc_t), max over indicators
+    indicator: str  # the indicator giving it
+    level: str  # the limit level, e.g. "intervention"
+    limit_mm: float  # that limit on this line
+    next_trc_t: float  # epoch s, expected next TRC run of the line
+    horizon_days: float  # next_trc_t - state_t, >= 0
+    p_now: float  # P(indicator > limit) at state_t
+    state_t: float  # event time of the state the row is computed from
+    estimate_mm: float  # exp(mixture mean of ln mm): the median estimate
+    ci_low_mm: float  # 95 % credible interval at state_t
+    ci_high_mm: float
+
+    def __post_init__(self) -> None:
+        check_id("line", self.line)
+        check_id("segment", self.segment)
+        for name in ("probability", "p_now"):
+            check_range(name, getattr(self, name), 0.0, 1.0)
+        check_finite("limit_mm", self.limit_mm, positive=True)
+        check_time("next_trc_t", self.next_trc_t)
+        check_time("state_t", self.state_t)
+        check_range("horizon_days", self.horizon_days, 0.0, HORIZON_MAX_DAYS)
+        for name in ("estimate_mm", "ci_low_mm", "ci_high_mm"):
+            check_finite(name, getattr(self, name))
+
+
+class InspectionPlan(Message, frozen=True, kw_only=True):
+    """The reply of ``{ns}/q/plan``: which segments the next TRC runs should inspect first."""
+
+    MAX_BYTES: ClassVar[int] = 64 * KIB * KIB  # a row is ~300 bytes: 100,000 segments fit
+    t: float | None  # newest event time the plan is computed at; None before any state
+    rows: list[PlanRow]  # highest probability first (ties by line, segment)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_time("t", self.t)
+
+
 ALL_MESSAGES: tuple[type[Message], ...] = (
     RawChunk,
     GpsFix,
@@ -460,4 +515,6 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     DeadLetter,
     StackHealth,
     ViewerSelect,
+    RaisedAlerts,
+    InspectionPlan,
 )

@@ -65,7 +65,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from schemas import INDICATORS, Alert, MaintenanceEvent, SegmentState, TrcRecord
+from schemas import INDICATORS, Alert, MaintenanceEvent, PlanRow, SegmentState, TrcRecord
 from services.limits import Limits
 
 DAY_S = 86_400.0
@@ -214,25 +214,6 @@ class SegmentMemory:
 
     state: SegmentState
     calm_updates: int = 0  # consecutive normal-NIS updates since the last abnormal one
-
-
-@dataclass(frozen=True)
-class PlanRow:
-    """One segment of the TRC inspection plan."""
-
-    line: str
-    segment: str
-    probability: float  # P(exceeding the plan limit before the next TRC run), max over indicators
-    indicator: str  # the indicator giving that probability
-    level: str  # the limit level, "intervention"
-    limit_mm: float
-    next_trc_t: float  # epoch s, expected next TRC run of the line
-    horizon_days: float  # next_trc_t - state_t, >= 0
-    p_now: float  # P(indicator > limit) at the state's time
-    state_t: float  # event time of the state the row is computed from
-    estimate_mm: float  # exp(mixture mean of ln mm): the median estimate
-    ci_low_mm: float  # 95% credible interval at the state's time
-    ci_high_mm: float
 
 
 class TrcSchedule:

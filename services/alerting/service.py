@@ -4,23 +4,32 @@ Subscribes ``{ns}/state/**`` (SegmentState) and ``{ns}/trc/**`` (TrcRecord, to l
 line's TRC schedule); both subscriptions feed ONE bounded queue drained by ONE worker, so
 the core sees one ordered stream and needs no lock of its own (the queryables take the
 adapter's lock to read it). Alerts go out with ``session.put`` on ``{ns}/alert/{line}/{segment}``;
-``{ns}/q/alerts`` and ``{ns}/q/plan`` answer from the core (payloads: README.md beside this file).
+``{ns}/q/alerts`` and ``{ns}/q/plan`` answer from the core with a RaisedAlerts and an
+InspectionPlan (schemas/README.md).
 The raised set, the segments' last states and the TRC runs persist in SQLite
 (``./var/alerting-{instance}.sqlite`` by default).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import threading
 from pathlib import Path
 
 import json5
-import msgspec
 import zenoh
 
-from schemas import Alert, MaintenanceEvent, SegmentState, TrcRecord, decode, encode, keys
+from schemas import (
+    Alert,
+    InspectionPlan,
+    MaintenanceEvent,
+    RaisedAlerts,
+    SegmentState,
+    TrcRecord,
+    decode,
+    encode,
+    keys,
+)
 from services.alerting.core import AlertingConfig, AlertingCore
 from services.alerting.store import AlertStore
 from services.defaults import default_file
@@ -32,9 +41,6 @@ log = logging.getLogger(__name__)
 
 SERVICE = "alerting"
 DEFAULT_ALERTING_FILE = default_file("alerting.json5")
-PLAN_VERSION = 1
-
-_list_encoder = msgspec.msgpack.Encoder()
 
 
 def load_alerting_config(path: str | Path = DEFAULT_ALERTING_FILE) -> AlertingConfig:
@@ -109,7 +115,7 @@ class AlertingAdapter:
         line = query.parameters.get("line")
         with self.lock:
             alerts = self.core.raised_alerts(line)
-        query.reply(keys.q_alerts(self.rt.ns), _list_encoder.encode(alerts))
+        query.reply(keys.q_alerts(self.rt.ns), encode(RaisedAlerts(alerts=alerts)))
 
     def on_query_plan(self, query: zenoh.Query) -> None:
         line = query.parameters.get("line")
@@ -124,12 +130,8 @@ class AlertingAdapter:
         with self.lock:
             rows = self.core.plan(line=line)
             t = self.core.newest_t
-        body = {
-            "v": PLAN_VERSION,
-            "t": t,
-            "rows": [dataclasses.asdict(r) for r in rows[:top]],
-        }
-        query.reply(keys.q_plan(self.rt.ns), _list_encoder.encode(body))
+        plan = InspectionPlan(t=t, rows=rows[:top])
+        query.reply(keys.q_plan(self.rt.ns), encode(plan))
 
 
 def main(

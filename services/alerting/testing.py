@@ -1,10 +1,11 @@
-"""Test doubles of the alerting core: SegmentStates built from given probabilities."""
+"""Test doubles of the alerting core: SegmentStates built from given probabilities, and plan
+rows for the consumers of ``q/plan``."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from schemas import INDICATORS, NDArray, SegmentState
+from schemas import INDICATORS, NDArray, PlanRow, SegmentState
 from services.limits import Limits
 
 T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
@@ -79,3 +80,23 @@ def forecast_top6(p30: float, p90: float, p180: float) -> np.ndarray:
     out = np.zeros((len(HORIZONS), len(LEVELS), len(INDICATORS)))
     out[:, 1, 0] = (p30, p90, p180)
     return out
+
+
+def plan_row(line: str, segment: str, probability: float, next_trc_t: float, **kw) -> PlanRow:
+    """A row of the TRC inspection plan for a Top6 intervention limit of 8 mm; ``kw``
+    overrides the other fields."""
+    fields = dict(
+        indicator="top6",
+        level="intervention",
+        limit_mm=8.0,
+        horizon_days=max(next_trc_t - T0, 0.0) / 86_400.0,
+        p_now=probability / 2,
+        state_t=T0,
+        estimate_mm=5.0,
+        ci_low_mm=4.0,
+        ci_high_mm=6.5,
+    )
+    return PlanRow(
+        line=line, segment=segment, probability=probability, next_trc_t=next_trc_t,
+        **{**fields, **kw},
+    )  # fmt: skip

@@ -18,10 +18,20 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TextIO
 
-import msgpack
 import zenoh
 
-from schemas import INDICATORS, Alert, SchemaError, SegmentState, TrcRecord, decode, encode, keys
+from schemas import (
+    INDICATORS,
+    Alert,
+    InspectionPlan,
+    RaisedAlerts,
+    SchemaError,
+    SegmentState,
+    TrcRecord,
+    decode,
+    encode,
+    keys,
+)
 from services.runtime.config import RuntimeConfig
 
 QUERY_TIMEOUT_S = 10.0  # `--timeout`: a service catching up on a backlog answers late
@@ -117,8 +127,8 @@ def format_state(state: SegmentState) -> str:
 def query_states(
     session: zenoh.Session, ns: str, selector: str = "**", timeout: float = QUERY_TIMEOUT_S
 ) -> list[SegmentState]:
-    selector = f"{keys.q_state_all(ns)[: -len('**')]}{selector}"
-    return [decode(payload, SegmentState) for _, payload in ask(session, selector, timeout)]
+    replies = ask(session, keys.q_state_keys(ns, selector), timeout)
+    return [decode(payload, SegmentState) for _, payload in replies]
 
 
 def main_state(
@@ -143,8 +153,7 @@ def main_state(
 def query_alerts(session: zenoh.Session, ns: str, timeout: float = QUERY_TIMEOUT_S) -> list[Alert]:
     alerts = []
     for _, payload in ask(session, keys.q_alerts(ns), timeout):
-        for item in msgpack.unpackb(payload):
-            alerts.append(decode(msgpack.packb(item), Alert))
+        alerts += decode(payload, RaisedAlerts).alerts
     return alerts
 
 
@@ -176,13 +185,12 @@ def main_plan(
         replies = list(ask(session, keys.q_plan(conf.ns), timeout))
     if not replies:
         raise SystemExit("plan: no answer from the alerting service (is it running?)")
-    plan = msgpack.unpackb(replies[0][1])
-    rows = plan.get("rows", [])[:limit]
+    plan = decode(replies[0][1], InspectionPlan)
     print(f"{'rank':>4} {'segment':16} {'P(exceed)':>9} {'indicator':9} next TRC", file=out)
-    for rank, row in enumerate(rows, 1):
+    for rank, row in enumerate(plan.rows[:limit], 1):
         print(
-            f"{rank:4d} {row['line'] + '/' + row['segment']:16} {row['probability']:9.3f} "
-            f"{row.get('indicator', ''):9} {_iso(row.get('next_trc_t'))}",
+            f"{rank:4d} {row.line + '/' + row.segment:16} {row.probability:9.3f} "
+            f"{row.indicator:9} {_iso(row.next_trc_t)}",
             file=out,
         )
     return 0

@@ -21,9 +21,15 @@ from html import escape
 from pathlib import Path
 from typing import TextIO
 
-import msgpack
-
-from schemas import Alert, SegmentState, decode, keys
+from schemas import (
+    Alert,
+    InspectionPlan,
+    RaisedAlerts,
+    SchemaError,
+    SegmentState,
+    decode,
+    keys,
+)
 from services.runtime.config import RuntimeConfig
 from services.tools import operator
 
@@ -72,7 +78,7 @@ class ReportData:
     network: NetworkMap
     made_at: float  # wall clock, epoch s
     alerts: list[Alert] | None = None
-    plan: dict | None = None
+    plan: InspectionPlan | None = None
     missing: str = ""
     lines: tuple[str, ...] = ()  # the lines asked for; () = all
     worst_n: int = WORST_N
@@ -267,7 +273,7 @@ def _mm(state: SegmentState, i: int) -> str:
 
 def _table(data: ReportData, states: list[SegmentState]) -> str:
     horizons = sorted({h for s in states for h in p_forecast(s)})
-    plan_rows = {(r["line"], r["segment"]): r for r in (data.plan or {}).get("rows", [])}
+    plan_rows = {(r.line, r.segment): r for r in (data.plan.rows if data.plan else [])}
     head = ["#", "line", "segment", "chainage (km)"]
     head += ["Top6 mm [95 %]", "Align10 mm [95 %]", "P(exceed) now"]
     head += [f"in {h:g} d" for h in horizons]
@@ -292,8 +298,8 @@ def _table(data: ReportData, states: list[SegmentState]) -> str:
         if plan is None:
             cells.append("<td>–</td><td>–</td>")
         else:
-            cells.append(f"<td>{day(plan.get('next_trc_t'))}</td>")
-            cells.append(_p_cell(plan.get("probability")))
+            cells.append(f"<td>{day(plan.next_trc_t)}</td>")
+            cells.append(_p_cell(plan.probability))
         rows.append("<tr>" + "".join(cells) + "</tr>")
     rows.append("</tbody></table>")
     return "".join(rows)
@@ -457,8 +463,12 @@ def _ask_alerting(session, ns: str, line: str | None, timeout: float):
                 "(is it running? `trackfusion status`)."
             ),
         )
-    alerts = [decode(msgpack.packb(item), Alert) for item in msgpack.unpackb(replies[0][1])]
-    return alerts, msgpack.unpackb(plan_replies[0][1]), ""
+    try:
+        alerts = decode(replies[0][1], RaisedAlerts).alerts
+        plan = decode(plan_replies[0][1], InspectionPlan)
+    except SchemaError as exc:
+        return None, None, f"Alerts and plan missing: the alerting service's answer: {exc}"
+    return alerts, plan, ""
 
 
 def main(

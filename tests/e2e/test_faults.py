@@ -15,7 +15,6 @@ import threading
 from collections.abc import Callable
 from datetime import datetime
 
-import msgpack
 import zenoh
 from linkproxy import LinkProxy
 from support import accepts_connections, wait_for
@@ -23,6 +22,7 @@ from support import accepts_connections, wait_for
 from schemas import (
     Calibration,
     DegradationPosterior,
+    InspectionPlan,
     MaintenanceEvent,
     OnboardIndex,
     SegmentState,
@@ -95,8 +95,8 @@ def plan_state_times(session: zenoh.Session, ns: str) -> dict[tuple[str, str], f
     replies = [r for r in session.get(keys.q_plan(ns), timeout=10) if r.ok is not None]
     if not replies:
         return {}
-    rows = msgpack.unpackb(replies[0].ok.payload.to_bytes())["rows"]
-    return {(row["line"], row["segment"]): row["state_t"] for row in rows}
+    rows = decode(replies[0].ok.payload.to_bytes(), InspectionPlan).rows
+    return {(row.line, row.segment): row.state_t for row in rows}
 
 
 def test_every_fault_in_turn_leaves_the_uninterrupted_states(

@@ -9,11 +9,10 @@ from __future__ import annotations
 import json
 import signal
 
-import msgpack
 import zenoh
 from support import wait_for
 
-from schemas import SegmentState, decode, keys
+from schemas import InspectionPlan, SegmentState, decode, keys
 from services.filtering.testing import EVENT_TYPES, LastEvents, states_by_instance
 from simulators.network import generate_network
 
@@ -137,7 +136,7 @@ def test_pipeline_survives_a_filtering_kill(
     assert any(s.n_updates > 0 for s in states)  # on-board indices folded, not only TRC runs
 
     plan = [r for r in session.get(keys.q_plan(namespace), timeout=10) if r.ok is not None]
-    assert plan and msgpack.unpackb(plan[0].ok.payload.to_bytes())["rows"]
+    assert plan and decode(plan[0].ok.payload.to_bytes(), InspectionPlan).rows
     for process in (restarted, reference):
         process.signal(signal.SIGTERM)
         assert process.wait(10) == 0, process.log()

@@ -12,7 +12,16 @@ import pytest
 import zenoh
 from support import ServiceThread
 
-from schemas import Alert, DeadLetter, TrcRecord, decode, encode, keys
+from schemas import (
+    Alert,
+    DeadLetter,
+    InspectionPlan,
+    RaisedAlerts,
+    TrcRecord,
+    decode,
+    encode,
+    keys,
+)
 from services.alerting import service as alerting
 from services.alerting.core import DAY_S
 from services.alerting.testing import T0, make_state, p_top6
@@ -75,24 +84,26 @@ def test_state_raises_alert_queryables_answer_and_restart_keeps_it(
         assert alert.message == "Top6 likely above intervention limit 8.0 mm (p=0.72)"
 
         (body,) = query(client, keys.q_alerts(ns))
-        assert [Alert(**a) for a in msgpack.unpackb(body)] == [alert]
-        assert query(client, keys.q_alerts(ns) + "?line=L2") == [msgpack.packb([])]
+        assert decode(body, RaisedAlerts).alerts == [alert]
+        (body,) = query(client, keys.q_alerts(ns) + "?line=L2")
+        assert decode(body, RaisedAlerts).alerts == []
 
         (body,) = query(client, keys.q_plan(ns))
-        plan = msgpack.unpackb(body)
-        assert plan["v"] == 1 and plan["t"] == T0 + DAY_S
-        (row,) = plan["rows"]
-        assert (row["line"], row["segment"], row["level"]) == ("L1", "s1", "intervention")
-        assert row["next_trc_t"] == T0 + 70 * DAY_S  # one run seen: the default interval
-        assert np.isclose(row["probability"], 0.72) and row["indicator"] == "top6"
-        assert msgpack.unpackb(query(client, keys.q_plan(ns) + "?limit=0")[0])["rows"] == []
+        plan = decode(body, InspectionPlan)
+        assert plan.v == 1 and plan.t == T0 + DAY_S
+        (row,) = plan.rows
+        assert (row.line, row.segment, row.level) == ("L1", "s1", "intervention")
+        assert row.next_trc_t == T0 + 70 * DAY_S  # one run seen: the default interval
+        assert np.isclose(row.probability, 0.72) and row.indicator == "top6"
+        (body,) = query(client, keys.q_plan(ns) + "?limit=0")
+        assert decode(body, InspectionPlan).rows == []
         (bad,) = client.get(keys.q_plan(ns) + "?limit=x", timeout=TIMEOUT_S)
         assert bad.err is not None and b"limit" in bad.err.payload.to_bytes()
 
     with running(db):
         # restarted: the raised alert is still there and the same condition does not repeat it
         (body,) = query(client, keys.q_alerts(ns))
-        assert [Alert(**a) for a in msgpack.unpackb(body)] == [alert]
+        assert decode(body, RaisedAlerts).alerts == [alert]
         state_pub = client.declare_publisher(keys.state(ns, "L1", "s1"))
         until_matched(state_pub)
         state_pub.put(encode(make_state(T0 + 2 * DAY_S, p_exceed=p_top6(1, 0.8))))

@@ -6,14 +6,13 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
-import msgpack
 import pytest
 import zenoh
 from support import run_cli
 
-from schemas import Alert, decode, encode, keys
+from schemas import Alert, InspectionPlan, RaisedAlerts, decode, encode, keys
 from services.alerting import service as alerting
-from services.alerting.testing import T0, make_state, p_top6
+from services.alerting.testing import T0, make_state, p_top6, plan_row
 from services.tools import report
 
 DAY_S = 86_400.0
@@ -44,13 +43,12 @@ def alerting_stand_in(session: zenoh.Session, ns: str, asked: list[str]):
 
     def alerts(query: zenoh.Query) -> None:
         asked.append(f"alerts?{query.parameters}")
-        query.reply(keys.q_alerts(ns), msgpack.packb([msgpack.unpackb(encode(ALERT))]))
+        query.reply(keys.q_alerts(ns), encode(RaisedAlerts(alerts=[ALERT])))
 
     def plan(query: zenoh.Query) -> None:
         asked.append(f"plan?{query.parameters}")
-        row = {"line": "L1", "segment": "s00002", "probability": 0.97, "indicator": "top6",
-               "next_trc_t": T0 + 40 * DAY_S}  # fmt: skip
-        query.reply(keys.q_plan(ns), msgpack.packb({"v": 1, "t": T0, "rows": [row]}))
+        row = plan_row("L1", "s00002", 0.97, T0 + 40 * DAY_S)
+        query.reply(keys.q_plan(ns), encode(InspectionPlan(t=T0, rows=[row])))
 
     return [
         session.declare_queryable(keys.q_alerts(ns), alerts),

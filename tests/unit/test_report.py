@@ -7,8 +7,8 @@ import re
 
 import pytest
 
-from schemas import Alert
-from services.alerting.testing import T0, forecast_top6, make_state, p_top6
+from schemas import Alert, InspectionPlan
+from services.alerting.testing import T0, forecast_top6, make_state, p_top6, plan_row
 from services.tools.report import (
     BINS,
     NO_STATE,
@@ -104,7 +104,7 @@ def test_ids_and_messages_are_escaped():
 
 
 def test_the_file_is_self_contained():
-    html = a_report(alerts=[an_alert()], plan={"v": 1, "t": T0, "rows": []})
+    html = a_report(alerts=[an_alert()], plan=InspectionPlan(t=T0, rows=[]))
     assert html.startswith("<!DOCTYPE html>")
     for external in ("http://", "https://", "src=", "<script", "<link", "url(", "@import"):
         assert external not in html, external
@@ -112,8 +112,7 @@ def test_the_file_is_self_contained():
 
 
 def test_table_has_estimates_intervals_forecasts_last_and_next_trc():
-    plan = {"v": 1, "t": T0, "rows": [{"line": "L1", "segment": "s2", "probability": 0.97,
-            "indicator": "top6", "next_trc_t": T0 + 40 * DAY_S}]}  # fmt: skip
+    plan = InspectionPlan(t=T0, rows=[plan_row("L1", "s2", 0.97, T0 + 40 * DAY_S)])
     html = a_report(alerts=[], plan=plan)
     row = re.search(r"<tr><td class=\"n\">1</td>.*?</tr>", html).group(0)
     assert "0.2 – 0.4" in row  # chainage, km

@@ -20,10 +20,13 @@ from schemas import (
     DeadLetter,
     DegradationPosterior,
     GpsFix,
+    InspectionPlan,
     MaintenanceEvent,
     NDArray,
     OnboardIndex,
+    PlanRow,
     PositionedChunk,
+    RaisedAlerts,
     RawChunk,
     SchemaError,
     SegmentState,
@@ -35,6 +38,7 @@ from schemas import (
     encode,
     keys,
 )
+from services.alerting.testing import plan_row
 
 T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
 
@@ -53,6 +57,18 @@ def examples() -> list[schemas.Message]:
         knot_speed_mps=f8([20.0, 20.0, 20.0]),
     )
     eye = np.eye(2)
+    alert = Alert(
+        line="L1",
+        segment="s0001",
+        t=T0,
+        kind="predicted_exceedance",
+        status="raised",
+        indicator="top6",
+        level="intervention",
+        probability=0.4,
+        horizon_days=90.0,
+        message="Top6 may exceed 12 mm within 90 days",
+    )
     return [
         RawChunk(
             train="T1", unit="b1", seq=3, t0=T0, rate_hz=2000, channels=channels, samples=samples
@@ -128,18 +144,7 @@ def examples() -> list[schemas.Message]:
             n_updates=4,
             nis=1.3,
         ),
-        Alert(
-            line="L1",
-            segment="s0001",
-            t=T0,
-            kind="predicted_exceedance",
-            status="raised",
-            indicator="top6",
-            level="intervention",
-            probability=0.4,
-            horizon_days=90.0,
-            message="Top6 may exceed 12 mm within 90 days",
-        ),
+        alert,
         DeadLetter(
             service="ingestion",
             key="tf/raw/T1/b1",
@@ -155,6 +160,8 @@ def examples() -> list[schemas.Message]:
             healthy=False,
         ),
         ViewerSelect(line="L1", segment="s0001"),
+        RaisedAlerts(alerts=[alert]),
+        InspectionPlan(t=T0, rows=[plan_row("L1", "s0001", 0.4, T0 + 30 * 86_400.0)]),
     ]
 
 
@@ -534,18 +541,25 @@ def test_a_state_is_checked_on_its_queryable_key_too():
 
 
 def _readme_fields() -> dict[str, tuple[int, list[str]]]:
+    """``{name: (version, fields)}`` of each ``### Name (vN)`` section (version 0 for a
+    ``#### Part`` of a message, e.g. PlanRow); a section ends at the next heading."""
     text = (Path(schemas.__file__).parent / "README.md").read_text()
     documented = {}
-    for match in re.finditer(r"^### (\w+) \(v(\d+)\)\n(.*?)(?=^### |\Z)", text, re.M | re.S):
-        name, version, body = match.group(1), int(match.group(2)), match.group(3)
-        rows = re.findall(r"^\| (\w+) \|", body, re.M)
+    heading = r"^(?:### (\w+) \(v(\d+)\)|#### (\w+))\n(.*?)(?=^##|\Z)"
+    for match in re.finditer(heading, text, re.M | re.S):
+        name, version = match.group(1) or match.group(3), int(match.group(2) or 0)
+        rows = re.findall(r"^\| (\w+) \|", match.group(4), re.M)
         documented[name] = (version, [r for r in rows if r != "field"])
     return documented
 
 
+def test_wire_reference_documents_the_plan_rows():
+    assert _readme_fields()["PlanRow"] == (0, list(PlanRow.__struct_fields__))
+
+
 def test_wire_reference_documents_every_field_of_every_message():
     documented = _readme_fields()
-    assert set(documented) == {m.__name__ for m in ALL_MESSAGES}
+    assert set(documented) - {"PlanRow"} == {m.__name__ for m in ALL_MESSAGES}
     for message_type in ALL_MESSAGES:
         version, fields = documented[message_type.__name__]
         assert version == schemas.SCHEMA_VERSION
