@@ -100,7 +100,7 @@ def test_a_mixed_fleet_draws_classes_by_share_and_sensors_within_their_spread(cf
 
 def test_passes_follow_their_units_model_and_the_ground_truth_records_it(net, cfg, tmp_path):
     mixed = {**cfg, "fleet": MIXED}
-    days, seed = 20, 5
+    days, seed = 8, 5  # a few dozen passes per train: the residual bound scales with them
     path = tmp_path / "truth.sqlite"
     events = list(index_pass_events(net, Truth(net, mixed, T0, seed), 4, days, seed, config=mixed))
     with GroundTruthWriter(path, net, mixed, T0, days, seed) as gt:
