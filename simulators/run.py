@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import math
 import sys
 import time
+from datetime import datetime
 from pathlib import Path
 
-from services.runtime.config import RuntimeConfig
+from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
+from services.runtime.service import configure_logging
 from simulators.gateway import publish
 from simulators.groundtruth import GroundTruthWriter
 from simulators.network import Network, demo_network, generate_network
@@ -131,3 +134,92 @@ def parse_speedup(text: str) -> float:
     if not value > 0:
         raise ValueError("speedup must be > 0 (or 'inf')")
     return value
+
+
+def _speedup(text: str) -> float:
+    try:
+        return parse_speedup(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def simulate_add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion simulate``."""
+    parser.description = (
+        "Run the fleet simulator on a network and publish its gateways' raw data "
+        "(--fidelity raw) or on-board indices (--fidelity index), TRC records and tamping."
+    )
+    parser.add_argument("--network", metavar="FILE.geojson", help="network (default: the demo)")
+    parser.add_argument(
+        "--trains", type=int, default=6, help="raw: trains; index: passes per line per day"
+    )
+    parser.add_argument("--days", type=float, default=1.0, help="simulated days (default 1)")
+    parser.add_argument(
+        "--speedup", type=_speedup, default=1.0, help="simulated s per wall s, or 'inf'"
+    )
+    parser.add_argument("--fidelity", choices=["raw", "index"], default="index")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--units", type=int, default=1, help="on-board units per train (raw)")
+    parser.add_argument(
+        "--from-day", type=float, default=0.0, help="publish only from this day of the world"
+    )
+    parser.add_argument("--to-day", type=float, help="publish only up to this day of the world")
+    parser.add_argument("--start", default=DEFAULT_START, help="ISO start time (UTC)")
+    parser.add_argument("--truth", metavar="FILE.sqlite", help="write the ground truth here")
+    parser.add_argument(
+        "--sim-config", metavar="FILE.json5", help="default: services/defaults/simulator.json5"
+    )
+    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument(
+        "--linger",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="stay up S seconds after the last message, serving the per-key caches to "
+        "subscribers that come back (default 0)",
+    )
+    add_zenoh_arguments(parser)
+
+
+def simulate_run(args: argparse.Namespace) -> int:
+    configure_logging(args.log_level)
+    try:
+        start_t = datetime.fromisoformat(args.start).timestamp()
+    except ValueError:
+        raise SystemExit(f"--start {args.start!r}: not an ISO date, e.g. 2026-01-01") from None
+    return main_simulate(
+        config_from_args(args),
+        network_path=args.network,
+        trains=args.trains,
+        days=args.days,
+        speedup=args.speedup,
+        fidelity=args.fidelity,
+        seed=args.seed,
+        start_t=start_t,
+        truth_path=args.truth,
+        config_path=args.sim_config,
+        units=args.units,
+        progress=not args.no_progress and sys.stderr.isatty(),
+        from_day=args.from_day,
+        to_day=args.to_day,
+        linger_s=args.linger,
+    )
+
+
+def network_generate_add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion network generate``."""
+    parser.add_argument("--lines", type=int, default=40)
+    parser.add_argument("--length-km", type=float, default=50.0)
+    parser.add_argument("--segment-m", type=float, default=200.0)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--out", metavar="FILE.geojson", help="default: stdout")
+
+
+def network_generate_run(args: argparse.Namespace) -> int:
+    return main_network_generate(
+        lines=args.lines,
+        length_km=args.length_km,
+        seed=args.seed,
+        segment_length_m=args.segment_m,
+        out=args.out,
+    )

@@ -12,6 +12,7 @@ The raised set, the segments' last states and the TRC runs persist in SQLite
 
 from __future__ import annotations
 
+import argparse
 import logging
 import threading
 from pathlib import Path
@@ -34,8 +35,14 @@ from services.alerting.core import AlertingConfig, AlertingCore
 from services.alerting.store import AlertStore
 from services.defaults import default_file
 from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits
-from services.runtime.config import RuntimeConfig, default_db
-from services.runtime.service import ServiceRuntime
+from services.runtime.config import (
+    RuntimeConfig,
+    add_db_argument,
+    add_zenoh_arguments,
+    config_from_args,
+    default_db,
+)
+from services.runtime.service import ServiceRuntime, configure_logging
 
 log = logging.getLogger(__name__)
 
@@ -171,3 +178,37 @@ def _load_limits(path: str | Path) -> Limits:
         return load_limits(path)
     except ValueError as exc:
         raise SystemExit(str(exc)) from None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion alerting``."""
+    parser.description = (
+        "Subscribe to {ns}/state/** and {ns}/trc/**, publish Alerts on "
+        "{ns}/alert/{line}/{segment}, answer {ns}/q/alerts and {ns}/q/plan."
+    )
+    parser.add_argument(
+        "--config-alerting",
+        metavar="FILE",
+        type=Path,
+        default=DEFAULT_ALERTING_FILE,
+        help="alerting thresholds, JSON5 (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--limits",
+        metavar="FILE",
+        type=Path,
+        default=DEFAULT_LIMITS_FILE,
+        help="alert and intervention limits per line, JSON5 (default: %(default)s)",
+    )
+    add_db_argument(parser, SERVICE, "the raised alerts")
+    add_zenoh_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    configure_logging(args.log_level)
+    return main(
+        config_from_args(args),
+        alerting_config=args.config_alerting,
+        limits=args.limits,
+        db=args.db,
+    )

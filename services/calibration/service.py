@@ -22,6 +22,7 @@ the optional initial models (``initial_models``: a JSON5 file, see
 
 from __future__ import annotations
 
+import argparse
 import logging
 import threading
 from collections.abc import Mapping
@@ -50,9 +51,15 @@ from services.calibration.calibrator import (
     initial_models,
 )
 from services.calibration.store import SqliteStore
-from services.runtime.config import RuntimeConfig, default_db
+from services.runtime.config import (
+    RuntimeConfig,
+    add_db_argument,
+    add_zenoh_arguments,
+    config_from_args,
+    default_db,
+)
 from services.runtime.latest import LatestValues
-from services.runtime.service import ServiceRuntime
+from services.runtime.service import ServiceRuntime, configure_logging
 
 log = logging.getLogger(__name__)
 
@@ -221,3 +228,64 @@ def _serve(
     subscriptions = {kind: keys.segment_keys(ns, kind) for kind in _KINDS}
     rt.subscribe_batches(subscriptions, handle_batch, max_batch=BATCH, reliable=True)
     return rt.run()  # leaving: the worker handles what is queued, persists, then ends
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion calibration``: the flags override the config file's
+    ``services.calibration``; the defaults are :class:`CalibratorConfig`'s."""
+    parser.description = (
+        "Pair TRC records with on-board indices, fit the observation model, build degradation "
+        "posteriors per group, publish them on {ns}/model/**. Flags override the config "
+        "file's services.calibration section."
+    )
+    core = CalibratorConfig()
+    add_db_argument(parser, SERVICE, "the pairs, records and models")
+    parser.add_argument(
+        "--initial-models",
+        type=Path,
+        metavar="FILE.json5",
+        help="prior models published as version 1 until data gives better ones "
+        "(e.g. services/defaults/initial-models.json5; default: none)",
+    )
+    parser.add_argument(
+        "--network",
+        type=Path,
+        metavar="FILE.geojson",
+        help="refuse events on segments this network does not have (default: accept any)",
+    )
+    parser.add_argument(
+        "--min-pairs", type=int, help=f"pairs before the first fit (default: {core.min_pairs})"
+    )
+    parser.add_argument(
+        "--refit-every", type=int, help=f"new pairs between refits (default: {core.refit_every})"
+    )
+    parser.add_argument(
+        "--tolerance-days",
+        type=float,
+        help="pair an index without run_id with a TRC record this close in time "
+        f"(default: {core.tolerance_days:g})",
+    )
+    parser.add_argument(
+        "--samples", type=int, help=f"posterior samples Ns (default: {core.samples})"
+    )
+    parser.add_argument(
+        "--seed", type=int, help=f"seed of the posterior draws (default: {core.seed})"
+    )
+    add_zenoh_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    configure_logging(args.log_level)
+    conf = config_from_args(args)
+    settings = settings_from(
+        conf.options(SERVICE),
+        db=args.db,
+        initial_models=args.initial_models,
+        network=args.network,
+        min_pairs=args.min_pairs,
+        refit_every=args.refit_every,
+        tolerance_days=args.tolerance_days,
+        samples=args.samples,
+        seed=args.seed,
+    )
+    return main(conf, settings)

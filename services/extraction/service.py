@@ -11,6 +11,7 @@ letter. The counters (passes indexed, skipped by reason) are logged every
 
 from __future__ import annotations
 
+import argparse
 import logging
 import threading
 import time
@@ -19,8 +20,8 @@ from pathlib import Path
 from schemas import PositionedChunk, decode, encode, keys
 from services.defaults import default_file
 from services.extraction.pipeline import ExtractionConfig, Extractor, SegmentTable
-from services.runtime.config import RuntimeConfig
-from services.runtime.service import ServiceRuntime
+from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
+from services.runtime.service import ServiceRuntime, configure_logging
 
 log = logging.getLogger(__name__)
 
@@ -94,3 +95,23 @@ def main(
             return rt.run()
         finally:
             adapter.log_counters()
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion extraction``."""
+    parser.description = (
+        "Subscribe to {ns}/accel/** (PositionedChunk), publish one OnboardIndex per "
+        "segment pass on {ns}/index/{line}/{segment}."
+    )
+    parser.add_argument(
+        "--network",
+        metavar="FILE",
+        type=Path,
+        help=f"network GeoJSON with the segment bounds (default: {DEFAULT_NETWORK})",
+    )
+    add_zenoh_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    configure_logging(args.log_level)
+    return main(config_from_args(args), network_path=args.network)

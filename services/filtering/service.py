@@ -31,6 +31,7 @@ every segment accepted).
 
 from __future__ import annotations
 
+import argparse
 import logging
 import sqlite3
 import threading
@@ -41,9 +42,15 @@ from schemas import SegmentState, encode, keys
 from services.filtering.store import PersistentTracker, Store
 from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_limits
-from services.runtime.config import RuntimeConfig, default_db
+from services.runtime.config import (
+    RuntimeConfig,
+    add_db_argument,
+    add_zenoh_arguments,
+    config_from_args,
+    default_db,
+)
 from services.runtime.latest import LatestValues
-from services.runtime.service import ServiceRuntime
+from services.runtime.service import ServiceRuntime, configure_logging
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +59,7 @@ BATCH = 1024  # queued messages handled in one store transaction (when there is 
 EXIT_STORE_FAILED = 74  # EX_IOERR
 EXIT_SOFTWARE = 70  # EX_SOFTWARE: a bug escaped a batch
 STATE_CACHE = 16  # states kept per segment for a returning consumer (alerting, viewer)
+DEFAULT_SELECTOR = "**"  # the whole network
 MODEL_QUERY_TIMEOUT_S = (
     10.0  # the start-up query for the latest models (ends sooner when all reply)
 )
@@ -69,7 +77,7 @@ def main(
 ) -> int:
     """Run one filtering instance until ``stop`` is set or SIGINT/SIGTERM; returns 0."""
     options = conf.options(SERVICE)
-    selector = selector or options.get("selector") or "**"
+    selector = selector or options.get("selector") or DEFAULT_SELECTOR
     network = network or options.get("network")
     limits_table = load_limits(limits or options.get("limits") or DEFAULT_LIMITS_FILE)
     db = db or options.get("db") or default_db(SERVICE, conf.instance)
@@ -168,3 +176,35 @@ class FilteringAdapter:
         # cached per segment (alerting restarted gets what it missed); BLOCK: a slow
         # consumer slows the worker down rather than losing states
         self.states_out.put(keys.state(self.rt.ns, state.line, state.segment), payload)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion filtering``: the flags override the config file's ``services.filtering``."""
+    parser.description = "Filter every segment under --selector; state persisted in SQLite."
+    parser.add_argument(
+        "--selector",
+        metavar="KEYEXPR_SUFFIX",
+        help="the part of the network this instance owns, e.g. 'L1/**' "
+        f"(default: {DEFAULT_SELECTOR})",
+    )
+    parser.add_argument(
+        "--network",
+        metavar="FILE.geojson",
+        help="refuse events on segments this network does not have (default: accept any)",
+    )
+    add_db_argument(parser, SERVICE, "the accepted events and models")
+    parser.add_argument(
+        "--limits", metavar="FILE", help=f"limits file (default: {DEFAULT_LIMITS_FILE})"
+    )
+    add_zenoh_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    configure_logging(args.log_level)
+    return main(
+        config_from_args(args),
+        selector=args.selector,
+        db=args.db,
+        limits=args.limits,
+        network=args.network,
+    )

@@ -20,7 +20,9 @@ study starts at a TRC record and looks one year ahead.
 
 from __future__ import annotations
 
+import argparse
 import json
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -315,3 +317,29 @@ def main(
     if plot_path:
         plot(result, plot_path)
     return 0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion study frequency``: the flags override the study config's values."""
+    parser.description = "Monte Carlo of the paper's section 4.2: prints a table like its Table 2."
+    parser.add_argument(
+        "--config",
+        default=str(DEFAULT_CONFIG),
+        help="study config (JSON5): scenarios, intervals, sizes (default: %(default)s)",
+    )
+    parser.add_argument("--paths", type=int, help="Monte Carlo paths per scenario (config's)")
+    parser.add_argument("--seed", type=int, help="random seed (config value by default)")
+    parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    parser.add_argument("--plot", metavar="FILE.png", help="draw W_k against time (like Fig. 7)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+
+
+def run(args: argparse.Namespace) -> int:
+    return main(
+        args.config,
+        as_json=args.json,
+        plot_path=args.plot,
+        paths=args.paths,
+        seed=args.seed,
+        progress=not args.no_progress and sys.stderr.isatty(),
+    )

@@ -12,6 +12,7 @@ missing) before the worker exits.
 
 from __future__ import annotations
 
+import argparse
 import logging
 import threading
 from pathlib import Path
@@ -21,8 +22,8 @@ import zenoh
 from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode, keys
 from services.defaults import default_file
 from services.ingestion.core import IngestionConfig, IngestionCore, Output, Rejection
-from services.runtime.config import RuntimeConfig
-from services.runtime.service import ServiceRuntime
+from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
+from services.runtime.service import ServiceRuntime, configure_logging
 from simulators.network import Network
 
 log = logging.getLogger(__name__)
@@ -118,3 +119,24 @@ def main(
     with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
         IngestionAdapter(rt, core).start()
         return rt.run()
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion ingestion``."""
+    parser.description = (
+        "Subscribe to {ns}/raw/** and {ns}/gps/*, publish PositionedChunks on "
+        "{ns}/accel/{train}/{unit}; thresholds in the config file's services.ingestion."
+    )
+    parser.add_argument(
+        "--network",
+        metavar="FILE.geojson",
+        type=Path,
+        default=DEFAULT_NETWORK,
+        help="network to map-match on (default: %(default)s)",
+    )
+    add_zenoh_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    configure_logging(args.log_level)
+    return main(config_from_args(args), network_path=args.network)

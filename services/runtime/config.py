@@ -102,6 +102,17 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser, *, mode: bool = True) -
     group.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
 
 
+def add_db_argument(parser: argparse.ArgumentParser, service: str, what: str) -> None:
+    """``--db FILE``: the SQLite file of ``what``, :func:`default_db` when not given."""
+    parser.add_argument(
+        "--db",
+        metavar="FILE",
+        type=Path,
+        help=f"SQLite file of {what} (default: ./{default_db(service, '{instance}')}, "
+        "instance 'default' without --instance)",
+    )
+
+
 def config_from_args(
     args: argparse.Namespace, *, default_file: Path | None = None, mode: str | None = None
 ) -> RuntimeConfig:

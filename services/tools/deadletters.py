@@ -6,14 +6,15 @@ spaces, so ``line.split(" ", 2)`` gives the three fields back). Logs go to stder
 
 from __future__ import annotations
 
+import argparse
 import logging
 import sys
 import threading
 from typing import TextIO
 
 from schemas import DeadLetter, SchemaError, decode, keys
-from services.runtime.config import RuntimeConfig
-from services.runtime.service import ServiceRuntime
+from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
+from services.runtime.service import ServiceRuntime, configure_logging
 
 log = logging.getLogger(__name__)
 
@@ -48,3 +49,14 @@ def main(
     with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
         rt.subscribe_in_order({"deadletter": keys.deadletter_all(rt.ns)}, on_letter)
         return rt.run()
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion deadletters``."""
+    parser.description = "Subscribe to {ns}/deadletter/** and print one line per dead letter."
+    add_zenoh_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    configure_logging(args.log_level)
+    return main(config_from_args(args))

@@ -16,6 +16,7 @@ Exit code: 0 clean, 1 deviations found, 2 nothing arrived.
 
 from __future__ import annotations
 
+import argparse
 import math
 import queue
 import signal
@@ -44,7 +45,8 @@ from schemas.wire import check_id
 from services.ingestion.core import IngestionConfig, IngestionCore, Rejection
 from services.ingestion.service import SERVICE as INGESTION
 from services.ingestion.service import decode_gateway
-from services.runtime.config import RuntimeConfig
+from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
+from services.runtime.service import configure_logging
 
 EXIT_CLEAN, EXIT_DEVIATIONS, EXIT_NOTHING = 0, 1, 2
 
@@ -293,3 +295,22 @@ def main(
     out.write(text)
     out.flush()
     return code
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion gateway check``."""
+    parser.description = (
+        "Subscribe to {ns}/raw/TRAIN/**, {ns}/gps/TRAIN and ingestion's dead letters for S "
+        "seconds (or until Ctrl-C), check every message as ingestion does and print a "
+        "report. Exit code 0 clean, 1 deviations found, 2 nothing arrived."
+    )
+    parser.add_argument("--train", required=True, help="the train id the gateway publishes as")
+    parser.add_argument(
+        "--seconds", type=float, metavar="S", help="how long (default: until Ctrl-C)"
+    )
+    add_zenoh_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    configure_logging(args.log_level)
+    return main(config_from_args(args), args.train, args.seconds)

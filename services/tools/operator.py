@@ -7,6 +7,7 @@ Zenoh; the thin part is ``ask`` (a ``session.get`` on a queryable) and ``main_*`
 
 from __future__ import annotations
 
+import argparse
 import csv
 import io
 import json
@@ -32,9 +33,10 @@ from schemas import (
     encode,
     keys,
 )
-from services.runtime.config import RuntimeConfig
+from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 
 QUERY_TIMEOUT_S = 10.0  # `--timeout`: a service catching up on a backlog answers late
+PLAN_ROWS = 20  # `plan --limit`
 TRC_COLUMNS = ("line", "segment", "t", "top6_mm", "align10_mm", "run_id")
 
 
@@ -176,7 +178,7 @@ def main_alerts(
 
 def main_plan(
     conf: RuntimeConfig,
-    limit: int = 20,
+    limit: int = PLAN_ROWS,
     timeout: float = QUERY_TIMEOUT_S,
     out: TextIO = sys.stdout,
 ) -> int:
@@ -367,3 +369,92 @@ def _iso(t: float | None) -> str:
     if t is None:
         return "-"
     return datetime.fromtimestamp(t, UTC).isoformat(timespec="minutes")
+
+
+# --- command lines ----------------------------------------------------------------------------
+
+
+def seconds(text: str) -> float:
+    """A positive, finite number of seconds (``--timeout``)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not value > 0 or value == math.inf:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+    return value
+
+
+def add_query_arguments(parser: argparse.ArgumentParser, *, timeout: bool = True) -> None:
+    """What every question to the running system takes: the Zenoh flags and ``--timeout``."""
+    add_zenoh_arguments(parser, mode=False)
+    if timeout:
+        parser.add_argument(
+            "--timeout",
+            type=seconds,
+            default=QUERY_TIMEOUT_S,
+            metavar="S",
+            help="seconds to wait for the whole answer (default: %(default)g)",
+        )
+
+
+def status_add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_query_arguments(parser)
+
+
+def status_run(args: argparse.Namespace) -> int:
+    return main_status(config_from_args(args), args.timeout)
+
+
+def state_add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "segment", metavar="LINE/SEGMENT", help="e.g. L1/s00042, or L1/** for a line"
+    )
+    add_query_arguments(parser)
+
+
+def state_run(args: argparse.Namespace) -> int:
+    return main_state(config_from_args(args), args.segment, args.timeout)
+
+
+def alerts_add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_query_arguments(parser)
+
+
+def alerts_run(args: argparse.Namespace) -> int:
+    return main_alerts(config_from_args(args), args.timeout)
+
+
+def plan_add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--limit", type=int, default=PLAN_ROWS, help="rows to show (default %(default)s)"
+    )
+    add_query_arguments(parser)
+
+
+def plan_run(args: argparse.Namespace) -> int:
+    return main_plan(config_from_args(args), args.limit, args.timeout)
+
+
+def import_trc_add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Publish every good row of a TRC CSV export as a TrcRecord; bad rows are reported "
+        "with their line numbers (exit code 1 when there were any)."
+    )
+    parser.add_argument("file", metavar="FILE.csv")
+    add_query_arguments(parser, timeout=False)
+
+
+def import_trc_run(args: argparse.Namespace) -> int:
+    return main_import_trc(config_from_args(args), args.file)
+
+
+def export_add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("what", choices=["states", "alerts"])
+    parser.add_argument("--format", choices=["csv", "geojson"], default="csv")
+    parser.add_argument("--network", metavar="FILE.geojson", help="geometry (default: the demo)")
+    add_query_arguments(parser)
+
+
+def export_run(args: argparse.Namespace) -> int:
+    return main_export(config_from_args(args), args.what, args.format, args.network, args.timeout)

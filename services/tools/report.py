@@ -11,6 +11,7 @@ Zenoh. Thin part: :func:`main` asks the running system like :mod:`services.tools
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import sys
@@ -30,7 +31,7 @@ from schemas import (
     decode,
     keys,
 )
-from services.runtime.config import RuntimeConfig
+from services.runtime.config import RuntimeConfig, config_from_args
 from services.tools import operator
 
 INTERVENTION = "intervention"
@@ -507,3 +508,29 @@ def main(
     note = f" ({missing})" if missing else ""
     print(f"wrote {out_path}: {len(states)} segments{note}", file=out)
     return 0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion report``."""
+    parser.description = (
+        "Map, ranked segments, forecast fans and open alerts in one HTML file (inline CSS "
+        "and SVG, no external resource)."
+    )
+    parser.add_argument("--line", help="one line (default: all lines)")
+    parser.add_argument("--out", default="report.html", metavar="FILE.html", help="(%(default)s)")
+    parser.add_argument("--network", metavar="FILE.geojson", help="geometry (default: the demo)")
+    parser.add_argument(
+        "--worst", type=int, default=WORST_N, metavar="N", help="fans drawn (%(default)s)"
+    )
+    operator.add_query_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    return main(
+        config_from_args(args),
+        out_path=args.out,
+        line=args.line,
+        network_path=args.network,
+        worst_n=args.worst,
+        timeout=args.timeout,
+    )

@@ -7,6 +7,7 @@ which the real ``zenohd -c services/defaults/router.json5`` takes the same file.
 
 from __future__ import annotations
 
+import argparse
 import logging
 import signal
 import threading
@@ -14,7 +15,15 @@ from types import FrameType
 
 import zenoh
 
-from services.runtime.config import RuntimeConfig, endpoints, zenoh_config
+from services.runtime.config import (
+    ROUTER_CONFIG,
+    RuntimeConfig,
+    add_zenoh_arguments,
+    config_from_args,
+    endpoints,
+    zenoh_config,
+)
+from services.runtime.service import configure_logging
 
 log = logging.getLogger(__name__)
 
@@ -66,3 +75,14 @@ def _install_signal_handlers(stop: threading.Event) -> dict[int, object]:
         threading.Thread(target=stop.set, name="stop", daemon=True).start()
 
     return {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion router``: the flags every process takes, without ``--mode``."""
+    parser.description = f"Run a Zenoh router; --config defaults to {ROUTER_CONFIG}."
+    add_zenoh_arguments(parser, mode=False)
+
+
+def run(args: argparse.Namespace) -> int:
+    configure_logging(args.log_level)
+    return main(config_from_args(args, default_file=ROUTER_CONFIG, mode="router"))

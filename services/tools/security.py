@@ -36,13 +36,16 @@ from the router to the remote; a rule's key expression must *include* the messag
 
 from __future__ import annotations
 
+import argparse
 import json
+import sys
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from schemas import keys
+from schemas.keys import DEFAULT_NS
 from schemas.wire import check_id
 
 GATEWAY_PREFIX = "gateway-"
@@ -319,3 +322,42 @@ def main(ns: str, trains: Sequence[str], certs: Path, listen: str, command: str)
         key=certs / ROUTER_KEY_FILE,
     )
     return render(config, command)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion secure-config``."""
+    parser.description = (
+        "Print a router configuration that accepts only mutual-TLS clients and lets each one "
+        "(by certificate common name) use only its keys: gateway-{train} its own raw and gps "
+        "keys, each service what it needs. See deploy/SECURITY.md."
+    )
+    parser.add_argument(
+        "--trains", required=True, metavar="T1,T2,…", help="the fleet's train ids, comma-separated"
+    )
+    parser.add_argument("--ns", default=DEFAULT_NS, help="key namespace (default: %(default)s)")
+    parser.add_argument(
+        "--certs",
+        required=True,
+        type=Path,
+        metavar="DIR",
+        help="directory of ca.pem, router.pem and router-key.pem as the router will see it",
+    )
+    parser.add_argument(
+        "--listen", default=DEFAULT_LISTEN, help="TLS endpoint (default: %(default)s)"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    trains = [t.strip() for t in args.trains.split(",") if t.strip()]
+    if not trains:
+        raise SystemExit("--trains: give at least one train id, e.g. --trains T001,T002")
+    command = (
+        f"trackfusion secure-config --trains {','.join(trains)} --ns {args.ns} "
+        f"--certs {args.certs} --listen {args.listen}"
+    )
+    try:
+        text = main(args.ns, trains, args.certs, args.listen, command)
+    except ValueError as exc:
+        raise SystemExit(f"secure-config: {exc}") from None
+    sys.stdout.write(text)
+    return 0

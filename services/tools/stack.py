@@ -16,6 +16,7 @@ Ctrl-C (or SIGTERM) stops the children (SIGTERM, SIGKILL after 5 s) and then the
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import json
 import logging
@@ -37,6 +38,7 @@ import zenoh
 from schemas import Alert, SchemaError, ServiceHealth, StackHealth, decode, encode, keys
 from services.defaults import default_file
 from services.runtime.config import default_instance, zenoh_config
+from services.runtime.service import configure_logging
 
 log = logging.getLogger(__name__)
 REPO = Path(__file__).resolve().parents[2]  # holds the packages: the checkout, or site-packages
@@ -676,3 +678,21 @@ def viewer_url(log_path: Path) -> str:
             return next((line.strip() for line in log if line.startswith("http")), "")
     except OSError:
         return ""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion up``."""
+    parser.description = (
+        "Start everything of the stack file with a live status table; Ctrl-C stops it all."
+    )
+    parser.add_argument(
+        "--stack", default=str(DEFAULT_STACK), help="stack file (default: %(default)s)"
+    )
+    parser.add_argument("--ns", help="namespace (stack file's by default)")
+    parser.add_argument("--listen", metavar="ENDPOINT", help="router endpoint (stack file's)")
+    parser.add_argument("--log-level", default="warning", choices=["debug", "info", "warning"])
+
+
+def run(args: argparse.Namespace) -> int:
+    configure_logging(args.log_level)
+    return main(args.stack, ns=args.ns, listen=args.listen)

@@ -22,7 +22,9 @@ native viewer. :func:`default_sink` picks spawn with a display, else web.
 
 from __future__ import annotations
 
+import argparse
 import logging
+import os
 import sys
 import threading
 import time
@@ -51,8 +53,13 @@ from schemas import (
     encode,
     keys,
 )
-from services.runtime.config import RuntimeConfig, zenoh_config
-from services.runtime.service import ServiceRuntime
+from services.runtime.config import (
+    RuntimeConfig,
+    add_zenoh_arguments,
+    config_from_args,
+    zenoh_config,
+)
+from services.runtime.service import ServiceRuntime, configure_logging
 from services.viewer.core import (
     DEFAULT_LIVE_FLUSH_S,
     DEFAULT_PLOT_FLUSH_S,
@@ -391,3 +398,72 @@ def main_select(conf: RuntimeConfig, segment: str, timeout_s: float = SELECT_TIM
             publisher.undeclare()
     print(f"viewer: plotting {line}/{seg} in the selected row")
     return 0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``trackfusion viewer [select LINE/SEGMENT]``."""
+    parser.description = (
+        "Subscribe to {ns}/state/**, index/**, trc/**, alert/** and gps/* (dropping the oldest "
+        "when behind) and log them to Rerun on the event_time timeline. Default sink: the "
+        "native viewer when DISPLAY/WAYLAND_DISPLAY is set, else the web viewer (its URL is "
+        "printed on stdout)."
+    )
+    parser.add_argument(
+        "--network",
+        metavar="FILE.geojson",
+        type=Path,
+        default=DEMO_NETWORK,
+        help="the map (default: %(default)s)",
+    )
+    sink = parser.add_mutually_exclusive_group()
+    sink.add_argument(
+        "--rrd", metavar="FILE", type=Path, help="save the recording to FILE (headless)"
+    )
+    sink.add_argument(
+        "--web", action="store_true", help="serve the web viewer and print its URL on stdout"
+    )
+    sink.add_argument("--spawn", action="store_true", help="start the native viewer")
+    parser.add_argument(
+        "--web-port", type=int, default=DEFAULT_WEB_PORT, help="web viewer HTTP port (%(default)s)"
+    )
+    parser.add_argument(
+        "--grpc-port",
+        type=int,
+        default=DEFAULT_GRPC_PORT,
+        help="Rerun gRPC log stream port (%(default)s)",
+    )
+    parser.add_argument(
+        "--worst",
+        type=int,
+        default=DEFAULT_WORST_N,
+        help="worst segments plotted beside the map (%(default)s)",
+    )
+    parser.add_argument(
+        "action",
+        nargs="?",
+        choices=["select"],
+        help="select LINE/SEGMENT: plot that segment in the running viewer's selected row",
+    )
+    parser.add_argument("segment", nargs="?", metavar="LINE/SEGMENT", help="e.g. L1/s00042")
+    add_zenoh_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    configure_logging(args.log_level)
+    if args.action == "select":  # a tool: tell the running viewer, then exit
+        if args.segment is None:
+            raise SystemExit("viewer select: which segment? e.g. viewer select L1/s00042")
+        try:
+            return main_select(config_from_args(args), args.segment)
+        except ValueError as exc:
+            raise SystemExit(f"viewer select: {exc}") from None
+    ports = {"web_port": args.web_port, "grpc_port": args.grpc_port}
+    if args.rrd is not None:
+        sink = Sink("rrd", path=args.rrd, **ports)
+    elif args.web:
+        sink = Sink("web", **ports)
+    elif args.spawn:
+        sink = Sink("spawn", **ports)
+    else:  # the environment is read here, at the edge, and passed down
+        sink = default_sink(os.environ, **ports)
+    return main(config_from_args(args), args.network, sink, worst_n=args.worst)

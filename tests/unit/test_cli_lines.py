@@ -23,7 +23,7 @@ import json5
 import pytest
 import yaml
 
-from services.cli import build_parser
+from services.cli import COMMANDS, build_parser
 from services.defaults import default_file
 
 REPO = Path(__file__).resolve().parents[2]
@@ -156,6 +156,22 @@ def test_documented_line_parses_to_its_options(where, words):
     golden = json.loads(GOLDEN.read_text())
     assert where in golden, f"new line: run python {Path(__file__).relative_to(REPO)} --update"
     assert options == golden[where]
+
+
+def _command_paths(commands, prefix=()):
+    for command in commands:
+        path = (*prefix, command.name)
+        yield from _command_paths(command.subcommands, path) if command.subcommands else [path]
+
+
+@pytest.mark.parametrize("path", list(_command_paths(COMMANDS)), ids=" ".join)
+def test_every_command_declares_its_arguments_and_run(path, capsys):
+    """Its module has ``add_arguments`` and ``run`` (looked up when the command is parsed)
+    and the parser they build prints its help."""
+    with pytest.raises(SystemExit) as done:
+        build_parser().parse_args([*path, "--help"])
+    assert done.value.code == 0
+    assert capsys.readouterr().out.startswith(f"usage: trackfusion {' '.join(path)}")
 
 
 def test_golden_file_has_no_stale_lines():
