@@ -145,7 +145,12 @@ from services.calibration.posterior import (
     posterior_drift_diffusion,
     sample_degradation_posterior,
 )
-from services.calibration.regression import CalibrationError, ObservationFit, fit_observation
+from services.calibration.regression import (
+    CalibrationError,
+    ObservationFit,
+    fit_observation,
+    fit_unit_observation,
+)
 from services.calibration.robust import Rules, check_model, raw_pieces, reference, screen_segment
 
 __all__ = [
@@ -174,6 +179,18 @@ _LEVEL_SD_FLOOR = 1e-2  # ln mm: and that of post-tamping levels
 _RESIDUAL_SD_FLOOR = 1e-3  # ln: and that of (TRC, on-board) residuals
 _MAX_OUTLIER_SHARE = 0.2  # more outlying pairs than this share are a burst: the swap rule's
 CALIBRATION_KEY = "calibration"  # ModelEntry.key of the Calibration; posteriors use their group
+
+
+def unit_key(train: str, unit: str) -> str:
+    """ModelEntry.key of a unit's own Calibration."""
+    return f"{CALIBRATION_KEY}/{train}/{unit}"
+
+
+def is_calibration_key(key: str) -> bool:
+    """The fleet's or a unit's Calibration (a posterior group never has a ``/``)."""
+    return key == CALIBRATION_KEY or key.startswith(CALIBRATION_KEY + "/")
+
+
 _N = len(INDICATORS)
 
 Event = TrcRecord | OnboardIndex | MaintenanceEvent
@@ -210,6 +227,10 @@ class CalibratorConfig:
     max_move_sd: float = 8.0  # a pooled posterior moved beyond this (sd of the one in force)
     event_time_quorum: int = 3  # event time: the newest time this many segments have reached
     max_ahead_days: float = 180.0  # TRC records later than event time + this: left out for now
+    # per-unit observation models (issue 18): shrunk towards the fleet's by this many pairs
+    unit_models: bool = True
+    unit_min_pairs: int = 5  # a unit's pairs before its first own model
+    unit_shrink_pairs: float = 20.0
     drift_prior: NIWPrior | None = None  # None: NIWPrior.default_drift
     level_prior: NIWPrior | None = None  # None: NIWPrior.default_level
 
@@ -259,6 +280,12 @@ class Pair:
     t: float
     z: tuple[float, float]
     y: tuple[float, float]
+
+    @property
+    def unit(self) -> tuple[str, str]:
+        """``(train, unit)`` of the index (from its id, :func:`index_id`)."""
+        parts = self.index_id.split("/")
+        return parts[2], parts[3]
 
 
 @dataclass(frozen=True)
@@ -565,6 +592,7 @@ class Calibrator:
         self._increments: dict[Segment, SegmentIncrements] = {}
         self._dirty: set[Segment] = set()
         self._attempt_at = 0  # number of pairs at the last fit attempt
+        self._unit_fit_at: dict[tuple[str, str], int] = {}  # a unit's pairs at its last fit
         self._changes = Changes()
         if state is not None:
             self._restore(state)
@@ -634,17 +662,28 @@ class Calibrator:
         return entry.message if entry is not None else None  # type: ignore[return-value]
 
     @property
+    def unit_calibrations(self) -> dict[tuple[str, str], Calibration]:
+        """The units' own Calibrations in force, by ``(train, unit)``."""
+        return {
+            (e.message.train, e.message.unit): e.message  # type: ignore[union-attr]
+            for k, e in sorted(self._models.items())
+            if k != CALIBRATION_KEY and is_calibration_key(k)
+        }
+
+    @property
     def posteriors(self) -> dict[str, DegradationPosterior]:
         return {
             k: e.message  # type: ignore[misc]
             for k, e in sorted(self._models.items())
-            if k != CALIBRATION_KEY
+            if not is_calibration_key(k)
         }
 
     def models(self) -> list[Model]:
-        """The models in force: the Calibration (if any) first, then posteriors by group."""
+        """The models in force: the fleet's Calibration (if any) first, then the units', then
+        posteriors by group."""
         cal = self.calibration
-        return ([cal] if cal is not None else []) + list(self.posteriors.values())
+        units = list(self.unit_calibrations.values())
+        return ([cal] if cal is not None else []) + units + list(self.posteriors.values())
 
     @property
     def held(self) -> dict[str, Model]:
@@ -839,6 +878,7 @@ class Calibrator:
         """Fit or rebuild what the new data calls for, then publish what the publication
         rule lets through; the models published, the Calibration first, then by group."""
         self._maybe_fit()
+        self._maybe_fit_units()
         ahead_due = self._screened_now != self._now and any(
             r.startswith(_AHEAD) for left in self._screened.values() for r in left.values()
         )
@@ -913,7 +953,7 @@ class Calibrator:
             self._material.discard(key)
             self._changes.held[key] = None
             self._set_model(entry)
-            kind = "calibrations" if key == CALIBRATION_KEY else "posteriors"
+            kind = "calibrations" if is_calibration_key(key) else "posteriors"
             self.stats[f"{kind}_published"] += 1
             out.append(entry.message)
         return out
@@ -998,6 +1038,69 @@ class Calibrator:
         )
         self._hold(entry, change)
         return cal
+
+    def _maybe_fit_units(self) -> None:
+        """Each unit's own model (:func:`fit_unit_observation`), shrunk towards the fleet's
+        model in force or held, once the unit has ``unit_min_pairs`` pairs and again every
+        ``refit_every`` more; held and published by the same rule as the fleet's. A unit's
+        pairs include those quarantined from the fleet's fit: a unit that reads the track
+        differently from the fleet is what its own model is for."""
+        cfg = self.config
+        fleet = self._current(CALIBRATION_KEY)
+        pairs = self._pairs + self._quarantined
+        if not cfg.unit_models or fleet is None or not pairs:
+            return
+        by_unit: dict[tuple[str, str], list[Pair]] = {}
+        for p in pairs:
+            by_unit.setdefault(p.unit, []).append(p)
+        due = {
+            u: ps
+            for u, ps in by_unit.items()
+            if len(ps) >= cfg.unit_min_pairs
+            and (u not in self._unit_fit_at or len(ps) - self._unit_fit_at[u] >= cfg.refit_every)
+        }
+        if not due:
+            return
+        X = np.hstack([np.array([p.z for p in pairs]), np.ones((len(pairs), 1))])
+        design = X.T @ X / len(X)
+        base: Calibration = fleet.message  # type: ignore[assignment]
+        for (train, unit), ps in sorted(due.items()):
+            self._unit_fit_at[(train, unit)] = len(ps)
+            try:
+                fit = fit_unit_observation(
+                    np.array([p.z for p in ps]),
+                    np.array([p.y for p in ps]),
+                    H0=base.H.array(),
+                    b0=base.b.array(),
+                    R0=base.R.array(),
+                    design=design,
+                    shrink_pairs=cfg.unit_shrink_pairs,
+                )
+                key = unit_key(train, unit)
+                cal = Calibration(
+                    version=self._next_version(key),
+                    t=max(p.t for p in ps),
+                    indicators=list(INDICATORS),
+                    indices=list(ONBOARD_INDICES),
+                    H=_arr(fit.H),
+                    b=_arr(fit.b),
+                    R=_arr(fit.R),
+                    n_pairs=len(ps),
+                    r2=_arr(fit.r2),
+                    train=train,
+                    unit=unit,
+                )
+            except (CalibrationError, SchemaError, ValueError) as e:
+                self.stats["unit_fit_errors"] += 1
+                log.warning("unit %s/%s: fit on %d pairs refused: %s", train, unit, len(ps), e)
+                continue
+            entry = ModelEntry(key, cal)
+            if self._invalid(entry) is not None:
+                continue
+            in_force = self._models.get(key)
+            change = None if in_force is None else calibration_change(fit, in_force.message)
+            self.stats["unit_fits"] += 1
+            self._hold(entry, change)
 
     def _drop_outlying_pairs(self, H: np.ndarray, b: np.ndarray, n_ref: int) -> int:
         """Quarantine the pairs after the first ``n_ref`` whose residual ``y - (Hz + b)``

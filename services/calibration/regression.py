@@ -212,3 +212,65 @@ def fit_observation(
         se_b=se_b,
         se_R=se_R,
     )
+
+
+def fit_unit_observation(Z, Y, *, H0, b0, R0, design, shrink_pairs: float) -> ObservationFit:
+    r"""One on-board unit's ``H, b, R``, shrunk towards the fleet's ``H0, b0, R0``.
+
+    Each index's row :math:`\theta_i = [H_i\ b_i]` has a Gaussian prior centred on the
+    fleet's row with the precision of ``shrink_pairs`` (:math:`k`) pairs of the fleet's
+    design :math:`\mathbf D` (``design``: the mean of :math:`\tilde z \tilde z^T`,
+    :math:`\tilde z = [z\ 1]`, over all pairs), so that
+
+    .. math::
+
+        \theta_i = (\tilde{\mathbf Z}^T\tilde{\mathbf Z} + k\mathbf D)^{-1}
+                   (\tilde{\mathbf Z}^T \mathbf y_i + k\mathbf D\,\theta_{0,i}), \qquad
+        \mathbf R = \frac{\mathbf E^T\mathbf E + k\,\mathbf R_0}{N + k},
+
+    with :math:`\mathbf E` the unit's residuals: a unit with few pairs keeps close to the
+    fleet's model, one with many gets its own least-squares fit (as :math:`N/k` grows). A
+    unit whose pairs span a narrow range of ``z`` (one segment, one run) still gets a
+    well-posed fit, its slopes held by the prior. Standard errors: :math:`\operatorname{se}
+    (\theta_{ij}) = \sqrt{R_{ii} [(\tilde{\mathbf Z}^T\tilde{\mathbf Z} + k\mathbf D)^{-1}]
+    _{jj}}`; ``se_R`` as in :func:`fit_observation` with :math:`N + k` pairs. ``r2`` is on the
+    unit's own pairs (can be negative for a unit that reads little of the track's changes).
+    """
+    Z = as_finite("Z", Z, 2)
+    Y = as_finite("Y", Y, 2)
+    if Z.shape[0] != Y.shape[0] or Z.shape[0] < 1:
+        raise ValueError(f"Z and Y: need the same number >= 1 of rows, got {len(Z)}, {len(Y)}")
+    if not shrink_pairs > 0:
+        raise ValueError(f"shrink_pairs: must be > 0, got {shrink_pairs}")
+    N, n = Z.shape
+    X = np.hstack([Z, np.ones((N, 1))])
+    theta0 = np.hstack([np.asarray(H0, float), np.asarray(b0, float)[:, None]])  # (m, n + 1)
+    D = np.asarray(design, dtype=np.float64)
+    A = X.T @ X + shrink_pairs * D
+    try:
+        A_inv = np.linalg.inv(A)
+    except np.linalg.LinAlgError as exc:
+        raise CalibrationError(f"unit fit: singular design ({exc})") from None
+    theta = (A_inv @ (X.T @ Y + shrink_pairs * D @ theta0.T)).T  # (m, n + 1)
+    H, b = theta[:, :n], theta[:, n]
+    E = Y - X @ theta.T
+    R = (E.T @ E + shrink_pairs * np.asarray(R0, float)) / (N + shrink_pairs)
+    R = 0.5 * (R + R.T)
+    dof = max(N + shrink_pairs - n - 1, 1.0)
+    se = np.sqrt(np.outer(np.diag(R), np.diag(A_inv)))  # (m, n + 1)
+    sst = ((Y - Y.mean(axis=0)) ** 2).sum(axis=0)
+    r2 = 1.0 - (E**2).sum(axis=0) / np.where(sst > 0, sst, np.inf)
+    return ObservationFit(
+        H=H,
+        b=b,
+        R=R,
+        n_pairs=N,
+        r2=r2,
+        resid_std=np.sqrt(np.diag(R)),
+        condition=float(np.linalg.cond(A)),
+        z_min=Z.min(axis=0),
+        z_max=Z.max(axis=0),
+        se_H=se[:, :n],
+        se_b=se[:, n],
+        se_R=np.sqrt((R**2 + np.outer(np.diag(R), np.diag(R))) / dof),
+    )

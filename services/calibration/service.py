@@ -33,7 +33,6 @@ from typing import Any, cast
 import json5
 
 from schemas import (
-    Calibration,
     MaintenanceEvent,
     OnboardIndex,
     SchemaError,
@@ -140,9 +139,7 @@ def quarantine_key(ns: str, q: Quarantine) -> str:
 
 
 def model_key(ns: str, model: Model) -> str:
-    if isinstance(model, Calibration):
-        return keys.calibration(ns)
-    return keys.degradation(ns, model.group)
+    return keys.key_of(ns, model)
 
 
 def main(

@@ -25,12 +25,12 @@ from schemas import (
     encode,
 )
 from services.calibration.calibrator import (
-    CALIBRATION_KEY,
     Changes,
     ModelEntry,
     Pair,
     StoredState,
     index_id,
+    is_calibration_key,
     maintenance_id,
     trc_id,
 )
@@ -187,14 +187,14 @@ class SqliteStore:
         for key, payload, fingerprint, prior, at in db.execute(
             "SELECT key, payload, fingerprint, prior, published_at FROM models ORDER BY key"
         ):
-            kind = Calibration if key == CALIBRATION_KEY else DegradationPosterior
+            kind = Calibration if is_calibration_key(key) else DegradationPosterior
             state.models.append(
                 ModelEntry(key, decode(payload, kind), fingerprint, bool(prior), at)
             )
         for key, payload, fingerprint, prior in db.execute(
             "SELECT key, payload, fingerprint, prior FROM held ORDER BY key"
         ):
-            kind = Calibration if key == CALIBRATION_KEY else DegradationPosterior
+            kind = Calibration if is_calibration_key(key) else DegradationPosterior
             state.held.append(ModelEntry(key, decode(payload, kind), fingerprint, bool(prior)))
         row = db.execute("SELECT value FROM meta WHERE key = 'state'").fetchone()
         if row is not None:

@@ -47,6 +47,9 @@ SIGMA = np.array([[1.0e-4, 2.8e-5], [2.8e-5, 4.9e-5]])
 REPO = Path(__file__).resolve().parents[2]
 # the publication rule off: every accepted change is published at once (tests of the fits)
 EVERY_CHANGE = {"material_se": 0.0, "min_publish_interval_days": 0.0}
+# These tests are of the fleet model's rules (pairing, swap, publication, posteriors): the
+# units' own models are left out here and tested in test_calibration_units.py.
+FleetOnly = functools.partial(CalibratorConfig, unit_models=False)
 
 
 def trc(line, seg, run, t, z):
@@ -112,7 +115,7 @@ def histories(rng, *, lines=("L1", "L2"), segs=4, records=8, tamp_every=3):
 
 
 def test_pairs_by_run_id_in_either_order_and_ignores_duplicates():
-    core = Calibrator(CalibratorConfig(tolerance_days=None))
+    core = Calibrator(FleetOnly(tolerance_days=None))
     z, y = np.log([3.0, 2.0]), np.log([2.5, 1.5])
     idx = index("L1", "s1", T0 + 9 * DAY, y, run="R7")  # 9 days off: only run_id pairs it
     core.step([idx, idx])
@@ -129,7 +132,7 @@ def test_pairs_by_run_id_in_either_order_and_ignores_duplicates():
 
 
 def test_pairs_by_tolerance_with_the_nearest_record():
-    core = Calibrator(CalibratorConfig(tolerance_days=1.0))
+    core = Calibrator(FleetOnly(tolerance_days=1.0))
     z1, z2, y = np.log([3.0, 2.0]), np.log([4.0, 2.5]), np.log([2.5, 1.5])
     core.step([trc("L1", "s1", "A", T0, z1), trc("L1", "s1", "B", T0 + 1.5 * DAY, z2)])
     core.step(
@@ -148,7 +151,7 @@ def test_pairs_by_tolerance_with_the_nearest_record():
 
 def test_time_pairing_off_low_quality_and_the_waiting_window():
     core = Calibrator(
-        CalibratorConfig(tolerance_days=None, index_window_days=10, max_pending_per_segment=3)
+        FleetOnly(tolerance_days=None, index_window_days=10, max_pending_per_segment=3)
     )
     y = np.log([2.5, 1.5])
     core.step([index("L1", "s1", T0, y), index("L1", "s1", T0, y, train="T9", quality=0.1)])
@@ -171,7 +174,7 @@ def test_time_pairing_off_low_quality_and_the_waiting_window():
 
 def test_first_fit_at_min_pairs_then_refit_cadence_and_versions():
     rng = np.random.default_rng(1)
-    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, **EVERY_CHANGE))
+    core = Calibrator(FleetOnly(min_pairs=30, refit_every=10, **EVERY_CHANGE))
     assert core.step(campaign(29, rng)) == []
     (cal,) = core.step(campaign(1, rng, start=29))
     assert isinstance(cal, Calibration) and (cal.version, cal.n_pairs) == (1, 30)
@@ -189,7 +192,7 @@ def test_first_fit_at_min_pairs_then_refit_cadence_and_versions():
 
 def test_worse_refit_is_rejected_with_a_reason_and_a_better_one_accepted():
     rng = np.random.default_rng(2)
-    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, **EVERY_CHANGE))
+    core = Calibrator(FleetOnly(min_pairs=30, refit_every=10, **EVERY_CHANGE))
     (cal,) = core.step(campaign(30, rng))
     # a faulty unit: on-board indices unrelated to the TRC values
     garbage = campaign(15, rng, start=30, H=np.zeros((2, 2)), B=np.zeros(2), R=0.5 * np.eye(2))
@@ -209,7 +212,7 @@ def test_worse_refit_is_rejected_with_a_reason_and_a_better_one_accepted():
 def test_swap_rule_loglik_threshold():
     """Rule 2 alone: same R² but a shifted bias costs log-likelihood on the old pairs."""
     rng = np.random.default_rng(3)
-    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=30, max_r2_drop=1.0))
+    core = Calibrator(FleetOnly(min_pairs=30, refit_every=30, max_r2_drop=1.0))
     (cal,) = core.step(campaign(30, rng))
     assert core.step(campaign(30, rng, start=30, B=B + 0.5)) == []
     assert "log-likelihood per pair on the 30 pairs" in core.rejections[-1]
@@ -226,7 +229,7 @@ def test_initial_calibration_replaced_by_first_fit():
     cal0, posts = initial_models(spec, samples=50, seed=4)
     assert cal0 is not None and cal0.version == 1 and [p.group for p in posts] == ["net"]
     assert posts[0].mu.shape == [50, 2]
-    core = Calibrator(CalibratorConfig(min_pairs=30, samples=50))
+    core = Calibrator(FleetOnly(min_pairs=30, samples=50))
     assert core.install_initial(cal0, posts) == [cal0, posts[0]]
     assert core.install_initial(cal0, posts) == []  # only where nothing exists
     rng = np.random.default_rng(5)
@@ -242,7 +245,7 @@ def test_initial_calibration_replaced_by_first_fit():
 
 def test_groups_pooling_and_levels():
     rng = np.random.default_rng(6)
-    cfg = CalibratorConfig(samples=50, segment_min_increments=5, min_levels=4)
+    cfg = FleetOnly(samples=50, segment_min_increments=5, min_levels=4)
     core = Calibrator(cfg)
     events = histories(rng, segs=4, records=8, tamp_every=3)
     events += [
@@ -282,16 +285,12 @@ def test_groups_pooling_and_levels():
 def test_levels_from_prior_when_no_tamping_and_deterministic_samples():
     rng = np.random.default_rng(7)
     events = histories(rng, lines=("L1",), segs=2, records=4, tamp_every=99)
-    cfg = CalibratorConfig(samples=30, seed=11)
+    cfg = FleetOnly(samples=30, seed=11)
     (a,) = [m for m in Calibrator(cfg).step(events) if m.group == "net"]
     (b,) = [m for m in Calibrator(cfg).step(events) if m.group == "net"]
     assert a.n_levels == 0 and a.n_increments == 6
     assert a == b  # identical draws from (seed, group, version)
-    (c,) = [
-        m
-        for m in Calibrator(CalibratorConfig(samples=30, seed=12)).step(events)
-        if m.group == "net"
-    ]
+    (c,) = [m for m in Calibrator(FleetOnly(samples=30, seed=12)).step(events) if m.group == "net"]
     assert c.mu != a.mu
     assert group_rng(1, "net", 1).random() == group_rng(1, "net", 1).random()
     assert group_rng(1, "net", 1).random() != group_rng(1, "net", 2).random()
@@ -300,7 +299,7 @@ def test_levels_from_prior_when_no_tamping_and_deterministic_samples():
 def test_tamping_interval_mid_rule_and_rebuild_on_maintenance():
     rng = np.random.default_rng(8)
     events = histories(rng, lines=("L1",), segs=3, records=6, tamp_every=99)
-    core = Calibrator(CalibratorConfig(samples=20, min_increments=4, **EVERY_CHANGE))
+    core = Calibrator(FleetOnly(samples=20, min_increments=4, **EVERY_CHANGE))
     first = {m.group: m for m in core.step(events)}
     assert first["net"].n_increments == 15
     s0 = sorted((e for e in events if e.segment == "s0"), key=lambda e: e.t)
@@ -322,7 +321,7 @@ def test_restart_from_store_gives_identical_models(kind, tmp_path):
         return MemoryStore() if kind == "memory" else SqliteStore(tmp_path / "c.sqlite")
 
     rng = np.random.default_rng(9)
-    cfg = CalibratorConfig(min_pairs=30, refit_every=10, samples=40, seed=3)
+    cfg = FleetOnly(min_pairs=30, refit_every=10, samples=40, seed=3)
     events = campaign(45, rng) + histories(rng) + [index("L1", "s0", T0 + 1e9, np.log([2, 1]))]
     store = open_store()
     core = Calibrator(cfg, store.load())
@@ -364,7 +363,7 @@ _day_batch, _waiting_index = day_batch, waiting_index
 
 def test_refits_within_their_standard_errors_publish_no_version():
     rng = np.random.default_rng(21)
-    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10))
+    core = Calibrator(FleetOnly(min_pairs=30, refit_every=10))
     (cal,) = core.step(day_batch(1000, rng, 0, start=0))  # first fit: nothing in force
     assert (cal.version, cal.n_pairs) == (1, 1000)
     for k in range(5):  # a refit a day, each on 10 more pairs of the same model
@@ -383,7 +382,7 @@ def test_refits_within_their_standard_errors_publish_no_version():
 
 def test_a_shift_beyond_the_standard_error_publishes_a_version():
     rng = np.random.default_rng(22)
-    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10))
+    core = Calibrator(FleetOnly(min_pairs=30, refit_every=10))
     (cal,) = core.step(day_batch(1000, rng, 0, start=0))
     (cal2,) = core.step(day_batch(300, rng, 2, start=1000, B=B + [0.15, 0.0]))  # a biased unit
     assert (cal2.version, cal2.n_pairs) == (2, 1300) and core.held == {}
@@ -397,7 +396,7 @@ def test_a_shift_beyond_the_standard_error_publishes_a_version():
 
 def test_two_material_changes_within_a_day_publish_once_then_when_event_time_passes():
     rng = np.random.default_rng(23)
-    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, tolerance_days=None))
+    core = Calibrator(FleetOnly(min_pairs=30, refit_every=10, tolerance_days=None))
     (v1,) = core.step(day_batch(1000, rng, 0, start=0))
     (v2,) = core.step(day_batch(300, rng, 2, start=1000, B=B + [0.15, 0.0]))
     published = core.published_at["calibration"]
@@ -422,7 +421,7 @@ def test_restart_keeps_the_version_in_force_and_its_publication_time(kind, tmp_p
         return MemoryStore() if kind == "memory" else SqliteStore(tmp_path / "c.sqlite")
 
     rng = np.random.default_rng(24)
-    cfg = CalibratorConfig(min_pairs=30, refit_every=10, tolerance_days=None, samples=30)
+    cfg = FleetOnly(min_pairs=30, refit_every=10, tolerance_days=None, samples=30)
     day_batch = functools.partial(_day_batch, t0=T0 + 1000 * DAY)  # after the histories
     waiting_index = functools.partial(_waiting_index, t0=T0 + 1000 * DAY)
     store = open_store()
@@ -455,7 +454,7 @@ def test_restart_keeps_the_version_in_force_and_its_publication_time(kind, tmp_p
 
 def test_posterior_moves_within_its_sd_publish_no_version_a_shift_does():
     rng = np.random.default_rng(25)
-    core = Calibrator(CalibratorConfig(samples=200, segment_min_increments=99))
+    core = Calibrator(FleetOnly(samples=200, segment_min_increments=99))
     events = histories(rng, segs=6, records=8, tamp_every=99)
     first = {m.group: m for m in core.step(events)}
     assert set(first) == {"net", "line.L1", "line.L2"}
@@ -489,7 +488,7 @@ def test_a_store_from_before_publication_times_opens(tmp_path):
     """A file whose models table has no published_at: the column is added, and its models
     count as published at an unknown time (the next version is not rate-limited)."""
     rng = np.random.default_rng(26)
-    (old,) = Calibrator(CalibratorConfig(min_pairs=30)).step(campaign(30, rng))
+    (old,) = Calibrator(FleetOnly(min_pairs=30)).step(campaign(30, rng))
     path = tmp_path / "old.sqlite"
     with sqlite3.connect(path) as db:
         db.execute(
@@ -499,7 +498,7 @@ def test_a_store_from_before_publication_times_opens(tmp_path):
         db.execute("INSERT INTO models VALUES ('calibration', ?, '', 0)", (encode(old),))
     db.close()
     store = SqliteStore(path)
-    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10), store.load())
+    core = Calibrator(FleetOnly(min_pairs=30, refit_every=10), store.load())
     assert core.models() == [old] and core.published_at == {"calibration": None}
     # a material change minutes later is published at once, then rate-limited
     (cal,) = core.step(campaign(300, rng, start=30, B=B + [0.3, 0.0]))
@@ -507,7 +506,7 @@ def test_a_store_from_before_publication_times_opens(tmp_path):
     store.apply(core.drain_changes())
     store.close()
     store = SqliteStore(path)
-    assert Calibrator(CalibratorConfig(), store.load()).published_at == core.published_at
+    assert Calibrator(FleetOnly(), store.load()).published_at == core.published_at
     store.close()
 
 
@@ -540,7 +539,7 @@ def moved_sd(new: DegradationPosterior, old: DegradationPosterior) -> float:
 @pytest.mark.parametrize("outlier_at", [3, 6])  # a spike; the newest record
 def test_a_99_mm_record_does_not_move_the_network_posterior(outlier_at):
     rng = np.random.default_rng(31)
-    cfg = CalibratorConfig(samples=200, segment_min_increments=99)
+    cfg = FleetOnly(samples=200, segment_min_increments=99)
     core = Calibrator(cfg)
     events = histories(rng, segs=6, records=8, tamp_every=99)
     before = {m.group: m for m in core.step(events)}["net"]
@@ -566,7 +565,7 @@ def test_the_incident_seven_records_on_one_segment_from_the_initial_models():
     one segment, one of them 99 mm."""
     spec = json5.loads((default_file("initial-models.json5")).read_text())
     cal0, posts = initial_models(spec, samples=200, seed=0)
-    core = Calibrator(CalibratorConfig(samples=200))
+    core = Calibrator(FleetOnly(samples=200))
     core.install_initial(cal0, posts)
     out = core.step(seven_records("X", "unknown", T0, [3.0, 2.0]))
     (q,) = core.drain_quarantined()
@@ -578,7 +577,7 @@ def test_the_incident_seven_records_on_one_segment_from_the_initial_models():
 
 def test_a_pooled_posterior_moved_by_one_segment_alone_is_held():
     rng = np.random.default_rng(32)
-    cfg = CalibratorConfig(samples=200, segment_min_increments=99)
+    cfg = FleetOnly(samples=200, segment_min_increments=99)
     core = Calibrator(cfg)
     events = histories(rng, lines=("L1",), segs=6, records=8, tamp_every=99)
     before = {m.group: m for m in core.step(events)}
@@ -597,7 +596,7 @@ def test_a_pooled_posterior_moved_by_one_segment_alone_is_held():
 
 def test_a_record_dated_2099_does_not_stall_publication():
     rng = np.random.default_rng(33)
-    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, tolerance_days=None))
+    core = Calibrator(FleetOnly(min_pairs=30, refit_every=10, tolerance_days=None))
     (v1,) = core.step(day_batch(1000, rng, 0, start=0))
     now = core.now
     late = trc("L1", "c5", "late", 4_090_000_000.0, np.log([3.0, 2.0]))  # 2099-08
@@ -619,7 +618,7 @@ def test_a_record_dated_2099_does_not_stall_publication():
 
 def test_a_wild_pair_the_swap_rule_lets_through_is_quarantined():
     rng = np.random.default_rng(34)
-    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, **EVERY_CHANGE))
+    core = Calibrator(FleetOnly(min_pairs=30, refit_every=10, **EVERY_CHANGE))
     core.step(campaign(200, rng))
     batch = campaign(10, rng, start=200)
     wild = batch[-1]
@@ -641,13 +640,13 @@ def test_a_wild_pair_the_swap_rule_lets_through_is_quarantined():
 
 def test_check_model_refuses_non_positive_definite_covariances():
     rng = np.random.default_rng(35)
-    (cal,) = Calibrator(CalibratorConfig(min_pairs=30)).step(campaign(30, rng))
+    (cal,) = Calibrator(FleetOnly(min_pairs=30)).step(campaign(30, rng))
     assert check_model(cal) is None
     bad_r = msgspec.structs.replace(cal, R=NDArray.of(np.array([[1.0, 2.0], [2.0, 1.0]])))
     assert check_model(bad_r) == "R is not positive definite"
     (post,) = [
         m
-        for m in Calibrator(CalibratorConfig(samples=20)).step(histories(rng, lines=("L1",)))
+        for m in Calibrator(FleetOnly(samples=20)).step(histories(rng, lines=("L1",)))
         if m.group == "net"
     ]
     assert check_model(post) is None
@@ -665,7 +664,7 @@ def test_no_nan_inf_or_indefinite_model_is_ever_published(seed):
     """Property: whatever outliers within the schema's bounds arrive (values in (0, 100] mm,
     times in [2000, 2100)), every model published is finite with SPD covariances."""
     rng = np.random.default_rng(100 + seed)
-    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, samples=30))
+    core = Calibrator(FleetOnly(min_pairs=30, refit_every=10, samples=30))
     events = histories(rng, segs=3, records=6) + campaign(40, rng)
     for _ in range(25):
         line, seg = rng.choice(["L1", "L2", "X"]), f"s{rng.integers(0, 5)}"

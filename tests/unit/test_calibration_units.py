@@ -1,0 +1,100 @@
+"""Per-unit observation models (issue 18): each on-board unit's H, b, R, shrunk towards the
+fleet's model while it has few pairs."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from schemas import Calibration, keys
+from services.calibration.calibrator import Calibrator, CalibratorConfig, unit_key
+from services.calibration.regression import fit_observation, fit_unit_observation
+from services.calibration.store import SqliteStore
+from tests.unit.test_calibration_service_core import T0, B, H, R, campaign, index, trc
+
+ONE_AT_A_TIME = {"material_se": 0.0, "min_publish_interval_days": 0.0}
+
+
+def unit_pairs(rng, n, b_shift, *, train, unit="u1", start=0, line="L1"):
+    """A TRC record and, 2 h later, an index of ``train``'s unit reading ``b + b_shift``."""
+    events = []
+    for k in range(start, start + n):
+        z = rng.normal([1.1, 0.9], [0.35, 0.3])
+        y = H @ z + B + np.asarray(b_shift) + rng.multivariate_normal([0, 0], R)
+        t = T0 + 86_400.0 + k * 600.0
+        events += [
+            trc(line, f"u{k}", f"run-u{k}", t, z),
+            index(line, f"u{k}", t + 7200.0, y, train=train, unit=unit),
+        ]
+    return events
+
+
+def design_of(Z):
+    X = np.hstack([Z, np.ones((len(Z), 1))])
+    return X.T @ X / len(X)
+
+
+def test_a_unit_fit_moves_from_the_fleets_model_to_its_own_least_squares_with_pairs():
+    rng = np.random.default_rng(0)
+    shift = np.array([0.15, -0.1])
+    Z = rng.normal([1.1, 0.9], [0.35, 0.3], (2000, 2))
+    Y = Z @ H.T + B + shift + rng.multivariate_normal([0, 0], R, len(Z))
+    D = design_of(Z)
+    fits = {
+        n: fit_unit_observation(Z[:n], Y[:n], H0=H, b0=B, R0=R, design=D, shrink_pairs=20)
+        for n in (1, 3, 20, 2000)
+    }
+    # one pair: near the fleet; 20 pairs: about halfway; 2,000: the unit's own fit
+    assert np.abs(fits[1].b - B).max() < 0.05
+    assert 0.3 < np.mean((fits[20].b - B) / shift) < 0.8
+    ols = fit_observation(Z, Y)
+    np.testing.assert_allclose(fits[2000].b, ols.b, atol=0.01)
+    np.testing.assert_allclose(fits[2000].H, ols.H, atol=0.01)
+    np.testing.assert_allclose(fits[2000].R, R, rtol=0.1, atol=0.002)
+    assert (fits[2000].se_b < fits[20].se_b).all()
+    # pairs from one point of z (one segment, one run): still a finite, fleet-like slope
+    same = fit_unit_observation(
+        np.repeat(Z[:1], 8, 0), Y[:8], H0=H, b0=B, R0=R, design=D, shrink_pairs=20
+    )
+    assert np.isfinite(same.H).all() and np.abs(same.H - H).max() < 0.2
+
+
+def test_each_unit_gets_its_own_model_and_the_fleets_stays():
+    rng = np.random.default_rng(1)
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, **ONE_AT_A_TIME))
+    events = campaign(40, rng)  # the TRC's own unit: the fleet's model
+    events += unit_pairs(rng, 60, [0.2, -0.15], train="TA")
+    events += unit_pairs(rng, 60, [-0.1, 0.1], train="TB", start=100)
+    out = core.step(events)
+    units = core.unit_calibrations
+    assert {("TA", "u1"), ("TB", "u1")} <= set(units)
+    fleet = core.calibration
+    assert fleet is not None and not fleet.train
+    for train in ("TA", "TB"):
+        cal = units[(train, "u1")]
+        assert cal.n_pairs == 60 and keys.key_of("tf", cal) == f"tf/model/calibration/{train}/u1"
+        # the unit's own indices: no bias left under its model, a bias under the fleet's
+        pairs = [p for p in core.pairs + core.quarantined if p.unit == (train, "u1")]
+        Z, Y = np.array([p.z for p in pairs]), np.array([p.y for p in pairs])
+
+        def bias(model: Calibration, Z=Z, Y=Y) -> np.ndarray:
+            return (Y - Z @ model.H.array().T - model.b.array()).mean(axis=0)
+
+        assert np.abs(bias(cal)).max() < 0.04
+        assert np.abs(bias(fleet)).max() > 0.1
+    assert any(isinstance(m, Calibration) and m.train == "TA" for m in out)
+    # the models in force list the fleet's first, then the units'
+    models = core.models()
+    assert models[0] == fleet and {m.train for m in models[1:4]} == {"T1", "TA", "TB"}
+
+
+def test_unit_models_survive_a_restart(tmp_path):
+    rng = np.random.default_rng(2)
+    store = SqliteStore(tmp_path / "cal.sqlite")
+    core = Calibrator(CalibratorConfig(min_pairs=30, **ONE_AT_A_TIME), store.load())
+    core.step(campaign(40, rng) + unit_pairs(rng, 30, [0.2, 0.0], train="TA"))
+    store.apply(core.drain_changes())
+    again = Calibrator(CalibratorConfig(min_pairs=30, **ONE_AT_A_TIME), SqliteStore(
+        tmp_path / "cal.sqlite"
+    ).load())  # fmt: skip
+    assert again.unit_calibrations == core.unit_calibrations
+    assert unit_key("TA", "u1") in again.published_at
