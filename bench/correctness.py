@@ -130,6 +130,7 @@ class Settings:
     late: float = 0.0  # share of reported tampings reported late (maintenance.late_fraction)
     fleet: str = "uniform"  # "uniform": one sensor model; "mixed": simulators.fleet.MIXED
     detect: bool = True  # the trackers look for unreported tampings (Tracker.detect_maintenance)
+    unit_models: bool = True  # calibration fits each unit's own model (CalibratorConfig)
 
 
 def world_config(st: Settings) -> dict:
@@ -250,7 +251,7 @@ def run_shard(settings: Settings, shard: int, n_shards: int) -> dict:
     log_limits = np.log(np.stack([limits.for_line(line)[level_i] for line, _ in keys]))
     cutoff_t = START_T + st.cutoff_days * DAY_S
 
-    cal_config = CalibratorConfig(samples=st.samples, seed=st.seed)
+    cal_config = CalibratorConfig(samples=st.samples, seed=st.seed, unit_models=st.unit_models)
     tol_s = (cal_config.tolerance_days or 0.0) * DAY_S
     calibrator = Calibrator(cal_config)
     spec_im = json5.loads(INITIAL_MODELS.read_text())
@@ -866,6 +867,7 @@ def _table(fig: dict) -> str:
     )
     d = fig["detection"]
     extra.append(
+        f"units' own models {'on' if s['unit_models'] else 'off'}; "
         f"detected maintenance ({'on' if s['detect'] else 'off'}): {d['n_detections']} "
         f"detections, {d['false']} false ({d['false_per_1000_segment_years']:.1f} per 1,000 "
         "segment-years); "
@@ -925,6 +927,7 @@ def parse_args(argv=None) -> tuple[Settings, argparse.Namespace]:
     p.add_argument("--late", type=float, default=0.0, help="reported tampings reported late")
     p.add_argument("--fleet", choices=("uniform", "mixed"), default="uniform")
     p.add_argument("--no-detect", action="store_true", help="no detected maintenance")
+    p.add_argument("--no-unit-models", action="store_true", help="one fleet-wide calibration")
     p.add_argument("--quick", action="store_true", help="smoke test: 120 days, small")
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
     a = p.parse_args(argv)
@@ -962,6 +965,7 @@ def parse_args(argv=None) -> tuple[Settings, argparse.Namespace]:
         late=a.late,
         fleet=a.fleet,
         detect=not a.no_detect,
+        unit_models=not a.no_unit_models,
         **{k: v for k, v in given.items() if v is not None},
     )
     return st, a
