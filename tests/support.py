@@ -81,26 +81,33 @@ class Process:
         self.name, self.log_path = log_path.stem, log_path
         # append mode: the child's stderr and the reader's stdout lines share the file
         self._log = log_path.open("a", buffering=1)
-        self.popen = subprocess.Popen(
-            cli(*args),
-            stdout=subprocess.PIPE,
-            stderr=self._log,
-            stdin=subprocess.DEVNULL,
-            text=True,
-            errors="replace",
-            start_new_session=True,
-        )
+        try:
+            self.popen = subprocess.Popen(
+                cli(*args),
+                stdout=subprocess.PIPE,
+                stderr=self._log,
+                stdin=subprocess.DEVNULL,
+                text=True,
+                errors="replace",
+                start_new_session=True,
+            )
+        except BaseException:
+            self._log.close()
+            raise
         self._lines: queue.Queue[str] = queue.Queue()
         self._stdout: list[str] = []
         self._reader = threading.Thread(target=self._read, name=f"{self.name}-stdout", daemon=True)
         self._reader.start()
 
     def _read(self) -> None:
+        """Until the pipe's end; then it closes the pipe and its side of the log (this thread
+        alone uses them, so nothing is closed under it)."""
         assert self.popen.stdout is not None
-        for line in self.popen.stdout:
-            self._stdout.append(line)
-            self._lines.put(line.rstrip("\n"))
-            self._log.write(line)
+        with self.popen.stdout, self._log:
+            for line in self.popen.stdout:
+                self._stdout.append(line)
+                self._lines.put(line.rstrip("\n"))
+                self._log.write(line)
 
     @property
     def running(self) -> bool:
@@ -157,7 +164,7 @@ class Process:
         return f"\n--- {self.log_path.name} ---\n{self.log_path.read_text()}"
 
     def stop(self) -> None:
-        """Teardown: SIGTERM, then SIGKILL after a grace period; reap it, close its pipe.
+        """Teardown: SIGTERM, then SIGKILL after a grace period; reap it.
 
         `up` must be asked rather than killed: it stops its children, which run in sessions
         of their own that a SIGKILL to it would orphan."""
@@ -170,10 +177,7 @@ class Process:
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(self.popen.pid, signal.SIGKILL)
                 self.popen.wait(5)
-        self._reader.join(STOP_S)
-        if self.popen.stdout is not None:
-            self.popen.stdout.close()
-        self._log.close()
+        self._reader.join(STOP_S)  # the pipe ends with the process (and whatever inherited it)
 
 
 class ServiceThread:
