@@ -123,6 +123,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _command_name(args: argparse.Namespace) -> str:
+    """``gateway check`` for a subcommand, ``filtering`` for a command."""
+    words = [args.command]
+    while (word := getattr(args, f"{words[-1]}_command", None)) is not None:
+        words.append(word)
+    return " ".join(words)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -133,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:  # what to fix, not where in the code it was found
         if getattr(args, "log_level", None) == "debug":
             traceback.print_exc()
-        print(f"trackfusion {args.command}: {exc}", file=sys.stderr)
+        print(f"trackfusion {_command_name(args)}: {exc}", file=sys.stderr)
         return EXIT_USAGE
 
 

@@ -24,13 +24,13 @@ DEFAULT_START = "2026-01-01T00:00:00+00:00"
 
 
 def load_network(path: str | None, segment_length_m: float = 200.0) -> Network:
-    """The demo network, or a GeoJSON file; SystemExit saying what to fix when it is bad."""
+    """The demo network, or a GeoJSON file; ValueError saying what to fix when it is bad."""
     if path is None:
         return demo_network(segment_length_m)
     try:
         return Network.from_geojson(Path(path), segment_length_m=segment_length_m)
     except (OSError, ValueError) as exc:
-        raise SystemExit(f"--network {path}: {exc}") from None
+        raise ValueError(f"--network {path}: {exc}") from None
 
 
 def main_simulate(
@@ -66,10 +66,7 @@ def main_simulate(
 
     network = load_network(network_path)
     config = load_config(config_path)
-    try:
-        spec = WorldSpec(network, config, start_t, days, seed, trains, fidelity, units)
-    except ValueError as exc:
-        raise SystemExit(f"simulate: {exc}") from None
+    spec = WorldSpec(network, config, start_t, days, seed, trains, fidelity, units)
     truth = (
         GroundTruthWriter(truth_path, network, config, start_t, days, seed) if truth_path else None
     )
@@ -118,7 +115,7 @@ def main_network_generate(
 ) -> int:
     """Write a generated network as GeoJSON (lines and segments) to ``out`` or stdout."""
     if lines < 1 or length_km <= 0 or segment_length_m <= 0:
-        raise SystemExit("network generate: --lines >= 1, --length-km > 0, --segment-m > 0")
+        raise ValueError("--lines >= 1, --length-km > 0, --segment-m > 0")
     network = generate_network(lines, length_km, seed, segment_length_m=segment_length_m)
     text = json.dumps(network.to_geojson(include_segments=True))
     if out:
@@ -186,7 +183,7 @@ def simulate_run(args: argparse.Namespace) -> int:
     try:
         start_t = datetime.fromisoformat(args.start).timestamp()
     except ValueError:
-        raise SystemExit(f"--start {args.start!r}: not an ISO date, e.g. 2026-01-01") from None
+        raise ValueError(f"--start {args.start!r}: not an ISO date, e.g. 2026-01-01") from None
     return main_simulate(
         config_from_args(args),
         network_path=args.network,

@@ -34,7 +34,7 @@ from schemas import (
 from services.alerting.core import AlertingConfig, AlertingCore
 from services.alerting.store import AlertStore
 from services.defaults import default_file
-from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits
+from services.limits import DEFAULT_LIMITS_FILE, load_limits
 from services.runtime.config import (
     RuntimeConfig,
     add_db_argument,
@@ -51,14 +51,14 @@ DEFAULT_ALERTING_FILE = default_file("alerting.json5")
 
 
 def load_alerting_config(path: str | Path = DEFAULT_ALERTING_FILE) -> AlertingConfig:
-    """Read ``services/defaults/alerting.json5`` (or ``path``); SystemExit says what to fix."""
+    """Read ``services/defaults/alerting.json5`` (or ``path``); ValueError says what to fix."""
     try:
         raw = json5.loads(Path(path).read_text(encoding="utf-8"))
         if not isinstance(raw, dict):
             raise ValueError("must hold a JSON5 object {...}")
         return AlertingConfig.from_dict(raw)
     except (OSError, ValueError) as exc:
-        raise SystemExit(f"alerting config {path}: {exc}") from None
+        raise ValueError(f"alerting config {path}: {exc}") from None
 
 
 _TYPES = {"state": SegmentState, "trc": TrcRecord, "maintenance": MaintenanceEvent}
@@ -153,7 +153,7 @@ def main(
     """Run the alerting service until ``stop`` is set or SIGINT/SIGTERM; 0."""
     core = AlertingCore(
         load_alerting_config(alerting_config or DEFAULT_ALERTING_FILE),
-        _load_limits(limits or DEFAULT_LIMITS_FILE),
+        load_limits(limits or DEFAULT_LIMITS_FILE),
     )
     db_path = Path(db) if db is not None else default_db(SERVICE, conf.instance)
     store = AlertStore(db_path)
@@ -171,13 +171,6 @@ def main(
             return rt.run()
     finally:
         store.close()
-
-
-def _load_limits(path: str | Path) -> Limits:
-    try:
-        return load_limits(path)
-    except ValueError as exc:
-        raise SystemExit(str(exc)) from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -81,6 +81,15 @@ class Settings:
     network: Path | None = None  # refuse events on segments it does not have (None: any)
 
 
+# The keys of services.calibration: the files, and the core's settings (not its priors).
+OPTIONS = (
+    "db",
+    "initial_models",
+    "network",
+    *sorted(set(CalibratorConfig.__dataclass_fields__) - {"drift_prior", "level_prior"}),
+)
+
+
 def settings_from(options: Mapping[str, Any], **overrides: Any) -> Settings:
     """Settings from the config file's ``services.calibration`` section, then ``overrides``
     (command-line values; None means "not given").
@@ -93,14 +102,10 @@ def settings_from(options: Mapping[str, Any], **overrides: Any) -> Settings:
     db = merged.pop("db", None)
     initial = merged.pop("initial_models", None)
     network = merged.pop("network", None)
-    fields = set(CalibratorConfig.__dataclass_fields__) - {"drift_prior", "level_prior"}
-    unknown = set(merged) - fields
-    if unknown:
-        raise SystemExit(f"services.calibration: unknown setting(s) {sorted(unknown)}")
     try:
         core = CalibratorConfig(**merged)
     except (TypeError, ValueError) as e:
-        raise SystemExit(f"services.calibration: {e}") from None
+        raise ValueError(f"services.calibration: {e}") from None
     return Settings(
         core=core,
         db=Path(db) if db is not None else None,
@@ -110,12 +115,12 @@ def settings_from(options: Mapping[str, Any], **overrides: Any) -> Settings:
 
 
 def load_initial_models(path: Path, core: CalibratorConfig):
-    """The initial models of the JSON5 file at ``path``; SystemExit saying what is wrong."""
+    """The initial models of the JSON5 file at ``path``; ValueError saying what is wrong."""
     try:
         spec = json5.loads(path.read_text(encoding="utf-8"))
         return initial_models(spec, samples=core.samples, seed=core.seed)
     except (OSError, ValueError) as e:
-        raise SystemExit(f"initial models {path}: {e}") from None
+        raise ValueError(f"initial models {path}: {e}") from None
 
 
 def known_segments(network: Path | None) -> frozenset[tuple[str, str]] | None:
@@ -128,7 +133,7 @@ def known_segments(network: Path | None) -> frozenset[tuple[str, str]] | None:
     try:
         table = SegmentTable.from_geojson(network)
     except (OSError, ValueError) as exc:
-        raise SystemExit(f"calibration: network {network}: {exc}") from None
+        raise ValueError(f"network {network}: {exc}") from None
     return frozenset((line, seg) for line, segs in table.lines.items() for seg in segs.ids)
 
 
@@ -150,7 +155,7 @@ def main(
     handle_signals: bool = True,
 ) -> int:
     """Run the calibration service until SIGINT/SIGTERM or ``stop_event``; returns 0."""
-    settings = settings or settings_from(conf.options(SERVICE))
+    settings = settings or settings_from(conf.options(SERVICE, OPTIONS))
     with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop_event) as rt:
         db = settings.db or default_db(SERVICE, conf.instance)
         store = SqliteStore(db)
@@ -275,7 +280,7 @@ def run(args: argparse.Namespace) -> int:
     configure_logging(args.log_level)
     conf = config_from_args(args)
     settings = settings_from(
-        conf.options(SERVICE),
+        conf.options(SERVICE, OPTIONS),
         db=args.db,
         initial_models=args.initial_models,
         network=args.network,

@@ -68,12 +68,12 @@ class ExtractionAdapter:
 
 
 def load_segments(network_path: str | Path | None) -> SegmentTable:
-    """The segment table of a network GeoJSON file; SystemExit says what is wrong."""
+    """The segment table of a network GeoJSON file; ValueError says what is wrong."""
     path = Path(network_path or DEFAULT_NETWORK)
     try:
         return SegmentTable.from_geojson(path)
     except (OSError, ValueError) as exc:
-        raise SystemExit(f"network {path}: {exc}") from None
+        raise ValueError(f"network {path}: {exc}") from None
 
 
 def main(

@@ -60,6 +60,7 @@ EXIT_STORE_FAILED = 74  # EX_IOERR
 EXIT_SOFTWARE = 70  # EX_SOFTWARE: a bug escaped a batch
 STATE_CACHE = 16  # states kept per segment for a returning consumer (alerting, viewer)
 DEFAULT_SELECTOR = "**"  # the whole network
+OPTIONS = ("db", "limits", "network", "selector")  # services.filtering, flags of the same names
 MODEL_QUERY_TIMEOUT_S = (
     10.0  # the start-up query for the latest models (ends sooner when all reply)
 )
@@ -76,7 +77,7 @@ def main(
     handle_signals: bool = True,
 ) -> int:
     """Run one filtering instance until ``stop`` is set or SIGINT/SIGTERM; returns 0."""
-    options = conf.options(SERVICE)
+    options = conf.options(SERVICE, OPTIONS)
     selector = selector or options.get("selector") or DEFAULT_SELECTOR
     network = network or options.get("network")
     limits_table = load_limits(limits or options.get("limits") or DEFAULT_LIMITS_FILE)
@@ -104,7 +105,7 @@ def known_segments(network: str | Path | None) -> dict:
     try:
         table = SegmentTable.from_geojson(network)
     except (OSError, ValueError) as exc:
-        raise SystemExit(f"filtering: network {network}: {exc}") from None
+        raise ValueError(f"network {network}: {exc}") from None
     ids = [(line, seg) for line, segs in table.lines.items() for seg in segs.ids]
     return {"segments": ids, "network_name": f"the network {Path(network).name}"}
 

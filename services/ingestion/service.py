@@ -13,6 +13,7 @@ missing) before the worker exits.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import threading
 from pathlib import Path
@@ -33,11 +34,11 @@ DEFAULT_NETWORK = default_file("demo-network.geojson")
 
 
 def load_network(path: str | Path) -> Network:
-    """Read the network GeoJSON; SystemExit says what to fix."""
+    """Read the network GeoJSON; ValueError says what to fix."""
     try:
         return Network.from_geojson(Path(path))
     except (OSError, ValueError) as exc:
-        raise SystemExit(f"network {path}: {exc}") from None
+        raise ValueError(f"network {path}: {exc}") from None
 
 
 def decode_gateway(kind: str, key: str, payload: bytes) -> RawChunk | GpsFix:
@@ -97,6 +98,16 @@ class IngestionAdapter:
                     self.rt.deadletters.reject(key, reason, encode(message)[:256])
 
 
+def ingestion_config(conf: RuntimeConfig) -> IngestionConfig:
+    """The thresholds of the config file's ``services.ingestion`` section; ValueError says
+    what to fix."""
+    options = conf.options(SERVICE, (f.name for f in dataclasses.fields(IngestionConfig)))
+    try:
+        return IngestionConfig.from_dict(options)
+    except TypeError as exc:
+        raise ValueError(f"services.{SERVICE}: {exc}") from None
+
+
 def main(
     conf: RuntimeConfig,
     network_path: str | Path | None = None,
@@ -109,11 +120,8 @@ def main(
     Thresholds come from the config file's ``services.ingestion`` section
     (:class:`services.ingestion.core.IngestionConfig` field names).
     """
+    config = ingestion_config(conf)
     network = load_network(network_path or DEFAULT_NETWORK)
-    try:
-        config = IngestionConfig.from_dict(conf.options(SERVICE))
-    except (TypeError, ValueError) as exc:
-        raise SystemExit(f"services.{SERVICE}: {exc}") from None
     core = IngestionCore(network, config)
     log.info("%s: %r", SERVICE, network)
     with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:

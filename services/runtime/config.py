@@ -9,11 +9,16 @@ level, which are taken out before the rest is handed to Zenoh:
 ``instance``
     instance id of the service, a single key chunk (default ``{hostname}-{pid}``);
 ``services``
-    per-service settings, ``{"filtering": {...}, ...}``, read with :meth:`RuntimeConfig.options`.
+    per-service settings, ``{"filtering": {...}, ...}``: one section per entry of ``SECTIONS``,
+    each read by its service with :meth:`RuntimeConfig.options`, which names the keys it knows.
 
 A file without these keys (``services/defaults/router.json5``) is therefore also a valid ``zenohd``
 configuration. Whatever the file says, multicast scouting is turned off: every process
 connects or listens on explicit endpoints.
+
+Whatever cannot be used (a file that does not parse, a value out of range, a section or key
+nobody reads) raises ``ValueError`` saying what to fix; the command line turns it into exit
+code 2 (:mod:`services.cli`).
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import json
 import os
 import re
 import socket
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -39,6 +44,9 @@ DEFAULT_NS = "tf"
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 MODES = ("client", "peer", "router")
 TRACKFUSION_KEYS = ("ns", "instance", "services")
+# The services.{name} sections some process reads (the runtime reads `delivery`). The other
+# services take no settings from the file: a section of theirs is refused like a typo.
+SECTIONS = ("calibration", "delivery", "filtering", "ingestion")
 
 ROUTER_CONFIG = default_file("router.json5")
 SERVICE_CONFIG = default_file("service.json5")
@@ -60,12 +68,25 @@ class RuntimeConfig:
     def mode(self) -> str:
         return str(self.zenoh.get("mode") or "client")
 
-    def options(self, service: str) -> dict[str, Any]:
-        """The ``services.{service}`` section of the file (empty if absent)."""
-        return dict(self.services.get(service, {}))
+    def options(self, service: str, known: Iterable[str]) -> dict[str, Any]:
+        """The ``services.{service}`` section of the file (empty if absent), whose keys must
+        be among ``known``; ValueError naming the file, section and key otherwise."""
+        section = dict(self.services.get(service, {}))
+        known = sorted(known)
+        for key in section:
+            if key not in known:
+                raise ValueError(
+                    f"{_where(self.source)}: services.{service}: unknown key {key!r}; "
+                    f"known keys: {', '.join(known) or 'none'}"
+                )
+        return section
 
     def zenoh_config(self) -> zenoh.Config:
         return zenoh_config(self)
+
+
+def _where(source: Path | None) -> str:
+    return f"config file {source}" if source else "configuration"
 
 
 def default_db(service: str, instance: str | None) -> Path:
@@ -139,12 +160,12 @@ def load_config(
 ) -> RuntimeConfig:
     """Read the JSON5 file at ``path`` (if any) and overlay the given values.
 
-    Non-empty ``connect`` / ``listen`` replace the file's endpoints. Raises ``SystemExit``
+    Non-empty ``connect`` / ``listen`` replace the file's endpoints. Raises ``ValueError``
     with a message saying what to fix when the file or a value is unusable.
     """
     source = Path(path) if path is not None else None
     data = read_config_file(source) if source is not None else {}
-    where = f"config file {source}" if source else "configuration"
+    where = _where(source)
 
     ns = ns if ns is not None else data.pop("ns", DEFAULT_NS)
     instance = instance if instance is not None else data.pop("instance", None)
@@ -156,12 +177,18 @@ def load_config(
     if instance is not None:
         _check_chunk("instance", instance, where)
     if not isinstance(services, dict) or not all(isinstance(v, dict) for v in services.values()):
-        raise SystemExit(f"{where}: 'services' must be an object of objects, got {services!r}")
+        raise ValueError(f"{where}: 'services' must be an object of objects, got {services!r}")
+    for name in services:
+        if name not in SECTIONS:
+            raise ValueError(
+                f"{where}: services: unknown section {name!r} (that service takes no settings "
+                f"from the file, or the name is misspelt); known sections: {', '.join(SECTIONS)}"
+            )
 
     if mode is not None:
         data["mode"] = mode
     if data.get("mode") is not None and data["mode"] not in MODES:
-        raise SystemExit(f"{where}: mode must be one of {', '.join(MODES)}, got {data['mode']!r}")
+        raise ValueError(f"{where}: mode must be one of {', '.join(MODES)}, got {data['mode']!r}")
     if connect:
         _section(data, "connect", where)["endpoints"] = list(connect)
     if listen:
@@ -173,22 +200,22 @@ def load_config(
 
 
 def read_config_file(path: Path) -> dict[str, Any]:
-    """The JSON5 object in ``path``; ``SystemExit`` with the reason if it is not one."""
+    """The JSON5 object in ``path``; ``ValueError`` with the reason if it is not one."""
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as e:
-        raise SystemExit(
+        raise ValueError(
             f"cannot read config file {path}: {e.strerror or e}; "
             "check the --config path (or leave --config out for the defaults)"
         ) from None
     except UnicodeDecodeError as e:
-        raise SystemExit(f"config file {path} is not UTF-8 text: {e}") from None
+        raise ValueError(f"config file {path} is not UTF-8 text: {e}") from None
     try:
         data = json5.loads(text)
     except ValueError as e:
-        raise SystemExit(f"config file {path} is not valid JSON5: {e}") from None
+        raise ValueError(f"config file {path} is not valid JSON5: {e}") from None
     if not isinstance(data, dict):
-        raise SystemExit(
+        raise ValueError(
             f"config file {path} must hold a JSON5 object {{...}}, got {type(data).__name__}"
         )
     return data
@@ -214,7 +241,7 @@ def zenoh_config(conf: RuntimeConfig | Mapping[str, Any] | None = None) -> zenoh
     try:
         return zenoh.Config.from_json5(json.dumps(data))
     except zenoh.ZError as e:
-        raise SystemExit(f"{where}: invalid Zenoh settings: {e}") from None
+        raise ValueError(f"{where}: invalid Zenoh settings: {e}") from None
 
 
 def endpoints(conf: RuntimeConfig, section: str) -> list[str]:
@@ -234,14 +261,14 @@ def _endpoints(data: Mapping[str, Any], section: str) -> bool:
 def _section(data: dict[str, Any], name: str, where: str) -> dict[str, Any]:
     value = data.setdefault(name, {})
     if not isinstance(value, dict):
-        raise SystemExit(f"{where}: '{name}' must be an object like {{endpoints: [...]}}")
+        raise ValueError(f"{where}: '{name}' must be an object like {{endpoints: [...]}}")
     return value
 
 
 def _check_chunk(name: str, value: object, where: str) -> None:
     """Same rule as schemas.keys: one non-empty key chunk."""
     if not isinstance(value, str) or not value:
-        raise SystemExit(f"{where}: {name} must be a non-empty string, got {value!r}")
+        raise ValueError(f"{where}: {name} must be a non-empty string, got {value!r}")
     bad = (_FORBIDDEN | {"/"}).intersection(value)
     if bad:
-        raise SystemExit(f"{where}: {name} {value!r} contains forbidden characters {sorted(bad)}")
+        raise ValueError(f"{where}: {name} {value!r} contains forbidden characters {sorted(bad)}")

@@ -52,20 +52,16 @@ class DeliverySettings:
 
     @classmethod
     def from_options(cls, options: Mapping[str, Any]) -> DeliverySettings:
-        unknown = set(options) - {"cache_samples", "heartbeat_s"}
-        if unknown:
-            raise SystemExit(
-                f"services.delivery: unknown settings {sorted(unknown)}; "
-                "known: cache_samples, heartbeat_s"
-            )
+        """From the ``services.delivery`` section (its keys checked by the config loader);
+        ValueError says which value to fix."""
         settings = cls(**options)
         if not (isinstance(settings.cache_samples, int) and settings.cache_samples >= 1):
-            raise SystemExit(
+            raise ValueError(
                 f"services.delivery.cache_samples must be an integer ≥ 1, "
                 f"got {settings.cache_samples!r}"
             )
         if not (isinstance(settings.heartbeat_s, int | float) and settings.heartbeat_s > 0):
-            raise SystemExit(
+            raise ValueError(
                 f"services.delivery.heartbeat_s must be a number > 0, got {settings.heartbeat_s!r}"
             )
         return settings

@@ -96,7 +96,9 @@ class ServiceRuntime:
         self.instance = conf.instance or default_instance()
         self.alive_key = keys.alive(self.ns, service, self.instance)  # checks the chunks
         self.stop_event = stop_event if stop_event is not None else threading.Event()
-        self.delivery = DeliverySettings.from_options(conf.options("delivery"))
+        self.delivery = DeliverySettings.from_options(
+            conf.options("delivery", (f.name for f in dataclasses.fields(DeliverySettings)))
+        )
         self.exit_code = 0  # what run() returns; EXIT_SESSION_LOST when the session is lost
         self._handle_signals = handle_signals
         self._connect_timeout = connect_timeout

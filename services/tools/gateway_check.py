@@ -44,7 +44,7 @@ from schemas import (
 from schemas.wire import check_id
 from services.ingestion.core import IngestionConfig, IngestionCore, Rejection
 from services.ingestion.service import SERVICE as INGESTION
-from services.ingestion.service import decode_gateway
+from services.ingestion.service import decode_gateway, ingestion_config
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 from services.runtime.service import configure_logging
 
@@ -247,11 +247,7 @@ def main(
     ``on_message`` is called after every message (tests wait on it).
     """
     out = out or sys.stdout
-    try:
-        config = IngestionConfig.from_dict(conf.options(INGESTION))
-        check = GatewayCheck(train, config)
-    except (TypeError, ValueError) as exc:
-        raise SystemExit(f"gateway check: {exc}") from None
+    check = GatewayCheck(train, ingestion_config(conf))
     stop = stop or threading.Event()
     if handle_signals:
         for signum in (signal.SIGINT, signal.SIGTERM):

@@ -115,7 +115,7 @@ def _supervision(raw: dict[str, Any]) -> Supervision:
 
 
 def load_stack(path: str | Path = DEFAULT_STACK, *, ns: str | None = None, listen=None) -> Stack:
-    """Read a stack file; SystemExit saying what to fix when it is malformed."""
+    """Read a stack file; ValueError saying what to fix when it is malformed."""
     try:
         raw = json5.loads(Path(path).read_text())
         stack = Stack(
@@ -126,10 +126,10 @@ def load_stack(path: str | Path = DEFAULT_STACK, *, ns: str | None = None, liste
             supervision=_supervision(raw.get("supervision", {})),
         )
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise SystemExit(f"{path}: not a valid stack file ({type(exc).__name__}: {exc})") from None
+        raise ValueError(f"{path}: not a valid stack file ({type(exc).__name__}: {exc})") from None
     names = [p.name for p in stack.processes]
     if len(set(names)) != len(names):
-        raise SystemExit(f"{path}: process names must be unique, got {names}")
+        raise ValueError(f"{path}: process names must be unique, got {names}")
     return stack
 
 

@@ -20,7 +20,9 @@ from services.runtime.config import RuntimeConfig
 
 
 def _run_calibration(conf: RuntimeConfig, stop: threading.Event, **options: object) -> int:
-    settings = calibration.settings_from(conf.options("calibration"), db=None, **options)
+    settings = calibration.settings_from(
+        conf.options("calibration", calibration.OPTIONS), db=None, **options
+    )
     return calibration.main(conf, settings, stop_event=stop, handle_signals=False)
 
 

@@ -211,8 +211,8 @@ def test_file_then_flags_overlay(tmp_path: Path):
     conf = config_from_args(_parse(["--config", str(path)]))
     assert (conf.ns, conf.instance, conf.mode) == ("site_a", "filtering-1", "peer")
     assert endpoints(conf, "connect") == ["tcp/10.0.0.1:7447", "tcp/10.0.0.2:7447"]
-    assert conf.options("filtering") == {"db": "state.sqlite"}
-    assert conf.options("alerting") == {}
+    assert conf.options("filtering", ("db",)) == {"db": "state.sqlite"}
+    assert conf.options("calibration", ("db",)) == {}
     assert conf.zenoh_config().get_json("scouting/multicast/enabled") == "false"
 
     argv = ["--config", str(path), "--ns", "site_b", "--mode", "client"]
@@ -222,7 +222,7 @@ def test_file_then_flags_overlay(tmp_path: Path):
     assert (conf.ns, conf.instance, conf.mode) == ("site_b", "i2", "client")
     assert endpoints(conf, "connect") == ["tcp/127.0.0.1:9001", "tcp/127.0.0.1:9002"]
     assert endpoints(conf, "listen") == ["tcp/127.0.0.1:9003"]
-    assert conf.options("filtering") == {"db": "state.sqlite"}  # flags leave the rest alone
+    assert conf.options("filtering", ("db",)) == {"db": "state.sqlite"}  # flags leave the rest
 
 
 def test_deploy_files_load():
@@ -251,13 +251,14 @@ def test_deploy_files_load():
         ("{instance: ''}", "instance must be a non-empty string"),
         ("{connect: 'tcp/127.0.0.1:7447'}", "'connect' must be an object"),
         ("{services: {filtering: 3}}", "'services' must be an object of objects"),
+        ("{services: {filtring: {}}}", "unknown section 'filtring'.*known sections: calib"),
     ],
 )
 def test_invalid_config_file_says_what_to_fix(tmp_path: Path, text: str | None, message: str):
     path = tmp_path / "bad.json5"
     if text is not None:
         path.write_text(text)
-    with pytest.raises(SystemExit, match=message) as excinfo:
+    with pytest.raises(ValueError, match=message) as excinfo:
         config_from_args(_parse(["--config", str(path)]))
     assert str(path) in str(excinfo.value)
 

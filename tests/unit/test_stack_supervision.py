@@ -74,7 +74,7 @@ def test_stack_file_defaults_and_errors(tmp_path):
         {**stack, "supervision": {"token_missing_s": 0}},
     ):
         path.write_text(json5.dumps(broken))
-        with pytest.raises(SystemExit, match="not a valid stack file"):
+        with pytest.raises(ValueError, match="not a valid stack file"):
             load_stack(path)
 
 
