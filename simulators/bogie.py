@@ -131,12 +131,27 @@ class BogieUnit:
         Stable train id (seeds the random streams).
     unit_no : int
         Unit number on the train.
+    gain : float
+        The sensor's sensitivity relative to nominal (1: exact); multiplies what it measures.
+    mount_rad : float
+        The sensor's mounting tilt about the running axis: it reads
+        ``y' = y cos a + z sin a``, ``z' = z cos a - y sin a`` of the true lateral ``y`` and
+        vertical ``z`` (gravity included), per side.
     """
 
     def __init__(
-        self, profile: LineProfile, physics: BogiePhysics, seed: int, train_id: str, unit_no: int
+        self,
+        profile: LineProfile,
+        physics: BogiePhysics,
+        seed: int,
+        train_id: str,
+        unit_no: int,
+        *,
+        gain: float = 1.0,
+        mount_rad: float = 0.0,
     ) -> None:
         self.profile, self.phys = profile, physics
+        self.gain, self.mount_rad = float(gain), float(mount_rad)
         self._key = [seed, zlib.crc32(train_id.encode()), unit_no]
         ph = physics
         self._sos_v = _suspension_sos(ph.vertical_hz, ph.vertical_damping, ph)
@@ -225,6 +240,10 @@ class BogieUnit:
         """
         ph, n = self.phys, kin.t.size
         acc = self.dynamics(kin)
+        if self.mount_rad:
+            c, s = np.cos(self.mount_rad), np.sin(self.mount_rad)
+            for z, y in ((0, 1), (3, 4)):  # (vertical, lateral) rows of each side
+                acc[y], acc[z] = c * acc[y] + s * acc[z], c * acc[z] - s * acc[y]
         rng = np.random.default_rng([*self._key, seq])
         dropped = bool(rng.random() < ph.missing_chunk_prob)
         acc += rng.standard_normal((6, n)) * (ph.noise_density_g * np.sqrt(ph.fs_hz / 2))
@@ -237,7 +256,7 @@ class BogieUnit:
         for _ in range(rng.poisson(ph.sag_rate_hz * span)):
             _, i0, i1 = self._burst(rng, n, ph.sag_s)
             volts[i0:i1] *= 1.0 - ph.sag_depth * rng.uniform(0.3, 1.0)
-        acc *= volts / ph.supply_v  # ratiometric output
+        acc *= self.gain * volts / ph.supply_v  # sensitivity, ratiometric output
         np.clip(acc, -ph.clip_g, ph.clip_g, out=acc)
         for _ in range(rng.poisson(ph.flatline_rate_hz * span)):
             _, i0, i1 = self._burst(rng, n, ph.flatline_s)

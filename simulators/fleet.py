@@ -20,22 +20,37 @@ where ``c`` is the train's vehicle class and ``u`` the unit:
   sensor's sensitivity) and a mounting offset ``o_u ~ N(0, diag(offset_sd^2))`` (log mm
   per indicator: a sensor away from the axle box reads each indicator off by a factor).
 
+In the raw mode (``--fidelity raw``, the bogie physics of ``simulators/bogie.py``) the same
+section acts on the physics instead: a class's ``bogie`` entries (``wheelbase_m``,
+``vertical_hz``, ``vertical_damping``, ``lateral_hz``, ``lateral_damping``) replace the
+defaults of :class:`~simulators.bogie.BogiePhysics` for its trains and its
+``speed_factor`` is their cruise speed (share of the line speed); a unit's gain multiplies
+every acceleration its sensor measures and its mounting tilt ``N(0, mount_sd_deg^2)``
+mixes vertical into lateral (gravity too). The indices then differ by class and unit
+through the signal chain itself.
+
 Both are drawn from the train and unit ids (:func:`simulators.network.stable_rng`), so a
 unit keeps its model for the whole run and across runs with the same seed. The defaults
 (one ``standard`` class equal to the ``index`` section, no spread) give every unit the
-same model. The raw mode's bogie physics (``--fidelity raw``) does not use this section.
+same model.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
+from simulators.bogie import BogiePhysics
 from simulators.index_model import IndexSensorModel
 from simulators.network import stable_rng
+from simulators.train import TrainConfig
 from simulators.truth import config_pair
+
+BOGIE_FIELDS = {"wheelbase_m", "vertical_hz", "vertical_damping", "lateral_hz", "lateral_damping"}
+assert {f.name for f in dataclasses.fields(BogiePhysics)} >= BOGIE_FIELDS
 
 MIXED = {  # `--fleet mixed` of bench.correctness: three vehicle types, sensors within ±10 %
     "classes": {
@@ -45,16 +60,19 @@ MIXED = {  # `--fleet mixed` of bench.correctness: three vehicle types, sensors 
             "H_scale": [1.1, 0.85],
             "b_shift": [0.12, -0.08],
             "speed_factor": [0.6, 0.8],
+            "bogie": {"wheelbase_m": 2.8, "vertical_hz": 6.0, "vertical_damping": 0.25},
         },
         "dmu": {
             "share": 0.2,
             "H_scale": [0.9, 1.1],
             "b_shift": [-0.1, 0.1],
             "speed_factor": [0.7, 0.9],
+            "bogie": {"wheelbase_m": 2.3, "vertical_hz": 9.0, "lateral_hz": 5.0},
         },
     },
     "gain_spread": 0.1,
     "offset_sd": [0.05, 0.08],
+    "mount_sd_deg": 2.0,
 }
 
 
@@ -65,6 +83,8 @@ class VehicleClass:
     H_scale: np.ndarray  # (2,)
     b_shift: np.ndarray  # (2,) log mm
     speed_factor: tuple[float, float]
+    bogie: Mapping[str, float]  # raw mode: BogiePhysics fields of this class
+    cruise_factor: tuple[float, float] | None  # raw mode: its own speed_factor, if given
 
 
 @dataclass(frozen=True)
@@ -78,6 +98,7 @@ class Unit:
     offset: np.ndarray  # (2,) log mm
     model: IndexSensorModel  # y = H z + b + e with the class and the sensor in H and b
     speed_factor: tuple[float, float]
+    mount_rad: float  # raw mode: the sensor's tilt about the running axis
 
 
 class Fleet:
@@ -90,6 +111,7 @@ class Fleet:
         gain_spread: float,
         offset_sd: np.ndarray,
         seed: int,
+        mount_sd_deg: float = 0.0,
     ) -> None:
         if not classes or sum(c.share for c in classes) <= 0:
             raise ValueError("fleet.classes: at least one class with a share > 0")
@@ -97,6 +119,9 @@ class Fleet:
             raise ValueError("fleet: gain_spread in [0, 1), offset_sd two values >= 0")
         self.base, self.classes, self.seed = base, classes, int(seed)
         self.gain_spread, self.offset_sd = float(gain_spread), offset_sd
+        if not mount_sd_deg >= 0:
+            raise ValueError(f"fleet.mount_sd_deg: must be >= 0, got {mount_sd_deg}")
+        self.mount_sd_rad = np.deg2rad(mount_sd_deg)
         shares = np.array([c.share for c in classes], dtype=np.float64)
         self._cum = np.cumsum(shares / shares.sum())
 
@@ -116,9 +141,17 @@ class Fleet:
             if h.shape != (2,) or b.shape != (2,) or (h <= 0).any() or share < 0:
                 raise ValueError(f"{where}: H_scale two values > 0, b_shift two, share >= 0")
             speed = config_pair(c, "speed_factor", where) if "speed_factor" in c else default_speed
-            classes.append(VehicleClass(name, share, h, b, speed))
+            bogie = {k: float(v) for k, v in (c.get("bogie") or {}).items()}
+            unknown = set(bogie) - BOGIE_FIELDS
+            if unknown:
+                raise ValueError(
+                    f"{where}.bogie: unknown {sorted(unknown)}; known {sorted(BOGIE_FIELDS)}"
+                )
+            own_speed = speed if "speed_factor" in c else None
+            classes.append(VehicleClass(name, share, h, b, speed, bogie, own_speed))
         offset = np.asarray(sec.get("offset_sd", [0.0, 0.0]), dtype=np.float64)
-        return cls(base, classes, float(sec.get("gain_spread", 0.0)), offset, seed)
+        gain = float(sec.get("gain_spread", 0.0))
+        return cls(base, classes, gain, offset, seed, float(sec.get("mount_sd_deg", 0.0)))
 
     def vehicle_class(self, train: str) -> VehicleClass:
         """The class of ``train`` (drawn once per train id by the class shares)."""
@@ -133,7 +166,16 @@ class Fleet:
         rng = stable_rng(self.seed, "fleet-unit", train, unit)
         gain = float(1.0 + rng.uniform(-self.gain_spread, self.gain_spread))
         offset = rng.standard_normal(2) * self.offset_sd
+        mount = float(rng.standard_normal() * self.mount_sd_rad)
         H = klass.H_scale[:, None] * self.base.H
         b = self.base.b + klass.b_shift + np.log(gain) + offset
         model = IndexSensorModel(H, b, self.base.R)
-        return Unit(train, unit, klass.name, gain, offset, model, klass.speed_factor)
+        return Unit(train, unit, klass.name, gain, offset, model, klass.speed_factor, mount)
+
+    def train_config(self, train: str, base: TrainConfig | None = None) -> TrainConfig:
+        """Raw mode: the train's constants with its class's bogie and cruise speed."""
+        base = base or TrainConfig()
+        klass = self.vehicle_class(train)
+        physics = dataclasses.replace(base.physics, **klass.bogie)
+        cruise = klass.cruise_factor or base.cruise_factor
+        return dataclasses.replace(base, physics=physics, cruise_factor=cruise)

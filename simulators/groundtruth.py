@@ -21,9 +21,10 @@ tamping    seg, line, segment, t, t_start, t_end, event_id, epoch, cause, z_top_
            ``report`` ``on_time``, ``late`` or ``never``, t_reported when it was published,
            NULL if never)
 units      train, unit, vehicle_class, h_tt, h_ta, h_at, h_aa, b_top, b_align, gain,
-           offset_top, offset_align: the observation model of every on-board unit that
-           published an index (fast mode; ``simulators/fleet.py``): H, b of its vehicle
-           class with its sensor's gain and mounting offset in b
+           offset_top, offset_align, mount_deg: every in-service unit that published
+           (``simulators/fleet.py``): its vehicle class, its sensor's gain and, in the
+           fast mode, the observation model its indices follow (H, b of the class with the
+           sensor's gain and mounting offset in b), in the raw mode its mounting tilt
 trc        seg, line, segment, t, run_id, top6_mm, align10_mm, z_top, z_align: every
            published TrcRecord with the true z at its time
 onboard    seg, line, segment, t, train, unit, run_id, top6_mm, align10_mm, z_top, z_align:
@@ -49,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas import Message, OnboardIndex, TrcRecord
+from schemas import Message, OnboardIndex, RawChunk, TrcRecord
 from simulators.fleet import Fleet
 from simulators.network import Network
 from simulators.truth import DAY_S, Tamping, Truth
@@ -81,7 +82,8 @@ _TABLES = {
     ),
     "units": (
         "train TEXT, unit TEXT, vehicle_class TEXT, h_tt REAL, h_ta REAL, h_at REAL, h_aa REAL, "
-        "b_top REAL, b_align REAL, gain REAL, offset_top REAL, offset_align REAL"
+        "b_top REAL, b_align REAL, gain REAL, offset_top REAL, offset_align REAL, "
+        "mount_deg REAL"
     ),
 }
 
@@ -192,6 +194,8 @@ class GroundTruthWriter:
         """
         self.advance_to(t)
         for m in msgs:
+            if isinstance(m, RawChunk) and (m.train, m.unit) not in self._units:
+                self._add_unit(m.train, m.unit)
             if not isinstance(m, TrcRecord | OnboardIndex):
                 continue
             i = self._index[(m.line, m.segment)]
@@ -210,7 +214,7 @@ class GroundTruthWriter:
         self._units.add((train, unit))
         self._rows["units"].append(
             (train, unit, u.vehicle_class, *u.model.H.ravel().tolist(), *u.model.b.tolist())
-            + (u.gain, *u.offset.tolist())
+            + (u.gain, *u.offset.tolist(), float(np.rad2deg(u.mount_rad)))
         )
 
     def _flush(self) -> None:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -105,6 +106,8 @@ class TrainSimulator:
         Where in its route cycle the train is at ``start_t``; None draws one from the seed.
     config : TrainConfig
         Constants.
+    sensors : sequence of (gain, mount_rad), optional
+        Each unit's sensor (:class:`~simulators.bogie.BogieUnit`); default exact ones.
     """
 
     def __init__(
@@ -117,6 +120,7 @@ class TrainSimulator:
         start_t: float = 0.0,
         phase_s: float | None = None,
         config: TrainConfig | None = None,
+        sensors: Sequence[tuple[float, float]] | None = None,
     ) -> None:
         self.train_id, self.line, self.profile, self.seed = train_id, line, profile, seed
         self.start_t, self.cfg = float(start_t), config or TrainConfig()
@@ -126,7 +130,11 @@ class TrainSimulator:
         self.phase_s = float(rng.uniform(0.0, self.cycle_s) if phase_s is None else phase_s)
         ph = self.cfg.physics
         self.fs_hz, self.n_chunk = ph.fs_hz, round(self.cfg.chunk_s * ph.fs_hz)
-        self.units = [BogieUnit(profile, ph, seed, train_id, u) for u in range(units)]
+        sensors = sensors or [(1.0, 0.0)] * units  # (gain, mounting tilt rad) per unit
+        self.units = [
+            BogieUnit(profile, ph, seed, train_id, u, gain=sensors[u][0], mount_rad=sensors[u][1])
+            for u in range(units)
+        ]
         self._next = [-1] * units
         self._tunnels = np.asarray(getattr(line, "tunnels", []) or [], dtype=float).reshape(-1, 2)
         g = np.random.default_rng([*self._key, _GPS_TAG])

@@ -17,6 +17,7 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 
 from schemas import Message
+from simulators.fleet import Fleet
 from simulators.index_model import index_pass_events
 from simulators.network import Network
 from simulators.profile import LineProfile
@@ -66,17 +67,23 @@ def raw_train_events(spec: WorldSpec) -> Iterator[tuple[float, list[Message]]]:
             profiles[line_id].update(truth.z[rows], truth.epoch[rows])
 
     refresh_profiles()
-    trains = [
-        TrainSimulator(
-            f"T{i:03d}",
-            lines[i % len(lines)],
-            profiles[lines[i % len(lines)].id],
+    fleet = Fleet.from_config(spec.config, spec.seed)
+
+    def train(i: int) -> TrainSimulator:
+        train_id, line = f"T{i:03d}", lines[i % len(lines)]
+        units = [fleet.unit(train_id, f"u{u}") for u in range(spec.units)]
+        return TrainSimulator(
+            train_id,
+            line,
+            profiles[line.id],
             spec.seed,
             units=spec.units,
             start_t=spec.start_t,
+            config=fleet.train_config(train_id),
+            sensors=[(u.gain, u.mount_rad) for u in units],
         )
-        for i in range(spec.trains)
-    ]
+
+    trains = [train(i) for i in range(spec.trains)]
     day = 0
     for k in range(int(spec.days * DAY_S)):
         t = spec.start_t + k

@@ -130,3 +130,31 @@ def test_onboard_messages_are_unchanged_by_the_default_fleet_section(net, cfg):
     a = list(index_pass_events(net, Truth(net, cfg, T0, 2), 2, 2, 2, config=cfg))
     b = list(index_pass_events(net, Truth(net, explicit, T0, 2), 2, 2, 2, config=explicit))
     assert a == b and all(isinstance(m, OnboardIndex) for _, ms in a for m in ms)
+
+
+def test_raw_mode_units_read_with_their_gain_and_tilt_and_classes_change_the_bogie(cfg):
+    from simulators.bogie import BogiePhysics
+    from simulators.network import demo_network
+    from simulators.profile import LineProfile
+    from simulators.train import TrainConfig, TrainSimulator
+
+    line = demo_network().lines["L1"]
+    profile = LineProfile(line.id, [(s.start_m, s.end_m) for s in line.segments], 3)
+    quiet = TrainConfig(physics=BogiePhysics(noise_density_g=0.0, outlier_rate_hz=0.0,
+                                             flatline_rate_hz=0.0, supply_fluct=0.0,
+                                             supply_noise_v=0.0, sag_rate_hz=0.0))  # fmt: skip
+
+    def samples(sensors):
+        sim = TrainSimulator("T000", line, profile, 3, units=1, config=quiet, sensors=sensors)
+        return np.vstack([sim.chunk(k)[1] for k in range(300, 310)]).astype(np.float64)
+
+    exact, gained, tilted = samples(None), samples([(1.1, 0.0)]), samples([(1.0, 0.03)])
+    np.testing.assert_allclose(gained[:, :6], 1.1 * exact[:, :6], rtol=1e-5, atol=1e-5)
+    # a tilt of 0.03 rad puts ~0.03 g of gravity into the lateral channels
+    assert abs((tilted[:, 1] - exact[:, 1]).mean() - np.sin(0.03)) < 0.005
+    fleet = Fleet.from_config({**cfg, "fleet": MIXED}, 3)
+    trains = [f"T{i:03d}" for i in range(40)]
+    loco = next(t for t in trains if fleet.vehicle_class(t).name == "loco_hauled")
+    conf = fleet.train_config(loco)
+    assert conf.physics.wheelbase_m == 2.8 and conf.cruise_factor == (0.6, 0.8)
+    assert Fleet.from_config(cfg, 3).train_config("T000") == TrainConfig()  # the default fleet
