@@ -41,8 +41,10 @@ from services.runtime.config import default_instance, zenoh_config
 from services.runtime.service import configure_logging
 
 log = logging.getLogger(__name__)
-REPO = Path(__file__).resolve().parents[2]  # holds the packages: the checkout, or site-packages
 DEFAULT_STACK = default_file("stack.json5")
+# In a stack file's args: the directory of the packaged default files (services/defaults/),
+# so that a stack names them wherever the package is installed and `up` is run.
+DEFAULTS = "{defaults}"
 WATCHED = ("state", "index", "alert", "gps", "trc", "maintenance", "deadletter")
 RESTART_POLICIES = ("always", "on-failure", "never")
 TICK_S = 0.5  # supervision step
@@ -101,7 +103,9 @@ def _process_spec(raw: dict[str, Any]) -> ProcessSpec:
     restart = raw.get("restart", "on-failure" if command == "simulate" else "always")
     if restart not in RESTART_POLICIES:
         raise ValueError(f"{raw['name']}: restart must be one of {RESTART_POLICIES}")
-    return ProcessSpec(raw["name"], command, tuple(map(str, raw.get("args", []))), restart)
+    defaults = str(DEFAULT_STACK.parent)
+    args = tuple(str(arg).replace(DEFAULTS, defaults) for arg in raw.get("args", []))
+    return ProcessSpec(raw["name"], command, args, restart)
 
 
 def _supervision(raw: dict[str, Any]) -> Supervision:
@@ -121,7 +125,7 @@ def load_stack(path: str | Path = DEFAULT_STACK, *, ns: str | None = None, liste
         stack = Stack(
             ns=ns or raw.get("ns", keys.DEFAULT_NS),
             listen=listen or raw["router"]["listen"],
-            state_dir=REPO / raw.get("state_dir", "var"),
+            state_dir=Path(raw.get("state_dir", "var")).absolute(),  # where `up` runs
             processes=tuple(_process_spec(p) for p in raw["processes"]),
             supervision=_supervision(raw.get("supervision", {})),
         )
@@ -215,8 +219,7 @@ class Child:
                 print(line + self.reason, file=log_file)
         with self.log_path.open("ab") as log_file:
             self.popen = subprocess.Popen(
-                command_line(self.stack, self.spec),
-                cwd=REPO,
+                command_line(self.stack, self.spec),  # in `up`'s working directory
                 stdout=log_file,
                 stderr=subprocess.STDOUT,
                 stdin=subprocess.DEVNULL,

@@ -162,7 +162,7 @@ def test_a_finished_simulator_is_left_alone_and_a_failing_one_is_restarted(up):
     world, broken = health["processes"]["world"], health["processes"]["broken"]
     assert world["state"] == "finished" and world["last_exit"] == 0, world
     assert world["restarts"] == 0 and not world["running"]
-    assert broken["last_exit"] == 1 and broken["restart"] == "on-failure"
+    assert broken["last_exit"] == 2 and broken["restart"] == "on-failure"  # a bad --network
     assert not health["healthy"]  # broken does not hold its token
     assert "restarted by up" not in (stack.state_dir / "world.log").read_text()
 

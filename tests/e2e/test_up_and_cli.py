@@ -30,7 +30,7 @@ def test_up_runs_the_stack_and_answers_every_command(
                 "name": "calibration",
                 "args": [
                     "--db", str(state_dir / "cal.sqlite"), "--instance", "calibration",
-                    "--initial-models", "services/defaults/initial-models.json5",
+                    "--initial-models", "{defaults}/initial-models.json5",
                 ],
             },
             {"name": "filtering", "args": ["--db", str(state_dir / "f.sqlite")]},

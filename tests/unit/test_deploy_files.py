@@ -19,7 +19,8 @@ WIRING = {"--connect", "--ns"}  # the stack adds these itself
 
 
 def normalised(args) -> tuple[str, ...]:
-    """Arguments without the wiring flags, file paths reduced to their names."""
+    """Arguments without the wiring flags, state files reduced to their names, config files
+    to where they are (compose's relative to the image's source tree, the checkout here)."""
     out, skip = [], False
     for arg in map(str, args):
         if skip:
@@ -28,7 +29,11 @@ def normalised(args) -> tuple[str, ...]:
         if arg in WIRING:
             skip = True
             continue
-        out.append(Path(arg).name if arg.endswith(".sqlite") else arg)
+        if arg.endswith(".sqlite"):
+            arg = Path(arg).name
+        elif arg.endswith((".json5", ".geojson")):
+            arg = str((DEPLOY.parent / arg).resolve())
+        out.append(arg)
     return tuple(out)
 
 
