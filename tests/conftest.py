@@ -12,6 +12,7 @@ import contextlib
 import queue
 import socket
 import threading
+import time
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -154,18 +155,48 @@ def collector() -> Callable[..., Collector]:
     return Collector
 
 
+class Tokens(Collector):
+    """A :class:`Collector` of ``(kind, key)`` liveliness changes, with the readiness waits."""
+
+    def until_alive(self, *keys: str, timeout: float = TIMEOUT_S) -> None:
+        """Take changes until every token of ``keys`` is up (other tokens' changes pass by)."""
+        deadline = time.monotonic() + timeout
+        down = set(keys)
+        while down:
+            try:
+                kind, key = self.get(max(deadline - time.monotonic(), 0.0))
+            except AssertionError:
+                raise AssertionError(f"not up within {timeout} s: {sorted(down)}") from None
+            if kind == zenoh.SampleKind.PUT:
+                down.discard(key)
+            elif key in keys:
+                down.add(key)
+
+    def next_change(self, key: str, timeout: float = TIMEOUT_S) -> zenoh.SampleKind:
+        """The kind of the next change of the token ``key`` (others' changes pass by)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                kind, changed = self.get(max(deadline - time.monotonic(), 0.0))
+            except AssertionError:
+                raise AssertionError(f"no change of {key} within {timeout} s") from None
+            if changed == key:
+                return kind
+
+
 @pytest.fixture
-def liveliness_events() -> Iterator[Callable[[zenoh.Session, str], Collector]]:
-    """``liveliness_events(session, keyexpr)``: a Collector of ``(kind, key)`` liveliness
-    changes (current tokens first, as PUT); the subscriber is undeclared at teardown.
+def liveliness_events() -> Iterator[Callable[[zenoh.Session, str], Tokens]]:
+    """``liveliness_events(session, keyexpr)``: :class:`Tokens`, the ``(kind, key)``
+    liveliness changes (current tokens first, as PUT); the subscriber is undeclared at
+    teardown.
 
     Only changes are collected: a token declared while the subscriber is being declared can
     arrive twice, once in the history and once live.
     """
     subscribers: list[zenoh.Subscriber] = []
 
-    def watch(session: zenoh.Session, keyexpr: str) -> Collector:
-        events = Collector()
+    def watch(session: zenoh.Session, keyexpr: str) -> Tokens:
+        events = Tokens()
         alive: set[str] = set()
         lock = threading.Lock()
 
@@ -211,14 +242,14 @@ def spawn(tmp_path: Path) -> Iterator[Callable[..., Process]]:
 @pytest.fixture
 def service_thread(
     open_session: Callable[..., zenoh.Session],
-    liveliness_events: Callable[[zenoh.Session, str], Collector],
+    liveliness_events: Callable[[zenoh.Session, str], Tokens],
 ) -> Iterator[Callable[..., ServiceThread]]:
     """``service_thread(name, main, alive=key)``: ``main(stop_event)`` in a thread
     (:class:`support.ServiceThread`); with ``alive``, returned once that liveliness token is
     up (again, after a restart). Each one still running is stopped at teardown; one that
     does not then exit with 0, or raised, fails the test there."""
     started: list[ServiceThread] = []
-    tokens: dict[str, Collector] = {}
+    tokens: dict[str, Tokens] = {}
     observer: list[zenoh.Session] = []
 
     def start(
@@ -230,9 +261,8 @@ def service_thread(
             tokens[alive] = liveliness_events(observer[0], alive)
         service = ServiceThread(name, main).start()
         started.append(service)
-        if alive is not None:
-            while tokens[alive].get() != (zenoh.SampleKind.PUT, alive):
-                pass  # the DELETE of the previous run's token
+        if alive is not None:  # after a restart: past the DELETE of the previous run's token
+            tokens[alive].until_alive(alive)
         return service
 
     yield start

@@ -263,10 +263,7 @@ def test_the_signal_chain_resumes_after_each_of_its_services_is_killed(
         return spawn(name, name, "--instance", name, *wiring)
 
     def next_change(name: str):
-        while True:
-            kind, key = alive.get(timeout=WAIT_S)
-            if key.endswith(f"/{name}/{name}"):
-                return kind
+        return alive.next_change(keys.alive(namespace, name, name), WAIT_S)
 
     processes = {name: start(name) for name in ("ingestion", "extraction")}
     for name in processes:

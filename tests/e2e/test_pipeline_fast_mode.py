@@ -69,14 +69,6 @@ def drained(
     return replies
 
 
-def next_change_of(alive, suffix: str):
-    """The next liveliness change of the token ending in ``suffix`` (others pass by)."""
-    while True:
-        kind, key = alive.get(timeout=30)
-        if key.endswith(suffix):
-            return kind
-
-
 def test_pipeline_survives_a_filtering_kill(
     router, namespace, open_session, liveliness_events, spawn, tmp_path
 ):
@@ -106,11 +98,14 @@ def test_pipeline_survives_a_filtering_kill(
     )
     spawn("alerting", "alerting", "--db", str(tmp_path / "al.sqlite"), "--instance", "al", *wiring)
     killed, reference = start_filtering("A"), start_filtering("B")
-    up = set()
-    while len(up) < 4:
-        kind, key = alive.get(timeout=30)
-        if kind == zenoh.SampleKind.PUT:
-            up.add(keys.parse_alive(key)[1])
+    token_a = keys.alive(namespace, "filtering", "A")
+    alive.until_alive(
+        keys.alive(namespace, "calibration", "cal"),
+        keys.alive(namespace, "alerting", "al"),
+        token_a,
+        keys.alive(namespace, "filtering", "B"),
+        timeout=30,
+    )
 
     def simulate(*days: str) -> None:
         world = ["--network", str(network), "--days", str(DAYS), "--trains", "2"]
@@ -122,9 +117,9 @@ def test_pipeline_survives_a_filtering_kill(
 
     killed.signal(signal.SIGKILL)
     killed.wait(10)
-    assert next_change_of(alive, "/filtering/A") == zenoh.SampleKind.DELETE  # token gone
+    assert alive.next_change(token_a, 30) == zenoh.SampleKind.DELETE  # token gone
     restarted = start_filtering("A")
-    assert next_change_of(alive, "/filtering/A") == zenoh.SampleKind.PUT
+    assert alive.next_change(token_a, 30) == zenoh.SampleKind.PUT
 
     simulate("--from-day", str(HALF))
     final = drained(session, namespace, last, instances=2, agree=True)

@@ -101,11 +101,11 @@ def test_split_instances_equal_one_instance(
         )
         for name, selector in SELECTORS.items()
     }
-    up = set()
-    while len(up) < 1 + len(filtering):
-        kind, key = alive.get(timeout=30)
-        if kind == zenoh.SampleKind.PUT:
-            up.add(keys.parse_alive(key)[1])
+    alive.until_alive(
+        keys.alive(namespace, "calibration", "cal"),
+        *(keys.alive(namespace, "filtering", f"f{name}") for name in filtering),
+        timeout=30,
+    )
 
     world = ["--network", str(network), "--days", str(DAYS), "--trains", "2", "--seed", "2"]
     simulate = spawn(

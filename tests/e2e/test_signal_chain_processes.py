@@ -7,7 +7,6 @@ from __future__ import annotations
 import signal
 
 import numpy as np
-import zenoh
 
 from schemas import DeadLetter, OnboardIndex, decode, keys
 from simulators.network import demo_network
@@ -70,11 +69,11 @@ def test_every_segment_passed_at_speed_gets_an_index(
     wiring = ["--connect", router, "--ns", namespace]
     ingestion = spawn("ingestion", "ingestion", "--instance", "ing", *wiring)
     extraction = spawn("extraction", "extraction", "--instance", "ext", *wiring)
-    up = set()
-    while len(up) < 2:
-        kind, key = alive.get(timeout=30)
-        if kind == zenoh.SampleKind.PUT:
-            up.add(keys.parse_alive(key)[0])
+    alive.until_alive(
+        keys.alive(namespace, "ingestion", "ing"),
+        keys.alive(namespace, "extraction", "ext"),
+        timeout=30,
+    )
 
     world = ["--fidelity", "raw", "--trains", "1", "--days", str(SECONDS / 86400)]
     simulate = spawn(
