@@ -58,7 +58,9 @@ def uninterrupted_states(ns: str, world, models: dict[str, bytes]) -> dict[str, 
     limits = load_limits(DEFAULT_LIMITS_FILE)
     tracker = Tracker(limits.for_line, limits.levels)
     decoded = [
-        decode(payload, Calibration if key == keys.calibration(ns) else DegradationPosterior)
+        decode(
+            payload, Calibration if keys.model_kind(key) == "calibration" else DegradationPosterior
+        )
         for key, payload in models.items()
     ]
     states = tracker.load(decoded, world)
