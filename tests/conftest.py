@@ -14,14 +14,14 @@ import socket
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import pytest
 import zenoh
 from linkproxy import LinkProxy
-from support import TIMEOUT_S, Process, ServiceThread
+from support import TIMEOUT_S, Process, ServiceThread, cli
 
 from services.runtime.config import RuntimeConfig, zenoh_config
 
@@ -225,12 +225,17 @@ def liveliness_events() -> Iterator[Callable[[zenoh.Session, str], Tokens]]:
 
 @pytest.fixture
 def spawn(tmp_path: Path) -> Iterator[Callable[..., Process]]:
-    """``spawn(name, *args)``: start `trackfusion ARGS…` (:class:`support.Process`, its log in
-    ``{tmp_path}/{name}-{n}.log``); every one still running is stopped at teardown."""
+    """``spawn(name, *args)``: start `trackfusion ARGS…`; ``spawn(name, argv=[…], cwd=…)``:
+    another command line (:class:`support.Process`, its log ``{tmp_path}/{name}-{n}.log``).
+    Every one still running is stopped at teardown."""
     started: list[Process] = []
 
-    def start(name: str, *args: str) -> Process:
-        process = Process(tmp_path / f"{name}-{len(started)}.log", *args)
+    def start(
+        name: str, *args: str, argv: Sequence[str] | None = None, cwd: Path | None = None
+    ) -> Process:
+        assert argv is None or not args, "trackfusion arguments or a command line, not both"
+        log_path = tmp_path / f"{name}-{len(started)}.log"
+        process = Process(log_path, cli(*args) if argv is None else argv, cwd=cwd)
         started.append(process)
         return process
 

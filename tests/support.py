@@ -16,7 +16,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 TIMEOUT_S = 5.0  # upper bound of a wait in-process; tests normally go on in milliseconds
@@ -70,20 +70,21 @@ def accepts_connections(port: int) -> bool:
 
 
 class Process:
-    """A `trackfusion ARGS…` process in its own process group, so that a signal reaches its
-    whole group as Ctrl-C in a terminal does.
+    """A process (``argv``: usually :func:`cli`'s `trackfusion …`) in its own process group,
+    so that a signal reaches its whole group as Ctrl-C in a terminal does.
 
     Its stderr and stdout both go to ``log_path``; stdout's lines can also be read one by
     one as they come (:meth:`line`) or whole once it has exited (:meth:`stdout`).
     """
 
-    def __init__(self, log_path: Path, *args: str) -> None:
+    def __init__(self, log_path: Path, argv: Sequence[str], *, cwd: Path | None = None) -> None:
         self.name, self.log_path = log_path.stem, log_path
         # append mode: the child's stderr and the reader's stdout lines share the file
         self._log = log_path.open("a", buffering=1)
         try:
             self.popen = subprocess.Popen(
-                cli(*args),
+                list(argv),
+                cwd=cwd,
                 stdout=subprocess.PIPE,
                 stderr=self._log,
                 stdin=subprocess.DEVNULL,

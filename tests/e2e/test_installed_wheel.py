@@ -11,13 +11,11 @@ the dependencies. Every command runs in an empty directory.
 from __future__ import annotations
 
 import json
-import queue
 import shutil
 import signal
 import subprocess
 import sys
 import sysconfig
-import threading
 from pathlib import Path
 
 import pytest
@@ -75,8 +73,10 @@ def test_the_installed_package_is_the_one_imported(installed, tmp_path):
     assert "__editable__" not in meta_path
 
 
-def test_help_and_commands_that_read_the_default_files(installed, tmp_path, free_port):
-    run = {"cwd": tmp_path, "capture_output": True, "text": True, "timeout": TIMEOUT_S}
+def test_help_and_commands_that_read_the_default_files(installed, tmp_path, free_port, spawn):
+    cwd = tmp_path / "run"  # empty: nothing may be written where the commands run
+    cwd.mkdir()
+    run = {"cwd": cwd, "capture_output": True, "text": True, "timeout": TIMEOUT_S}
     helped = subprocess.run(trackfusion(installed, "--help"), **run)
     assert helped.returncode == 0 and helped.stdout.startswith("usage: trackfusion"), helped
 
@@ -91,34 +91,20 @@ def test_help_and_commands_that_read_the_default_files(installed, tmp_path, free
     # the router on its packaged config; the simulator on the packaged demo network and
     # simulator config, publishing to it and exiting
     endpoint = f"tcp/127.0.0.1:{free_port}"
-    router = subprocess.Popen(
-        trackfusion(installed, "router", "--listen", endpoint),
-        cwd=tmp_path,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    lines: queue.Queue[str] = queue.Queue()
-    reader = threading.Thread(target=lambda: [lines.put(x) for x in router.stderr], daemon=True)
-    reader.start()
-    try:
-        while "listening on" not in (line := lines.get(timeout=TIMEOUT_S)):
-            assert "Error" not in line, line
-        simulated = subprocess.run(
-            trackfusion(
-                installed, "simulate", "--fidelity", "index", "--days", "2", "--trains", "1",
-                "--speedup", "inf", "--connect", endpoint, "--no-progress",
-            ),
-            **run,
-        )  # fmt: skip
-        assert simulated.returncode == 0, simulated.stderr
-        published = json.loads(simulated.stdout.splitlines()[-1])
-        assert published["by_type"]["OnboardIndex"] > 0, published  # passes over the demo lines
-    finally:
-        router.send_signal(signal.SIGINT)
-        code = router.wait(TIMEOUT_S)
-        reader.join(TIMEOUT_S)
-        router.stderr.close()
-    assert code == 0
-    assert list(tmp_path.iterdir()) == []  # nothing written where it was run
+    router = spawn("router", argv=trackfusion(installed, "router", "--listen", endpoint), cwd=cwd)
+    router.until(lambda: "listening on" in router.log_path.read_text(), TIMEOUT_S, "listening")
+    started = router.log_path.read_text()
+    assert "Error" not in started[: started.index("listening on")], router.log()
+    simulated = subprocess.run(
+        trackfusion(
+            installed, "simulate", "--fidelity", "index", "--days", "2", "--trains", "1",
+            "--speedup", "inf", "--connect", endpoint, "--no-progress",
+        ),
+        **run,
+    )  # fmt: skip
+    assert simulated.returncode == 0, simulated.stderr
+    published = json.loads(simulated.stdout.splitlines()[-1])
+    assert published["by_type"]["OnboardIndex"] > 0, published  # passes over the demo lines
+    router.signal(signal.SIGINT)
+    assert router.wait(TIMEOUT_S) == 0, router.log()
+    assert list(cwd.iterdir()) == []  # nothing written where it was run
