@@ -150,7 +150,9 @@ def simulate_add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--trains", type=int, default=6, help="raw: trains; index: passes per line per day"
     )
-    parser.add_argument("--days", type=float, default=1.0, help="simulated days (default 1)")
+    parser.add_argument(
+        "--days", type=float, default=1.0, help="simulated days (default %(default)g)"
+    )
     parser.add_argument(
         "--speedup", type=_speedup, default=1.0, help="simulated s per wall s, or 'inf'"
     )
@@ -173,7 +175,7 @@ def simulate_add_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.0,
         metavar="S",
         help="stay up S seconds after the last message, serving the per-key caches to "
-        "subscribers that come back (default 0)",
+        "subscribers that come back (default %(default)g)",
     )
     add_zenoh_arguments(parser)
 

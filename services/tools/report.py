@@ -36,6 +36,7 @@ from services.tools import operator
 
 INTERVENTION = "intervention"
 WORST_N = 6
+DEFAULT_OUT = "report.html"  # `--out`
 # P(exceed) bins of the map and the table: (upper bound, colour, label). The edges follow
 # the alerting defaults: predicted exceedance raises at 0.3, exceedance at 0.5.
 BINS: tuple[tuple[float, str, str], ...] = (
@@ -475,7 +476,7 @@ def _ask_alerting(session, ns: str, line: str | None, timeout: float):
 def main(
     conf: RuntimeConfig,
     *,
-    out_path: str | Path = "report.html",
+    out_path: str | Path = DEFAULT_OUT,
     line: str | None = None,
     network_path: str | None = None,
     worst_n: int = WORST_N,
@@ -517,7 +518,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "and SVG, no external resource)."
     )
     parser.add_argument("--line", help="one line (default: all lines)")
-    parser.add_argument("--out", default="report.html", metavar="FILE.html", help="(%(default)s)")
+    parser.add_argument("--out", default=DEFAULT_OUT, metavar="FILE.html", help="(%(default)s)")
     parser.add_argument("--network", metavar="FILE.geojson", help="geometry (default: the demo)")
     parser.add_argument(
         "--worst", type=int, default=WORST_N, metavar="N", help="fans drawn (%(default)s)"
