@@ -37,6 +37,16 @@ def normalised(args) -> tuple[str, ...]:
     return tuple(out)
 
 
+def test_the_default_stack_names_packaged_files_that_exist(tmp_path, monkeypatch):
+    """``{defaults}/…`` becomes the packaged file wherever ``up`` runs; state stays there."""
+    monkeypatch.chdir(tmp_path)
+    stack = load_stack(DEFAULTS / "stack.json5")
+    assert stack.state_dir == tmp_path / "var"
+    files = [a for p in stack.processes for a in p.args if a.endswith((".json5", ".geojson"))]
+    assert files and all(Path(f).is_absolute() and Path(f).is_file() for f in files), files
+    assert all(Path(f).parent == DEFAULTS for f in files)
+
+
 def test_compose_and_stack_run_the_same_processes():
     stack = load_stack(DEFAULTS / "stack.json5")
     compose = yaml.safe_load((DEPLOY / "compose.yaml").read_text())["services"]
