@@ -1,5 +1,5 @@
-"""What every tier of the tests shares: one launcher of `trackfusion …` processes, one
-service-in-a-thread, one bounded wait for conditions that have no event.
+"""What every tier of the tests shares: one launcher of processes (`trackfusion …` or another
+command line), one service-in-a-thread, one bounded wait for conditions that have no event.
 
 The fixtures of ``tests/conftest.py`` (``spawn``, ``service_thread``) hand these out and clean
 up after them; a module that manages its own (the fuzz harness) uses the classes directly.
@@ -46,9 +46,9 @@ def wait_for(
     or fail after ``timeout`` seconds saying ``what`` did not happen (a function: called
     then, to tell what was last seen).
 
-    Only for conditions outside this process that signal nothing (a file another process
-    writes, a port it opens, the answers of its queryables); where an event, a condition
-    variable or a queue exists, wait on that instead.
+    Only for conditions that signal nothing (a file another process writes, a port it
+    opens, the answers of its queryables, a counter with no event); where an event, a
+    condition variable or a queue exists, wait on that instead.
     """
     deadline = time.monotonic() + timeout
     while not (result := predicate()):
