@@ -22,7 +22,8 @@ import zenoh
 
 from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode, keys
 from services.defaults import default_file
-from services.ingestion.core import IngestionConfig, IngestionCore, Output, Rejection
+from services.ingestion.config import IngestionConfig
+from services.ingestion.core import IngestionCore, Output, Rejection
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 from services.runtime.service import ServiceRuntime, configure_logging
 from simulators.network import Network
@@ -118,7 +119,7 @@ def main(
     """Run the ingestion service until ``stop`` is set or SIGINT/SIGTERM; 0.
 
     Thresholds come from the config file's ``services.ingestion`` section
-    (:class:`services.ingestion.core.IngestionConfig` field names).
+    (:class:`services.ingestion.config.IngestionConfig` field names).
     """
     config = ingestion_config(conf)
     network = load_network(network_path or DEFAULT_NETWORK)

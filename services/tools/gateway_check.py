@@ -42,7 +42,8 @@ from schemas import (
     keys,
 )
 from schemas.wire import check_id
-from services.ingestion.core import IngestionConfig, IngestionCore, Rejection
+from services.ingestion.config import IngestionConfig
+from services.ingestion.core import IngestionCore, Rejection
 from services.ingestion.service import SERVICE as INGESTION
 from services.ingestion.service import decode_gateway, ingestion_config
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args

@@ -13,7 +13,7 @@ import zenoh
 from support import TIMEOUT_S
 
 from schemas import GpsFix, NDArray, RawChunk, keys
-from services.ingestion.core import G_MPS2
+from services.ingestion.health import G_MPS2
 from services.tools import gateway_check
 from simulators.gateway import key_and_payload
 from simulators.network import demo_network

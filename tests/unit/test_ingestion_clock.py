@@ -10,7 +10,9 @@ import numpy as np
 from test_ingestion_core import T0, N, chunk, network, positioned, rejections, train_on
 
 from schemas import NDArray
-from services.ingestion.core import G_MPS2, IngestionConfig, IngestionCore, time_range_reason
+from services.ingestion.config import IngestionConfig
+from services.ingestion.core import IngestionCore
+from services.ingestion.health import G_MPS2, time_range_reason
 
 YEAR_3000 = 32_503_680_000.0
 YEAR_2099 = 4_070_908_800.0  # inside the schemas' valid range: only the clock rule refuses it

@@ -10,13 +10,10 @@ import numpy as np
 import pytest
 
 from schemas import ACCEL_CHANNELS, GpsFix, NDArray, PositionedChunk, RawChunk, encode
-from services.ingestion.core import (
-    G_MPS2,
-    IngestionConfig,
-    IngestionCore,
-    Rejection,
-    _LineGeometry,
-)
+from services.ingestion.config import IngestionConfig
+from services.ingestion.core import IngestionCore, Rejection
+from services.ingestion.health import G_MPS2
+from services.ingestion.matching import _LineGeometry
 from simulators.network import demo_network
 from simulators.profile import LineProfile
 from simulators.train import RAW_CHANNELS, TrainSimulator

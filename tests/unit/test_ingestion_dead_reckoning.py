@@ -14,7 +14,8 @@ import pytest
 
 from schemas import GpsFix, NDArray, PositionedChunk, RawChunk
 from services.extraction.pipeline import Extractor, SegmentTable
-from services.ingestion.core import IngestionConfig, IngestionCore
+from services.ingestion.config import IngestionConfig
+from services.ingestion.core import IngestionCore
 from simulators.network import demo_network
 from simulators.profile import LineProfile
 from simulators.train import RAW_CHANNELS, TrainSimulator
