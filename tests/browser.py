@@ -31,7 +31,9 @@ import numpy as np
 
 CHROMIUM = Path("/usr/bin/chromium")
 CLOSE_TIMEOUT_S = 5.0
-MIN_PIXELS = 100  # a hue counts as on screen from this many pixels
+# a hue counts as on screen from this many pixels: the map's colour legend alone has up to
+# ~100 of green, yellow and red, the viewer's blue selection highlight ~220 of blue
+MIN_PIXELS = {"green": 200, "yellow": 200, "red": 200, "blue": 400, "limit": 100}
 
 
 class DevTools:
@@ -147,8 +149,9 @@ class DevTools:
 def hue_pixels(png: bytes) -> dict[str, int]:
     """Pixels of the map's exceedance hues (green, yellow, red) in the map's part of the
     screenshot (left 58 %, below the top bar, above the alert log) and of the plots'
-    estimate blue in the plots' part (the rest of those rows). Strips are drawn with an
-    outline and blended, so hues are matched, not exact RGB."""
+    estimate blue and intervention-limit red (``limit``) in the plots' part (the rest of
+    those rows). Strips are drawn with an outline and blended, so hues are matched, not
+    exact RGB."""
     from PIL import Image  # matplotlib's dependency
 
     rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
@@ -167,14 +170,16 @@ def hue_pixels(png: bytes) -> dict[str, int]:
         "red": (r > g + 60) & (r > b + 60),
         # the estimate (80, 160, 255); the trains' (0, 200, 255) are on the map, not here
         "blue": (pb > pg + 60) & (pg > pr + 40) & (pr > 30),
+        # the plots' intervention limit (230, 40, 40)
+        "limit": (pr > pg + 60) & (pr > pb + 60),
     }
     return {name: int(mask.sum()) for name, mask in masks.items()}
 
 
 def missing_colors(png: bytes, wanted: tuple[str, ...] = ("green", "red")) -> list[str]:
-    """The ``wanted`` hues with fewer than :data:`MIN_PIXELS` pixels on the screenshot."""
+    """The ``wanted`` hues with fewer than their :data:`MIN_PIXELS` on the screenshot."""
     pixels = hue_pixels(png)
-    return [name for name in wanted if pixels[name] < MIN_PIXELS]
+    return [name for name in wanted if pixels[name] < MIN_PIXELS[name]]
 
 
 @dataclass

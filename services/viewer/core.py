@@ -312,33 +312,59 @@ class _Map:
     changed_t: float | None = None  # newest event time of a colour change not yet logged
 
 
+class _Days:
+    """The newest row per event-day of one kind of one segment, for the last
+    :data:`HISTORY_DAYS` days: a ring of numpy rows indexed by day (a few tens of kB per
+    segment, whatever the run length)."""
+
+    def __init__(self, width: int) -> None:
+        self.day = np.full(HISTORY_DAYS, -1, np.int64)
+        self.t = np.full(HISTORY_DAYS, -np.inf)
+        self.values = np.full((HISTORY_DAYS, len(INDICATORS), width), np.nan)
+        self.levels: list[tuple[str, ...]] = [()] * HISTORY_DAYS
+
+    def put(self, t: float, values: np.ndarray, levels: tuple[str, ...] = ()) -> None:
+        day = event_day(t)
+        i = day % HISTORY_DAYS
+        if self.day[i] > day or (self.day[i] == day and self.t[i] > t):
+            return  # older than the day held there, or than that day's newest
+        self.day[i], self.t[i], self.levels[i] = day, t, levels
+        self.values[i] = np.nan
+        self.values[i, :, : values.shape[1]] = values
+
+    def rows(self, after: float) -> list[tuple[float, tuple[str, ...], np.ndarray]]:
+        """``(t, levels, values)`` newer than ``after``, oldest first; ``values`` has one
+        row per indicator (NaN where the message lacked it)."""
+        (index,) = np.nonzero((self.day >= 0) & (self.t > after))
+        index = index[np.argsort(self.t[index])]
+        return [(float(self.t[i]), self.levels[i], self.values[i]) for i in index]
+
+
+MAX_LEVELS = 4  # limit levels a state row keeps (the demo has 2: alert, intervention)
+_LEVELS: dict[tuple[str, ...], tuple[str, ...]] = {}  # one tuple per distinct level list
+
+
 @dataclass
 class _History:
-    """What the core keeps of one segment: per event-day the newest state row and
-    on-board index, and every TRC record (rows in :data:`INDICATORS` order, NaN where a
-    message lacks an indicator)."""
+    """What the core keeps of one segment: per event-day the newest state row and on-board
+    index, and every TRC record of the last :data:`HISTORY_DAYS` days."""
 
-    states: dict[int, tuple[float, tuple[str, ...], np.ndarray]] = field(default_factory=dict)
-    onboard: dict[int, tuple[float, np.ndarray]] = field(default_factory=dict)
+    states: _Days = field(default_factory=lambda: _Days(3 + MAX_LEVELS))
+    onboard: _Days = field(default_factory=lambda: _Days(1))
     trc: list[tuple[float, np.ndarray]] = field(default_factory=list)
 
     def rows(self, kind: str, after: float) -> list[tuple[float, tuple[str, ...], np.ndarray]]:
-        """``(t, levels, values)`` of ``kind`` newer than ``after``, oldest first."""
+        """``(t, levels, values)`` of ``kind`` newer than ``after``, oldest first; a state's
+        values are cut to its own levels."""
         if kind == "state":
-            items = list(self.states.values())
-        elif kind == "onboard":
-            items = [(t, (), v) for t, v in self.onboard.values()]
-        else:
-            items = [(t, (), v) for t, v in self.trc]
-        return sorted((row for row in items if row[0] > after), key=lambda row: row[0])
+            return [(t, lv, v[:, : 3 + len(lv)]) for t, lv, v in self.states.rows(after)]
+        if kind == "onboard":
+            return [(t, lv, v[:, 0]) for t, lv, v in self.onboard.rows(after)]
+        return sorted(((t, (), v) for t, v in self.trc if t > after), key=lambda row: row[0])
 
-    def prune(self) -> None:
-        """Keep the newest :data:`HISTORY_DAYS` days (amortised: once 10 % over)."""
-        for rows in (self.states, self.onboard):
-            if len(rows) > HISTORY_DAYS * 1.1:
-                for day in sorted(rows)[:-HISTORY_DAYS]:
-                    del rows[day]
-        if self.trc and len(self.trc) > 64:
+    def add_trc(self, t: float, values: np.ndarray) -> None:
+        self.trc.append((t, values))
+        if len(self.trc) > 64:  # amortised: drop what is older than the kept days
             newest = max(t for t, _ in self.trc)
             self.trc = [(t, v) for t, v in self.trc if t > newest - HISTORY_DAYS * DAY_S]
 
@@ -546,7 +572,7 @@ class ViewerCore:
         self.rec.log(
             "map/legend/labels",
             rr.Points2D(
-                legend_at + [0.12 * span, 0.0],
+                legend_at + [0.12 * span, -0.7 * step],  # a label is drawn below its point
                 radii=rr.Radius.ui_points(0.5),
                 colors=(20, 20, 30),
                 labels=labels,
@@ -576,9 +602,7 @@ class ViewerCore:
                     self._keep_onboard(msg)
                 case TrcRecord():
                     values = np.array([msg.top6_mm, msg.align10_mm], dtype=float)
-                    history = self._history_of((msg.line, msg.segment))
-                    history.trc.append((msg.t, values))
-                    history.prune()
+                    self._history_of((msg.line, msg.segment)).add_trc(msg.t, values)
                     self._event_time(msg.t)
                 case GpsFix():
                     newest = self._fixes.get(msg.train)
@@ -619,29 +643,21 @@ class ViewerCore:
             self._newest_event_t = t
 
     def _keep_state(self, state: SegmentState) -> None:
-        history = self._history_of((state.line, state.segment))
-        day = event_day(state.t)
-        held = history.states.get(day)
-        if held is not None and held[0] > state.t:
-            return
+        levels = tuple(state.limit_levels[:MAX_LEVELS])
+        levels = _LEVELS.setdefault(levels, levels)
         mean, low, high = state.mean.array(), state.ci_low_mm.array(), state.ci_high_mm.array()
-        limits = state.limits_mm.array()
-        values = np.full((len(INDICATORS), 3 + len(state.limit_levels)), np.nan)
+        limits = state.limits_mm.array()[: len(levels)]
+        values = np.full((len(INDICATORS), 3 + len(levels)), np.nan)
         for row, indicator in enumerate(INDICATORS):
             if indicator in state.indicators:
                 i = state.indicators.index(indicator)
                 values[row] = [math.exp(mean[i]), low[i], high[i], *limits[:, i]]
-        history.states[day] = (state.t, tuple(state.limit_levels), values)
-        history.prune()
+        self._history_of((state.line, state.segment)).states.put(state.t, values, levels)
         self._event_time(state.t)
 
     def _keep_onboard(self, index: OnboardIndex) -> None:
-        history = self._history_of((index.line, index.segment))
-        day = event_day(index.t)
-        held = history.onboard.get(day)
-        if held is None or held[0] <= index.t:
-            history.onboard[day] = (index.t, np.array([index.top6_mm, index.align10_mm]))
-            history.prune()
+        values = np.array([[index.top6_mm], [index.align10_mm]])
+        self._history_of((index.line, index.segment)).onboard.put(index.t, values)
         self._event_time(index.t)
 
     def _take_state(self, state: SegmentState) -> None:

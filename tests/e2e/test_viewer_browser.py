@@ -5,17 +5,19 @@ Chromium is driven over the DevTools pipe by :mod:`bench.browser` (``--screensho
 before the viewer's Wasm has started; services/viewer/README.md has what was tried).
 Rendering is WebGL on SwiftShader (``renderer=webgl`` in the URL).
 
-Two cases: a small fixture (40 segments of one line) logged into an in-process viewer, and
+Two cases: a small fixture (one line's 120 segments) logged into an in-process viewer, and
 the demo world: ``trackfusion up`` with the services, the viewer and the fast-mode world at
 a higher speedup than ``make run``, until as many on-board indices went through as in 5
-minutes of ``make run``; then a browser opens late and must draw the coloured map, the worst
-segments' plots within seconds, while the viewer's memory stays bounded.
+minutes of ``make run`` (read off ``up``'s health reports on the bus); then a browser opens
+late and must draw the coloured map and the worst segments' plots with their limits, while
+the viewer's memory stays bounded. The seconds it took are printed: the 15 s goal is a
+measured figure (services/viewer/README.md), not an assertion that a loaded machine would
+make flaky.
 """
 
 from __future__ import annotations
 
 import io
-import json
 import re
 import signal
 import socket
@@ -25,10 +27,12 @@ from pathlib import Path
 
 import json5
 import pytest
+import zenoh
 from browser import CHROMIUM, first_picture, hue_pixels
 
-from schemas import Alert, GpsFix, encode, keys
+from schemas import Alert, GpsFix, StackHealth, decode, encode, keys
 from services.alerting.testing import T0, make_state, p_top6
+from services.runtime.config import zenoh_config
 from services.viewer import service as viewer
 from simulators.network import DEMO_NETWORK, demo_network
 
@@ -44,6 +48,7 @@ MAKE_RUN_5_MIN_INDICES = 65_000
 WORLD_SPEEDUP = 45_000
 WORLD_S = 600.0  # upper bound for those indices to go through
 RSS_LIMIT_MB = 500.0  # the viewer's budget (services/viewer/README.md, "Memory")
+REPORT_S = 30.0  # `up` reports once a second; a loaded machine may make that late
 
 pytestmark = pytest.mark.skipif(
     not CHROMIUM.exists(), reason="no /usr/bin/chromium (apt-get install -y chromium)"
@@ -55,7 +60,7 @@ def test_headless_chromium_renders_the_web_viewer(
 ):
     ns = service_config.ns
     line = demo_network().lines["L1"]
-    segments = [s.id for s in line.segments[-40:]]  # 8 km of line, green to red
+    segments = [s.id for s in line.segments]  # the whole line, green to red
     lon, lat = map(float, line.lonlat_at(line.segments[5].mid_m))
     client = open_session()
     alive = liveliness_events(client, keys.alive(ns, viewer.SERVICE, "test"))
@@ -85,7 +90,7 @@ def test_headless_chromium_renders_the_web_viewer(
         assert url.startswith(f"http://127.0.0.1:{sink.web_port}/?url=rerun%2Bhttp")
         for i, segment in enumerate(segments):
             for k in range(2):
-                p = p_top6(1, min(1.0, i / len(segments) + 0.1 * k))
+                p = p_top6(1, min(1.0, (i / len(segments)) ** 2 + 0.1 * k))
                 state = make_state(T0 + k * DAY_S, segment=segment, p_exceed=p)
                 client.put(keys.state(ns, "L1", segment), encode(state))
         client.put(keys.gps(ns, "T1"), encode(GpsFix(train="T1", t=T0, lat_deg=lat, lon_deg=lon)))
@@ -116,12 +121,12 @@ def test_headless_chromium_renders_the_web_viewer(
 
 
 def test_a_late_browser_draws_the_demo_world_within_seconds(
-    free_port, namespace, spawn, tmp_path: Path
+    free_port, namespace, spawn, collector, tmp_path: Path
 ):
     """The demo world through the real services into the web viewer; a browser that opens
     after ~5 minutes' worth of `make run` draws the coloured map (green strips: segments
-    with a state; grey before) and the worst segments' plots (the estimate's blue); the
-    viewer's RSS stays within its budget meanwhile."""
+    with a state; grey before) and the worst segments' plots (the estimate's blue, the
+    intervention limit's red); the viewer's RSS stays within its budget meanwhile."""
     state_dir = tmp_path / "var"
     web_port, grpc_port = _free_port(), _free_port()
     stack = {
@@ -157,35 +162,44 @@ def test_a_late_browser_draws_the_demo_world_within_seconds(
     stack_file = tmp_path / "stack.json5"
     stack_file.write_text(json5.dumps(stack))
     up = spawn("up", "up", "--stack", str(stack_file))
-    health_file = state_dir / "health.json"
-
-    deadline = time.monotonic() + WORLD_S
+    endpoints = [stack["router"]["listen"]]  # up's router: retried while it starts
+    conf = {"mode": "client", "connect": {"endpoints": endpoints, "timeout_ms": 60_000}}
+    reports = collector(lambda sample: decode(sample.payload.to_bytes(), StackHealth))
     rss_mb: list[float] = []
-    health: dict = {}
-    while time.monotonic() < deadline:  # the stack's own board: polled, no event to wait on
-        health = _health(health_file)
-        pid = health.get("processes", {}).get("viewer", {}).get("pid")
-        if pid:
-            rss_mb.append(_rss_mb(pid))
-        if health.get("counts", {}).get("index", 0) >= MAKE_RUN_5_MIN_INDICES:
-            break
-        time.sleep(1.0)
-    indices = health.get("counts", {}).get("index", 0)
+    with zenoh.open(zenoh_config(conf)) as session:
+        subscriber = session.declare_subscriber(keys.stack_health(namespace), reports)
+        deadline = time.monotonic() + WORLD_S
+        report = None
+        while time.monotonic() < deadline:  # one report a second from `up`
+            report = reports.get(REPORT_S)
+            pids = {p.name: p.pid for p in report.processes}
+            if pids.get("viewer"):
+                rss_mb.append(_rss_mb(pids["viewer"]))
+            if report.counts.get("index", 0) >= MAKE_RUN_5_MIN_INDICES:
+                break
+        subscriber.undeclare()
+    assert report is not None
+    indices = report.counts.get("index", 0)
     assert indices >= MAKE_RUN_5_MIN_INDICES, f"{indices} indices in {WORLD_S} s{up.log()}"
-    url = health["viewer_url"]
-    states, raised = health["counts"].get("state", 0), health["alerts_raised"]
-    print(f"\n{states} states, {indices} indices, {raised} alerts raised; "
-          f"viewer RSS max {max(rss_mb):.0f} MB")  # fmt: skip
+    assert report.viewer_url, up.log()
+    counts = report.counts
+    print(f"\n{counts.get('state', 0)} states, {indices} indices, {counts.get('alert', 0)} "
+          f"alerts; viewer RSS max {max(rss_mb):.0f} MB")  # fmt: skip
 
-    picture = first_picture(url, tmp_path / "browser", wanted=("green", "blue"), timeout_s=DRAW_S)
+    picture = first_picture(
+        report.viewer_url,
+        tmp_path / "browser",
+        wanted=("green", "blue", "limit"),
+        timeout_s=DRAW_S,
+    )
     (tmp_path / "viewer.png").write_bytes(picture.png)
     for seconds, png in picture.shots:  # what the browser showed, in order
         (tmp_path / f"shot-{seconds:05.1f}s.png").write_bytes(png)
-    rss_mb.append(_rss_mb(health["processes"]["viewer"]["pid"]))
+    rss_mb.append(_rss_mb(pids["viewer"]))
     seen = {hue: round(s, 1) for hue, s in picture.seen_s.items()}
     print(f"browser: app started in {picture.started_s} s; first screenshot with the coloured "
-          f"map (green) and the plots (blue) {seen} s; pixels {hue_pixels(picture.png)}; "
-          f"viewer RSS max {max(rss_mb):.0f} MB")  # fmt: skip
+          f"map (green), the estimates (blue), the limits (limit): {seen} s after navigation; "
+          f"pixels {hue_pixels(picture.png)}; viewer RSS max {max(rss_mb):.0f} MB")  # fmt: skip
 
     up.signal(signal.SIGINT)
     assert up.wait(30) == 0, up.log()
@@ -200,13 +214,6 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def _health(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}  # not written yet
 
 
 def _rss_mb(pid: int) -> float:
