@@ -30,7 +30,9 @@ from pathlib import Path
 import json5
 
 from schemas import Calibration
-from services.calibration.calibrator import Calibrator, CalibratorConfig, initial_models
+from services.calibration.calibrator import Calibrator
+from services.calibration.config import CalibratorConfig
+from services.calibration.initial import initial_models
 from services.defaults import default_file
 from simulators.network import demo_network
 from simulators.truth import load_config

@@ -81,7 +81,9 @@ import numpy as np
 
 from schemas import INDICATORS, MaintenanceEvent, OnboardIndex, TrcRecord
 from services.alerting.core import AlertingConfig, AlertingCore, Hysteresis
-from services.calibration.calibrator import Calibrator, CalibratorConfig, initial_models
+from services.calibration.calibrator import Calibrator
+from services.calibration.config import CalibratorConfig
+from services.calibration.initial import initial_models
 from services.defaults import default_file
 from services.filtering.degradation import transition_unchecked
 from services.filtering.mixture import effective_sample_size, summarize

@@ -4,6 +4,7 @@ from schemas import keys
 from schemas.messages import (
     ACCEL_CHANNELS,
     ALL_MESSAGES,
+    DAY_S,
     INDICATORS,
     ONBOARD_INDICES,
     SCHEMA_VERSION,
@@ -32,6 +33,7 @@ from schemas.wire import NDArray, SchemaError, decode, encode
 __all__ = [
     "ACCEL_CHANNELS",
     "ALL_MESSAGES",
+    "DAY_S",
     "INDICATORS",
     "ONBOARD_INDICES",
     "SCHEMA_VERSION",

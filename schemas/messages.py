@@ -28,6 +28,7 @@ INDICATORS = ("top6", "align10")  # state order, n = 2
 ONBOARD_INDICES = ("top6", "align10")  # on-board index order, m = 2
 ACCEL_CHANNELS = ("left_z", "left_y", "left_x", "right_z", "right_y", "right_x")
 SUPPLY_CHANNEL = "supply_v"
+DAY_S = 86_400.0  # seconds per day: degradation maths runs in days, epoch s / DAY_S
 
 # Plausibility ranges (schemas/README.md, "Limits"): what a sender can be told at once.
 INDEX_MAX_MM = 100.0  # Top6, Align10: (0, 100] mm; intervention limits are ~10 mm

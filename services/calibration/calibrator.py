@@ -10,66 +10,11 @@ Use::
     outputs = core.step([trc, index, tamping, ...])   # new Calibration / DegradationPosterior
     store.apply(core.drain_changes())                  # persist what changed, one transaction
 
-Pairing
-    An on-board index and a TRC record of the same (line, segment) pair up
-
-    * when the index carries a non-empty ``run_id`` equal to the record's (the on-board unit
-      rode the TRC: the paper's campaign, section 3.2). Such an index pairs by ``run_id`` only;
-    * otherwise, when ``tolerance_days`` is set, when ``|t_trc - t_index| <= tolerance_days``;
-      the nearest record known at that moment wins.
-
-    An index pairs at most once and a pair is never undone; a record may pair with several
-    indices (several passes within the tolerance). An index that has not paired waits for its
-    record while it is within ``index_window_days`` of the newest TRC record of its segment,
-    and while it is among the ``max_pending_per_segment`` newest waiting indices of that
-    segment (a memory bound). The window is measured against the segment's own TRC records,
-    not against the newest event seen anywhere: TRC records and indices come on different
-    keys, and a replay or an import of a year of records arrives in any interleaving.
-    Duplicates (same identity: TRC ``(line, segment, run_id)``, index
-    ``(line, segment, train, unit, t)``, tamping ``(line, segment, event_id)``) are ignored,
-    as is a second TRC record of a segment at the same instant. A pair's time is the index's.
-
-Observation model and the swap rule
-    Once ``min_pairs`` pairs exist, H, b, R are fitted (:func:`fit_observation`, paper Eq. 5-6)
-    on all pairs; a refit is tried every ``refit_every`` further pairs. The first fit is
-    accepted when the regression succeeds (it replaces an initial prior model, which has no
-    pairs). A refit **replaces the current model only if it is not worse**, judged on the
-    ``n_old`` pairs the current model was fitted on (the pairs are kept in arrival order, so
-    these are the first ``n_old`` of the candidate's pairs, held by both):
-
-    1. R² of every on-board index drops by at most ``max_r2_drop`` (default 0.10), and
-    2. the mean Gaussian log-likelihood per pair of those ``n_old`` pairs,
-       :math:`\frac{1}{n}\sum_i \log N(\mathbf y_i;\ \mathbf H\mathbf z_i + \mathbf b,\ \mathbf R)`,
-       under the candidate is at most ``max_loglik_drop`` nats (default 0.25) below that under
-       the current model.
-
-    The current model is the maximum-likelihood fit of those pairs, so the candidate is never
-    better on them; for good new pairs the gap is small (about 0.04 nats per pair at 30 -> 40
-    pairs), while pairs from a faulty sensor or a broken pairing inflate R and bend H and cost
-    nats per pair. A rejected refit is counted (``stats["fits_rejected"]``), its reason is kept
-    in :attr:`Calibrator.rejections` and logged; the current model stays, and the pairs added
-    since it (the evidence of the fault) are quarantined: kept, so that their indices stay
-    recognised as duplicates, but left out of every later fit (``stats["pairs_quarantined"]``).
-    Without that, one burst of bad pairs would block every later refit. The "current model"
-    here is the newest *accepted* fit, published or not (see the publication rule).
-
-Degradation posteriors
-    Per segment, the TRC history (``z`` at record times) and the tampings (known time, or the
-    middle of the interval: the paper's mid-interval rule) give increments that do not span a
-    tamping and post-tamping levels (:func:`history_to_increments`). Groups:
-
-    * ``seg.{line}.{segment}`` when the segment alone has ``>= segment_min_increments``;
-    * ``line.{line}`` pooling the increments of the line's segments;
-    * ``net`` pooling every segment.
-
-    Post-tamping levels come from the group itself when it has ``>= min_levels``, else from
-    its line, else from the network; when even the network has fewer, ``(z+, Σz+)`` are drawn
-    from the level prior alone (``n_levels = 0``) so that drift and diffusion are published
-    before any tamping has been recorded. ``samples`` draws of :func:`sample_degradation_posterior`
-    use a generator seeded from ``(seed, group, version)``: re-running gives identical samples.
-    A group is rebuilt when a fingerprint of its inputs (increments, levels, and the settings
-    that shape the draws) changed; when the core raises :class:`CalibrationError` (too little
-    data) the old posterior stays and the refusal is counted.
+The rules live in modules of their own, each with its docstring: :mod:`.pairing` (which
+record an index pairs with), :mod:`.refit` (the observation model's refit, the swap rule,
+outlying pairs), :mod:`.groups` (posterior groups), :mod:`.initial` (initial models),
+:mod:`.moves` (how far a model moved); :mod:`.state` holds what a store persists. This
+module keeps the state, the bookkeeping of events and pairs, and the publication rule.
 
 Publication rule (issue 12: model updates without storms)
     Every new version makes the filtering service re-run the segments it applies to, so an
@@ -116,17 +61,17 @@ Robustness (issue 14)
 from __future__ import annotations
 
 import bisect
-import hashlib
 import logging
 import math
 from collections import Counter, deque
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field, replace
+from collections.abc import Iterable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from schemas import (
+    DAY_S,
     INDICATORS,
     ONBOARD_INDICES,
     Calibration,
@@ -137,424 +82,46 @@ from schemas import (
     SchemaError,
     TrcRecord,
 )
-from services.calibration.posterior import (
-    NIWPosterior,
-    NIWPrior,
-    SegmentIncrements,
-    history_to_increments,
-    posterior_drift_diffusion,
-    sample_degradation_posterior,
+from services.calibration.config import CalibratorConfig
+from services.calibration.groups import (
+    build_posterior,
+    fingerprint,
+    group_inputs,
+    one_segment_move,
 )
+from services.calibration.moves import Move, calibration_change, posterior_change
+from services.calibration.pairing import ln_mm, match_record, oldest_waiting
+from services.calibration.posterior import SegmentIncrements, history_to_increments
+from services.calibration.refit import outlying_pairs, worse
 from services.calibration.regression import (
     CalibrationError,
-    ObservationFit,
     fit_observation,
     fit_unit_observation,
 )
 from services.calibration.robust import Rules, check_model, raw_pieces, reference, screen_segment
-
-__all__ = [
-    "CALIBRATION_KEY",
-    "Calibrator",
-    "CalibratorConfig",
-    "Changes",
-    "Event",
-    "ModelEntry",
-    "Model",
-    "Pair",
-    "Quarantine",
-    "StoredState",
-    "calibration_change",
-    "initial_models",
-    "mean_loglik",
-    "posterior_change",
-]
+from services.calibration.state import (
+    CALIBRATION_KEY,
+    Changes,
+    Event,
+    Model,
+    ModelEntry,
+    Pair,
+    Quarantine,
+    Segment,
+    StoredState,
+    index_id,
+    is_calibration_key,
+    maintenance_id,
+    trc_id,
+    unit_key,
+)
 
 log = logging.getLogger(__name__)
 
-DAY_S = 86400.0
 _AHEAD = "dated "  # how robust.screen_segment's reason for a record ahead of event time begins
 _INCREMENT_SD_FLOOR = 1e-3  # ln mm / sqrt(day): the robust sd of increments is at least this
 _LEVEL_SD_FLOOR = 1e-2  # ln mm: and that of post-tamping levels
-_RESIDUAL_SD_FLOOR = 1e-3  # ln: and that of (TRC, on-board) residuals
-_MAX_OUTLIER_SHARE = 0.2  # more outlying pairs than this share are a burst: the swap rule's
-CALIBRATION_KEY = "calibration"  # ModelEntry.key of the Calibration; posteriors use their group
-
-
-def unit_key(train: str, unit: str) -> str:
-    """ModelEntry.key of a unit's own Calibration."""
-    return f"{CALIBRATION_KEY}/{train}/{unit}"
-
-
-def is_calibration_key(key: str) -> bool:
-    """The fleet's or a unit's Calibration (a posterior group never has a ``/``)."""
-    return key == CALIBRATION_KEY or key.startswith(CALIBRATION_KEY + "/")
-
-
 _N = len(INDICATORS)
-
-Event = TrcRecord | OnboardIndex | MaintenanceEvent
-Model = Calibration | DegradationPosterior
-Segment = tuple[str, str]  # (line, segment)
-
-
-@dataclass(frozen=True)
-class CalibratorConfig:
-    """Settings of :class:`Calibrator` (see the module docstring for what each one rules)."""
-
-    min_pairs: int = 30  # pairs before the first fit
-    refit_every: int = 10  # new pairs between fit attempts
-    tolerance_days: float | None = 1.0  # time pairing of indices without run_id; None: off
-    index_window_days: float = 30.0  # an unpaired index waits this long (segment's TRC time)
-    max_pending_per_segment: int = 500  # unpaired indices kept per segment (newest by t)
-    min_quality: float = 0.5  # indices below are not used for calibration
-    min_coverage: float = 0.5
-    max_r2_drop: float = 0.10  # swap rule 1
-    max_loglik_drop: float = 0.25  # swap rule 2, nats per pair
-    segment_min_increments: int = 6  # k: a segment gets its own posterior group
-    min_increments: int = _N + 2  # pooled groups (line, net)
-    min_levels: int = _N + 2  # post-tamping levels for (z+, Σz+) from data
-    max_level_age_days: float | None = 120.0  # older post-tamping levels are not used
-    samples: int = 200  # Ns
-    seed: int = 0
-    material_se: float = 1.0  # publication rule: a change is material beyond this many SEs
-    min_publish_interval_days: float = 1.0  # event time between two versions of one model
-    # robustness (issue 14; robust.py)
-    max_rate_per_day: float = 1.0 / 30.0  # hard bound on |dz|/dt between records, ln mm/day
-    max_jump: float = 0.5  # ... plus this much, ln mm (diffusion and TRC noise over short dt)
-    robust_k: float = 8.0  # outliers: beyond this many robust sd (1.4826 MAD)
-    robust_min_count: int = 20  # samples before a median/MAD reference is used
-    max_move_sd: float = 8.0  # a pooled posterior moved beyond this (sd of the one in force)
-    event_time_quorum: int = 3  # event time: the newest time this many segments have reached
-    max_ahead_days: float = 180.0  # TRC records later than event time + this: left out for now
-    # per-unit observation models (issue 18): shrunk towards the fleet's by this many pairs
-    unit_models: bool = True
-    unit_min_pairs: int = 5  # a unit's pairs before its first own model
-    unit_shrink_pairs: float = 20.0
-    drift_prior: NIWPrior | None = None  # None: NIWPrior.default_drift
-    level_prior: NIWPrior | None = None  # None: NIWPrior.default_level
-
-    def __post_init__(self) -> None:
-        if self.min_pairs < 1 or self.refit_every < 1:
-            raise ValueError(
-                f"min_pairs and refit_every must be >= 1, got {self.min_pairs}, {self.refit_every}"
-            )
-        if self.tolerance_days is not None and not self.tolerance_days >= 0:
-            raise ValueError(f"tolerance_days: must be >= 0 or None, got {self.tolerance_days}")
-        if not self.index_window_days >= 0:
-            raise ValueError(f"index_window_days: must be >= 0, got {self.index_window_days}")
-        if self.samples < 1:
-            raise ValueError(f"samples: must be >= 1, got {self.samples}")
-        if self.seed < 0:
-            raise ValueError(f"seed: must be >= 0, got {self.seed}")
-        if self.segment_min_increments < 1 or self.min_increments < 1 or self.min_levels < 1:
-            raise ValueError("segment_min_increments, min_increments, min_levels must be >= 1")
-        if not (
-            self.max_rate_per_day > 0
-            and self.max_jump >= 0
-            and self.robust_k > 0
-            and self.max_move_sd > 0
-            and self.max_ahead_days >= 0
-        ):
-            raise ValueError(
-                "max_rate_per_day, robust_k, max_move_sd must be > 0, max_jump and "
-                "max_ahead_days >= 0"
-            )
-        if self.event_time_quorum < 1 or self.robust_min_count < 3:
-            raise ValueError("event_time_quorum must be >= 1 and robust_min_count >= 3")
-        if not self.material_se >= 0 or not self.min_publish_interval_days >= 0:
-            raise ValueError(
-                "material_se and min_publish_interval_days: must be >= 0, got "
-                f"{self.material_se}, {self.min_publish_interval_days}"
-            )
-
-
-@dataclass(frozen=True)
-class Pair:
-    """One (TRC record, on-board index) pair: ``z`` and ``y`` in ln mm, ``t`` the index's (s)."""
-
-    line: str
-    segment: str
-    run_id: str  # the TRC record's
-    index_id: str
-    t: float
-    z: tuple[float, float]
-    y: tuple[float, float]
-
-    @property
-    def unit(self) -> tuple[str, str]:
-        """``(train, unit)`` of the index (from its id, :func:`index_id`)."""
-        parts = self.index_id.split("/")
-        return parts[2], parts[3]
-
-
-@dataclass(frozen=True)
-class Quarantine:
-    """Something left out of a fit or a posterior, to report (a dead letter): ``kind`` is the
-    key kind of what caused it (``trc`` or ``index``), ``message`` the record when kept."""
-
-    kind: str
-    line: str
-    segment: str
-    reason: str
-    message: TrcRecord | None = None
-
-
-@dataclass(frozen=True)
-class ModelEntry:
-    """A model as stored: ``key`` is ``"calibration"`` or the posterior's group.
-
-    A model in force carries the event time it was published at (None for an initial model,
-    or one stored before publication times were kept: the next version is not rate-limited);
-    a held candidate (accepted, not published) carries None.
-    """
-
-    key: str
-    message: Model
-    fingerprint: str = ""  # of the posterior's inputs; "" for the calibration
-    prior: bool = False  # an initial model (no data behind it)
-    published_at: float | None = None  # epoch s of event time
-
-
-@dataclass
-class StoredState:
-    """Everything a :class:`Calibrator` needs to continue: what a store loads."""
-
-    trc: list[TrcRecord] = field(default_factory=list)
-    maintenance: list[MaintenanceEvent] = field(default_factory=list)
-    pending: list[OnboardIndex] = field(default_factory=list)  # unpaired, in arrival order
-    pairs: list[Pair] = field(default_factory=list)  # in arrival order
-    quarantined: list[Pair] = field(default_factory=list)  # left out of fits
-    models: list[ModelEntry] = field(default_factory=list)  # in force (published)
-    held: list[ModelEntry] = field(default_factory=list)  # accepted, not (yet) published
-    meta: dict[str, Any] = field(default_factory=dict)
-
-
-@dataclass
-class Changes:
-    """What changed since the last :meth:`Calibrator.drain_changes`: what a store writes."""
-
-    trc: list[TrcRecord] = field(default_factory=list)
-    maintenance: list[MaintenanceEvent] = field(default_factory=list)
-    pending_added: list[OnboardIndex] = field(default_factory=list)
-    pending_removed: list[str] = field(default_factory=list)  # index ids
-    pairs: list[Pair] = field(default_factory=list)
-    quarantined: list[str] = field(default_factory=list)  # index ids of pairs set aside
-    models: list[ModelEntry] = field(default_factory=list)  # published, in order
-    held: dict[str, ModelEntry | None] = field(default_factory=dict)  # key -> held now, or None
-    meta: dict[str, Any] | None = None  # the whole meta when it changed
-
-    def __bool__(self) -> bool:
-        return bool(
-            self.trc
-            or self.maintenance
-            or self.pending_added
-            or self.pending_removed
-            or self.pairs
-            or self.quarantined
-            or self.models
-            or self.held
-            or self.meta is not None
-        )
-
-
-def trc_id(rec: TrcRecord) -> str:
-    return f"{rec.line}/{rec.segment}/{rec.run_id}"
-
-
-def index_id(idx: OnboardIndex) -> str:
-    return f"{idx.line}/{idx.segment}/{idx.train}/{idx.unit}/{idx.t!r}"
-
-
-def maintenance_id(ev: MaintenanceEvent) -> str:
-    return f"{ev.line}/{ev.segment}/{ev.event_id}"
-
-
-def _z(msg: TrcRecord | OnboardIndex) -> tuple[float, float]:
-    return (math.log(msg.top6_mm), math.log(msg.align10_mm))
-
-
-def mean_loglik(H, b, R, Z, Y) -> float:
-    r"""Mean Gaussian log-likelihood per pair, :math:`\frac1N\sum_i\log N(y_i; Hz_i + b, R)`."""
-    H, b, R = (np.asarray(a, dtype=np.float64) for a in (H, b, R))
-    E = np.asarray(Y, dtype=np.float64) - np.asarray(Z, dtype=np.float64) @ H.T - b
-    L = np.linalg.cholesky(R)
-    w = np.linalg.solve(L, E.T)  # (m, N)
-    logdet = 2.0 * np.log(np.diag(L)).sum()
-    m = R.shape[0]
-    return float(-0.5 * (m * math.log(2 * math.pi) + logdet + (w**2).sum(axis=0).mean()))
-
-
-Move = tuple[float, str]  # (largest move in standard errors, what moved and how)
-
-
-def _largest_move(moves: Iterable[tuple[str, Any, Any, Any]]) -> Move:
-    """The largest ``|new - old| / se`` over named arrays, and where it is."""
-    best: Move = (0.0, "nothing")
-    for name, new, old, se in moves:
-        new, old, se = (np.asarray(a, dtype=np.float64) for a in (new, old, se))
-        d = np.abs(new - old)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.where(d > 0, d / se, 0.0)  # a zero se: any move is infinitely many
-        i = np.unravel_index(int(np.argmax(z)), z.shape) if z.size else ()
-        if z.size and z[i] > best[0]:
-            where = f"[{','.join(str(k) for k in i)}]" if i else ""
-            best = (
-                float(z[i]),
-                f"{name}{where} {float(old[i]):.4g} -> {float(new[i]):.4g} "
-                f"({float(z[i]):.2f} SE of {float(se[i]):.3g})",
-            )
-    return best
-
-
-def calibration_change(fit: ObservationFit, old: Calibration) -> Move:
-    r"""How far the fit ``fit`` moved from the model ``old``, in the fit's standard errors.
-
-    .. math::
-
-        \max\Big(\max_{ij}\frac{|H_{ij} - H^{old}_{ij}|}{\operatorname{se}(H_{ij})},\
-        \max_i\frac{|b_i - b^{old}_i|}{\operatorname{se}(b_i)},\
-        \max_{ij}\frac{|R_{ij} - R^{old}_{ij}|}{\operatorname{se}(R_{ij})}\Big)
-
-    with the least-squares standard errors of :func:`fit_observation` (for ``R``, its
-    sampling error: relative :math:`\sqrt{2/(N - n - 1)}` on the diagonal).
-    """
-    return _largest_move(
-        [
-            ("H", fit.H, old.H.array(), fit.se_H),
-            ("b", fit.b, old.b.array(), fit.se_b),
-            ("R", fit.R, old.R.array(), fit.se_R),
-        ]
-    )
-
-
-def posterior_change(new: DegradationPosterior, old: DegradationPosterior) -> Move:
-    r"""How far the posterior ``new`` moved from ``old``, in posterior standard deviations.
-
-    For each parameter :math:`\theta` of :math:`(\boldsymbol\mu, \boldsymbol\Sigma,
-    \mathbf z^+, \boldsymbol\Sigma_{z^+})`, element by element, the move of the posterior mean
-    over the posterior sd, both from the draws the filter runs on:
-
-    .. math::
-
-        \max_\theta \frac{|\bar\theta_{new} - \bar\theta_{old}|}{\operatorname{sd}(\theta_{new})}
-
-    (the draws of two versions come from different seeds, so the Monte Carlo part of a move is
-    about :math:`\sqrt{2/N_s}` sd: 0.1 sd at Ns = 200).
-    """
-    moves = []
-    for name in ("mu", "sigma", "z_plus", "sigma_z_plus"):
-        a_new, a_old = getattr(new, name).array(), getattr(old, name).array()
-        moves.append((name, a_new.mean(axis=0), a_old.mean(axis=0), a_new.std(axis=0)))
-    return _largest_move(moves)
-
-
-def group_rng(seed: int, group: str, version: int) -> np.random.Generator:
-    """The generator of a posterior's draws: a pure function of (seed, group, version)."""
-    g = int.from_bytes(hashlib.sha256(group.encode()).digest()[:8], "little")
-    return np.random.default_rng(np.random.SeedSequence([seed, g, version]))
-
-
-def _arr(x: Any) -> NDArray:
-    return NDArray.of(np.asarray(x, dtype=np.float64))
-
-
-def _prior_from_spec(spec: Mapping[str, Any], what: str, weight: str, cov: str) -> NIWPrior:
-    """NIW prior from ``{mean, <weight>, <cov> (prior mean of the covariance), dof}``."""
-    try:
-        dof = float(spec["dof"])
-        cov_mean = np.asarray(spec[cov], dtype=np.float64)
-        n = cov_mean.shape[0]
-        if not dof > n + 1:
-            raise ValueError(f"{what}.dof: must be > n + 1 = {n + 1} (finite mean), got {dof}")
-        return NIWPrior(
-            m0=np.asarray(spec["mean"], dtype=np.float64),
-            lambda0=float(spec[weight]),
-            Psi0=cov_mean * (dof - n - 1),  # so that E[Σ] = Psi0 / (nu0 - n - 1) = cov_mean
-            nu0=dof,
-        )
-    except KeyError as e:
-        raise ValueError(f"{what}: missing {e.args[0]!r}") from None
-
-
-def _sample_prior(prior: NIWPrior, ns: int, rng: np.random.Generator):
-    """Draws of (mean, cov) from the NIW prior itself (no data)."""
-    return NIWPosterior(
-        m=prior.m0, lam=prior.lambda0, Psi=prior.Psi0, nu=prior.nu0, n_obs=0
-    ).sample(ns, rng)
-
-
-def initial_models(
-    spec: Mapping[str, Any], *, samples: int, seed: int
-) -> tuple[Calibration | None, list[DegradationPosterior]]:
-    """Version-1 models from a prior specification (``services/defaults/initial-models.json5``).
-
-    ``spec["calibration"]``: ``H``, ``b``, ``R``, optionally ``r2`` (default 0) and ``n_pairs``
-    (default 1: the schema needs > 0; the pairs behind a prior model are not ours). ``t`` is 0.
-    ``spec["degradation"]``: ``{group: {drift: {...}, level: {...}}}`` where ``drift`` is
-    ``{mean (ln mm/day), weight_days, sigma (prior mean of Σ, ln mm²/day), dof}`` and
-    ``level`` is ``{mean (ln mm), weight_levels, cov (prior mean of Σz+), dof}``; the
-    ``samples`` draws come from these Normal-Inverse-Wishart priors, seeded by
-    ``(seed, group, 1)``. Raises ValueError naming what is wrong.
-    """
-    calibration = None
-    if (cal := spec.get("calibration")) is not None:
-        try:
-            H, b, R = (np.asarray(cal[k], dtype=np.float64) for k in ("H", "b", "R"))
-        except KeyError as e:
-            raise ValueError(f"calibration: missing {e.args[0]!r}") from None
-        m = len(ONBOARD_INDICES)
-        if H.shape != (m, _N) or b.shape != (m,) or R.shape != (m, m):
-            raise ValueError(
-                f"calibration: H {H.shape}, b {b.shape}, R {R.shape}; need ({m}, {_N}), "
-                f"({m},), ({m}, {m})"
-            )
-        if not np.allclose(R, R.T) or np.linalg.eigvalsh(R)[0] <= 0:
-            raise ValueError("calibration.R: must be symmetric positive definite")
-        calibration = Calibration(
-            version=1,
-            t=0.0,
-            indicators=list(INDICATORS),
-            indices=list(ONBOARD_INDICES),
-            H=_arr(H),
-            b=_arr(b),
-            R=_arr(R),
-            n_pairs=int(cal.get("n_pairs", 1)),
-            r2=_arr(cal.get("r2", np.zeros(m))),
-        )
-    posteriors = []
-    for group, gspec in sorted(dict(spec.get("degradation") or {}).items()):
-        drift = _prior_from_spec(gspec.get("drift", {}), f"{group}.drift", "weight_days", "sigma")
-        level = _prior_from_spec(gspec.get("level", {}), f"{group}.level", "weight_levels", "cov")
-        rng = group_rng(seed, group, 1)
-        mu, sigma = _sample_prior(drift, samples, rng)
-        z_plus, sigma_z_plus = _sample_prior(level, samples, rng)
-        posteriors.append(
-            DegradationPosterior(
-                group=group,
-                version=1,
-                t=0.0,
-                indicators=list(INDICATORS),
-                mu=_arr(mu),
-                sigma=_arr(sigma),
-                z_plus=_arr(z_plus),
-                sigma_z_plus=_arr(sigma_z_plus),
-                n_increments=0,
-                n_levels=0,
-            )
-        )
-    return calibration, posteriors
-
-
-@dataclass(frozen=True)
-class _GroupInput:
-    dz: np.ndarray
-    dt: np.ndarray
-    level: np.ndarray
-    age: np.ndarray
-    level_source: str  # the group whose levels are used, or "prior"
-    t_newest: float  # epoch s of the newest TRC record used of the group's segments
-    members: tuple[Segment, ...] = ()  # segments whose increments are pooled
 
 
 class Calibrator:
@@ -801,8 +368,7 @@ class Calibrator:
 
     def _oldest_waiting(self, seg: Segment) -> float:
         """Indices of ``seg`` older than this (epoch s) no longer wait for a TRC record."""
-        times = self._trc_times.get(seg)
-        return times[-1][0] - self.config.index_window_days * DAY_S if times else -math.inf
+        return oldest_waiting(self._trc_times.get(seg), self.config.index_window_days)
 
     def _drop_pending(self, seg: Segment, iid: str) -> None:
         del self._pending[seg][iid]
@@ -812,25 +378,12 @@ class Calibrator:
     def _match(self, idx: OnboardIndex) -> TrcRecord | None:
         """The TRC record ``idx`` pairs with among those known, if any."""
         seg = (idx.line, idx.segment)
-        records = self._trc.get(seg)
-        if not records:
-            return None
-        if idx.run_id:
-            return records.get(idx.run_id)
-        tol = self.config.tolerance_days
-        if tol is None:
-            return None
-        times = self._trc_times[seg]
-        i = bisect.bisect_left(times, (idx.t, ""))
-        best: tuple[float, str] | None = None
-        for t, run_id in times[max(0, i - 1) : i + 1]:
-            d = abs(t - idx.t)
-            if d <= tol * DAY_S and (best is None or d < best[0]):
-                best = (d, run_id)
-        return records[best[1]] if best is not None else None
+        return match_record(
+            self._trc.get(seg), self._trc_times.get(seg, []), idx, self.config.tolerance_days
+        )
 
     def _add_pair(self, idx: OnboardIndex, iid: str, rec: TrcRecord) -> None:
-        pair = Pair(idx.line, idx.segment, rec.run_id, iid, idx.t, _z(rec), _z(idx))
+        pair = Pair(idx.line, idx.segment, rec.run_id, iid, idx.t, ln_mm(rec), ln_mm(idx))
         self._pairs.append(pair)
         self._paired.add(iid)
         self._changes.pairs.append(pair)
@@ -983,7 +536,7 @@ class Calibrator:
         fit, Z, Y = fitted_pairs
         if fitted:
             old: Calibration = current.message  # type: ignore[union-attr,assignment]
-            reason = self._worse(old, fit, Z[: old.n_pairs], Y[: old.n_pairs])
+            reason = worse(old, fit, Z[: old.n_pairs], Y[: old.n_pairs], self.config)
             if reason is not None:
                 self.stats["fits_rejected"] += 1
                 held = "" if current is self._models.get(CALIBRATION_KEY) else " (held)"
@@ -1011,11 +564,11 @@ class Calibrator:
                 t=max(p.t for p in self._pairs),
                 indicators=list(INDICATORS),
                 indices=list(ONBOARD_INDICES),
-                H=_arr(fit.H),
-                b=_arr(fit.b),
-                R=_arr(fit.R),
+                H=NDArray.of(fit.H),
+                b=NDArray.of(fit.b),
+                R=NDArray.of(fit.R),
                 n_pairs=n,
-                r2=_arr(fit.r2),
+                r2=NDArray.of(fit.r2),
             )
         except SchemaError as e:  # NaN/inf or out of the wire's bounds: never published
             self.stats["models_invalid"] += 1
@@ -1082,11 +635,11 @@ class Calibrator:
                     t=max(p.t for p in ps),
                     indicators=list(INDICATORS),
                     indices=list(ONBOARD_INDICES),
-                    H=_arr(fit.H),
-                    b=_arr(fit.b),
-                    R=_arr(fit.R),
+                    H=NDArray.of(fit.H),
+                    b=NDArray.of(fit.b),
+                    R=NDArray.of(fit.R),
                     n_pairs=len(ps),
-                    r2=_arr(fit.r2),
+                    r2=NDArray.of(fit.r2),
                     train=train,
                     unit=unit,
                 )
@@ -1103,40 +656,16 @@ class Calibrator:
             self._hold(entry, change)
 
     def _drop_outlying_pairs(self, H: np.ndarray, b: np.ndarray, n_ref: int) -> int:
-        """Quarantine the pairs after the first ``n_ref`` whose residual ``y - (Hz + b)``
-        under the fit ``H, b`` is beyond ``robust_k`` robust sd (1.4826 MAD) of the residuals
-        of the first ``n_ref`` (all pairs when ``n_ref`` is 0: a first fit judged on its own
-        pairs); the number left out. Only when they are a few (at most
-        ``_MAX_OUTLIER_SHARE`` of the pairs judged, or one): single wild pairs (a wrong
-        pairing, a glitch) go here, before the swap rule judges the rest, which would
-        otherwise quarantine every new pair with them; a burst of bad pairs (a faulty unit)
-        is left whole to the swap rule."""
-        cfg = self.config
-        Z = np.array([p.z for p in self._pairs]).reshape(-1, _N)
-        Y = np.array([p.y for p in self._pairs]).reshape(-1, len(ONBOARD_INDICES))
-        E = Y - Z @ H.T - b
-        ref = reference(
-            E[:n_ref] if n_ref else E, min_count=cfg.robust_min_count, floor=_RESIDUAL_SD_FLOOR
-        )
-        if ref is None:
-            return 0
-        out = [i for i in range(n_ref, len(E)) if ref.outlying(E[i], cfg.robust_k)]
-        if len(out) > max(1.0, _MAX_OUTLIER_SHARE * (len(E) - n_ref)):
-            return 0
-        for i in out:
-            p, d = self._pairs[i], np.abs(E[i] - ref.median) / ref.scale
-            m = int(np.argmax(d))
-            why = (
-                f"pair of index {p.index_id} with TRC run {p.run_id} left out of the "
-                f"observation model: residual of {ONBOARD_INDICES[m]} {E[i][m]:+.3f} ln is "
-                f"{d[m]:.1f} robust sd (1.4826 MAD {ref.scale[m]:.3g}) from the fit's "
-                f"(more than {cfg.robust_k:g})"
-            )
+        """Quarantine the pairs :func:`refit.outlying_pairs` finds under the fit ``H, b``
+        judged against the first ``n_ref`` (all when 0); the number left out."""
+        out = outlying_pairs(self._pairs, H, b, n_ref, self.config)
+        for i, why in out:
+            p = self._pairs[i]
             log.warning("%s", why)
             self._outbox.append(Quarantine("index", p.line, p.segment, why))
-        dropped = set(out)
-        self._quarantined.extend(self._pairs[i] for i in out)
-        self._changes.quarantined.extend(self._pairs[i].index_id for i in out)
+        dropped = {i for i, _ in out}
+        self._quarantined.extend(self._pairs[i] for i, _ in out)
+        self._changes.quarantined.extend(self._pairs[i].index_id for i, _ in out)
         self._pairs = [p for i, p in enumerate(self._pairs) if i not in dropped]
         self.stats["pairs_outliers"] += len(out)
         return len(out)
@@ -1153,25 +682,6 @@ class Calibrator:
             log.warning("calibration fit on %d pairs refused: %s", len(Z), e)
             return None
 
-    def _worse(self, old: Calibration, fit, Z: np.ndarray, Y: np.ndarray) -> str | None:
-        """The swap rule: why the candidate ``fit`` is worse than ``old``, or None."""
-        cfg = self.config
-        drop = old.r2.array() - fit.r2
-        if np.any(drop > cfg.max_r2_drop):
-            i = int(np.argmax(drop))
-            return (
-                f"R² of {ONBOARD_INDICES[i]} drops {old.r2.array()[i]:.3f} -> {fit.r2[i]:.3f} "
-                f"(more than {cfg.max_r2_drop})"
-            )
-        ll_old = mean_loglik(old.H.array(), old.b.array(), old.R.array(), Z, Y)
-        ll_new = mean_loglik(fit.H, fit.b, fit.R, Z, Y)
-        if ll_new < ll_old - cfg.max_loglik_drop:
-            return (
-                f"log-likelihood per pair on the {len(Z)} pairs of version {old.version} drops "
-                f"{ll_old:.3f} -> {ll_new:.3f} (more than {cfg.max_loglik_drop} nats)"
-            )
-        return None
-
     def _update_increments(self) -> None:
         """Screen every segment's TRC history (:func:`robust.screen_segment`: the reference
         is the whole network's, so a new record anywhere may change a verdict) and rebuild
@@ -1184,7 +694,7 @@ class Calibrator:
                     d.pop(seg, None)
                 continue
             t = np.array([r.t / DAY_S for r in records])
-            z = np.array([_z(r) for r in records]).reshape(len(records), _N)
+            z = np.array([ln_mm(r) for r in records]).reshape(len(records), _N)
             tamping = sorted(
                 0.5 * (e.t_start + e.t_end) / DAY_S for e in self._maint.get(seg, {}).values()
             )
@@ -1249,84 +759,20 @@ class Calibrator:
             self._outbox.append(Quarantine("trc", rec.line, rec.segment, why, rec))
         self._changes.meta = {}  # the reported set is part of meta
 
-    def _group_inputs(self) -> dict[str, _GroupInput]:
-        """Inputs of every group that exists now (deterministic order of pooling)."""
-        cfg = self.config
-        segs = sorted(self._increments)
-        newest = self._newest_used
-
-        def pool(members: list[Segment]):
-            incs = [self._increments[s] for s in members]
-            return (
-                np.concatenate([i.dz for i in incs]).reshape(-1, _N),
-                np.concatenate([i.dt for i in incs]),
-                np.concatenate([i.level for i in incs]).reshape(-1, _N),
-                np.concatenate([i.age for i in incs]),
-                max(newest[s] for s in members),
-                tuple(members),
-            )
-
-        net = pool(segs)
-        lines: dict[str, list[Segment]] = {}
-        for s in segs:
-            lines.setdefault(s[0], []).append(s)
-        line_pool = {line: pool(members) for line, members in lines.items()}
-
-        def make(own, chain: list[tuple[str, tuple]]) -> _GroupInput:
-            dz, dt, _, _, t_newest, members = own
-            for source, (_, _, level, age, _, _) in chain:
-                if len(level) >= cfg.min_levels:
-                    return _GroupInput(dz, dt, level, age, source, t_newest, members)
-            return _GroupInput(dz, dt, net[2][:0], net[3][:0], "prior", t_newest, members)
-
-        out: dict[str, _GroupInput] = {"net": make(net, [("net", net)])}
-        for line, lp in line_pool.items():
-            out[f"line.{line}"] = make(lp, [(f"line.{line}", lp), ("net", net)])
-        for s in segs:
-            if len(self._increments[s].dt) >= cfg.segment_min_increments:
-                own = pool([s])
-                group = f"seg.{s[0]}.{s[1]}"
-                out[group] = make(
-                    own, [(group, own), (f"line.{s[0]}", line_pool[s[0]]), ("net", net)]
-                )
-        return out
-
-    def _fingerprint(self, group: str, g: _GroupInput) -> str:
-        cfg = self.config
-        h = hashlib.sha256()
-        settings = (
-            group,
-            g.level_source,
-            cfg.samples,
-            cfg.seed,
-            cfg.min_increments,
-            cfg.min_levels,
-        )
-        h.update(repr(settings).encode())
-        for prior in (cfg.drift_prior, cfg.level_prior):
-            if prior is not None:
-                h.update(
-                    repr(
-                        (prior.m0.tolist(), prior.lambda0, prior.Psi0.tolist(), prior.nu0)
-                    ).encode()
-                )
-        for a in (g.dz, g.dt, g.level, g.age):
-            h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
-            h.update(repr(a.shape).encode())
-        return h.hexdigest()
-
     def _rebuild_posteriors(self) -> None:
         if not self._increments:
             return
-        for group, g in sorted(self._group_inputs().items()):
-            fp = self._fingerprint(group, g)
+        for group, g in sorted(
+            group_inputs(self._increments, self._newest_used, self.config).items()
+        ):
+            fp = fingerprint(group, g, self.config)
             entry = self._current(group)
             if (entry is not None and entry.fingerprint == fp) or self._refused.get(group) == fp:
                 continue
             in_force = self._models.get(group)
             version = self._next_version(group)
             try:
-                post = self._build(group, g, version)
+                post = build_posterior(group, g, version, self.config)
             except SchemaError as e:  # NaN/inf or out of the wire's bounds: never published
                 self._refused[group] = fp
                 self.stats["models_invalid"] += 1
@@ -1342,7 +788,13 @@ class Calibrator:
             if self._invalid(entry) is not None:
                 self._refused[group] = fp
                 continue
-            if in_force is not None and (why := self._one_segment_move(g, post, in_force)):
+            moved = None
+            if in_force is not None:
+                moved = one_segment_move(g, post, in_force, self._increments, self.config)
+            if moved is not None:
+                why, culprit = moved
+                rec = self._history[culprit][0][-1]
+                self._outbox.append(Quarantine("trc", rec.line, rec.segment, why, rec))
                 self._refused[group] = fp
                 self.stats["posteriors_held_move"] += 1
                 self.rejections.append(why)
@@ -1354,100 +806,3 @@ class Calibrator:
             if in_force is not None:
                 change = posterior_change(post, in_force.message)  # type: ignore[arg-type]
             self._hold(entry, change)
-
-    def _one_segment_move(
-        self, g: _GroupInput, post: DegradationPosterior, in_force: ModelEntry
-    ) -> str | None:
-        r"""The move bound: why the pooled posterior ``post`` moved too far on the strength of
-        one segment, or None.
-
-        The move is :math:`\max |\bar\theta_{new} - \bar\theta_{old}| / sd(\theta_{old})`
-        over the elements of ``mu`` and ``Sigma``, in the posterior sd of the version in force
-        (from its draws). Beyond ``max_move_sd`` the conjugate posterior means are computed
-        again without each member segment in turn; when leaving out one segment brings the
-        move back within the bound (or the group has one segment only and a prior in force),
-        that segment alone moved it: the candidate is held (not published) and the segment's
-        newest record reported. Segment groups, and a pooled group of one segment whose
-        version in force came from data, are not judged (their data are one segment's own).
-        """
-        if post.group.startswith("seg."):
-            return None
-        old: DegradationPosterior = in_force.message  # type: ignore[assignment]
-        o_mu, o_sigma = old.mu.array(), old.sigma.array()
-        ref = (o_mu.mean(axis=0), o_mu.std(axis=0), o_sigma.mean(axis=0), o_sigma.std(axis=0))
-
-        def move(mu, sigma) -> Move:
-            return _largest_move([("mu", mu, ref[0], ref[1]), ("sigma", sigma, ref[2], ref[3])])
-
-        bound = self.config.max_move_sd
-        moved = move(post.mu.array().mean(axis=0), post.sigma.array().mean(axis=0))
-        if moved[0] <= bound:
-            return None
-        members = [s for s in g.members if len(self._increments[s].dt)]
-        if len(members) == 1 and old.n_increments > 0:
-            return None  # a one-segment group from data: it moves with its segment
-        culprit: Segment | None = members[0] if len(members) == 1 else None
-        if culprit is None:
-            best = (math.inf, members[0])
-            for s in members:
-                rest = [self._increments[m] for m in members if m != s]
-                try:
-                    p = posterior_drift_diffusion(
-                        np.concatenate([i.dz for i in rest]).reshape(-1, _N),
-                        np.concatenate([i.dt for i in rest]),
-                        self.config.drift_prior,
-                        min_increments=1,
-                    )
-                except CalibrationError:
-                    continue
-                without = move(p.m, p.mean_sigma())[0]
-                best = min(best, (without, s))
-            if best[0] <= bound:
-                culprit = best[1]
-        if culprit is None:
-            return None  # several segments agree: a real change
-        why = (
-            f"posterior {post.group} not published: moved {moved[1]} of version "
-            f"{old.version} in force (more than {bound:g}) on the strength of segment "
-            f"{culprit[0]}/{culprit[1]} alone"
-        )
-        records = self._history[culprit][0]
-        rec = records[-1]
-        self._outbox.append(Quarantine("trc", rec.line, rec.segment, why, rec))
-        return why
-
-    def _build(self, group: str, g: _GroupInput, version: int) -> DegradationPosterior:
-        cfg = self.config
-        rng = group_rng(cfg.seed, group, version)
-        min_inc = cfg.segment_min_increments if group.startswith("seg.") else cfg.min_increments
-        if g.level_source != "prior":
-            s = sample_degradation_posterior(
-                g.dz,
-                g.dt,
-                g.level,
-                g.age,
-                ns=cfg.samples,
-                rng=rng,
-                drift_prior=cfg.drift_prior,
-                level_prior=cfg.level_prior,
-                min_increments=min_inc,
-                min_levels=cfg.min_levels,
-            )
-            mu, sigma, z_plus, sigma_z_plus = s.mu, s.sigma, s.z_plus, s.sigma_z_plus
-        else:
-            post = posterior_drift_diffusion(g.dz, g.dt, cfg.drift_prior, min_increments=min_inc)
-            mu, sigma = post.sample(cfg.samples, rng)
-            level_prior = cfg.level_prior or NIWPrior.default_level(_N)
-            z_plus, sigma_z_plus = _sample_prior(level_prior, cfg.samples, rng)
-        return DegradationPosterior(
-            group=group,
-            version=version,
-            t=g.t_newest,
-            indicators=list(INDICATORS),
-            mu=_arr(mu),
-            sigma=_arr(sigma),
-            z_plus=_arr(z_plus),
-            sigma_z_plus=_arr(sigma_z_plus),
-            n_increments=len(g.dt),
-            n_levels=len(g.age),
-        )

@@ -10,6 +10,7 @@ Normal-Inverse-Wishart (NIW) conjugate prior, so the posterior draws are exact a
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -489,3 +490,16 @@ def sample_degradation_posterior(
         level, age, mu, rng, level_prior, min_levels=min_levels
     )
     return DegradationSamples(mu=mu, sigma=sigma, z_plus=z_plus, sigma_z_plus=sigma_z_plus)
+
+
+def group_rng(seed: int, group: str, version: int) -> np.random.Generator:
+    """The generator of a posterior's draws: a pure function of (seed, group, version)."""
+    g = int.from_bytes(hashlib.sha256(group.encode()).digest()[:8], "little")
+    return np.random.default_rng(np.random.SeedSequence([seed, g, version]))
+
+
+def sample_prior(prior: NIWPrior, ns: int, rng: np.random.Generator):
+    """Draws of (mean, cov) from the NIW prior itself (no data)."""
+    return NIWPosterior(
+        m=prior.m0, lam=prior.lambda0, Psi=prior.Psi0, nu=prior.nu0, n_obs=0
+    ).sample(ns, rng)

@@ -41,14 +41,10 @@ from schemas import (
     encode,
     keys,
 )
-from services.calibration.calibrator import (
-    Calibrator,
-    CalibratorConfig,
-    Event,
-    Model,
-    Quarantine,
-    initial_models,
-)
+from services.calibration.calibrator import Calibrator
+from services.calibration.config import CalibratorConfig
+from services.calibration.initial import initial_models
+from services.calibration.state import Event, Model, Quarantine
 from services.calibration.store import SqliteStore
 from services.runtime.config import (
     RuntimeConfig,

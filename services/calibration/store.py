@@ -24,7 +24,7 @@ from schemas import (
     decode,
     encode,
 )
-from services.calibration.calibrator import (
+from services.calibration.state import (
     Changes,
     ModelEntry,
     Pair,

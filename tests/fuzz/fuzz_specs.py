@@ -37,7 +37,7 @@ from services.alerting import service as alerting
 from services.alerting.core import DAY_S
 from services.alerting.testing import make_state, p_top6
 from services.calibration import service as calibration
-from services.calibration.calibrator import CalibratorConfig
+from services.calibration.config import CalibratorConfig
 from services.extraction import service as extraction
 from services.filtering import service as filtering
 from services.filtering.testing import example_models

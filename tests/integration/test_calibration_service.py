@@ -22,7 +22,7 @@ from schemas import (
     keys,
 )
 from services.calibration import service
-from services.calibration.calibrator import CalibratorConfig
+from services.calibration.config import CalibratorConfig
 
 BLOCK = zenoh.CongestionControl.BLOCK  # a fast burst of puts is otherwise dropped
 DAY = 86400.0

@@ -22,18 +22,15 @@ from schemas import (
     decode,
     encode,
 )
-from services.calibration.calibrator import (
-    Calibrator,
-    CalibratorConfig,
-    Quarantine,
-    calibration_change,
-    group_rng,
-    initial_models,
-    mean_loglik,
-    posterior_change,
-)
+from services.calibration.calibrator import Calibrator
+from services.calibration.config import CalibratorConfig
+from services.calibration.initial import initial_models
+from services.calibration.moves import calibration_change, posterior_change
+from services.calibration.posterior import group_rng
+from services.calibration.refit import mean_loglik
 from services.calibration.regression import fit_observation
 from services.calibration.robust import check_model
+from services.calibration.state import Quarantine
 from services.calibration.store import MemoryStore, SqliteStore
 from services.defaults import default_file
 

@@ -6,8 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from schemas import Calibration, keys
-from services.calibration.calibrator import Calibrator, CalibratorConfig, unit_key
+from services.calibration.calibrator import Calibrator
+from services.calibration.config import CalibratorConfig
 from services.calibration.regression import fit_observation, fit_unit_observation
+from services.calibration.state import unit_key
 from services.calibration.store import SqliteStore
 from tests.unit.test_calibration_service_core import T0, B, H, R, campaign, index, trc
 

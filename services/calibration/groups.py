@@ -1,0 +1,229 @@
+r"""Posterior groups: which groups exist, what each pools, when one is rebuilt, and the
+bound on a pooled group moved by one segment. Pure.
+
+Degradation posteriors
+    Per segment, the TRC history (``z`` at record times) and the tampings (known time, or the
+    middle of the interval: the paper's mid-interval rule) give increments that do not span a
+    tamping and post-tamping levels (:func:`history_to_increments`). Groups:
+
+    * ``seg.{line}.{segment}`` when the segment alone has ``>= segment_min_increments``;
+    * ``line.{line}`` pooling the increments of the line's segments;
+    * ``net`` pooling every segment.
+
+    Post-tamping levels come from the group itself when it has ``>= min_levels``, else from
+    its line, else from the network; when even the network has fewer, ``(z+, Σz+)`` are drawn
+    from the level prior alone (``n_levels = 0``) so that drift and diffusion are published
+    before any tamping has been recorded. ``samples`` draws of :func:`sample_degradation_posterior`
+    use a generator seeded from ``(seed, group, version)``: re-running gives identical samples.
+    A group is rebuilt when a fingerprint of its inputs (increments, levels, and the settings
+    that shape the draws) changed; when the core raises :class:`CalibrationError` (too little
+    data) the old posterior stays and the refusal is counted.
+
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from schemas import INDICATORS, DegradationPosterior, NDArray
+from services.calibration.config import CalibratorConfig
+from services.calibration.moves import Move, largest_move
+from services.calibration.posterior import (
+    NIWPrior,
+    SegmentIncrements,
+    group_rng,
+    posterior_drift_diffusion,
+    sample_degradation_posterior,
+    sample_prior,
+)
+from services.calibration.regression import CalibrationError
+from services.calibration.state import ModelEntry, Segment
+
+_N = len(INDICATORS)
+
+
+@dataclass(frozen=True)
+class GroupInput:
+    """What one group's posterior is built from."""
+
+    dz: np.ndarray
+    dt: np.ndarray
+    level: np.ndarray
+    age: np.ndarray
+    level_source: str  # the group whose levels are used, or "prior"
+    t_newest: float  # epoch s of the newest TRC record used of the group's segments
+    members: tuple[Segment, ...] = ()  # segments whose increments are pooled
+
+
+def group_inputs(
+    increments: Mapping[Segment, SegmentIncrements],
+    newest_used: Mapping[Segment, float],
+    cfg: CalibratorConfig,
+) -> dict[str, GroupInput]:
+    """Inputs of every group that exists now (deterministic order of pooling)."""
+    segs = sorted(increments)
+    newest = newest_used
+
+    def pool(members: list[Segment]):
+        incs = [increments[s] for s in members]
+        return (
+            np.concatenate([i.dz for i in incs]).reshape(-1, _N),
+            np.concatenate([i.dt for i in incs]),
+            np.concatenate([i.level for i in incs]).reshape(-1, _N),
+            np.concatenate([i.age for i in incs]),
+            max(newest[s] for s in members),
+            tuple(members),
+        )
+
+    net = pool(segs)
+    lines: dict[str, list[Segment]] = {}
+    for s in segs:
+        lines.setdefault(s[0], []).append(s)
+    line_pool = {line: pool(members) for line, members in lines.items()}
+
+    def make(own, chain: list[tuple[str, tuple]]) -> GroupInput:
+        dz, dt, _, _, t_newest, members = own
+        for source, (_, _, level, age, _, _) in chain:
+            if len(level) >= cfg.min_levels:
+                return GroupInput(dz, dt, level, age, source, t_newest, members)
+        return GroupInput(dz, dt, net[2][:0], net[3][:0], "prior", t_newest, members)
+
+    out: dict[str, GroupInput] = {"net": make(net, [("net", net)])}
+    for line, lp in line_pool.items():
+        out[f"line.{line}"] = make(lp, [(f"line.{line}", lp), ("net", net)])
+    for s in segs:
+        if len(increments[s].dt) >= cfg.segment_min_increments:
+            own = pool([s])
+            group = f"seg.{s[0]}.{s[1]}"
+            out[group] = make(own, [(group, own), (f"line.{s[0]}", line_pool[s[0]]), ("net", net)])
+    return out
+
+
+def fingerprint(group: str, g: GroupInput, cfg: CalibratorConfig) -> str:
+    """What a group's posterior is drawn from: its inputs and the settings that shape the draws."""
+    h = hashlib.sha256()
+    settings = (
+        group,
+        g.level_source,
+        cfg.samples,
+        cfg.seed,
+        cfg.min_increments,
+        cfg.min_levels,
+    )
+    h.update(repr(settings).encode())
+    for prior in (cfg.drift_prior, cfg.level_prior):
+        if prior is not None:
+            h.update(
+                repr((prior.m0.tolist(), prior.lambda0, prior.Psi0.tolist(), prior.nu0)).encode()
+            )
+    for a in (g.dz, g.dt, g.level, g.age):
+        h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
+        h.update(repr(a.shape).encode())
+    return h.hexdigest()
+
+
+def one_segment_move(
+    g: GroupInput,
+    post: DegradationPosterior,
+    in_force: ModelEntry,
+    increments: Mapping[Segment, SegmentIncrements],
+    cfg: CalibratorConfig,
+) -> tuple[str, Segment] | None:
+    r"""The move bound: why the pooled posterior ``post`` moved too far on the strength of
+    one segment and that segment, or None.
+
+    The move is :math:`\max |\bar\theta_{new} - \bar\theta_{old}| / sd(\theta_{old})`
+    over the elements of ``mu`` and ``Sigma``, in the posterior sd of the version in force
+    (from its draws). Beyond ``max_move_sd`` the conjugate posterior means are computed
+    again without each member segment in turn; when leaving out one segment brings the
+    move back within the bound (or the group has one segment only and a prior in force),
+    that segment alone moved it: the candidate is held (not published) and the segment's
+    newest record reported (by the caller). Segment groups, and a pooled group of one segment whose
+    version in force came from data, are not judged (their data are one segment's own).
+    """
+    if post.group.startswith("seg."):
+        return None
+    old: DegradationPosterior = in_force.message  # type: ignore[assignment]
+    o_mu, o_sigma = old.mu.array(), old.sigma.array()
+    ref = (o_mu.mean(axis=0), o_mu.std(axis=0), o_sigma.mean(axis=0), o_sigma.std(axis=0))
+
+    def move(mu, sigma) -> Move:
+        return largest_move([("mu", mu, ref[0], ref[1]), ("sigma", sigma, ref[2], ref[3])])
+
+    bound = cfg.max_move_sd
+    moved = move(post.mu.array().mean(axis=0), post.sigma.array().mean(axis=0))
+    if moved[0] <= bound:
+        return None
+    members = [s for s in g.members if len(increments[s].dt)]
+    if len(members) == 1 and old.n_increments > 0:
+        return None  # a one-segment group from data: it moves with its segment
+    culprit: Segment | None = members[0] if len(members) == 1 else None
+    if culprit is None:
+        best = (math.inf, members[0])
+        for s in members:
+            rest = [increments[m] for m in members if m != s]
+            try:
+                p = posterior_drift_diffusion(
+                    np.concatenate([i.dz for i in rest]).reshape(-1, _N),
+                    np.concatenate([i.dt for i in rest]),
+                    cfg.drift_prior,
+                    min_increments=1,
+                )
+            except CalibrationError:
+                continue
+            without = move(p.m, p.mean_sigma())[0]
+            best = min(best, (without, s))
+        if best[0] <= bound:
+            culprit = best[1]
+    if culprit is None:
+        return None  # several segments agree: a real change
+    why = (
+        f"posterior {post.group} not published: moved {moved[1]} of version "
+        f"{old.version} in force (more than {bound:g}) on the strength of segment "
+        f"{culprit[0]}/{culprit[1]} alone"
+    )
+    return why, culprit
+
+
+def build_posterior(
+    group: str, g: GroupInput, version: int, cfg: CalibratorConfig
+) -> DegradationPosterior:
+    """Version ``version`` of ``group``'s posterior from its inputs; raises CalibrationError."""
+    rng = group_rng(cfg.seed, group, version)
+    min_inc = cfg.segment_min_increments if group.startswith("seg.") else cfg.min_increments
+    if g.level_source != "prior":
+        s = sample_degradation_posterior(
+            g.dz,
+            g.dt,
+            g.level,
+            g.age,
+            ns=cfg.samples,
+            rng=rng,
+            drift_prior=cfg.drift_prior,
+            level_prior=cfg.level_prior,
+            min_increments=min_inc,
+            min_levels=cfg.min_levels,
+        )
+        mu, sigma, z_plus, sigma_z_plus = s.mu, s.sigma, s.z_plus, s.sigma_z_plus
+    else:
+        post = posterior_drift_diffusion(g.dz, g.dt, cfg.drift_prior, min_increments=min_inc)
+        mu, sigma = post.sample(cfg.samples, rng)
+        level_prior = cfg.level_prior or NIWPrior.default_level(_N)
+        z_plus, sigma_z_plus = sample_prior(level_prior, cfg.samples, rng)
+    return DegradationPosterior(
+        group=group,
+        version=version,
+        t=g.t_newest,
+        indicators=list(INDICATORS),
+        mu=NDArray.of(mu),
+        sigma=NDArray.of(sigma),
+        z_plus=NDArray.of(z_plus),
+        sigma_z_plus=NDArray.of(sigma_z_plus),
+        n_increments=len(g.dt),
+        n_levels=len(g.age),
+    )
