@@ -8,7 +8,7 @@ module only lists them. A command's module is imported when that command is pars
 
 A ``ValueError`` out of a command (a configuration it cannot use: an unknown key, a file
 that does not parse, a value out of range) ends the process with exit code 2 and one line
-on stderr saying what to fix.
+on stderr saying what to fix (with ``--log-level debug``, after its traceback).
 """
 
 from __future__ import annotations
