@@ -38,17 +38,20 @@ Figures:
   (b) **from the raw chunk that holds the first sample past the segment end**: ``w −`` the
       wall time that chunk arrived on the bus, i.e. from the earliest moment the system can
       know the train left, whichever end of the chunk the gateway publishes at. **This is the
-      figure compared with DESIGN's target (p99 < 500 ms)**. It still contains the chord: the
-      index of a segment needs the profile ``L/2`` = 5 m (Align10) past its end, and when those
-      metres fall in the next chunk (about ``L / (2 v)`` / chunk length of the passes: ~20 %
-      at 25 m/s) the pass waits for that chunk (1 s later).
-  (c) **from the raw chunk that holds the sample the index needs** (5 m past the end, plus
-      a grid step and the decimation's 12 ms): the pipeline's own latency (ingestion +
-      extraction + filtering + the bus).
+      figure compared with DESIGN's target (p99 < 500 ms)**. The index needs nothing past the
+      segment's end: extraction completes it once the unit's samples reach the statistic's
+      last chord, ``END_GUARD_M`` (1 m) short of the end, plus one 0.25 m grid step and the
+      decimation FIR's 10 ms (``services/extraction/pipeline.py``). That sample is usually
+      in the chunk that holds the first sample past the end; when it falls in the chunk
+      before (about ``(0.75 m / v − 12 ms)`` / chunk length of the passes: ~2 % at 25 m/s),
+      the state can arrive before that chunk and (b) is negative.
+  (c) **from the raw chunk that holds the sample the index needs** (0.75 m short of the
+      end, plus the decimation's 12 ms): the pipeline's own latency (ingestion + extraction
+      + filtering + the bus).
 
   Also reported: (a) with the leave moment estimated from the index alone
-  (``t + (segment length / 2) / speed``, the figure this bench reported before; up to 2 s
-  early for a train braking out of a segment, since ``speed`` is the segment's mean).
+  (``t + (segment length / 2) / speed``; up to 2 s early for a train braking out of a
+  segment, since ``speed`` is the segment's mean).
 - **memory**: RSS and CPU of every process every ``--sample-s``; growth = mean RSS of the
   last three samples / mean RSS of the first 30 s after ``--warmup-minutes`` − 1.
 
@@ -56,8 +59,8 @@ Figures:
 --speedup X`` from the start of a year; latency is then index arrival → state arrival.
 
 ``--ingestion KEY=VALUE`` sets an ingestion core setting for the run (through a config
-file); ``--ingestion extrapolate_s=0`` measures the previous behaviour, where every chunk
-waited for the GPS fix after its last sample.
+file); ``--ingestion extrapolate_s=0`` measures ingestion holding every chunk until the GPS
+fix after its last sample.
 
 Ctrl-C or SIGTERM stops everything in order (SIGTERM, wait, SIGKILL) and still reports.
 """
@@ -88,7 +91,7 @@ import zenoh
 
 from schemas import NDArray, OnboardIndex, keys
 from services.extraction.pipeline import ExtractionConfig
-from services.extraction.versine import ALIGN_CHORD_M
+from services.extraction.versine import END_GUARD_M
 from services.runtime.config import zenoh_config
 from simulators.network import demo_network
 
@@ -102,10 +105,11 @@ MAX_SIM_LAG_S = 1.0  # p99: the simulator publishes within 1 s of the event time
 # tail is no measure of keeping up (a chunk in a tunnel waits for the fix after it).
 MAX_PIPE_LAG_S = 2.0
 TARGET_P99_S = 0.5  # DESIGN: train leaves a segment -> state published, p99
-# An index needs the profile half the Align10 chord past the segment's end, on the 0.25 m
-# grid (one step more to interpolate it), and the samples the decimation FIR (10 ms) and one
-# decimated step (2 ms) later: what "the sample the index needs" is below.
-NEEDED_PAST_END_M = ALIGN_CHORD_M / 2 + ExtractionConfig.spacing_m
+# An index needs the profile up to the far end of the statistic's last chord, END_GUARD_M
+# short of the segment's end, on the 0.25 m grid (one step more to interpolate it), and the
+# samples the decimation FIR (10 ms) and one decimated step (2 ms) later: what "the sample
+# the index needs" is below (services/extraction/pipeline.py, when an index is emitted).
+NEEDED_SHORT_OF_END_M = END_GUARD_M - ExtractionConfig.spacing_m
 NEEDED_AFTER_S = (ExtractionConfig.fir_taps - 1) / 2 / ExtractionConfig.rate_hz + (
     ExtractionConfig.decimation / ExtractionConfig.rate_hz
 )
@@ -682,8 +686,8 @@ def latency_figures(probe: Probe, offset: float) -> dict:
         estimated.append(wall - (probe.estimated_leave(msg) + offset))
         start, end = probe.segments[(msg.line, msg.segment)]
         leave = tracks[key].crossing(msg.t, msg.line, start, end)
-        past = NEEDED_PAST_END_M
-        needed = tracks[key].crossing(msg.t, msg.line, start - past, end + past)
+        inset = NEEDED_SHORT_OF_END_M
+        needed = tracks[key].crossing(msg.t, msg.line, start + inset, end - inset)
         if leave is None:
             unplaced += 1
             continue
