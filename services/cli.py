@@ -71,7 +71,7 @@ COMMANDS = (
     Command("report", "a self-contained HTML report for maintenance planners",
             "services.tools.report"),
     Command("deadletters", "print every dead letter: service key reason",
-            "services.tools.deadletters"),
+            "services.tools.deadletter_printer"),
     Command("study", "offline studies on the estimation core", subcommands=(
         Command("frequency", "credible-interval width against on-board measurement interval "
                 "(paper 4.2)", "services.filtering.study"),

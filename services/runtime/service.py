@@ -29,7 +29,7 @@ import zenoh
 from schemas import SchemaError, keys
 from services.runtime import systemd
 from services.runtime.config import RuntimeConfig, default_instance, endpoints, zenoh_config
-from services.runtime.deadletter import DeadLetterPublisher
+from services.runtime.deadletter_publisher import DeadLetterPublisher
 from services.runtime.delivery import (
     DeliverySettings,
     ReliablePublisher,

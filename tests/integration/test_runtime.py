@@ -19,9 +19,9 @@ from services.runtime.config import (
     load_config,
     zenoh_config,
 )
-from services.runtime.deadletter import PAYLOAD_HEAD_BYTES
+from services.runtime.deadletter_publisher import PAYLOAD_HEAD_BYTES
 from services.runtime.service import ServiceRuntime, run_service
-from services.tools import deadletters
+from services.tools import deadletter_printer
 
 PUT, DELETE = zenoh.SampleKind.PUT, zenoh.SampleKind.DELETE
 
@@ -153,7 +153,7 @@ def test_deadletters_service_prints_one_line_per_letter(
     observer = open_session()
     events = liveliness_events(observer, keys.alive(service_config.ns, "deadletters", "test"))
     printer = service_thread(
-        "deadletters", lambda stop: deadletters.main(service_config, out, stop=stop)
+        "deadletters", lambda stop: deadletter_printer.main(service_config, out, stop=stop)
     )
     assert events.get()[0] == PUT
     publisher = observer.declare_publisher(keys.deadletter(service_config.ns, "ingestion"))
