@@ -29,7 +29,7 @@ from pathlib import Path
 
 import json5
 
-from schemas import Calibration
+from schemas import DAY_S, Calibration
 from services.calibration.calibrator import Calibrator
 from services.calibration.config import CalibratorConfig
 from services.calibration.initial import initial_models
@@ -38,7 +38,6 @@ from simulators.network import demo_network
 from simulators.truth import load_config
 from simulators.world import WorldSpec, world_events
 
-DAY_S = 86_400.0
 START_T = 1_767_225_600.0  # 2026-01-01T00:00Z, the simulator's default start
 ROOT = Path(__file__).resolve().parents[1]
 INITIAL_MODELS = default_file("initial-models.json5")

@@ -79,7 +79,7 @@ from types import SimpleNamespace
 import json5
 import numpy as np
 
-from schemas import INDICATORS, MaintenanceEvent, OnboardIndex, TrcRecord
+from schemas import DAY_S, INDICATORS, MaintenanceEvent, OnboardIndex, TrcRecord
 from services.alerting.core import AlertingConfig, AlertingCore, Hysteresis
 from services.calibration.calibrator import Calibrator
 from services.calibration.config import CalibratorConfig
@@ -94,7 +94,6 @@ from simulators.network import demo_network
 from simulators.truth import Truth, load_config
 from simulators.world import WorldSpec, world_events
 
-DAY_S = 86_400.0
 START_T = 1_767_225_600.0  # 2026-01-01T00:00Z
 ROOT = Path(__file__).resolve().parents[1]
 INITIAL_MODELS = default_file("initial-models.json5")

@@ -24,10 +24,10 @@ import time
 
 import numpy as np
 
-from schemas import MaintenanceEvent, OnboardIndex, TrcRecord, encode
+from schemas import DAY_S, MaintenanceEvent, OnboardIndex, TrcRecord, encode
 from services.filtering.bank import FilterBank
 from services.filtering.testing import example_models
-from services.filtering.tracker import DAY_S, INDEX, TAMPING, Tracker, replay
+from services.filtering.tracker import INDEX, TAMPING, Tracker, replay
 from services.limits import load_limits
 
 NS_SAMPLES, SEGMENTS, EVENTS, BASELINE_SEGMENTS = 200, 2000, 50, 100

@@ -89,7 +89,8 @@ import msgspec
 import numpy as np
 import zenoh
 
-from schemas import NDArray, OnboardIndex, keys
+from schemas import DAY_S, NDArray, OnboardIndex, keys
+from schemas.keys import SegmentId
 from services.extraction.pipeline import ExtractionConfig
 from services.extraction.versine import END_GUARD_M
 from services.runtime.config import zenoh_config
@@ -151,7 +152,7 @@ class _StateHead(msgspec.Struct):
 class Probe:
     """Counts and times what flows on the bus (Zenoh callbacks; short, thread-safe)."""
 
-    def __init__(self, segments: dict[tuple[str, str], tuple[float, float]]) -> None:
+    def __init__(self, segments: dict[SegmentId, tuple[float, float]]) -> None:
         self.lock = threading.Lock()
         self.segments = segments  # (line, segment) -> (start_m, end_m)
         self.seg_len = {key: end - start for key, (start, end) in segments.items()}
@@ -456,7 +457,7 @@ def run(args: argparse.Namespace, trains: int, stop: threading.Event) -> dict:
         now = time.time()
         if args.fidelity == "raw":
             # Prime: TRC records and tampings up to a day ago, in fast mode.
-            start = now - (args.prime_days + 1) * 86400
+            start = now - (args.prime_days + 1) * DAY_S
             prime = Child(
                 "prime",
                 logdir,

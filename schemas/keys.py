@@ -30,6 +30,7 @@ from schemas.messages import (
 from schemas.wire import SchemaError, check_id
 
 DEFAULT_NS = "tf"
+SegmentId = tuple[str, str]  # (line, segment): a segment's ids, as its keys carry them
 
 
 def _key(ns: str, *chunks: str) -> str:
@@ -246,7 +247,7 @@ def parse_alive(key: str) -> tuple[str, str]:
     return service, instance
 
 
-def parse_q_state(key: str) -> tuple[str, str]:
+def parse_q_state(key: str) -> SegmentId:
     """``(line, segment)`` of ``{ns}/q/state/{line}/{segment}``."""
     line, segment = _ids(key, ("q", "state"), ("line", "segment"))
     return line, segment

@@ -50,10 +50,10 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas import Message, OnboardIndex, RawChunk, TrcRecord
+from schemas import DAY_S, Message, OnboardIndex, RawChunk, TrcRecord
 from simulators.fleet import Fleet
 from simulators.network import Network
-from simulators.truth import DAY_S, Tamping, Truth
+from simulators.truth import Tamping, Truth
 
 SCHEMA_VERSION = 2
 _TEXT = {"line", "segment", "class", "run_id", "train", "unit", "event_id", "cause", "report"}

@@ -21,9 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas import OnboardIndex
+from schemas import DAY_S, OnboardIndex
 from simulators.network import Network, stable_rng
-from simulators.truth import DAY_S, Truth, config_pair
+from simulators.truth import Truth, config_pair
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ import time
 from datetime import datetime
 from pathlib import Path
 
+from schemas import DAY_S
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 from services.runtime.service import configure_logging
 from simulators.gateway import publish
@@ -71,7 +72,7 @@ def main_simulate(
         GroundTruthWriter(truth_path, network, config, start_t, days, seed) if truth_path else None
     )
     counts: dict[str, int] = {}
-    bar = tqdm(total=round(days * 86400), unit="sim-s", disable=not progress, desc="simulating")
+    bar = tqdm(total=round(days * DAY_S), unit="sim-s", disable=not progress, desc="simulating")
     last = [start_t]
 
     def on_batch(t: float, messages) -> None:
@@ -86,7 +87,7 @@ def main_simulate(
     started = time.monotonic()
     with ServiceRuntime("simulator", conf, handle_signals=True, stop_event=stop) as rt:
         rt.announce()
-        lo, hi = start_t + from_day * 86400, start_t + (days if to_day is None else to_day) * 86400
+        lo, hi = start_t + from_day * DAY_S, start_t + (days if to_day is None else to_day) * DAY_S
         events = ((t, m) for t, m in world_events(spec) if lo <= t < hi)
         total = publish(
             rt.session,

@@ -28,10 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas import Message, OnboardIndex, TrcRecord
+from schemas import DAY_S, Message, OnboardIndex, TrcRecord
 from simulators.index_model import IndexSensorModel
 from simulators.network import Network, stable_rng
-from simulators.truth import DAY_S, Truth, config_pair
+from simulators.truth import Truth, config_pair
 
 TRC_TRAIN = "TRC"
 

@@ -55,11 +55,10 @@ from pathlib import Path
 import json5
 import numpy as np
 
-from schemas import MaintenanceEvent
+from schemas import DAY_S, MaintenanceEvent
 from services.defaults import default_file
 from simulators.network import Network, stable_rng
 
-DAY_S = 86400.0
 DEFAULT_CONFIG = default_file("simulator.json5")
 
 

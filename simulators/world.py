@@ -16,7 +16,7 @@ import heapq
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 
-from schemas import Message
+from schemas import DAY_S, Message
 from simulators.fleet import Fleet
 from simulators.index_model import index_pass_events
 from simulators.network import Network
@@ -24,8 +24,6 @@ from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
 from simulators.trc import trc_events
 from simulators.truth import Truth, truth_events
-
-DAY_S = 86_400.0
 
 
 @dataclass(frozen=True)

@@ -65,10 +65,10 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from schemas import INDICATORS, Alert, MaintenanceEvent, PlanRow, SegmentState, TrcRecord
+from schemas import DAY_S, INDICATORS, Alert, MaintenanceEvent, PlanRow, SegmentState, TrcRecord
+from schemas.keys import SegmentId
 from services.limits import Limits
 
-DAY_S = 86_400.0
 _Z975 = float(stats.norm.ppf(0.975))
 INDICATOR_LABELS = {"top6": "Top6", "align10": "Align10"}
 
@@ -306,10 +306,10 @@ class AlertingCore:
         self.config = config
         self.limits = limits
         self.raised: dict[AlertKey, Alert] = {}
-        self.segments: dict[tuple[str, str], SegmentMemory] = {}
+        self.segments: dict[SegmentId, SegmentMemory] = {}
         self.schedule = TrcSchedule(config.default_trc_interval_days)
-        self._latest: dict[tuple[str, str], float] = {}  # newest event time per segment
-        self._top: list[tuple[float, tuple[str, str]]] = []  # the quorum newest, descending
+        self._latest: dict[SegmentId, float] = {}  # newest event time per segment
+        self._top: list[tuple[float, SegmentId]] = []  # the quorum newest, descending
         self.approximated = 0  # probabilities recomputed because the state's limits differ
         self._nis_threshold = config.nis_threshold
         self._stale_s = config.stale_days * DAY_S
@@ -600,7 +600,7 @@ class AlertingCore:
         k = min(self.config.watermark_quorum, max(1, len(self._latest) // 2))
         return self._top[k - 1][0]
 
-    def _seen(self, where: tuple[str, str], t: float) -> None:
+    def _seen(self, where: SegmentId, t: float) -> None:
         """Note a segment's event time; keeps the ``watermark_quorum`` newest segments."""
         if t <= self._latest.get(where, -math.inf):
             return

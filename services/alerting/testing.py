@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from schemas import INDICATORS, NDArray, PlanRow, SegmentState
+from schemas import DAY_S, INDICATORS, NDArray, PlanRow, SegmentState
 from services.limits import Limits
 
 T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
@@ -89,7 +89,7 @@ def plan_row(line: str, segment: str, probability: float, next_trc_t: float, **k
         indicator="top6",
         level="intervention",
         limit_mm=8.0,
-        horizon_days=max(next_trc_t - T0, 0.0) / 86_400.0,
+        horizon_days=max(next_trc_t - T0, 0.0) / DAY_S,
         p_now=probability / 2,
         state_t=T0,
         estimate_mm=5.0,

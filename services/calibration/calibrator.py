@@ -1,7 +1,7 @@
 r"""Live calibration core: pairs TRC records with on-board indices, fits the observation model
 and builds the degradation posteriors per group. Pure: no Zenoh, no clock, no I/O.
 
-Conventions shared with the other services: time in days (epoch s / 86400) inside the maths,
+Conventions shared with the other services: time in days (epoch s / DAY_S) inside the maths,
 ``z = ln([top6_mm, align10_mm])`` of a TRC record, ``y = ln`` of an on-board index's values.
 
 Use::
@@ -82,6 +82,7 @@ from schemas import (
     SchemaError,
     TrcRecord,
 )
+from schemas.keys import SegmentId
 from services.calibration.config import CalibratorConfig
 from services.calibration.groups import (
     build_posterior,
@@ -107,7 +108,6 @@ from services.calibration.state import (
     ModelEntry,
     Pair,
     Quarantine,
-    Segment,
     StoredState,
     index_id,
     is_calibration_key,
@@ -135,10 +135,10 @@ class Calibrator:
         self.config = config or CalibratorConfig()
         self.stats: Counter[str] = Counter()
         self.rejections: deque[str] = deque(maxlen=100)  # reasons of rejected refits, newest last
-        self._trc: dict[Segment, dict[str, TrcRecord]] = {}
-        self._trc_times: dict[Segment, list[tuple[float, str]]] = {}  # sorted (t, run_id)
-        self._maint: dict[Segment, dict[str, MaintenanceEvent]] = {}
-        self._pending: dict[Segment, dict[str, OnboardIndex]] = {}
+        self._trc: dict[SegmentId, dict[str, TrcRecord]] = {}
+        self._trc_times: dict[SegmentId, list[tuple[float, str]]] = {}  # sorted (t, run_id)
+        self._maint: dict[SegmentId, dict[str, MaintenanceEvent]] = {}
+        self._pending: dict[SegmentId, dict[str, OnboardIndex]] = {}
         self._pairs: list[Pair] = []
         self._quarantined: list[Pair] = []
         self._paired: set[str] = set()
@@ -148,16 +148,16 @@ class Calibrator:
         self._now = -math.inf  # event time (epoch s): see _note_time
         # newest event time of the event_time_quorum segments furthest ahead: (t, line, seg)
         self._clock_top: list[tuple[float, str, str]] = []
-        self._history: dict[Segment, tuple[list[TrcRecord], np.ndarray, np.ndarray, list]] = {}
-        self._raw: dict[Segment, tuple[np.ndarray, np.ndarray]] = {}  # robust.raw_pieces
-        self._screened: dict[Segment, dict[str, str]] = {}  # run_id -> why it is left out
+        self._history: dict[SegmentId, tuple[list[TrcRecord], np.ndarray, np.ndarray, list]] = {}
+        self._raw: dict[SegmentId, tuple[np.ndarray, np.ndarray]] = {}  # robust.raw_pieces
+        self._screened: dict[SegmentId, dict[str, str]] = {}  # run_id -> why it is left out
         self._reported: set[str] = set()  # trc ids reported left out (and still left out)
-        self._newest_used: dict[Segment, float] = {}  # epoch s of the newest record used
+        self._newest_used: dict[SegmentId, float] = {}  # epoch s of the newest record used
         self._outbox: list[Quarantine] = []  # to report (dead letters), see drain_quarantined
         self._screened_now = -math.inf  # event time at the last screening
         self._refused: dict[str, str] = {}  # group -> fingerprint whose build failed
-        self._increments: dict[Segment, SegmentIncrements] = {}
-        self._dirty: set[Segment] = set()
+        self._increments: dict[SegmentId, SegmentIncrements] = {}
+        self._dirty: set[SegmentId] = set()
         self._attempt_at = 0  # number of pairs at the last fit attempt
         self._unit_fit_at: dict[tuple[str, str], int] = {}  # a unit's pairs at its last fit
         self._changes = Changes()
@@ -276,7 +276,7 @@ class Calibrator:
         out, self._outbox = self._outbox, []
         return out
 
-    def _note_time(self, seg: Segment, t: float) -> None:
+    def _note_time(self, seg: SegmentId, t: float) -> None:
         top = self._clock_top
         for i, (tt, line, segment) in enumerate(top):
             if (line, segment) == seg:
@@ -366,11 +366,11 @@ class Calibrator:
             self._drop_pending(seg, iid)
         return True
 
-    def _oldest_waiting(self, seg: Segment) -> float:
+    def _oldest_waiting(self, seg: SegmentId) -> float:
         """Indices of ``seg`` older than this (epoch s) no longer wait for a TRC record."""
         return oldest_waiting(self._trc_times.get(seg), self.config.index_window_days)
 
-    def _drop_pending(self, seg: Segment, iid: str) -> None:
+    def _drop_pending(self, seg: SegmentId, iid: str) -> None:
         del self._pending[seg][iid]
         self._changes.pending_removed.append(iid)
         self.stats["index_expired"] += 1
@@ -734,7 +734,7 @@ class Calibrator:
             )
             self._newest_used[seg] = float(t[keep].max()) * DAY_S
 
-    def _report_screening(self, seg: Segment, left: dict[str, str]) -> None:
+    def _report_screening(self, seg: SegmentId, left: dict[str, str]) -> None:
         """Log, count and report (once) the records of ``seg`` newly left out; forget those
         taken back (a step confirmed by a later record, event time reaching a record)."""
         before = self._screened.get(seg, {})

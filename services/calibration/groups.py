@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas import INDICATORS, DegradationPosterior, NDArray
+from schemas.keys import SegmentId
 from services.calibration.config import CalibratorConfig
 from services.calibration.moves import Move, largest_move
 from services.calibration.posterior import (
@@ -42,7 +43,7 @@ from services.calibration.posterior import (
     sample_prior,
 )
 from services.calibration.regression import CalibrationError
-from services.calibration.state import ModelEntry, Segment
+from services.calibration.state import ModelEntry
 
 _N = len(INDICATORS)
 
@@ -57,19 +58,19 @@ class GroupInput:
     age: np.ndarray
     level_source: str  # the group whose levels are used, or "prior"
     t_newest: float  # epoch s of the newest TRC record used of the group's segments
-    members: tuple[Segment, ...] = ()  # segments whose increments are pooled
+    members: tuple[SegmentId, ...] = ()  # segments whose increments are pooled
 
 
 def group_inputs(
-    increments: Mapping[Segment, SegmentIncrements],
-    newest_used: Mapping[Segment, float],
+    increments: Mapping[SegmentId, SegmentIncrements],
+    newest_used: Mapping[SegmentId, float],
     cfg: CalibratorConfig,
 ) -> dict[str, GroupInput]:
     """Inputs of every group that exists now (deterministic order of pooling)."""
     segs = sorted(increments)
     newest = newest_used
 
-    def pool(members: list[Segment]):
+    def pool(members: list[SegmentId]):
         incs = [increments[s] for s in members]
         return (
             np.concatenate([i.dz for i in incs]).reshape(-1, _N),
@@ -81,7 +82,7 @@ def group_inputs(
         )
 
     net = pool(segs)
-    lines: dict[str, list[Segment]] = {}
+    lines: dict[str, list[SegmentId]] = {}
     for s in segs:
         lines.setdefault(s[0], []).append(s)
     line_pool = {line: pool(members) for line, members in lines.items()}
@@ -131,9 +132,9 @@ def one_segment_move(
     g: GroupInput,
     post: DegradationPosterior,
     in_force: ModelEntry,
-    increments: Mapping[Segment, SegmentIncrements],
+    increments: Mapping[SegmentId, SegmentIncrements],
     cfg: CalibratorConfig,
-) -> tuple[str, Segment] | None:
+) -> tuple[str, SegmentId] | None:
     r"""The move bound: why the pooled posterior ``post`` moved too far on the strength of
     one segment and that segment, or None.
 
@@ -162,7 +163,7 @@ def one_segment_move(
     members = [s for s in g.members if len(increments[s].dt)]
     if len(members) == 1 and old.n_increments > 0:
         return None  # a one-segment group from data: it moves with its segment
-    culprit: Segment | None = members[0] if len(members) == 1 else None
+    culprit: SegmentId | None = members[0] if len(members) == 1 else None
     if culprit is None:
         best = (math.inf, members[0])
         for s in members:

@@ -41,6 +41,7 @@ from schemas import (
     encode,
     keys,
 )
+from schemas.keys import SegmentId
 from services.calibration.calibrator import Calibrator
 from services.calibration.config import CalibratorConfig
 from services.calibration.initial import initial_models
@@ -119,7 +120,7 @@ def load_initial_models(path: Path, core: CalibratorConfig):
         raise ValueError(f"initial models {path}: {e}") from None
 
 
-def known_segments(network: Path | None) -> frozenset[tuple[str, str]] | None:
+def known_segments(network: Path | None) -> frozenset[SegmentId] | None:
     """The (line, segment) ids of a network file, or None (accept any); as the filtering
     service's ``--network``."""
     if network is None:
@@ -180,7 +181,7 @@ def _serve(
     rt: ServiceRuntime,
     core: Calibrator,
     store: SqliteStore,
-    segments: frozenset[tuple[str, str]] | None = None,
+    segments: frozenset[SegmentId] | None = None,
     network: Path | None = None,
 ) -> int:
     ns = rt.ns

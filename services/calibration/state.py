@@ -23,7 +23,6 @@ def is_calibration_key(key: str) -> bool:
 
 Event = TrcRecord | OnboardIndex | MaintenanceEvent
 Model = Calibration | DegradationPosterior
-Segment = tuple[str, str]  # (line, segment)
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from schemas import (
+    DAY_S,
     Calibration,
     DegradationPosterior,
     MaintenanceEvent,
@@ -37,8 +38,8 @@ from schemas import (
     encode,
     keys,
 )
+from schemas.keys import SegmentId
 from services.filtering.tracker import (
-    DAY_S,
     KIND_NAMES,
     RESTART,
     SUPERSEDE_DAYS,
@@ -227,7 +228,7 @@ class PersistentTracker:
         tracker: Tracker,
         store: Store,
         *,
-        segments: Collection[tuple[str, str]] | None = None,
+        segments: Collection[SegmentId] | None = None,
         network_name: str = "the network",
         ns: str = keys.DEFAULT_NS,
     ) -> None:
@@ -295,7 +296,7 @@ class PersistentTracker:
                 rejected.append((key, str(e), payload))
                 continue
             events.append((msg, key, payload))
-        states: dict[tuple[str, str], SegmentState] = {}
+        states: dict[SegmentId, SegmentState] = {}
 
         def keep(new_states: Iterable[SegmentState]) -> None:
             for state in new_states:

@@ -19,6 +19,7 @@ from schemas import (
     decode,
     keys,
 )
+from schemas.keys import SegmentId
 from services.filtering.tracker import event_of
 
 T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
@@ -71,7 +72,7 @@ class LastEvents:
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
-        self.t: dict[tuple[str, str], float] = {}
+        self.t: dict[SegmentId, float] = {}
 
     def __call__(self, sample: zenoh.Sample) -> None:
         kind = keys.kind(sample.key_expr)
@@ -80,7 +81,7 @@ class LastEvents:
         with self.lock:
             self.t[sid] = max(self.t.get(sid, event.t_s), event.t_s)
 
-    def snapshot(self) -> dict[tuple[str, str], float]:
+    def snapshot(self) -> dict[SegmentId, float]:
         with self.lock:
             return dict(self.t)
 

@@ -20,7 +20,7 @@ change it:
 - **Incremental or replay**: an event after the last one of the log is applied to the
   current state; a late one is inserted and the log replayed from its start. Both run the
   same fold, so they give bit-identical arrays.
-- **Events** (time in the maths is days, ``t_s / 86400``):
+- **Events** (time in the maths is days, ``t_s / DAY_S``):
 
   * ``TrcRecord``: restart, ``z = ln [top6_mm, align10_mm]`` in every sample, ``P = 0``.
   * ``MaintenanceEvent`` (tamping): at ``t_start`` if ``t_start == t_end``, else at the
@@ -87,6 +87,7 @@ from typing import Any
 import numpy as np
 
 from schemas import (
+    DAY_S,
     INDICATORS,
     ONBOARD_INDICES,
     Calibration,
@@ -97,6 +98,7 @@ from schemas import (
     SegmentState,
     TrcRecord,
 )
+from schemas.keys import SegmentId
 from services.filtering.bank import (
     BLOCK_FILTERS,
     ObservationModel,
@@ -106,7 +108,6 @@ from services.filtering.bank import (
 from services.filtering.degradation import DegradationParams, transition_unchecked
 from services.filtering.mixture import summarize_unchecked, weights_from_log
 
-DAY_S = 86400.0
 HORIZONS_DAYS = (30.0, 90.0, 180.0)
 TAMPING, RESTART, INDEX = 0, 1, 2  # kind priority at equal times: a TRC record after a tamping
 KIND_NAMES = {RESTART: "trc", TAMPING: "maintenance", INDEX: "index"}
@@ -118,7 +119,6 @@ CUSUM_CLIP = 6.0  # one index adds at most 6 - kappa = 5: a detection needs two 
 CUSUM_THRESHOLD = 8.0  # h
 SUPERSEDE_DAYS = 30.0  # a reported tamping this close to a detected one replaces it
 
-SegmentId = tuple[str, str]  # (line, segment)
 EventMessage = OnboardIndex | TrcRecord | MaintenanceEvent
 ModelMessage = Calibration | DegradationPosterior
 

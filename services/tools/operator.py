@@ -33,6 +33,7 @@ from schemas import (
     encode,
     keys,
 )
+from schemas.keys import SegmentId
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 
 QUERY_TIMEOUT_S = 10.0  # `--timeout`: a service catching up on a backlog answers late
@@ -311,7 +312,7 @@ def to_csv(rows: Iterable[dict], columns: list[str]) -> str:
     return buffer.getvalue()
 
 
-def to_geojson(rows: Iterable[dict], geometry: dict[tuple[str, str], list]) -> dict:
+def to_geojson(rows: Iterable[dict], geometry: dict[SegmentId, list]) -> dict:
     """A FeatureCollection: each row as the properties of its segment's LineString."""
     return {
         "type": "FeatureCollection",
@@ -330,7 +331,7 @@ def to_geojson(rows: Iterable[dict], geometry: dict[tuple[str, str], list]) -> d
     }
 
 
-def segment_geometry(network_path: str | None) -> dict[tuple[str, str], list]:
+def segment_geometry(network_path: str | None) -> dict[SegmentId, list]:
     from simulators.run import load_network
 
     network = load_network(network_path)

@@ -31,6 +31,7 @@ from schemas import (
     decode,
     keys,
 )
+from schemas.keys import SegmentId
 from services.runtime.config import RuntimeConfig, config_from_args
 from services.tools import operator
 
@@ -66,8 +67,8 @@ class NetworkMap:
     """What the report draws of the network: each segment's polyline ([lon, lat] pairs) and
     chainage range (m), and the stations."""
 
-    polylines: dict[tuple[str, str], list[tuple[float, float]]] = field(default_factory=dict)
-    chainage_m: dict[tuple[str, str], tuple[float, float]] = field(default_factory=dict)
+    polylines: dict[SegmentId, list[tuple[float, float]]] = field(default_factory=dict)
+    chainage_m: dict[SegmentId, tuple[float, float]] = field(default_factory=dict)
     stations: list[Station] = field(default_factory=list)
 
 

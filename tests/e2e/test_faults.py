@@ -20,6 +20,7 @@ from linkproxy import LinkProxy
 from support import accepts_connections, wait_for
 
 from schemas import (
+    DAY_S,
     Calibration,
     DegradationPosterior,
     InspectionPlan,
@@ -31,6 +32,7 @@ from schemas import (
     encode,
     keys,
 )
+from schemas.keys import SegmentId
 from services.filtering.testing import states_by_instance
 from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_limits
@@ -92,7 +94,7 @@ def models_of(session: zenoh.Session, ns: str) -> dict[str, bytes]:
     return {str(r.ok.key_expr): r.ok.payload.to_bytes() for r in replies if r.ok}
 
 
-def plan_state_times(session: zenoh.Session, ns: str) -> dict[tuple[str, str], float]:
+def plan_state_times(session: zenoh.Session, ns: str) -> dict[SegmentId, float]:
     """{(line, segment): time of the state its row was computed from} of alerting's plan."""
     replies = [r for r in session.get(keys.q_plan(ns), timeout=10) if r.ok is not None]
     if not replies:
@@ -270,7 +272,7 @@ def test_the_signal_chain_resumes_after_each_of_its_services_is_killed(
     processes = {name: start(name) for name in ("ingestion", "extraction")}
     for name in processes:
         assert next_change(name) == zenoh.SampleKind.PUT
-    world = ["--fidelity", "raw", "--trains", "1", "--days", str(900 / 86400), "--seed", "11"]
+    world = ["--fidelity", "raw", "--trains", "1", "--days", str(900 / DAY_S), "--seed", "11"]
     simulate = spawn("simulate", "simulate", *world, "--speedup", "60", *wiring)
     first = indices.get(timeout=WAIT_S)
     newest = first.t

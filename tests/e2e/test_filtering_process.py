@@ -10,6 +10,7 @@ import numpy as np
 import zenoh
 
 from schemas import (
+    DAY_S,
     Calibration,
     DegradationPosterior,
     MaintenanceEvent,
@@ -21,7 +22,7 @@ from schemas import (
     keys,
 )
 from services.filtering.testing import example_models
-from services.filtering.tracker import DAY_S, Tracker
+from services.filtering.tracker import Tracker
 from services.limits import load_limits
 from services.runtime.config import zenoh_config
 

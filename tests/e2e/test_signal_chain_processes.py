@@ -8,7 +8,7 @@ import signal
 
 import numpy as np
 
-from schemas import DeadLetter, OnboardIndex, decode, keys
+from schemas import DAY_S, DeadLetter, OnboardIndex, decode, keys
 from simulators.network import demo_network
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
@@ -75,7 +75,7 @@ def test_every_segment_passed_at_speed_gets_an_index(
         timeout=30,
     )
 
-    world = ["--fidelity", "raw", "--trains", "1", "--days", str(SECONDS / 86400)]
+    world = ["--fidelity", "raw", "--trains", "1", "--days", str(SECONDS / DAY_S)]
     simulate = spawn(
         "simulate", "simulate", *world, "--speedup", "60", "--seed", str(SEED), *wiring
     )

@@ -17,6 +17,7 @@ import msgspec
 import numpy as np
 
 from schemas import (
+    DAY_S,
     Alert,
     Calibration,
     DegradationPosterior,
@@ -34,7 +35,6 @@ from schemas import (
 )
 from schemas.wire import DTYPES
 from services.alerting import service as alerting
-from services.alerting.core import DAY_S
 from services.alerting.testing import make_state, p_top6
 from services.calibration import service as calibration
 from services.calibration.config import CalibratorConfig

@@ -13,6 +13,7 @@ import zenoh
 from support import ServiceThread
 
 from schemas import (
+    DAY_S,
     Alert,
     DeadLetter,
     InspectionPlan,
@@ -23,7 +24,6 @@ from schemas import (
     keys,
 )
 from services.alerting import service as alerting
-from services.alerting.core import DAY_S
 from services.alerting.testing import T0, make_state, p_top6
 
 TIMEOUT_S = 5.0

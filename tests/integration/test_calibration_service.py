@@ -12,6 +12,7 @@ import zenoh
 from support import ServiceThread
 
 from schemas import (
+    DAY_S,
     Calibration,
     DeadLetter,
     DegradationPosterior,
@@ -25,7 +26,6 @@ from services.calibration import service
 from services.calibration.config import CalibratorConfig
 
 BLOCK = zenoh.CongestionControl.BLOCK  # a fast burst of puts is otherwise dropped
-DAY = 86400.0
 T0 = 1_735_689_600.0  # 2025-01-01
 H = np.array([[0.90, 0.05], [0.05, 0.75]])
 B = np.array([-0.25, -0.35])
@@ -44,10 +44,10 @@ def generate(seed: int = 42):
         for s in range(SEGMENTS):
             seg = f"s{s:02d}"
             z = rng.normal([1.1, 0.9], [0.35, 0.3])
-            t = T0 + rng.uniform(0, 5) * DAY
+            t = T0 + rng.uniform(0, 5) * DAY_S
             for run in range(RUNS):
                 if run == 3:
-                    tm = t - 12 * DAY
+                    tm = t - 12 * DAY_S
                     ev = MaintenanceEvent(
                         line=line, segment=seg, event_id=f"tamp{run}", t_start=tm, t_end=tm
                     )
@@ -75,7 +75,7 @@ def generate(seed: int = 42):
                 out.append((t + 2.0, keys.index("NS", line, seg), msgpack.packb(index)))
                 dt = rng.uniform(56, 77)
                 z = z + MU * dt + rng.multivariate_normal([0, 0], SIGMA * dt)
-                t += dt * DAY
+                t += dt * DAY_S
     out.sort(key=lambda e: e[0])
     return [(k, p) for _, k, p in out]
 

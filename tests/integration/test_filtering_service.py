@@ -10,6 +10,7 @@ import pytest
 import zenoh
 
 from schemas import (
+    DAY_S,
     Calibration,
     DeadLetter,
     DegradationPosterior,
@@ -24,7 +25,7 @@ from schemas import (
 )
 from services.filtering import service
 from services.filtering.testing import example_models
-from services.filtering.tracker import DAY_S, Tracker
+from services.filtering.tracker import Tracker
 from services.limits import load_limits
 
 T0 = 1_767_225_600.0

@@ -12,7 +12,7 @@ import numpy as np
 import zenoh
 from support import TIMEOUT_S
 
-from schemas import GpsFix, NDArray, RawChunk, keys
+from schemas import DAY_S, GpsFix, NDArray, RawChunk, keys
 from services.ingestion.health import G_MPS2
 from services.tools import gateway_check
 from simulators.gateway import key_and_payload
@@ -90,7 +90,7 @@ def test_a_bad_gateway_is_reported_rule_by_rule(
             a[:, :6] *= G_MPS2
             m = msgspec.structs.replace(m, samples=NDArray.of(a, "f4"))
         if isinstance(m, GpsFix) and m.t == T0 + 4:  # a clock jump of a day
-            m = msgspec.structs.replace(m, t=m.t + 86_400.0)
+            m = msgspec.structs.replace(m, t=m.t + DAY_S)
         bad.append(m)
     code, report = run_check(service_config, open_session, until_matched, service_thread, "T6", bad)
     assert code == 1, report

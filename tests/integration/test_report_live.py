@@ -10,12 +10,11 @@ import pytest
 import zenoh
 from support import run_cli
 
-from schemas import Alert, InspectionPlan, RaisedAlerts, decode, encode, keys
+from schemas import DAY_S, Alert, InspectionPlan, RaisedAlerts, decode, encode, keys
 from services.alerting import service as alerting
 from services.alerting.testing import T0, make_state, p_top6, plan_row
 from services.tools import report
 
-DAY_S = 86_400.0
 STATES = [
     make_state(T0, line="L1", segment="s00001", p_exceed=p_top6(1, 0.3)),
     make_state(T0, line="L1", segment="s00002", p_exceed=p_top6(1, 0.95)),

@@ -7,9 +7,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from schemas import Alert, SegmentState, TrcRecord
+from schemas import DAY_S, Alert, SegmentState, TrcRecord
 from services.alerting.core import (
-    DAY_S,
     AlertingConfig,
     AlertingCore,
     Hysteresis,
@@ -386,7 +385,7 @@ def test_a_detected_tamping_waits_for_an_operator_and_a_report_confirms_it(core)
         segment="s7",
         event_id="detected-1",
         t_start=t0,
-        t_end=t0 + 86_400.0,
+        t_end=t0 + DAY_S,
         detected=True,
     )
     (raised,) = core.on_maintenance(detected)
@@ -394,8 +393,8 @@ def test_a_detected_tamping_waits_for_an_operator_and_a_report_confirms_it(core)
     assert "2026-01-01 00:00" in raised.message and "confirm" in raised.message
     assert core.on_maintenance(detected) == []  # its echo raises nothing new
     far = MaintenanceEvent(
-        line="L1", segment="s7", event_id="m0", t_start=t0 - 60 * 86_400.0,
-        t_end=t0 - 60 * 86_400.0,
+        line="L1", segment="s7", event_id="m0", t_start=t0 - 60 * DAY_S,
+        t_end=t0 - 60 * DAY_S,
     )  # fmt: skip
     assert core.on_maintenance(far) == []  # another tamping, long before: not a confirmation
     report = MaintenanceEvent(

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from schemas import (
+    DAY_S,
     Calibration,
     DegradationPosterior,
     MaintenanceEvent,
@@ -34,7 +35,6 @@ from services.calibration.state import Quarantine
 from services.calibration.store import MemoryStore, SqliteStore
 from services.defaults import default_file
 
-DAY = 86400.0
 T0 = 1_700_000_000.0
 H = np.array([[0.9, 0.05], [0.05, 0.75]])
 B = np.array([-0.25, -0.35])
@@ -91,10 +91,10 @@ def histories(rng, *, lines=("L1", "L2"), segs=4, records=8, tamp_every=3):
     for line in lines:
         for s in range(segs):
             z = rng.normal([1.0, 0.8], 0.1)
-            t = T0 + rng.uniform(0, 20) * DAY
+            t = T0 + rng.uniform(0, 20) * DAY_S
             for r in range(records):
                 if r and r % tamp_every == 0:
-                    tm = t - 10 * DAY
+                    tm = t - 10 * DAY_S
                     events.append(
                         MaintenanceEvent(
                             line=line, segment=f"s{s}", event_id=f"m{r}", t_start=tm, t_end=tm
@@ -104,7 +104,7 @@ def histories(rng, *, lines=("L1", "L2"), segs=4, records=8, tamp_every=3):
                 events.append(trc(line, f"s{s}", f"r{r}", t, z))
                 dt = rng.uniform(56, 77)
                 z = z + MU * dt + rng.multivariate_normal([0, 0], SIGMA * dt)
-                t += dt * DAY
+                t += dt * DAY_S
     return events
 
 
@@ -114,7 +114,7 @@ def histories(rng, *, lines=("L1", "L2"), segs=4, records=8, tamp_every=3):
 def test_pairs_by_run_id_in_either_order_and_ignores_duplicates():
     core = Calibrator(FleetOnly(tolerance_days=None))
     z, y = np.log([3.0, 2.0]), np.log([2.5, 1.5])
-    idx = index("L1", "s1", T0 + 9 * DAY, y, run="R7")  # 9 days off: only run_id pairs it
+    idx = index("L1", "s1", T0 + 9 * DAY_S, y, run="R7")  # 9 days off: only run_id pairs it
     core.step([idx, idx])
     assert core.pairs == [] and core.n_pending() == 1
     rec = trc("L1", "s1", "R7", T0, z)
@@ -131,18 +131,18 @@ def test_pairs_by_run_id_in_either_order_and_ignores_duplicates():
 def test_pairs_by_tolerance_with_the_nearest_record():
     core = Calibrator(FleetOnly(tolerance_days=1.0))
     z1, z2, y = np.log([3.0, 2.0]), np.log([4.0, 2.5]), np.log([2.5, 1.5])
-    core.step([trc("L1", "s1", "A", T0, z1), trc("L1", "s1", "B", T0 + 1.5 * DAY, z2)])
+    core.step([trc("L1", "s1", "A", T0, z1), trc("L1", "s1", "B", T0 + 1.5 * DAY_S, z2)])
     core.step(
         [
-            index("L1", "s1", T0 + 0.5 * DAY, y, train="T1"),  # nearer A
-            index("L1", "s1", T0 + 1.0 * DAY, y, train="T2"),  # nearer B
-            index("L1", "s1", T0 + 3.0 * DAY, y, train="T3"),  # too far from both: waits
+            index("L1", "s1", T0 + 0.5 * DAY_S, y, train="T1"),  # nearer A
+            index("L1", "s1", T0 + 1.0 * DAY_S, y, train="T2"),  # nearer B
+            index("L1", "s1", T0 + 3.0 * DAY_S, y, train="T3"),  # too far from both: waits
             index("L1", "s2", T0, y, train="T4"),  # other segment: waits
         ]
     )
     assert [p.run_id for p in core.pairs] == ["A", "B"]
     assert core.n_pending() == 2
-    core.step([trc("L1", "s2", "C", T0 + 0.9 * DAY, z1)])  # completes the waiting index
+    core.step([trc("L1", "s2", "C", T0 + 0.9 * DAY_S, z1)])  # completes the waiting index
     assert [p.run_id for p in core.pairs] == ["A", "B", "C"]
 
 
@@ -156,10 +156,10 @@ def test_time_pairing_off_low_quality_and_the_waiting_window():
     core.step([trc("L1", "s1", "A", T0, y)])
     assert core.pairs == []  # no run_id and time pairing off
     # events of other segments, however new, do not expire it
-    core.step([trc("L1", "s2", "B", T0 + 99 * DAY, y)])
+    core.step([trc("L1", "s2", "B", T0 + 99 * DAY_S, y)])
     assert core.n_pending() == 1
     # a TRC record of its own segment 11 days later does; older indices are not kept
-    core.step([trc("L1", "s1", "C", T0 + 11 * DAY, y), index("L1", "s1", T0 - DAY, y, run="Q")])
+    core.step([trc("L1", "s1", "C", T0 + 11 * DAY_S, y), index("L1", "s1", T0 - DAY_S, y, run="Q")])
     assert core.n_pending() == 0 and core.stats["index_expired"] == 2
     # at most max_pending_per_segment wait, the newest
     core.step([index("L1", "s3", T0 + k, y, run="Z") for k in (5, 1, 4, 2)])
@@ -247,7 +247,7 @@ def test_groups_pooling_and_levels():
     events = histories(rng, segs=4, records=8, tamp_every=3)
     events += [
         trc("L3", "x0", "r0", T0, np.log([3, 2])),
-        trc("L3", "x0", "r1", T0 + 60 * DAY, np.log([3, 2])),
+        trc("L3", "x0", "r1", T0 + 60 * DAY_S, np.log([3, 2])),
     ]
     out = core.step(events)
     groups = {p.group: p for p in out if isinstance(p, DegradationPosterior)}
@@ -270,7 +270,7 @@ def test_groups_pooling_and_levels():
     last = max(
         e.t for e in events if isinstance(e, TrcRecord) and e.segment == "s0" and e.line == "L1"
     )
-    new = trc("L1", "s0", "new", last + 60 * DAY, np.log([3.5, 2.5]))
+    new = trc("L1", "s0", "new", last + 60 * DAY_S, np.log([3.5, 2.5]))
     out = core.step([new, *waiting_index(0, t0=new.t)])  # event time follows it elsewhere
     assert sorted((p.group, p.version) for p in out) == [
         ("line.L1", 2),
@@ -302,7 +302,7 @@ def test_tamping_interval_mid_rule_and_rebuild_on_maintenance():
     s0 = sorted((e for e in events if e.segment == "s0"), key=lambda e: e.t)
     # an interval whose middle falls between records 2 and 3 of s0: that increment is dropped
     ev = MaintenanceEvent(
-        line="L1", segment="s0", event_id="m", t_start=s0[2].t + DAY, t_end=s0[3].t - DAY
+        line="L1", segment="s0", event_id="m", t_start=s0[2].t + DAY_S, t_end=s0[3].t - DAY_S
     )
     out = {m.group: m for m in core.step([ev, ev])}
     assert out["net"].version == 2 and out["net"].n_increments == 14
@@ -344,14 +344,15 @@ def test_restart_from_store_gives_identical_models(kind, tmp_path):
 
 def day_batch(n_pairs, rng, day, *, start, t0=T0, **kw):
     """``campaign`` pairs from event day ``day`` after ``t0`` on (one pair a minute)."""
-    return campaign(n_pairs, rng, start=start, t0=t0 + day * DAY - start * 60.0, **kw)
+    return campaign(n_pairs, rng, start=start, t0=t0 + day * DAY_S - start * 60.0, **kw)
 
 
 def waiting_index(day, t0=T0):
     """Events that only move event time: indices waiting for TRC records that never come, on
     as many segments as event time needs to agree (``event_time_quorum``, 3)."""
     return [
-        index("L9", f"w{k}", t0 + day * DAY, np.log([2.0, 1.5]), run=f"none{day}") for k in range(3)
+        index("L9", f"w{k}", t0 + day * DAY_S, np.log([2.0, 1.5]), run=f"none{day}")
+        for k in range(3)
     ]
 
 
@@ -419,8 +420,8 @@ def test_restart_keeps_the_version_in_force_and_its_publication_time(kind, tmp_p
 
     rng = np.random.default_rng(24)
     cfg = FleetOnly(min_pairs=30, refit_every=10, tolerance_days=None, samples=30)
-    day_batch = functools.partial(_day_batch, t0=T0 + 1000 * DAY)  # after the histories
-    waiting_index = functools.partial(_waiting_index, t0=T0 + 1000 * DAY)
+    day_batch = functools.partial(_day_batch, t0=T0 + 1000 * DAY_S)  # after the histories
+    waiting_index = functools.partial(_waiting_index, t0=T0 + 1000 * DAY_S)
     store = open_store()
     core = Calibrator(cfg, store.load())
     for events in (
@@ -460,11 +461,11 @@ def test_posterior_moves_within_its_sd_publish_no_version_a_shift_does():
         for e in sorted(events, key=lambda e: e.t)
         if isinstance(e, TrcRecord)
     }
-    t_new = max(e.t for e in last.values()) + 60 * DAY
+    t_new = max(e.t for e in last.values()) + 60 * DAY_S
 
     def next_record(line, seg, run, drift):
         rec = last[(line, seg)]
-        dt = (t_new - rec.t) / DAY
+        dt = (t_new - rec.t) / DAY_S
         z = np.log([rec.top6_mm, rec.align10_mm]) + drift * dt
         return trc(line, seg, run, t_new, z)
 
@@ -474,7 +475,7 @@ def test_posterior_moves_within_its_sd_publish_no_version_a_shift_does():
     for g in ("net", "line.L1"):
         assert posterior_change(core.held[g], core.posteriors[g])[0] < 1.0
     # a day later, L2 degrading eight times faster: its line and the network move
-    t_new += DAY
+    t_new += DAY_S
     out = core.step([next_record("L2", f"s{s}", "n2", 8 * MU) for s in range(6)])
     assert sorted((p.group, p.version) for p in out) == [("line.L2", 2), ("net", 2)]
     assert posterior_change(out[0], first["line.L2"])[0] > 1.0
@@ -517,7 +518,7 @@ def seven_records(line, seg, t0, mm, *, outlier_at=3, outlier_mm=99.0, rng=None)
     out = []
     for k in range(7):
         v = np.exp(z) if k != outlier_at else np.array([outlier_mm, outlier_mm])
-        out.append(trc(line, seg, f"x{k}", t0 + 70 * k * DAY, np.log(v)))
+        out.append(trc(line, seg, f"x{k}", t0 + 70 * k * DAY_S, np.log(v)))
         z = z + MU * 70 + rng.multivariate_normal([0, 0], SIGMA * 70)
     return out
 
@@ -540,7 +541,7 @@ def test_a_99_mm_record_does_not_move_the_network_posterior(outlier_at):
     core = Calibrator(cfg)
     events = histories(rng, segs=6, records=8, tamp_every=99)
     before = {m.group: m for m in core.step(events)}["net"]
-    t0 = max(e.t for e in events) - 6 * 70 * DAY
+    t0 = max(e.t for e in events) - 6 * 70 * DAY_S
     seven = seven_records("X", "unknown", t0, [3.0, 2.0], outlier_at=outlier_at)
     core.step(seven)
     net = core.held.get("net") or core.posteriors["net"]
@@ -553,7 +554,7 @@ def test_a_99_mm_record_does_not_move_the_network_posterior(outlier_at):
     assert core.drain_quarantined() == []  # reported once
     # a later record does not report it again (but a newest outlier is taken back once a
     # record confirms the step: two agreeing records are a change, not an outlier)
-    core.step([trc("X", "unknown", "x7", seven[-1].t + 70 * DAY, np.log([3.2, 2.1]))])
+    core.step([trc("X", "unknown", "x7", seven[-1].t + 70 * DAY_S, np.log([3.2, 2.1]))])
     assert core.drain_quarantined() == []
 
 
@@ -579,9 +580,10 @@ def test_a_pooled_posterior_moved_by_one_segment_alone_is_held():
     events = histories(rng, lines=("L1",), segs=6, records=8, tamp_every=99)
     before = {m.group: m for m in core.step(events)}
     # one segment whose records all degrade 40x faster, steadily (no single record is odd)
-    t0 = max(e.t for e in events) + DAY
+    t0 = max(e.t for e in events) + DAY_S
     fast = [
-        trc("L1", "s9", f"f{k}", t0 + 20 * k * DAY, np.log([2.0, 1.5]) + 0.3 * k) for k in range(8)
+        trc("L1", "s9", f"f{k}", t0 + 20 * k * DAY_S, np.log([2.0, 1.5]) + 0.3 * k)
+        for k in range(8)
     ]
     assert core.step(fast) == []
     assert core.stats["posteriors_held_move"] >= 1
@@ -599,7 +601,7 @@ def test_a_record_dated_2099_does_not_stall_publication():
     late = trc("L1", "c5", "late", 4_090_000_000.0, np.log([3.0, 2.0]))  # 2099-08
     late_index = index("L1", "c5", late.t + 5, np.log([2.5, 1.5]), run="late")
     assert core.step([late, late_index]) == []
-    assert now <= core.now < now + DAY  # one segment cannot move event time
+    assert now <= core.now < now + DAY_S  # one segment cannot move event time
     # two days later a material change is published at once, the day after another one
     (v2,) = core.step(day_batch(300, rng, 2, start=1000, B=B + [0.15, 0.0]))
     assert v2.version == 2 and core.published_at["calibration"] < late.t
@@ -607,7 +609,7 @@ def test_a_record_dated_2099_does_not_stall_publication():
     (v3,) = core.step(waiting_index(3.3))
     assert v3.version == 3
     # event time never came near 2099: the late record is left out of the posteriors
-    assert core.now < T0 + 10 * DAY
+    assert core.now < T0 + 10 * DAY_S
     assert all(p.t < late.t for p in core.posteriors.values())
     reasons = [q.reason for q in core.drain_quarantined() if q.kind == "trc"]
     assert any("late" in r and "after event time" in r for r in reasons)
@@ -666,7 +668,7 @@ def test_no_nan_inf_or_indefinite_model_is_ever_published(seed):
     for _ in range(25):
         line, seg = rng.choice(["L1", "L2", "X"]), f"s{rng.integers(0, 5)}"
         t = float(
-            rng.choice([rng.uniform(946_684_800, 4_102_444_700), T0 + rng.uniform(0, 800) * DAY])
+            rng.choice([rng.uniform(946_684_800, 4_102_444_700), T0 + rng.uniform(0, 800) * DAY_S])
         )
         mm = np.exp(rng.uniform(np.log(1e-3), np.log(100.0), size=2))
         run = f"o{rng.integers(0, 10**9)}"
@@ -677,14 +679,14 @@ def test_no_nan_inf_or_indefinite_model_is_ever_published(seed):
         if rng.random() < 0.2:
             events.append(
                 MaintenanceEvent(
-                    line=line, segment=seg, event_id=run, t_start=t - DAY, t_end=t - DAY
+                    line=line, segment=seg, event_id=run, t_start=t - DAY_S, t_end=t - DAY_S
                 )
             )
     rng.shuffle(events)
     published = []
     for k in range(0, len(events), 17):
         published += core.step(events[k : k + 17])
-    published += core.step(waiting_index(0, t0=T0 + 900 * DAY))
+    published += core.step(waiting_index(0, t0=T0 + 900 * DAY_S))
     assert published
     for m in published:
         assert check_model(m) is None

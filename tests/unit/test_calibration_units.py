@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from schemas import Calibration, keys
+from schemas import DAY_S, Calibration, keys
 from services.calibration.calibrator import Calibrator
 from services.calibration.config import CalibratorConfig
 from services.calibration.regression import fit_observation, fit_unit_observation
@@ -22,7 +22,7 @@ def unit_pairs(rng, n, b_shift, *, train, unit="u1", start=0, line="L1"):
     for k in range(start, start + n):
         z = rng.normal([1.1, 0.9], [0.35, 0.3])
         y = H @ z + B + np.asarray(b_shift) + rng.multivariate_normal([0, 0], R)
-        t = T0 + 86_400.0 + k * 600.0
+        t = T0 + DAY_S + k * 600.0
         events += [
             trc(line, f"u{k}", f"run-u{k}", t, z),
             index(line, f"u{k}", t + 7200.0, y, train=train, unit=unit),

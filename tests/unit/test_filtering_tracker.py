@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from schemas import (
+    DAY_S,
     Calibration,
     DegradationPosterior,
     MaintenanceEvent,
@@ -28,7 +29,7 @@ from services.filtering.mixture import (
     weights_from_log,
 )
 from services.filtering.store import PersistentTracker, Store
-from services.filtering.tracker import DAY_S, Tracker, state_weights
+from services.filtering.tracker import Tracker, state_weights
 from services.limits import load_limits
 
 T0 = 1_767_225_600.0  # 2026-01-01 UTC

@@ -9,7 +9,7 @@ import msgspec
 import numpy as np
 from test_ingestion_core import T0, N, chunk, network, positioned, rejections, train_on
 
-from schemas import NDArray
+from schemas import DAY_S, NDArray
 from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore
 from services.ingestion.health import G_MPS2, time_range_reason
@@ -63,7 +63,7 @@ def test_a_chunk_far_ahead_is_refused_and_its_unit_goes_on():
     _, events = train_on("L3", 40)
     core = IngestionCore(network())
     out = core.run(events[:20], flush=False)
-    letters = rejections(core.step(chunk(0, t0=T0 + 86_400.0)))
+    letters = rejections(core.step(chunk(0, t0=T0 + DAY_S)))
     assert len(letters) == 1 and letters[0].reason.startswith("RawChunk: t0: ")
     assert "86" in letters[0].reason and "ahead of the train's last fix" in letters[0].reason
     out += core.run(events[20:])
@@ -117,7 +117,7 @@ def test_a_new_train_far_ahead_of_the_fleet_is_refused():
     core = IngestionCore(network())
     core.run(events, flush=False)
     fix = next(e for e in events if hasattr(e, "lat_deg"))
-    other = msgspec.structs.replace(fix, train="T2", t=fix.t + 86_400.0)
+    other = msgspec.structs.replace(fix, train="T2", t=fix.t + DAY_S)
     [letter] = core.step(other)
     assert "ahead of the fleet's clock" in letter.reason
     ok = msgspec.structs.replace(fix, train="T2", t=fix.t + 60.0)

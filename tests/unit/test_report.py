@@ -7,7 +7,7 @@ import re
 
 import pytest
 
-from schemas import Alert, InspectionPlan
+from schemas import DAY_S, Alert, InspectionPlan
 from services.alerting.testing import T0, forecast_top6, make_state, p_top6, plan_row
 from services.tools.report import (
     BINS,
@@ -23,7 +23,6 @@ from services.tools.report import (
     render,
 )
 
-DAY_S = 86_400.0
 EVIL = 's<b>&"1"'  # ids are key chunks: `<`, `&` and quotes are allowed in them
 
 

@@ -15,6 +15,7 @@ import schemas
 from schemas import (
     ACCEL_CHANNELS,
     ALL_MESSAGES,
+    DAY_S,
     Alert,
     Calibration,
     DeadLetter,
@@ -140,7 +141,7 @@ def examples() -> list[schemas.Message]:
             forecast_ci_low_mm=f8(np.ones((3, 2))),
             forecast_ci_high_mm=f8(np.full((3, 2), 4.0)),
             forecast_p_exceed=f8(np.zeros((3, 2, 2))),
-            last_trc_t=T0 - 86400,
+            last_trc_t=T0 - DAY_S,
             n_updates=4,
             nis=1.3,
         ),
@@ -161,7 +162,7 @@ def examples() -> list[schemas.Message]:
         ),
         ViewerSelect(line="L1", segment="s0001"),
         RaisedAlerts(alerts=[alert]),
-        InspectionPlan(t=T0, rows=[plan_row("L1", "s0001", 0.4, T0 + 30 * 86_400.0)]),
+        InspectionPlan(t=T0, rows=[plan_row("L1", "s0001", 0.4, T0 + 30 * DAY_S)]),
     ]
 
 

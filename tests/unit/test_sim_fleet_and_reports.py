@@ -7,12 +7,12 @@ import copy
 import numpy as np
 import pytest
 
-from schemas import OnboardIndex
+from schemas import DAY_S, OnboardIndex
 from simulators.fleet import MIXED, Fleet
 from simulators.groundtruth import GroundTruthWriter, load_truth
 from simulators.index_model import index_pass_events
 from simulators.network import demo_network
-from simulators.truth import DAY_S, Truth, load_config, truth_events
+from simulators.truth import Truth, load_config, truth_events
 
 T0 = 1767225600.0  # 2026-01-01T00:00:00Z
 

@@ -7,6 +7,7 @@ import hashlib
 import pytest
 
 from schemas import (
+    DAY_S,
     GpsFix,
     MaintenanceEvent,
     OnboardIndex,
@@ -32,7 +33,7 @@ KINDS = {
 
 def _spec(fidelity: str, seed: int = 3) -> WorldSpec:
     # small worlds that still hold every kind: 20 days see TRC runs and tampings (seed 3)
-    days = 20.0 if fidelity == "index" else 8 / 86400
+    days = 20.0 if fidelity == "index" else 8 / DAY_S
     trains = 1 if fidelity == "index" else 3
     return WorldSpec(demo_network(), load_config(), START, days, seed, trains, fidelity)
 
