@@ -26,9 +26,9 @@ Figures:
 - **latency** train leaves a segment → that segment's SegmentState published. The
   OnboardIndex of the pass and the SegmentState with the same (line, segment, t) are matched;
   the state arrives at wall ``w``. *When the unit left the segment* is taken from the unit's
-  positioned track (the knots of its PositionedChunks, within metres of the truth): the time
-  its chainage crosses the segment's far end after ``t`` (the index's ``t`` is when it passed
-  the middle). Three figures, each p50/p90/p99/max:
+  positioned trajectory (the knots of its PositionedChunks, within metres of the truth): the
+  time its chainage crosses the segment's far end after ``t`` (the index's ``t`` is when it
+  passed the middle). Three figures, each p50/p90/p99/max:
 
   (a) **from the leave moment**: ``w − (leave + offset)``. This simulator publishes a raw
       chunk at the *start* of the second it covers (``simulators/world.py``: chunk and fixes
@@ -135,7 +135,7 @@ class _RawHead(msgspec.Struct):
 
 
 class _AccelHead(msgspec.Struct):
-    """What the latency figures need of a PositionedChunk: its knots (the unit's track)."""
+    """What the latency figures need of a PositionedChunk: its knots (the unit's trajectory)."""
 
     t0: float
     line: str
@@ -163,7 +163,7 @@ class Probe:
         self.accel: list[tuple[float, float]] = []
         # per (train, unit): RawChunks as (t0, t_end, wall) and PositionedChunk knots
         self.raw_spans: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
-        self.tracks: dict[tuple[str, str], list[tuple[str, np.ndarray, np.ndarray]]] = {}
+        self.trajectories: dict[tuple[str, str], list[tuple[str, np.ndarray, np.ndarray]]] = {}
         self.index_leave: list[tuple[float, float]] = []  # (wall, leave event time)
         self.pending: dict[tuple[str, str, float], tuple[OnboardIndex, float]] = {}
         self.latency: list[tuple[float, OnboardIndex, float]] = []  # (wall, index, index wall)
@@ -197,7 +197,7 @@ class Probe:
         with self.lock:
             self.counts["accel"] += 1
             self.accel.append((wall, head.t0))
-            self.tracks.setdefault((train, unit), []).append(knots)
+            self.trajectories.setdefault((train, unit), []).append(knots)
 
     def on_index(self, sample: zenoh.Sample) -> None:
         wall = time.time()
@@ -235,8 +235,8 @@ class Probe:
             return Counter(self.counts)
 
 
-class Track:
-    """A unit's positioned track (the knots of its PositionedChunks, in time order)."""
+class Trajectory:
+    """A unit's positioned trajectory (the knots of its PositionedChunks, in time order)."""
 
     def __init__(self, pieces: list[tuple[str, np.ndarray, np.ndarray]]) -> None:
         lines = sorted({line for line, _, _ in pieces})
@@ -251,7 +251,7 @@ class Track:
         self.code = code
 
     def crossing(self, t_mid: float, line: str, lo: float, hi: float) -> float | None:
-        """When the track, inside ``[lo, hi)`` at ``t_mid``, first leaves it; None if unseen."""
+        """When the trajectory, inside ``[lo, hi)`` at ``t_mid``, first leaves it (None: unseen)."""
         t, c = self.t, self.c
         i = int(np.searchsorted(t, t_mid, side="right"))
         if i == 0 or i >= t.size or line not in self.code:
@@ -676,19 +676,19 @@ def stats(values) -> dict:
 
 def latency_figures(probe: Probe, offset: float) -> dict:
     """Latency leave → state, the three ways of the module docstring (raw fidelity)."""
-    tracks: dict[tuple[str, str], Track] = {}
+    trajectories: dict[tuple[str, str], Trajectory] = {}
     spans = {key: sorted(rows) for key, rows in probe.raw_spans.items()}
     a, b, c, estimated = [], [], [], []
     unplaced = 0
     for wall, msg, _ in probe.latency:
         key = (msg.train, msg.unit)
-        if key not in tracks:
-            tracks[key] = Track(probe.tracks.get(key, []))
+        if key not in trajectories:
+            trajectories[key] = Trajectory(probe.trajectories.get(key, []))
         estimated.append(wall - (probe.estimated_leave(msg) + offset))
         start, end = probe.segments[(msg.line, msg.segment)]
-        leave = tracks[key].crossing(msg.t, msg.line, start, end)
+        leave = trajectories[key].crossing(msg.t, msg.line, start, end)
         inset = NEEDED_SHORT_OF_END_M
-        needed = tracks[key].crossing(msg.t, msg.line, start + inset, end - inset)
+        needed = trajectories[key].crossing(msg.t, msg.line, start + inset, end - inset)
         if leave is None:
             unplaced += 1
             continue

@@ -34,13 +34,13 @@ The chain, per message:
    knots, stopping at 0) when its last sample is at most ``extrapolate_s`` (2 s) past that
    knot and the train's direction is known (or it stands still). GPS is 1 Hz and a gateway
    sends a ~1 s chunk at its end, so the fix after a chunk's last sample is usually not
-   there yet; waiting for it cost about a second per chunk, longer through outages. A
+   there yet; waiting for it would cost about a second per chunk, longer through outages. A
    chunk farther from the last knot (an outage without heartbeat fixes, a train starting
    off) is held until a knot at or after its last sample exists (at most ``max_hold_s`` of
    the train's event time), as with ``extrapolate_s = 0`` every chunk is.
 
-   The knots a chunk goes out with are the **published track** (:mod:`.trajectory`): what
-   went out is never revised. Fixes become knots by **map matching** (:mod:`.matching`).
+   The knots a chunk goes out with are the **published trajectory** (:mod:`.trajectory`):
+   what went out is never revised. Fixes become knots by **map matching** (:mod:`.matching`).
 
 ``position_ok`` is False when a bracketing knot is missing, any knot of the chunk is poor
 (no fix and dead reckoning longer than ``dead_reckon_s`` after the last good fix, or past
@@ -78,7 +78,7 @@ from services.ingestion.health import (
 )
 from services.ingestion.matching import Knot, Positioner
 from services.ingestion.sequencing import UnitState, release_unit, step_unit
-from services.ingestion.trajectory import can_extrapolate, publish_track
+from services.ingestion.trajectory import can_extrapolate, publish_trajectory
 
 log = logging.getLogger(__name__)
 
@@ -126,10 +126,10 @@ class TrainState:
     now: float = -math.inf  # newest event time of the train
     knots: list[Knot] = field(default_factory=list)  # from the fixes (map matching)
     knot_t: list[float] = field(default_factory=list)
-    # the published track: what PositionedChunks carried, never changed afterwards
+    # the published trajectory: what PositionedChunks carried, never changed afterwards
     pub: list[Knot] = field(default_factory=list)
     pub_t: list[float] = field(default_factory=list)
-    # corrections of the published track being spread: (from t, offset m, until t)
+    # corrections of the published trajectory being spread: (from t, offset m, until t)
     corrections: list[tuple[float, float, float]] = field(default_factory=list)
     poor_until: float = -math.inf  # published knots before this follow a large correction
     pending: list[tuple[Inspected, bool]] = field(default_factory=list)
@@ -182,12 +182,12 @@ def step_train(
         if st.pub_t and st.pub_t[-1] >= item.t_last:
             pass  # published already (for another unit of the train)
         elif st.knot_t and st.knot_t[-1] >= item.t_last:
-            publish_track(st, pos, item.t_last)
+            publish_trajectory(st, pos, item.t_last)
         elif can_extrapolate(st, pos, item.t_last):
-            publish_track(st, pos, item.t_last, extrapolate=True)
+            publish_trajectory(st, pos, item.t_last, extrapolate=True)
             st.stats.extrapolated += 1
         elif final or st.now - item.t_last > cfg.max_hold_s:
-            publish_track(st, pos, item.t_last)  # as far as the knots go: not bracketed
+            publish_trajectory(st, pos, item.t_last)  # as far as the knots go: not bracketed
         else:
             keep.append(entry)
             continue

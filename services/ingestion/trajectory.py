@@ -1,11 +1,12 @@
-"""The published track of a train: the knots its PositionedChunks carry. Pure.
+"""The published trajectory of a train (its chainage over time): the knots its
+PositionedChunks carry. Pure.
 
-The knots a chunk goes out with are the **published track** (:func:`publish_track`):
-what went out is never revised, so every chunk of a train (and of each of its units)
-continues the previous one. When a later fix moves the track away from a dead-reckoned
-position, the correction (usually well under a metre: the fused knots take in 0.3 of
-the GPS error) is spread linearly over ``correction_s``; one larger than
-``correction_ok_m`` (a stop inside a tunnel, a reversal at a terminus found 12 m late)
+The knots a chunk goes out with are the **published trajectory**
+(:func:`publish_trajectory`): what went out is never revised, so every chunk of a train (and
+of each of its units) continues the previous one. When a later fix moves the trajectory
+away from a dead-reckoned position, the correction (usually well under a metre: the fused
+knots take in 0.3 of the GPS error) is spread linearly over ``correction_s``; one larger
+than ``correction_ok_m`` (a stop inside a tunnel, a reversal at a terminus found 12 m late)
 is jumped, as the fix knots themselves jump, and marked poor for ``correction_s``.
 """
 
@@ -25,7 +26,7 @@ STANDING_MPS = 0.5  # slower than this, a train of unknown direction is taken as
 _DR_STEP_S = 0.5  # knot spacing of a dead-reckoned stretch with acceleration (a parabola)
 
 
-class _Track:
+class _FixTrajectory:
     """The fix knots of one line as a function of time: linear between knots, dead-reckoned
     past the last one (its speed, and the acceleration between the last two knots)."""
 
@@ -104,21 +105,21 @@ def can_extrapolate(st: TrainState, pos: Positioner, t_last: float) -> bool:
     return st.direction != 0 or last.speed_mps <= STANDING_MPS
 
 
-def publish_track(st: TrainState, pos: Positioner, t_to: float, *, extrapolate=False) -> None:
-    """Extend the published track (``st.pub``) towards ``t_to``.
+def publish_trajectory(st: TrainState, pos: Positioner, t_to: float, *, extrapolate=False) -> None:
+    """Extend the published trajectory (``st.pub``) towards ``t_to``.
 
     It takes the fix knots after its end up to the first one at or after ``t_to`` and, with
     ``extrapolate``, dead-reckons from the last fix knot to ``t_to`` when no knot reaches it.
-    What was published stays. Where the fix knots have since moved the track away from the
-    published end (a dead-reckoned position that a later fix corrects), that correction is
+    What was published stays. Where the fix knots have since moved the trajectory away from
+    the published end (a dead-reckoned position that a later fix corrects), that correction is
     spread linearly over the next ``correction_s`` (each new correction on its own schedule,
     added to those still running), so the published chainage is continuous: a correction
     never reads as a jump, or backwards as a reversal, in the extraction. A correction larger
     than ``correction_ok_m`` is no dead-reckoning error (a stop inside a tunnel, where the
-    fix knots themselves were reckoned on): the track jumps to the fix knots, as they do,
-    and its knots for ``correction_s`` are marked poor. The track never steps backwards
+    fix knots themselves were reckoned on): the trajectory jumps to the fix knots, as they do,
+    and its knots for ``correction_s`` are marked poor. It never steps backwards
     while the fix knots move forwards (a spread correction never reverses it). Without dead
-    reckoning there is nothing to correct and the published track is the fix knots.
+    reckoning there is nothing to correct and the published trajectory is the fix knots.
     """
     cfg = pos.cfg
     pub, end = st.pub, (st.pub[-1] if st.pub else None)
@@ -126,22 +127,26 @@ def publish_track(st: TrainState, pos: Positioner, t_to: float, *, extrapolate=F
     i = bisect_right(st.knot_t, t_end)
     j = bisect_left(st.knot_t, t_to, lo=i)
     new = st.knots[i : j + 1]  # up to the first knot at or after t_to, if there is one
-    track: _Track | None = None
+    fixes: _FixTrajectory | None = None
     if extrapolate and j >= len(st.knot_t) and st.line is not None:
-        track = _Track(st, st.line, pos)
-        if track.knots and t_to > max(track.t[-1], t_end):
-            r = track.t[-1]
+        fixes = _FixTrajectory(st, st.line, pos)
+        if fixes.knots and t_to > max(fixes.t[-1], t_end):
+            r = fixes.t[-1]
             steps = []
-            if track.accel:
+            if fixes.accel:
                 steps = [r + _DR_STEP_S * m for m in range(1, int((t_to - r) / _DR_STEP_S) + 1)]
-            new += [track.reckon(t) for t in [*steps, t_to] if t_end < t < t_to or t == t_to]
+            new += [fixes.reckon(t) for t in [*steps, t_to] if t_end < t < t_to or t == t_to]
     if not new:
         return
     prev_base = None
     if end is None or not any(k.line == end.line for k in st.knots):
         st.corrections = []
     else:
-        ref = track if track is not None and track.line == end.line else _Track(st, end.line, pos)
+        ref = (
+            fixes
+            if fixes is not None and fixes.line == end.line
+            else _FixTrajectory(st, end.line, pos)
+        )
         if ref.t[0] > end.t:  # the knots around the end are gone (a long pause)
             st.corrections = []
         else:
@@ -151,7 +156,7 @@ def publish_track(st: TrainState, pos: Positioner, t_to: float, *, extrapolate=F
             st.stats.max_correction_m = max(st.stats.max_correction_m, abs(residual))
             if abs(residual) > cfg.correction_ok_m:
                 # not a dead-reckoning error to smooth over (a stop in a tunnel, a reversal
-                # found late): jump to the fixes' track, as they do, and mark it poor
+                # found late): jump to the fixes' trajectory, as they do, and mark it poor
                 st.corrections, prev_base = [], None
                 st.poor_until = end.t + cfg.correction_s
             elif abs(residual) > 1e-9 and cfg.correction_s > 0:
@@ -171,7 +176,7 @@ def publish_track(st: TrainState, pos: Positioner, t_to: float, *, extrapolate=F
         if pub and pub[-1].line == k.line and prev_base is not None and st.direction:
             d, last = st.direction, pub[-1].chainage_m
             if d * (chain - last) < 0 <= d * (k.chainage_m - prev_base):
-                chain = last  # the correction would step back: hold until the track passes
+                chain = last  # the correction would step back: hold until the fixes pass
         prev_base = k.chainage_m
         pub.append(Knot(k.t, k.line, chain, k.speed_mps, k.ok and not poor))
         st.pub_t.append(k.t)

@@ -1,7 +1,7 @@
 """Ingestion positions a chunk as soon as it arrives: between fixes by interpolation, past the
-last fix by dead reckoning (at most ``extrapolate_s``), and the track it publishes is never
-revised afterwards (later fixes' corrections are spread over ``correction_s``). Compared with
-the previous behaviour (``extrapolate_s = 0``: hold every chunk until the fix after it)."""
+last fix by dead reckoning (at most ``extrapolate_s``), and the trajectory it publishes is
+never revised afterwards (later fixes' corrections are spread over ``correction_s``).
+Compared with ``extrapolate_s = 0``, which holds every chunk until the fix after it."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from simulators.train import RAW_CHANNELS, TrainSimulator
 
 T0 = 1_767_225_600.0
 N = 2000
-HOLD = IngestionConfig(extrapolate_s=0.0)  # the previous behaviour
+HOLD = IngestionConfig(extrapolate_s=0.0)  # every chunk held until the fix after its last sample
 
 
 @cache
@@ -108,11 +108,11 @@ def test_a_chunk_farther_than_the_horizon_from_the_last_fix_waits_for_one():
     out = positioned(core.step(fix))
     assert [c.seq for c in out] == [51, 52, 53]  # 53 is 0.9995 s past that fix
     assert all(c.position_ok for c in out)  # knots 2 s apart: within dead_reckon_s
-    assert out[0].knot_t.array()[-1] == T0 + 53  # 51, 52: between the published track and it
+    assert out[0].knot_t.array()[-1] == T0 + 53  # 51, 52: between the published trajectory and it
     assert core.train_stats("T1").held == held + 3
 
 
-def test_the_published_track_is_never_revised_and_never_steps_back():
+def test_the_published_trajectory_is_never_revised_and_never_steps_back():
     _, events = l3_train()
     chunks = positioned(IngestionCore(network()).run(events))
     seen: dict[float, float] = {}
@@ -164,7 +164,7 @@ def _fix(chainage: float, t: float, speed: float = 20.0) -> GpsFix:
 
 def test_a_large_correction_marks_the_chunks_it_is_spread_over_poor():
     """A fix 40 m ahead of where the train was dead-reckoned (beyond the fusion gate, so it is
-    taken as is): the published track catches up over ``correction_s``, and the chunks whose
+    taken as is): the published trajectory catches up over ``correction_s``, and the chunks whose
     positions carry that catching-up are not position_ok; afterwards they are again."""
     core = IngestionCore(network())
     out = []
@@ -198,10 +198,10 @@ def test_indices_through_dead_reckoning_equal_those_through_the_hold():
         assert abs(np.log(a.align10_mm / b.align10_mm)) < 0.05
 
 
-def test_after_a_stop_inside_a_tunnel_the_track_jumps_back_to_the_fixes():
+def test_after_a_stop_inside_a_tunnel_the_trajectory_jumps_back_to_the_fixes():
     """L2's tunnel has a station: the fixes' own knots are reckoned on through the stop
     (hundreds of metres too far); at the exit they snap back, and so does the published
-    track (a jump, marked poor), instead of spreading or holding a correction that large."""
+    trajectory (a jump, marked poor), instead of spreading or holding a correction that large."""
     line = network().lines["L2"]
     profile = LineProfile("L2", [(s.start_m, s.end_m) for s in line.segments], 1)
     probe = TrainSimulator("T1", line, profile, 1, start_t=0.0, phase_s=0.0)
@@ -226,7 +226,7 @@ def test_after_a_stop_inside_a_tunnel_the_track_jumps_back_to_the_fixes():
     assert sim.position(np.array([chunks[-1].t0]))[0][0] > exit_m + 1_000.0
 
 
-def test_every_unit_of_a_train_gets_the_same_track_whenever_its_chunk_arrives():
+def test_every_unit_of_a_train_gets_the_same_trajectory_whenever_its_chunk_arrives():
     _, events = l3_train(60)
     late = []  # unit u1's chunks arrive a second late, after the next fix
     mixed: list[RawChunk | GpsFix] = []

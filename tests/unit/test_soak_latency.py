@@ -20,7 +20,7 @@ def probe() -> Probe:
     p = Probe({("L1", "s1"): (START, END)})
     t = np.arange(0.0, 31.0)
     p.raw_spans[("T1", "u0")] = [(T0 + a, T0 + a + 1.0, T0 + a + 1.0) for a in t[:-1]]
-    p.tracks[("T1", "u0")] = [("L1", T0 + t, V * t)]
+    p.trajectories[("T1", "u0")] = [("L1", T0 + t, V * t)]
     index = OnboardIndex(
         line="L1",
         segment="s1",
