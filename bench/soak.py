@@ -821,7 +821,7 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         metavar="KEY=VALUE",
         help="an ingestion core setting (IngestionConfig field), repeatable; e.g. "
-        "extrapolate_s=0 measures the previous behaviour (every chunk waits for a fix after it)",
+        "extrapolate_s=0 measures every chunk waiting for the fix after it",
     )
     args = p.parse_args(argv)
     stop = threading.Event()

@@ -40,10 +40,10 @@ Publication rule (issue 12: model updates without storms)
     and increments stay and the next candidate is fitted on all of them; a newer candidate
     replaces the held one (material or not, judged afresh); a material candidate held by the
     rate limit is published at the first :meth:`Calibrator.flush` once event time passes the
-    limit, whether or not anything was refitted since. The swap rule is unchanged: it judges
-    each refit against the newest accepted fit, so a worse fit is never held nor published.
-    With ``material_se = 0`` and ``min_publish_interval_days = 0`` every accepted change is
-    published at once (the behaviour before the rule). Counted: ``changes_immaterial``,
+    limit, whether or not anything was refitted since. The swap rule judges each refit
+    against the newest accepted fit, so a worse fit is never held nor published. With
+    ``material_se = 0`` and ``min_publish_interval_days = 0`` every accepted change is
+    published at once (no publication rule). Counted: ``changes_immaterial``,
     ``publications_delayed``, ``calibrations_published``, ``posteriors_published``. The held
     candidates, the publication time of each model in force and event time are persisted.
 

@@ -27,7 +27,7 @@ class IngestionConfig:
     dead_reckon_s: float = 3.0  # trust dead reckoning / knot spacing up to this
     # A chunk whose last sample is at most this far past the train's last knot goes out at
     # once, its tail dead-reckoned from that knot; 0: every chunk waits for a knot at or
-    # after its last sample (up to max_hold_s), as before.
+    # after its last sample (up to max_hold_s).
     extrapolate_s: float = 2.0
     extrapolate_accel_max_mps2: float = 1.5  # bound on the acceleration dead reckoning uses
     correction_s: float = 2.0  # a later fix's correction of a published position: spread

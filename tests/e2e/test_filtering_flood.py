@@ -22,7 +22,7 @@ from services.filtering.testing import example_models
 from services.runtime.config import zenoh_config
 
 READY_S = 30.0
-SEGMENTS, PASSES = 1000, 30  # 30,000 indices: the old code lost most of them
+SEGMENTS, PASSES = 1000, 30  # 30,000 indices: a service that drops under load loses most
 FOLD_S = 600.0  # an upper bound on a loaded 2-core machine (unloaded: about a minute)
 T0 = 1_767_225_600.0
 BLOCK = zenoh.CongestionControl.BLOCK
@@ -88,7 +88,7 @@ def test_a_flood_is_folded_whole_and_the_instance_stays_alive(
 
     deadline = time.monotonic() + FOLD_S
     while not done.wait(1.0) and time.monotonic() < deadline:
-        # a withdrawn token is the loss itself: fail at once (within seconds on the old code)
+        # a withdrawn token is the loss itself: fail at once, not at the deadline
         assert alive.empty(), f"the token was withdrawn during the flood{filtering.log()}"
     with lock:
         short = {s: n for s, n in folded.items() if n < PASSES}

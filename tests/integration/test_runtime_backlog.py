@@ -1,14 +1,14 @@
 """A service slower than its inputs: the inbox holds the backlog and Zenoh never waits.
 
-Before the inbox (services/runtime/inbox.py), a subscription's callback blocked on a full
-queue while the worker was busy; with the service's own traffic waiting on the same link,
-the router closed it after ``wait_before_close`` (5 s) and dropped what was queued — the
-root cause of the deaf filtering, reproduced with real processes in
-tests/e2e/test_filtering_flood.py. This test holds the worker still while 80 MB arrive,
-then lets it go: every message must be handled, the backlog must have gone to the
-disk spill, the token never withdrawn, and no callback may have waited. (A stalled worker
-alone, with no outgoing traffic, did not lose its session on the code before the fix
-either: this test checks the inbox, the e2e test the loss.)
+A subscription callback that blocks on a full queue while the worker is busy, with the
+service's own traffic waiting on the same link, gets the link closed by the router after
+``wait_before_close`` (5 s) and what was queued dropped: a deaf service
+(tests/e2e/test_filtering_flood.py shows it with real processes). The inbox
+(services/runtime/inbox.py) never blocks a callback. This test holds the worker still while
+80 MB arrive, then lets it go: every message must be handled, the backlog must have gone to
+the disk spill, the token never withdrawn, and no callback may have waited. (A stalled worker
+alone, with no outgoing traffic, keeps its session even with a blocking queue: this test
+checks the inbox, the e2e test the loss.)
 """
 
 from __future__ import annotations

@@ -94,8 +94,8 @@ def test_every_chunk_comes_out_positioned_and_bracketed():
 
 
 def test_without_dead_reckoning_chunks_wait_for_the_fix_after_them():
-    """``extrapolate_s = 0`` is the previous behaviour: a chunk waits for a knot at or after
-    its last sample; the last one, flushed without it, is not bracketed (position not ok)."""
+    """With ``extrapolate_s = 0`` a chunk waits for a knot at or after its last sample; the
+    last one, flushed without it, is not bracketed (position not ok)."""
     _, events, _ = l3_run()
     core = IngestionCore(network(), IngestionConfig(extrapolate_s=0.0))
     assert positioned(core.step(events[0])) == []  # chunk 0 [T0, T0 + 1)
