@@ -578,7 +578,7 @@ def test_a_tamping_correction_replaces_the_report_whatever_the_order(corrected):
     second, _ = run([*base, fixed, report])
     assert_same_states(first, truth)
     assert_same_states(second, truth)
-    assert first.step(report).reason == "duplicate"  # the report no longer replaces it
+    assert first.step(report).reason == "duplicate"  # after the correction: not replacing it
     # one row per event_id in the store, the correction, whatever the order
     for order in ([report, fixed], [fixed, report]):
         node = PersistentTracker(new_tracker(), Store(":memory:"))
