@@ -211,18 +211,18 @@ def _evaluate(tracker: Tracker, sids, t_e: float):
     """
     rows, z, P, mu, sigma, trc_t, state_t, w = [], [], [], [], [], [], [], []
     for row, sid in sids:
-        track = tracker.tracks.get(sid)
-        if track is None or track.state is None or track.group is None:
+        hist = tracker.histories.get(sid)
+        if hist is None or hist.state is None or hist.group is None:
             continue
-        params = tracker.models.params[track.group]
+        params = tracker.models.params[hist.group]
         rows.append(row)
-        z.append(track.state.z)
-        P.append(track.state.P)
+        z.append(hist.state.z)
+        P.append(hist.state.P)
         mu.append(params.mu)
         sigma.append(params.sigma)
-        trc_t.append(np.nan if track.trc_t is None else track.trc_t)
-        state_t.append(track.state.t_s)
-        w.append(state_weights(track.state))
+        trc_t.append(np.nan if hist.trc_t is None else hist.trc_t)
+        state_t.append(hist.state.t_s)
+        w.append(state_weights(hist.state))
     if not rows:
         return None
     params = SimpleNamespace(mu=np.stack(mu), sigma=np.stack(sigma))
@@ -392,10 +392,10 @@ def run_shard(settings: Settings, shard: int, n_shards: int) -> dict:
 
 
 def _tamp_times(tracker: Tracker, own_keys: dict) -> dict[int, list[float]]:
-    """Assumed tamping times of the events still in each track's log (diagnostics)."""
+    """Assumed tamping times of the events still in each segment history's log (diagnostics)."""
     out: dict[int, list[float]] = {}
-    for sid, track in tracker.tracks.items():
-        out[own_keys[sid]] = [e.t_s for e in track.log if e.kind == TAMPING]
+    for sid, hist in tracker.histories.items():
+        out[own_keys[sid]] = [e.t_s for e in hist.log if e.kind == TAMPING]
     return out
 
 

@@ -65,14 +65,14 @@ def _events(rng: np.random.Generator, segments: int) -> list:
     return msgs
 
 
-def _bank_replay(tracks, params, obs) -> FilterBank:
-    """The filter bank alone on the tracks' events: restart, then one call per kind and
+def _bank_replay(hists, params, obs) -> FilterBank:
+    """The filter bank alone on the histories' events: restart, then one call per kind and
     event position over every segment."""
-    kinds = np.array([[e.kind for e in t.log] for t in tracks])  # same length: EVENTS
-    t_days = (np.array([[e.t_s for e in t.log] for t in tracks]) - T0) / DAY_S
-    y = np.array([[np.zeros(2) if e.value is None else e.value for e in t.log] for t in tracks])
-    everyone = np.arange(len(tracks))
-    bank = FilterBank(len(tracks), params)
+    kinds = np.array([[e.kind for e in t.log] for t in hists])  # same length: EVENTS
+    t_days = (np.array([[e.t_s for e in t.log] for t in hists]) - T0) / DAY_S
+    y = np.array([[np.zeros(2) if e.value is None else e.value for e in t.log] for t in hists])
+    everyone = np.arange(len(hists))
+    bank = FilterBank(len(hists), params)
     bank.restart(everyone, y[:, 0], 0.0)
     for k in range(1, EVENTS):
         idx, tamp = everyone[kinds[:, k] == INDEX], everyone[kinds[:, k] == TAMPING]
@@ -88,9 +88,9 @@ def bench_rerun(segments: int = SEGMENTS, repeats: int = 2) -> None:
     limits = load_limits()
     tracker = Tracker(limits.for_line, limits.levels)
     tracker.load([calibration, posterior], _events(rng, segments))
-    n_events = sum(len(track.log) for track in tracker.tracks.values())
-    tracks = list(tracker.tracks.values())
-    subset = tracks[:BASELINE_SEGMENTS]
+    n_events = sum(len(hist.log) for hist in tracker.histories.values())
+    hists = list(tracker.histories.values())
+    subset = hists[:BASELINE_SEGMENTS]
     fields = {f: getattr(calibration, f) for f in calibration.__struct_fields__}
     batched_s = bank_s = one_s = np.inf
     # Interleaved and best of ``repeats``: the machine is shared, so the three figures are
@@ -103,11 +103,11 @@ def bench_rerun(segments: int = SEGMENTS, repeats: int = 2) -> None:
         assert len(update.states) == segments
 
         started = time.perf_counter()
-        bank = _bank_replay(tracks, tracker.models.params["net"], tracker.models.observation)
+        bank = _bank_replay(hists, tracker.models.params["net"], tracker.models.observation)
         bank_s = min(bank_s, time.perf_counter() - started)
 
         started = time.perf_counter()
-        alone = [tracker.segment_state(replay(track, tracker.models)) for track in subset]
+        alone = [tracker.segment_state(replay(hist, tracker.models)) for hist in subset]
         one_s = min(one_s, time.perf_counter() - started)
     rate = n_events / batched_s
     bank_rate = segments * EVENTS / bank_s  # events/s = sample-updates/s / Ns
@@ -116,7 +116,7 @@ def bench_rerun(segments: int = SEGMENTS, repeats: int = 2) -> None:
     close_to_bank = all(
         np.allclose(t.state.z, bank.z[i], rtol=0, atol=1e-9)
         and np.allclose(t.state.P, bank.P[i], rtol=0, atol=1e-12)
-        for i, t in enumerate(tracker.tracks.values())
+        for i, t in enumerate(tracker.histories.values())
     )
     print(
         f"model-change re-run  Ns={NS_SAMPLES}, {segments} segments x {EVENTS} events "

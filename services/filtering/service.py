@@ -25,8 +25,8 @@ Options (``services.filtering`` in the config file, overridden by the flags): ``
 (default ``**``), ``db`` (default ``./var/filtering-{instance}.sqlite`` with the configured
 instance id, ``default`` without one, so a restarted process finds its file), ``limits``,
 ``network`` (a network GeoJSON file: events on segments it does not have are dead-lettered,
-so a sender cannot make the instance hold tracks for ids that do not exist; default: none,
-every segment accepted).
+so a sender cannot make the instance hold segment histories for ids that do not exist;
+default: none, every segment accepted).
 """
 
 from __future__ import annotations

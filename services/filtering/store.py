@@ -240,7 +240,7 @@ class PersistentTracker:
 
     def _check_known(self, msg: EventMessage) -> None:
         """An event on a segment the network does not have is refused (when one is given):
-        a sender cannot make the service hold tracks for ids that do not exist."""
+        a sender cannot make the service hold segment histories for ids that do not exist."""
         if self.segments is not None and (msg.line, msg.segment) not in self.segments:
             raise SchemaError(
                 f"{type(msg).__name__}: segment {msg.line}/{msg.segment} is not in "

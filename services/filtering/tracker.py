@@ -57,7 +57,7 @@ change it:
   uses the most specific group available: ``seg.{line}.{segment}``, then ``line.{line}``,
   then ``net``. A model with a version not newer than the one held is ignored; a model is
   checked completely (:func:`parse_model`) before it may replace the one held, and a
-  refused one leaves the models and tracks as they were. A new calibration re-runs every
+  refused one leaves the models and segment histories as they were. A new calibration re-runs every
   segment, a new posterior the segments that now use its group; several models at once
   (:meth:`Tracker.update_models`) re-run the union of their segments once.
 - **Batched re-run**: a re-run (model change, restart) folds all its segments together
@@ -72,7 +72,7 @@ change it:
   against); ``n_updates`` counts the updates since the last TRC record (or since the
   tamping that started the state).
 
-:class:`Tracker` keeps the per-segment tracks in a dict and the models; its :meth:`step`
+:class:`Tracker` keeps the segment histories in a dict and the models; its :meth:`step`
 returns a :class:`Step` (accepted or not, why, and the SegmentStates to publish), its
 :meth:`~Tracker.update_models` a :class:`ModelUpdate`.
 """
@@ -616,8 +616,9 @@ def apply_event(
 
 
 @dataclass(frozen=True)
-class Track:
-    """One segment: its event log (canonical order), the filter state, the models it used."""
+class SegmentHistory:
+    """One segment's history: its event log (canonical order), the filter state folded from
+    it, the posterior group it used."""
 
     line: str
     segment: str
@@ -644,9 +645,9 @@ def _publishable(log: Sequence[Event], models: Models, started=False) -> bool:
     return True
 
 
-def _fold(track: Track, models: Models, events: Sequence[Event], start: Filtered | None):
+def _fold(hist: SegmentHistory, models: Models, events: Sequence[Event], start: Filtered | None):
     """Fold ``events`` from ``start``; (state, group) or (None, group) if not publishable."""
-    group = models.group_for(track.line, track.segment)
+    group = models.group_for(hist.line, hist.segment)
     if group is None:
         return None, group
     if not _publishable(events, models, started=start is not None):
@@ -654,89 +655,89 @@ def _fold(track: Track, models: Models, events: Sequence[Event], start: Filtered
     return fold_many([start], [events], [models.params[group]], models)[0], group
 
 
-def replay_many(tracks: Sequence[Track], models: Models) -> list[Track]:
-    """The tracks with their states recomputed from the start of their logs, in one pass.
+def replay_many(hists: Sequence[SegmentHistory], models: Models) -> list[SegmentHistory]:
+    """The histories with their states recomputed from the start of their logs, in one pass.
 
     Segments of every posterior group go through one :func:`fold_many` per sample count
     ``Ns``; a segment without a group, or needing an update without a calibration, gets
-    no state. Bit-identical to :func:`replay` of each track.
+    no state. Bit-identical to :func:`replay` of each history.
     """
-    out = list(tracks)
+    out = list(hists)
     jobs: dict[int, list[tuple[int, str]]] = {}
-    for i, track in enumerate(tracks):
-        group = models.group_for(track.line, track.segment)
-        if group is None or not _publishable(track.log, models):
-            out[i] = replace(track, state=None, group=group)
+    for i, hist in enumerate(hists):
+        group = models.group_for(hist.line, hist.segment)
+        if group is None or not _publishable(hist.log, models):
+            out[i] = replace(hist, state=None, group=group)
         else:
             jobs.setdefault(models.params[group].ns, []).append((i, group))
     for job in jobs.values():
         states = fold_many(
             [None] * len(job),
-            [tracks[i].log for i, _ in job],
+            [hists[i].log for i, _ in job],
             [models.params[group] for _, group in job],
             models,
         )
         for (i, group), state in zip(job, states, strict=True):
-            out[i] = replace(tracks[i], state=state, group=group)
+            out[i] = replace(hists[i], state=state, group=group)
     return out
 
 
-def replay(track: Track, models: Models) -> Track:
-    """The track with its state recomputed from the start of its log."""
-    return replay_many([track], models)[0]
+def replay(hist: SegmentHistory, models: Models) -> SegmentHistory:
+    """The history with its state recomputed from the start of its log."""
+    return replay_many([hist], models)[0]
 
 
-def add_event(track: Track, event: Event) -> tuple[Track, str]:
-    """Insert ``event`` into the log (state untouched): ``(track, "")`` or ``(track, reason)``.
+def add_event(hist: SegmentHistory, event: Event) -> tuple[SegmentHistory, str]:
+    """Insert ``event`` into the log (state untouched): ``(hist, "")`` or ``(hist, reason)``.
 
     A tamping report that outranks the one held under its ``event_id`` (:func:`report_rank`)
     replaces it, and is accepted even when its time is now before the latest TRC record:
     the held report then leaves the log (the TRC record already measured the tamping).
     """
-    held = next((e for e in track.log if e.identity == event.identity), None)
-    log, trc_t = track.log, track.trc_t
+    held = next((e for e in hist.log if e.identity == event.identity), None)
+    log, trc_t = hist.log, hist.trc_t
     if event.kind == TAMPING and held is None:
         near = [
             e for e in log if e.kind == TAMPING and abs(e.t_s - event.t_s) <= SUPERSEDE_DAYS * DAY_S
         ]
         if event.message.detected:
             if any(not e.message.detected for e in near):
-                return track, "a reported tamping is within 30 days"
+                return hist, "a reported tamping is within 30 days"
         else:  # a reported tamping replaces the detected ones near it
             log = tuple(e for e in log if not (e in near and e.message.detected))
     if held is not None:
         if event.kind != TAMPING or report_rank(event.message) <= report_rank(held.message):
-            return track, "duplicate"
+            return hist, "duplicate"
         log = tuple(e for e in log if e is not held)
         if trc_t is not None and event.t_s < trc_t:
-            return replace(track, log=log), ""
+            return replace(hist, log=log), ""
     elif trc_t is not None and event.t_s < trc_t:
-        return track, "older than the latest TRC record"
+        return hist, "older than the latest TRC record"
     if event.kind == RESTART:
         log = tuple(e for e in log if e.t_s >= event.t_s)  # a restart forgets what precedes it
         trc_t = event.t_s if trc_t is None else max(trc_t, event.t_s)
     at = bisect.bisect([e.order for e in log], event.order)
-    return replace(track, log=(*log[:at], event, *log[at:]), trc_t=trc_t), ""
+    return replace(hist, log=(*log[:at], event, *log[at:]), trc_t=trc_t), ""
 
 
-def step_segment(track: Track, event: Event, models: Models) -> tuple[Track, str]:
-    """Add one event to a segment and bring its state up to date: ``(track, reason)``.
+def step_segment(hist: SegmentHistory, event: Event, models: Models) -> tuple[SegmentHistory, str]:
+    """Add one event to a segment and bring its state up to date: ``(hist, reason)``.
 
     ``reason`` is empty when the event was accepted, else why it was refused.
     """
-    new, reason = add_event(track, event)
+    new, reason = add_event(hist, event)
     if reason:
-        return track, reason
-    replaced = any(e.identity == event.identity for e in track.log)
+        return hist, reason
+    replaced = any(e.identity == event.identity for e in hist.log)
     appended = bool(new.log) and new.log[-1] is event and not replaced
-    if appended and (event.kind == RESTART or track.state is not None):
-        # ``track.state`` is the fold of the log before ``event``: one more step of it.
-        state, group = _fold(new, models, (event,), track.state)
+    if appended and (event.kind == RESTART or hist.state is not None):
+        # ``hist.state`` is the fold of the log before ``event``: one more step of it.
+        state, group = _fold(new, models, (event,), hist.state)
         return replace(new, state=state, group=group), ""
     return replay(new, models), ""
 
 
-def detect(track: Track, models: Models) -> tuple[Track, MaintenanceEvent | None]:
+def detect(hist: SegmentHistory, models: Models) -> tuple[SegmentHistory, MaintenanceEvent | None]:
     r"""A tamping that no feed reported, found in the segment's on-board indices.
 
     The fold keeps a one-sided CUSUM (Page's test) of the standardised amount by which each
@@ -749,31 +750,31 @@ def detect(track: Track, models: Models) -> tuple[Track, MaintenanceEvent | None
     re-run with a tamping there (Eq. 2: at the interval's middle), and the interval whose
     re-run gives the on-board data the highest marginal likelihood
     :math:`\log \frac{1}{N_s}\sum_j e^{\log w_j}` is reported as the detected
-    maintenance ``[t_a, t_b]``. ``(track, None)`` when nothing is detected, or when a
+    maintenance ``[t_a, t_b]``. ``(hist, None)`` when nothing is detected, or when a
     reported tamping within ``SUPERSEDE_DAYS`` already explains the data.
     """
-    state = track.state
+    state = hist.state
     if state is None or state.cusum < CUSUM_THRESHOLD or np.isnan(state.cusum_t1):
-        return track, None
-    times = sorted({e.t_s for e in track.log if e.t_s >= state.cusum_t0})
-    best: tuple[float, Track, MaintenanceEvent] | None = None
+        return hist, None
+    times = sorted({e.t_s for e in hist.log if e.t_s >= state.cusum_t0})
+    best: tuple[float, SegmentHistory, MaintenanceEvent] | None = None
     for t_a, t_b in zip(times, times[1:], strict=False):
         msg = MaintenanceEvent(
-            line=track.line,
-            segment=track.segment,
+            line=hist.line,
+            segment=hist.segment,
             event_id=f"detected-{int(t_b)}",
             t_start=t_a,
             t_end=t_b,
             detected=True,
         )
-        new, reason = step_segment(track, event_of(msg), models)
+        new, reason = step_segment(hist, event_of(msg), models)
         if reason or new.state is None:
             continue
         log_w = new.state.log_w
         evidence = float(log_w.max() + np.log(np.exp(log_w - log_w.max()).mean()))
         if best is None or evidence > best[0]:
             best = (evidence, new, msg)
-    return (track, None) if best is None else (best[1], best[2])
+    return (hist, None) if best is None else (best[1], best[2])
 
 
 @dataclass(frozen=True)
@@ -804,7 +805,7 @@ class ModelUpdate:
 
 
 class Tracker:
-    """Every segment's :class:`Track` (dict by ``(line, segment)``) and the models.
+    """Every segment's :class:`SegmentHistory` (dict by ``(line, segment)``) and the models.
 
     Parameters
     ----------
@@ -827,7 +828,7 @@ class Tracker:
         detect_maintenance: bool = True,
     ) -> None:
         self.detect_maintenance = detect_maintenance  # :func:`detect` after each index
-        self.tracks: dict[SegmentId, Track] = {}
+        self.histories: dict[SegmentId, SegmentHistory] = {}
         self.models = Models()
         self._limits_mm = limits_mm
         self.limit_levels = list(limit_levels)
@@ -848,43 +849,45 @@ class Tracker:
             return Step(True, "", update.states)
         event = event_of(msg)
         sid = (msg.line, msg.segment)
-        track = self.tracks.get(sid) or Track(msg.line, msg.segment)
-        track, reason = step_segment(track, event, self.models)
+        hist = self.histories.get(sid) or SegmentHistory(msg.line, msg.segment)
+        hist, reason = step_segment(hist, event, self.models)
         if reason:
             return Step(False, reason)
-        track, found = self._detect(track)
-        out = self.segment_state(track)  # before the swap: if it raises, nothing changed
-        self.tracks[sid] = track
+        hist, found = self._detect(hist)
+        out = self.segment_state(hist)  # before the swap: if it raises, nothing changed
+        self.histories[sid] = hist
         return Step(True, "", () if out is None else (out,), () if found is None else (found,))
 
-    def _detect(self, track: Track) -> tuple[Track, MaintenanceEvent | None]:
-        return detect(track, self.models) if self.detect_maintenance else (track, None)
+    def _detect(self, hist: SegmentHistory) -> tuple[SegmentHistory, MaintenanceEvent | None]:
+        return detect(hist, self.models) if self.detect_maintenance else (hist, None)
 
     def step_events(self, msgs: Sequence[EventMessage]) -> tuple[list[str], tuple, list]:
         """Fold several events and summarise each changed segment once, in batches.
 
         Returns ``(reasons, states, detected)``: per message ``""`` if accepted, else why
         not; the newest SegmentState of each changed, publishable segment; and the tampings
-        :func:`detect` found on the way. The tracks are the same
+        :func:`detect` found on the way. The histories are the same
         as after stepping the messages one by one (same fold), and so are the final states
         (:meth:`segment_states` is :meth:`segment_state` in batches, bit for bit); only the
         intermediate states of a segment are not summarised. If anything raises, nothing
         is changed.
         """
-        changed: dict[SegmentId, Track] = {}
+        changed: dict[SegmentId, SegmentHistory] = {}
         reasons, detected = [], []
         for msg in msgs:
             sid = (msg.line, msg.segment)
-            track = changed.get(sid) or self.tracks.get(sid) or Track(msg.line, msg.segment)
-            track, reason = step_segment(track, event_of(msg), self.models)
+            hist = (
+                changed.get(sid) or self.histories.get(sid) or SegmentHistory(msg.line, msg.segment)
+            )
+            hist, reason = step_segment(hist, event_of(msg), self.models)
             reasons.append(reason)
             if not reason:
-                track, found = self._detect(track)
+                hist, found = self._detect(hist)
                 if found is not None:
                     detected.append(found)
-                changed[sid] = track
+                changed[sid] = hist
         states = self.segment_states(list(changed.values()))  # before the swap
-        self.tracks.update(changed)
+        self.histories.update(changed)
         return reasons, tuple(state for state in states if state is not None), detected
 
     def update_models(self, msgs: Sequence[ModelMessage]) -> ModelUpdate:
@@ -894,7 +897,7 @@ class Tracker:
         ``degradation/{group}``) among the valid messages newer than the one held, checks
         each completely (:func:`parse_model`) before anything is replaced, then re-runs the
         union of the segments they affect in one batched pass (:func:`replay_many`). The
-        swap is atomic: if the re-run fails, the models and tracks stay as they were and
+        swap is atomic: if the re-run fails, the models and histories stay as they were and
         the messages are refused with the reason (one by one if there were several, so
         that a good one still applies). Same final states as stepping the messages one by
         one, in any order.
@@ -909,14 +912,14 @@ class Tracker:
         groups = {msg.group for msg in newest.values() if isinstance(msg, DegradationPosterior)}
         affected = [
             sid
-            for sid, track in self.tracks.items()
+            for sid, hist in self.histories.items()
             if calibrated
             or models.group_for(*sid) in groups
-            or (units and _has_index_of(track.log, units))
+            or (units and _has_index_of(hist.log, units))
         ]
         accepted = [msg for msg in msgs if newest.get(model_name(msg)) is msg]
         try:
-            tracks, states = self._rerun(models, affected)
+            hists, states = self._rerun(models, affected)
         except (ValueError, ArithmeticError) as exc:
             if len(accepted) == 1:
                 refused.append((accepted[0], f"re-run with this model failed: {exc}"))
@@ -929,7 +932,7 @@ class Tracker:
                 tuple(state for u in one_by_one for state in u.states),
             )
         self.models = models
-        self.tracks.update(tracks)
+        self.histories.update(hists)
         return ModelUpdate(accepted, ignored, refused, states)
 
     def _newest_models(self, msgs: Iterable[ModelMessage]):
@@ -971,58 +974,58 @@ class Tracker:
         """
         for msg in events:
             sid = (msg.line, msg.segment)
-            track = self.tracks.get(sid) or Track(msg.line, msg.segment)
-            self.tracks[sid] = add_event(track, event_of(msg))[0]
+            hist = self.histories.get(sid) or SegmentHistory(msg.line, msg.segment)
+            self.histories[sid] = add_event(hist, event_of(msg))[0]
         models_in, *_ = self._newest_models(models)
-        tracks, states = self._rerun(models_in, list(self.tracks))
+        hists, states = self._rerun(models_in, list(self.histories))
         self.models = models_in
-        self.tracks.update(tracks)
+        self.histories.update(hists)
         return list(states)
 
     def _rerun(
         self, models: Models, sids: Sequence[SegmentId]
-    ) -> tuple[dict[SegmentId, Track], tuple[SegmentState, ...]]:
+    ) -> tuple[dict[SegmentId, SegmentHistory], tuple[SegmentState, ...]]:
         """Re-run ``sids`` with ``models`` in one batch; nothing is changed in place."""
-        tracks = replay_many([self.tracks[sid] for sid in sids], models)
-        states = self.segment_states(tracks, models)
-        return dict(zip(sids, tracks, strict=True)), tuple(s for s in states if s is not None)
+        hists = replay_many([self.histories[sid] for sid in sids], models)
+        states = self.segment_states(hists, models)
+        return dict(zip(sids, hists, strict=True)), tuple(s for s in states if s is not None)
 
     def segment_states(
-        self, tracks: Sequence[Track], models: Models | None = None
+        self, hists: Sequence[SegmentHistory], models: Models | None = None
     ) -> list[SegmentState | None]:
-        """The SegmentState messages of tracks (None if not publishable), in batches."""
+        """The SegmentState messages of histories (None if not publishable), in batches."""
         models = self.models if models is None else models
-        out: list[SegmentState | None] = [None] * len(tracks)
+        out: list[SegmentState | None] = [None] * len(hists)
         jobs: dict[int, list[int]] = {}
-        for i, track in enumerate(tracks):
-            if track.state is not None and track.group is not None:
-                jobs.setdefault(track.state.z.shape[0], []).append(i)
+        for i, hist in enumerate(hists):
+            if hist.state is not None and hist.group is not None:
+                jobs.setdefault(hist.state.z.shape[0], []).append(i)
         limits: dict[str, np.ndarray] = {}
         for job in jobs.values():
             for first in range(0, len(job), SUMMARY_SEGMENTS):
                 chunk = job[first : first + SUMMARY_SEGMENTS]
-                for line in {tracks[i].line for i in chunk} - limits.keys():
+                for line in {hists[i].line for i in chunk} - limits.keys():
                     limits[line] = np.asarray(self._limits_mm(line), dtype=np.float64)
                 states = summarize_states(
-                    [tracks[i] for i in chunk],
-                    [models.params[tracks[i].group] for i in chunk],
-                    [limits[tracks[i].line] for i in chunk],
+                    [hists[i] for i in chunk],
+                    [models.params[hists[i].group] for i in chunk],
+                    [limits[hists[i].line] for i in chunk],
                     self.limit_levels,
                     self.horizons_days,
                     calibration_version=(models.calibration.version if models.calibration else 0),
-                    posterior_versions=[models.posteriors[tracks[i].group].version for i in chunk],
+                    posterior_versions=[models.posteriors[hists[i].group].version for i in chunk],
                 )
                 for i, state in zip(chunk, states, strict=True):
                     out[i] = state
         return out
 
-    def segment_state(self, track: Track) -> SegmentState | None:
-        """The SegmentState message of a track (None if not publishable)."""
-        return self.segment_states([track])[0]
+    def segment_state(self, hist: SegmentHistory) -> SegmentState | None:
+        """The SegmentState message of a history (None if not publishable)."""
+        return self.segment_states([hist])[0]
 
     def state_of(self, line: str, segment: str) -> SegmentState | None:
-        track = self.tracks.get((line, segment))
-        return None if track is None else self.segment_state(track)
+        hist = self.histories.get((line, segment))
+        return None if hist is None else self.segment_state(hist)
 
 
 def state_weights(state: Filtered) -> np.ndarray:
@@ -1043,7 +1046,7 @@ def _stacked(params: Sequence[DegradationParams]) -> DegradationParams:
 
 
 def summarize_states(
-    tracks: Sequence[Track],
+    hists: Sequence[SegmentHistory],
     params: Sequence[DegradationParams],
     limits_mm: Sequence[np.ndarray],
     limit_levels: list[str],
@@ -1054,7 +1057,7 @@ def summarize_states(
 ) -> list[SegmentState]:
     r"""Mixture summaries, exceedances and forecasts of many filter banks (Eq. 13-14).
 
-    Every track must have a state, with the same ``Ns``. Each summary is the mixture of
+    Every history must have a state, with the same ``Ns``. Each summary is the mixture of
     its ``Ns`` filters with the weights :func:`state_weights` (the likelihood of the
     segment's on-board data since its TRC restart), now and at each horizon :math:`h`
     without data in between (Eq. 2):
@@ -1068,7 +1071,7 @@ def summarize_states(
     segment's numbers do not depend on the others in the call, so a batch gives the bits
     of :func:`summarize_state`.
     """
-    state_list = [track.state for track in tracks]
+    state_list = [hist.state for hist in hists]
     z = np.stack([state.z for state in state_list])[:, None]  # (S, 1, Ns, n)
     P = np.stack([state.P for state in state_list])[:, None]
     w = weights_from_log(np.stack([state.log_w for state in state_list]))[:, None]
@@ -1078,11 +1081,11 @@ def summarize_states(
     both = summarize_unchecked(z_all, P_all, limits, weights=w)
     p_exceed = both.p_exceed  # (L, S, 1 + h, n)
     out = []
-    for row, (track, state) in enumerate(zip(tracks, state_list, strict=True)):
+    for row, (hist, state) in enumerate(zip(hists, state_list, strict=True)):
         out.append(
             SegmentState(
-                line=track.line,
-                segment=track.segment,
+                line=hist.line,
+                segment=hist.segment,
                 t=state.t_s,
                 indicators=list(INDICATORS),
                 mean=NDArray.of(both.mean[row, 0]),
@@ -1103,7 +1106,7 @@ def summarize_states(
                 nis=state.nis,
                 calibration_version=calibration_version,
                 posterior_version=posterior_versions[row],
-                posterior_group=track.group,
+                posterior_group=hist.group,
             )
         )
     return out
@@ -1120,9 +1123,9 @@ def summarize_state(
     **versions: Any,
 ) -> SegmentState:
     """:func:`summarize_states` of one filter bank (paper Eq. 13-14)."""
-    track = Track(line, segment, state=state, group=versions.get("posterior_group", ""))
+    hist = SegmentHistory(line, segment, state=state, group=versions.get("posterior_group", ""))
     (out,) = summarize_states(
-        [track],
+        [hist],
         [params],
         [np.asarray(limits_mm, dtype=np.float64)],
         limit_levels,

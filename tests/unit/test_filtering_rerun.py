@@ -18,10 +18,10 @@ from test_filtering_tracker import (  # tests/unit is on sys.path (rootdir conft
 
 from schemas import NDArray, encode
 from services.filtering import tracker as tracker_module
-from services.filtering.tracker import Track, Tracker, replay, replay_many
+from services.filtering.tracker import SegmentHistory, Tracker, replay, replay_many
 
 
-def assert_bit_identical(a: Track, b: Track, tracker: Tracker) -> None:
+def assert_bit_identical(a: SegmentHistory, b: SegmentHistory, tracker: Tracker) -> None:
     assert (a.line, a.segment, a.group) == (b.line, b.segment, b.group)
     assert (a.state is None) == (b.state is None)
     if a.state is not None:
@@ -80,23 +80,23 @@ def test_batched_rerun_equals_replaying_each_segment_alone(monkeypatch, block_fi
     tracker = new_tracker()
     states = tracker.load(models, events)  # one batched re-run of every segment
     published = {(s.line, s.segment) for s in states}
-    assert 0 < len(published) < len(tracker.tracks)
-    for sid, track in tracker.tracks.items():
-        alone = replay(replace_state(track), tracker.models)
-        assert_bit_identical(track, alone, tracker)
-        assert (tracker.segment_state(track) is not None) == (sid in published)
+    assert 0 < len(published) < len(tracker.histories)
+    for sid, hist in tracker.histories.items():
+        alone = replay(replace_state(hist), tracker.models)
+        assert_bit_identical(hist, alone, tracker)
+        assert (tracker.segment_state(hist) is not None) == (sid in published)
     # L3 has no posterior; the segment of indices only has nothing to start from
-    assert tracker.tracks[("L3", "s2")].state is None
-    assert tracker.tracks[("L1", "only-indices")].state is None
+    assert tracker.histories[("L3", "s2")].state is None
+    assert tracker.histories[("L1", "only-indices")].state is None
     if len(models) == len(MODELS):
-        assert tracker.tracks[("L2", "s4")].state.last_trc_t is None  # started by a tamping
-        assert tracker.tracks[("L1", "s3")].group == "seg.L1.s3"
+        assert tracker.histories[("L2", "s4")].state.last_trc_t is None  # started by a tamping
+        assert tracker.histories[("L1", "s3")].group == "seg.L1.s3"
     else:  # without a calibration, only states without an update since their start
-        assert all(t.state is None or t.state.n_updates == 0 for t in tracker.tracks.values())
+        assert all(t.state is None or t.state.n_updates == 0 for t in tracker.histories.values())
 
 
-def replace_state(track: Track) -> Track:
-    return Track(track.line, track.segment, track.log, track.trc_t)
+def replace_state(hist: SegmentHistory) -> SegmentHistory:
+    return SegmentHistory(hist.line, hist.segment, hist.log, hist.trc_t)
 
 
 def test_live_steps_continue_bit_identically_from_a_rerun():
@@ -106,9 +106,9 @@ def test_live_steps_continue_bit_identically_from_a_rerun():
     stepped, _ = run(MODELS + in_order)  # the live path: one incremental step per event
     loaded = new_tracker()
     loaded.load(MODELS, events)  # the restart path: one batched re-run
-    for sid, track in stepped.tracks.items():
-        assert_bit_identical(track, loaded.tracks[sid], stepped)
-    late = [index(90.0, 2.4, 2.1, line=line, segment=seg) for line, seg in stepped.tracks]
+    for sid, hist in stepped.histories.items():
+        assert_bit_identical(hist, loaded.histories[sid], stepped)
+    late = [index(90.0, 2.4, 2.1, line=line, segment=seg) for line, seg in stepped.histories]
     for msg in late:
         a, b = stepped.step(msg), loaded.step(msg)
         assert [encode(s) for s in a.states] == [encode(s) for s in b.states]
@@ -117,10 +117,10 @@ def test_live_steps_continue_bit_identically_from_a_rerun():
 def test_replay_many_of_one_track_is_replay():
     rng = np.random.default_rng(23)
     tracker, _ = run(MODELS + mixed_events(rng))
-    tracks = list(tracker.tracks.values())
-    many = replay_many(tracks, tracker.models)
-    for track, again in zip(tracks, many, strict=True):
-        assert_bit_identical(again, replay(track, tracker.models), tracker)
+    hists = list(tracker.histories.values())
+    many = replay_many(hists, tracker.models)
+    for hist, again in zip(hists, many, strict=True):
+        assert_bit_identical(again, replay(hist, tracker.models), tracker)
 
 
 def bad_calibration(version: int, **changes) -> object:
@@ -154,13 +154,13 @@ def test_a_refused_calibration_never_replaces_the_good_one(changes, reason):
     assert tracker.models is held
     for msg in events[half:]:  # later events still fold to the states without the bad one
         tracker.step(msg)
-    for sid, track in reference.tracks.items():
-        assert_bit_identical(tracker.tracks[sid], track, tracker)
+    for sid, hist in reference.histories.items():
+        assert_bit_identical(tracker.histories[sid], hist, tracker)
 
 
-def test_a_failing_rerun_keeps_the_old_models_and_tracks(monkeypatch):
+def test_a_failing_rerun_keeps_the_models_and_histories_it_had(monkeypatch):
     tracker, _ = run([*MODELS, *mixed_events(np.random.default_rng(25))])
-    models, tracks = tracker.models, dict(tracker.tracks)
+    models, hists = tracker.models, dict(tracker.histories)
 
     def failing(*args, **kwargs):
         raise ValueError("boom")
@@ -168,7 +168,7 @@ def test_a_failing_rerun_keeps_the_old_models_and_tracks(monkeypatch):
     monkeypatch.setattr(tracker_module, "replay_many", failing)
     update = tracker.update_models([calibration(2, scale=1.1)])
     assert update.accepted == [] and "re-run with this model failed: boom" in update.refused[0][1]
-    assert tracker.models is models and tracker.tracks == tracks
+    assert tracker.models is models and tracker.histories == hists
 
 
 @pytest.mark.parametrize(
@@ -214,10 +214,10 @@ def test_update_models_equals_stepping_them_one_by_one():
     ]
     one_by_one.step(m4)
     assert len(update.states) == len({(s.line, s.segment) for s in update.states})
-    for sid, track in one_by_one.tracks.items():
-        assert_bit_identical(batched.tracks[sid], track, batched)
+    for sid, hist in one_by_one.histories.items():
+        assert_bit_identical(batched.histories[sid], hist, batched)
     assert {(s.line, s.segment) for s in update.states} == {
-        sid for sid, t in batched.tracks.items() if batched.segment_state(t) is not None
+        sid for sid, t in batched.histories.items() if batched.segment_state(t) is not None
     }
     assert batched.state_of("L3", "s2") is not None
 
@@ -235,7 +235,7 @@ def test_limits_of_each_line_in_one_batch():
 
 def test_an_event_whose_state_cannot_be_summarised_changes_nothing(monkeypatch):
     tracker, _ = run([*MODELS, trc(0.0, line="L1", segment="s1")])
-    tracks = dict(tracker.tracks)
+    hists = dict(tracker.histories)
 
     def failing(*args, **kwargs):
         raise ValueError("boom")
@@ -243,7 +243,7 @@ def test_an_event_whose_state_cannot_be_summarised_changes_nothing(monkeypatch):
     monkeypatch.setattr(tracker_module, "summarize_states", failing)
     with pytest.raises(ValueError, match="boom"):
         tracker.step(index(3.0, 2.0, 2.0, line="L1", segment="s1"))
-    assert tracker.tracks == tracks
+    assert tracker.histories == hists
 
 
 def test_update_models_applies_the_good_and_refuses_the_bad():
@@ -255,5 +255,5 @@ def test_update_models_applies_the_good_and_refuses_the_bad():
     assert update.accepted == [good] and [m for m, _ in update.refused] == [bad]
     reference, _ = run([*MODELS, *events, good])
     assert tracker.models.calibration.version == 1
-    for sid, track in reference.tracks.items():
-        assert_bit_identical(tracker.tracks[sid], track, tracker)
+    for sid, hist in reference.histories.items():
+        assert_bit_identical(tracker.histories[sid], hist, tracker)

@@ -148,9 +148,9 @@ def run(messages) -> tuple[Tracker, list[SegmentState]]:
 
 
 def assert_same_states(a: Tracker, b: Tracker) -> None:
-    assert a.tracks.keys() == b.tracks.keys()
-    for sid in a.tracks:
-        ta, tb = a.tracks[sid], b.tracks[sid]
+    assert a.histories.keys() == b.histories.keys()
+    for sid in a.histories:
+        ta, tb = a.histories[sid], b.histories[sid]
         assert [e.identity for e in ta.log] == [e.identity for e in tb.log]
         assert (ta.state is None) == (tb.state is None)
         if ta.state is not None:
@@ -193,15 +193,18 @@ def test_duplicates_and_events_before_the_latest_trc_are_refused():
     step = tracker.step(index(12.0, 2.0, 2.0))
     assert step.accepted and len(step.states) == 1
     assert tracker.step(index(12.0, 2.0, 2.0)).reason == "duplicate"
-    assert [e.t_s for e in tracker.tracks[("L1", "s1")].log] == [T0 + 10 * DAY_S, T0 + 12 * DAY_S]
+    assert [e.t_s for e in tracker.histories[("L1", "s1")].log] == [
+        T0 + 10 * DAY_S,
+        T0 + 12 * DAY_S,
+    ]
 
 
 def test_trc_restart_sets_every_sample_to_the_record():
     tracker, _ = run([*MODELS, trc(0.0), index(3.0, 2.0, 2.0)])
     (state,) = tracker.step(trc(20.0, 4.0, 3.0)).states
-    track = tracker.tracks[("L1", "s1")]
-    np.testing.assert_array_equal(track.state.z, np.broadcast_to(np.log([4.0, 3.0]), (NS, 2)))
-    np.testing.assert_array_equal(track.state.P, 0.0)
+    hist = tracker.histories[("L1", "s1")]
+    np.testing.assert_array_equal(hist.state.z, np.broadcast_to(np.log([4.0, 3.0]), (NS, 2)))
+    np.testing.assert_array_equal(hist.state.P, 0.0)
     assert state.last_trc_t == T0 + 20 * DAY_S and state.n_updates == 0 and state.nis is None
     np.testing.assert_allclose(state.ci_low_mm.array(), [4.0, 3.0])
     np.testing.assert_allclose(state.ci_high_mm.array(), [4.0, 3.0])
@@ -237,11 +240,11 @@ def test_results_equal_the_filter_bank_core(interval):
     steps.sort(key=lambda s: s[1])
     tracker, states = run([calibration(), post, *messages])
     bank = bank_replay(post, steps)
-    track = tracker.tracks[("L1", "s1")]
-    np.testing.assert_allclose(track.state.z, bank.z[0], rtol=0, atol=1e-12)
-    np.testing.assert_allclose(track.state.P, bank.P[0], rtol=0, atol=1e-12)
-    np.testing.assert_allclose(track.state.log_w, bank.log_w[0], rtol=1e-12)
-    assert track.state.t_s == T0 + 70 * DAY_S and bank.t[0] == 70.0
+    hist = tracker.histories[("L1", "s1")]
+    np.testing.assert_allclose(hist.state.z, bank.z[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(hist.state.P, bank.P[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(hist.state.log_w, bank.log_w[0], rtol=1e-12)
+    assert hist.state.t_s == T0 + 70 * DAY_S and bank.t[0] == 70.0
     # the published summary is the mixture of that bank, weighted by its likelihoods
     state = states[-1]
     limits = LIMITS.for_line("L1")
@@ -267,11 +270,11 @@ def test_results_equal_the_filter_bank_core(interval):
 def test_tamping_resets_to_the_post_tamping_level():
     post = posterior()
     tracker, _ = run([calibration(), post, trc(0.0), index(5.0, 2.0, 2.0), tamping(8.0, 12.0)])
-    track = tracker.tracks[("L1", "s1")]
-    np.testing.assert_array_equal(track.state.z, post.z_plus.array())
-    np.testing.assert_array_equal(track.state.P, post.sigma_z_plus.array())
-    assert track.state.t_s == T0 + 10 * DAY_S  # mid-interval
-    assert track.state.n_updates == 1  # a tamping keeps the count since the TRC record
+    hist = tracker.histories[("L1", "s1")]
+    np.testing.assert_array_equal(hist.state.z, post.z_plus.array())
+    np.testing.assert_array_equal(hist.state.P, post.sigma_z_plus.array())
+    assert hist.state.t_s == T0 + 10 * DAY_S  # mid-interval
+    assert hist.state.n_updates == 1  # a tamping keeps the count since the TRC record
 
 
 def test_tamping_starts_a_segment_without_trc():
@@ -281,7 +284,7 @@ def test_tamping_starts_a_segment_without_trc():
     step = tracker.step(index(5.0, 2.1, 1.9))
     assert step.states[0].n_updates == 1
     bank = bank_replay(post, [("tamping", 3.0, None), ("index", 5.0, (2.1, 1.9))])
-    np.testing.assert_allclose(tracker.tracks[("L1", "s1")].state.z, bank.z[0], atol=1e-12)
+    np.testing.assert_allclose(tracker.histories[("L1", "s1")].state.z, bank.z[0], atol=1e-12)
 
 
 def test_no_state_without_start_posterior_or_calibration():
@@ -309,9 +312,9 @@ def test_model_change_reruns_the_segments_from_their_trc_record():
             step = tracker.step(msg)
             assert step.accepted and len(step.states) == 3
         reference, _ = run([*fresh, *events])
-        for sid, track in tracker.tracks.items():
-            np.testing.assert_array_equal(track.state.z, reference.tracks[sid].state.z)
-            assert not np.array_equal(track.state.z, old.tracks[sid].state.z)
+        for sid, hist in tracker.histories.items():
+            np.testing.assert_array_equal(hist.state.z, reference.histories[sid].state.z)
+            assert not np.array_equal(hist.state.z, old.histories[sid].state.z)
     step = tracker.step(posterior(version=1, seed=9))
     assert not step.accepted and step.states == ()
 
@@ -351,7 +354,7 @@ def test_store_rebuilds_identical_states_after_an_unclean_stop(tmp_path):
     # the TRC records at day 100 pruned everything before them: the store holds the logs
     rebuilt = PersistentTracker(new_tracker(), Store(db))
     rebuilt.rebuild()
-    in_logs = sum(len(track.log) for track in first.tracker.tracks.values())
+    in_logs = sum(len(hist.log) for hist in first.tracker.histories.values())
     assert rebuilt.store.count_events() == in_logs == 3 * 7
     assert_same_states(first.tracker, rebuilt.tracker)
     for node in (second, rebuilt):
@@ -378,8 +381,8 @@ def test_a_batch_equals_its_messages_one_by_one(tmp_path):
     assert results[1].rejected[0][0] == bad[0]
     newest = {(s.line, s.segment): encode(s) for r in results for s in r.states}
     assert newest == {
-        sid: encode(one_by_one.tracker.segment_state(track))
-        for sid, track in one_by_one.tracker.tracks.items()
+        sid: encode(one_by_one.tracker.segment_state(hist))
+        for sid, hist in one_by_one.tracker.histories.items()
     }
     assert batched.store.count_events() == one_by_one.store.count_events()
     for node in (one_by_one, batched):
@@ -442,7 +445,7 @@ def test_events_on_segments_the_network_lacks_are_refused_and_hold_nothing(tmp_p
     ((key, reason, _),) = result.rejected
     assert key == keyed(unknown)[0]
     assert reason == "TrcRecord: segment L1/s9 is not in the network demo.geojson"
-    assert set(node.tracker.tracks) == {("L1", "s1")} and node.store.count_events() == 1
+    assert set(node.tracker.histories) == {("L1", "s1")} and node.store.count_events() == 1
     node.store.close()
 
 
@@ -464,7 +467,7 @@ def keyed(msg) -> tuple[str, bytes]:
 
 def test_no_onboard_data_means_equal_weights():
     tracker, states = run([*MODELS, trc(0.0), tamping(30.0)])
-    state = tracker.tracks[("L1", "s1")].state
+    state = tracker.histories[("L1", "s1")].state
     np.testing.assert_array_equal(state.log_w, np.zeros(NS))
     np.testing.assert_array_equal(state_weights(state), np.full(NS, 1 / NS))
     equal = summarize(state.z, state.P, LIMITS.for_line("L1"))  # the paper's 1 / Ns
@@ -473,17 +476,17 @@ def test_no_onboard_data_means_equal_weights():
     np.testing.assert_allclose(states[-1].p_exceed.array(), equal.p_exceed, atol=1e-14)
     # a tamping that starts a segment starts it with equal weights too
     tracker, _ = run([*MODELS, index(1.0, 2.0, 2.0), tamping(3.0)])
-    np.testing.assert_array_equal(tracker.tracks[("L1", "s1")].state.log_w, 0.0)
+    np.testing.assert_array_equal(tracker.histories[("L1", "s1")].state.log_w, 0.0)
 
 
 def test_trc_restart_resets_and_tamping_keeps_the_weights():
     tracker, _ = run([*MODELS, trc(0.0), index(3.0, 2.0, 2.0), index(9.0, 2.6, 2.0)])
-    before = tracker.tracks[("L1", "s1")].state.log_w.copy()
+    before = tracker.histories[("L1", "s1")].state.log_w.copy()
     assert np.ptp(before) > 0
     tracker.step(tamping(10.0))
-    np.testing.assert_array_equal(tracker.tracks[("L1", "s1")].state.log_w, before)
+    np.testing.assert_array_equal(tracker.histories[("L1", "s1")].state.log_w, before)
     tracker.step(trc(20.0))
-    np.testing.assert_array_equal(tracker.tracks[("L1", "s1")].state.log_w, 0.0)
+    np.testing.assert_array_equal(tracker.histories[("L1", "s1")].state.log_w, 0.0)
 
 
 def test_fold_with_weights_is_deterministic_under_late_and_duplicate_events():
@@ -491,8 +494,8 @@ def test_fold_with_weights_is_deterministic_under_late_and_duplicate_events():
     events = history(rng)
     in_order = sorted(events, key=lambda m: getattr(m, "t", getattr(m, "t_start", 0.0)))
     reference, _ = run(MODELS + in_order)
-    for track in reference.tracks.values():
-        assert effective_sample_size(state_weights(track.state)) < NS - 1  # weights in play
+    for hist in reference.histories.values():
+        assert effective_sample_size(state_weights(hist.state)) < NS - 1  # weights in play
     for seed in range(3):
         late = list(events)
         np.random.default_rng(seed).shuffle(late)
@@ -508,9 +511,9 @@ def test_fold_with_weights_is_deterministic_under_late_and_duplicate_events():
 def test_nis_is_weighted_by_the_predictive_weights():
     post = posterior()
     tracker, _ = run([calibration(), post, trc(0.0), index(5.0, 2.0, 2.0), index(9.0, 2.4, 2.0)])
-    first = tracker.tracks[("L1", "s1")].state
+    first = tracker.histories[("L1", "s1")].state
     tracker.step(index(40.0, 2.6, 2.1))
-    state = tracker.tracks[("L1", "s1")].state
+    state = tracker.histories[("L1", "s1")].state
     z = first.z + post.mu.array() * 31.0
     P = first.P + post.sigma.array() * 31.0
     _, _, nis = update(z, P, np.log([2.6, 2.1]), H, B, R)
@@ -526,8 +529,8 @@ def test_store_rebuild_restores_the_weights(tmp_path):
     second = PersistentTracker(new_tracker(), Store(db))  # after a SIGKILL: replay the store
     second.rebuild()
     assert_same_states(first.tracker, second.tracker)
-    for track in second.tracker.tracks.values():
-        assert np.ptp(track.state.log_w) > 0
+    for hist in second.tracker.histories.values():
+        assert np.ptp(hist.state.log_w) > 0
     second.store.close()
 
 
@@ -537,7 +540,7 @@ def test_a_trc_record_at_a_tampings_time_wins_whatever_the_order():
     before = [calibration(), post, trc(0.0), index(5.0, 2.0, 2.0)]
     for last_two in ([tamping(10.0), trc(10.0, 4.0, 3.0)], [trc(10.0, 4.0, 3.0), tamping(10.0)]):
         tracker, _ = run([*before, *last_two])
-        state = tracker.tracks[("L1", "s1")].state
+        state = tracker.histories[("L1", "s1")].state
         np.testing.assert_array_equal(state.z, np.broadcast_to(np.log([4.0, 3.0]), (NS, 2)))
         np.testing.assert_array_equal(state.P, 0.0)
         assert state.last_trc_t == T0 + 10 * DAY_S
@@ -545,7 +548,7 @@ def test_a_trc_record_at_a_tampings_time_wins_whatever_the_order():
     tracker, _ = run([*before, trc(10.0, 4.0, 3.0), tamping(10.0), index(12.0, 3.9, 2.9)])
     alone, _ = run([*before, trc(10.0, 4.0, 3.0), index(12.0, 3.9, 2.9)])
     np.testing.assert_array_equal(
-        tracker.tracks[("L1", "s1")].state.z, alone.tracks[("L1", "s1")].state.z
+        tracker.histories[("L1", "s1")].state.z, alone.histories[("L1", "s1")].state.z
     )
 
 
@@ -596,7 +599,7 @@ def test_a_correction_before_the_latest_trc_record_removes_the_report():
     report = tamping(15.0, 25.0)  # placed at day 20, after the record of day 18
     base = [*MODELS, trc(0.0), trc(18.0, 2.5, 2.2), index(22.0, 2.4, 2.2)]
     tracker, _ = run([*base, report])
-    assert report.event_id in {e.identity[1] for e in tracker.tracks[("L1", "s1")].log}
+    assert report.event_id in {e.identity[1] for e in tracker.histories[("L1", "s1")].log}
     step = tracker.step(correction(report, 16.0))
     assert step.accepted
     without, _ = run(base)
@@ -617,7 +620,7 @@ def test_an_interval_only_tamping_sits_at_the_middle_of_the_reported_interval():
     a, _ = run([*base, interval, *after])
     b, _ = run([*base, known, *after])
     assert_same_states(a, b)
-    assert [e.t_s for e in a.tracks[("L1", "s1")].log if e.identity[0] == "maintenance"] == [
+    assert [e.t_s for e in a.histories[("L1", "s1")].log if e.identity[0] == "maintenance"] == [
         T0 + 12 * DAY_S  # not the middle of the filter interval (11, 25]: day 18
     ]
 
@@ -658,7 +661,7 @@ def test_an_unreported_tamping_is_detected_and_the_segment_restarts_there():
     # the state is the one a reported tamping at the detected interval gives
     reported = replace_msg(detected, event_id="m1", detected=False)
     with_report, _ = run([*MODELS, record, *passes[:50], reported, *passes[50:]])
-    a, b = tracker.tracks[("L1", "s1")].state, with_report.tracks[("L1", "s1")].state
+    a, b = tracker.histories[("L1", "s1")].state, with_report.histories[("L1", "s1")].state
     for name in ("z", "P", "log_w"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     # and it does not raise a second time
@@ -686,7 +689,7 @@ def test_a_reported_tamping_supersedes_a_detected_one_whatever_the_order(tmp_pat
     passes = onboard_days(rng, np.arange(1, 70), Z_WORN, MU, t_tamp=50.3, z_plus=Z_PLUS)
     report = tamping(50.0, 51.0)  # a maintenance record arriving late (interval: mid 50.5)
     truth, _ = run([*MODELS, record, report, *passes])  # the report first: nothing detected
-    assert not any(e.message.detected for e in truth.tracks[("L1", "s1")].log if e.kind == 0)
+    assert not any(e.message.detected for e in truth.histories[("L1", "s1")].log if e.kind == 0)
     db = tmp_path / "f.sqlite"
     node = PersistentTracker(new_tracker(), Store(db))
     detected = []
@@ -726,7 +729,7 @@ def test_an_index_is_read_with_its_units_model_else_the_fleets():
     passes = [index(d, 2.0 + 0.01 * d, 1.9, train="T2") for d in (3.0, 9.0, 15.0)]
     with_unit, _ = run([calibration(), own, posterior(), trc(0.0), *passes])
     as_fleet, _ = run([fleet_like_own, posterior(), trc(0.0), *passes])
-    a, b = with_unit.tracks[("L1", "s1")].state, as_fleet.tracks[("L1", "s1")].state
+    a, b = with_unit.histories[("L1", "s1")].state, as_fleet.histories[("L1", "s1")].state
     for name in ("z", "P", "log_w"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     # T1 has no model of its own: its index is read with the fleet's
