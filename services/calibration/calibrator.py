@@ -12,9 +12,10 @@ Use::
 
 The rules live in modules of their own, each with its docstring: :mod:`.pairing` (which
 record an index pairs with), :mod:`.refit` (the observation model's refit, the swap rule,
-outlying pairs), :mod:`.groups` (posterior groups), :mod:`.initial` (initial models),
-:mod:`.moves` (how far a model moved); :mod:`.state` holds what a store persists. This
-module keeps the state, the bookkeeping of events and pairs, and the publication rule.
+outlying pairs), :mod:`.units` (per-unit models), :mod:`.groups` (posterior groups),
+:mod:`.initial` (initial models), :mod:`.moves` (how far a model moved); :mod:`.state` holds
+what a store persists. This module keeps the state, the bookkeeping of events and pairs, and
+the publication rule.
 
 Publication rule (issue 12: model updates without storms)
     Every new version makes the filtering service re-run the segments it applies to, so an
@@ -94,11 +95,7 @@ from services.calibration.moves import Move, calibration_change, posterior_chang
 from services.calibration.pairing import ln_mm, match_record, oldest_waiting
 from services.calibration.posterior import SegmentIncrements, history_to_increments
 from services.calibration.refit import outlying_pairs, worse
-from services.calibration.regression import (
-    CalibrationError,
-    fit_observation,
-    fit_unit_observation,
-)
+from services.calibration.regression import CalibrationError, fit_observation
 from services.calibration.robust import Rules, check_model, raw_pieces, reference, screen_segment
 from services.calibration.state import (
     CALIBRATION_KEY,
@@ -115,6 +112,7 @@ from services.calibration.state import (
     trc_id,
     unit_key,
 )
+from services.calibration.units import pair_design, unit_calibration, units_due
 
 log = logging.getLogger(__name__)
 
@@ -593,55 +591,24 @@ class Calibrator:
         return cal
 
     def _maybe_fit_units(self) -> None:
-        """Each unit's own model (:func:`fit_unit_observation`), shrunk towards the fleet's
-        model in force or held, once the unit has ``unit_min_pairs`` pairs and again every
-        ``refit_every`` more; held and published by the same rule as the fleet's. A unit's
-        pairs include those quarantined from the fleet's fit: a unit that reads the track
-        differently from the fleet is what its own model is for."""
+        """Each unit's own model when it is due (:mod:`.units`), held and published by the
+        same rule as the fleet's."""
         cfg = self.config
         fleet = self._current(CALIBRATION_KEY)
         pairs = self._pairs + self._quarantined
         if not cfg.unit_models or fleet is None or not pairs:
             return
-        by_unit: dict[tuple[str, str], list[Pair]] = {}
-        for p in pairs:
-            by_unit.setdefault(p.unit, []).append(p)
-        due = {
-            u: ps
-            for u, ps in by_unit.items()
-            if len(ps) >= cfg.unit_min_pairs
-            and (u not in self._unit_fit_at or len(ps) - self._unit_fit_at[u] >= cfg.refit_every)
-        }
+        due = units_due(pairs, self._unit_fit_at, cfg)
         if not due:
             return
-        X = np.hstack([np.array([p.z for p in pairs]), np.ones((len(pairs), 1))])
-        design = X.T @ X / len(X)
+        design = pair_design(pairs)
         base: Calibration = fleet.message  # type: ignore[assignment]
         for (train, unit), ps in sorted(due.items()):
             self._unit_fit_at[(train, unit)] = len(ps)
+            key = unit_key(train, unit)
             try:
-                fit = fit_unit_observation(
-                    np.array([p.z for p in ps]),
-                    np.array([p.y for p in ps]),
-                    H0=base.H.array(),
-                    b0=base.b.array(),
-                    R0=base.R.array(),
-                    design=design,
-                    shrink_pairs=cfg.unit_shrink_pairs,
-                )
-                key = unit_key(train, unit)
-                cal = Calibration(
-                    version=self._next_version(key),
-                    t=max(p.t for p in ps),
-                    indicators=list(INDICATORS),
-                    indices=list(ONBOARD_INDICES),
-                    H=NDArray.of(fit.H),
-                    b=NDArray.of(fit.b),
-                    R=NDArray.of(fit.R),
-                    n_pairs=len(ps),
-                    r2=NDArray.of(fit.r2),
-                    train=train,
-                    unit=unit,
+                fit, cal = unit_calibration(
+                    train, unit, ps, base, design, self._next_version(key), cfg
                 )
             except (CalibrationError, SchemaError, ValueError) as e:
                 self.stats["unit_fit_errors"] += 1
