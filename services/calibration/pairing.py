@@ -1,4 +1,7 @@
-r"""Which TRC record an on-board index pairs with. Pure.
+r"""Which TRC record an on-board index pairs with, and how long an unpaired one waits. Pure.
+
+The waiting indices and the pairs themselves are kept by
+:class:`~services.calibration.calibrator.Calibrator`; the rules are these.
 
 Pairing
     An on-board index and a TRC record of the same (line, segment) pair up
