@@ -348,3 +348,17 @@ def test_messages_on_segments_the_map_lacks_are_refused(recording):
             with pytest.raises(SchemaError, match="L1/s99999 is not in the viewer's network"):
                 on_state(sample)  # type: ignore[arg-type]
     assert len(adapter.inbox.take(timeout=0)) == 1
+
+
+@pytest.mark.parametrize("text", ["L1", "L1/", "/s1", "L1/s1/x", "L 1/s1", "L1/s*"])
+def test_viewer_select_refuses_what_is_not_line_slash_segment(text):
+    from services.viewer.service import parse_segment
+
+    with pytest.raises(ValueError):
+        parse_segment(text)
+
+
+def test_viewer_select_takes_line_slash_segment():
+    from services.viewer.service import parse_segment
+
+    assert parse_segment("L1/s00042") == ("L1", "s00042")
