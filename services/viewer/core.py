@@ -144,8 +144,10 @@ def select_worst_sticky(
     margin: float,
 ) -> list[SegmentKey]:
     """Like :func:`select_worst`, but a segment already ``shown`` keeps its place unless
-    one not shown has a probability more than ``margin`` above it: near-ties (many segments
-    close to p = 1) do not swap the plots back and forth. Highest first."""
+    one not shown has a probability more than ``min(margin, p / 2)`` above its ``p``:
+    near-ties (many segments close to p = 1) do not swap the plots back and forth, while a
+    plotted segment whose p fell (tamped: p = 0) gives way to any worse one. Highest
+    first."""
     best = select_worst(p_exceed, n)
     kept = [key for key in shown if key in p_exceed][:n]
     for candidate in best:
@@ -155,7 +157,8 @@ def select_worst_sticky(
             kept.append(candidate)
             continue
         weakest = min(kept, key=lambda key: (p_exceed[key], key))
-        if p_exceed[candidate] > p_exceed[weakest] + margin:
+        p_weakest = p_exceed[weakest]
+        if p_exceed[candidate] > p_weakest + min(margin, p_weakest / 2):
             kept[kept.index(weakest)] = candidate
     return sorted(kept, key=lambda key: (-p_exceed[key], key))
 

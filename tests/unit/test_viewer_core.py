@@ -106,7 +106,7 @@ def test_slots_keep_their_segment_and_a_new_one_gets_a_new_generation(recording)
     core.take([make_state(T0, segment="s2", p_exceed=p_top6(1, 0.2))])
     core.flush(0.5)  # a slot can be filled: at once, not after plot_flush_s
     assert core.shown()["worst/2"] == ("L1", "s2") and core.generations == 2
-    core.take([make_state(T0 + DAY_S, segment="s3", p_exceed=p_top6(1, 0.4))])  # +0.2: sticky
+    core.take([make_state(T0 + DAY_S, segment="s3", p_exceed=p_top6(1, 0.28))])  # < 0.2 + 0.1
     core.flush(10.0)
     assert set(core.shown().values()) == {("L1", "s1"), ("L1", "s2"), None}
     core.take([make_state(T0 + DAY_S, segment="s3", p_exceed=p_top6(1, 0.9))])  # > 0.2 + 0.25
@@ -321,6 +321,17 @@ def test_select_worst_sticky_keeps_plotted_segments_through_near_ties():
     assert select_worst_sticky(p, 2, shown, margin=0.05) == [("L1", "c"), ("L1", "a")]
     assert select_worst_sticky(p, 3, [], margin=0.05) == select_worst(p, 3)
     assert select_worst_sticky(p, 1, [("L9", "gone")], margin=0.05) == [("L1", "c")]
+    # a plotted segment that was tamped (p = 0) gives way to any worse one
+    tamped = {("L1", "a"): 0.0, ("L1", "b"): 0.9, ("L1", "d"): 0.1}
+    assert select_worst_sticky(tamped, 2, [("L1", "a"), ("L1", "b")], margin=0.25) == [
+        ("L1", "b"),
+        ("L1", "d"),
+    ]
+    # and one at p = 0.3 to one above 0.45 only
+    lower = {("L1", "a"): 0.3, ("L1", "d"): 0.44}
+    assert select_worst_sticky(lower, 1, [("L1", "a")], margin=0.25) == [("L1", "a")]
+    lower[("L1", "d")] = 0.46
+    assert select_worst_sticky(lower, 1, [("L1", "a")], margin=0.25) == [("L1", "d")]
 
 
 def test_messages_on_segments_the_map_lacks_are_refused(recording):
