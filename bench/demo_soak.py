@@ -233,9 +233,12 @@ def open_viewer(health: dict | None, out: Path, minute: float) -> dict:
     url = (health or {}).get("viewer_url", "")
     if not url:
         return {"minute": round(minute, 2), "error": "no viewer URL in health.json"}
-    picture = first_picture(url, out / f"browser-{minute:.0f}", wanted=("green",), timeout_s=120)
+    picture = first_picture(
+        url, out / f"browser-{minute:.0f}", wanted=("green", "blue", "limit"), timeout_s=120
+    )
     return {"minute": round(minute, 2), "started_s": picture.started_s,
-            "map_s": picture.drawn_s, "missing": picture.missing}  # fmt: skip
+            "map_s": picture.seen_s.get("green"), "plots_s": picture.drawn_s,
+            "missing": picture.missing}  # fmt: skip
 
 
 def summarize(args, out, flows, samples, answers, pictures, not_alive, restarts, up) -> dict:
@@ -265,6 +268,9 @@ def summarize(args, out, flows, samples, answers, pictures, not_alive, restarts,
     if pictures:
         checks[f"coloured map within {FIRST_PICTURE_LIMIT_S:.0f} s"] = all(
             p.get("map_s") is not None and p["map_s"] <= FIRST_PICTURE_LIMIT_S for p in pictures
+        )
+        checks[f"plots with estimates and limits within {FIRST_PICTURE_LIMIT_S:.0f} s"] = all(
+            p.get("plots_s") is not None and p["plots_s"] <= FIRST_PICTURE_LIMIT_S for p in pictures
         )
     return {
         "minutes": args.minutes,

@@ -4,8 +4,8 @@ Runs ``trackfusion up`` on a copy of ``services/defaults/stack.json5`` with its 
 namespace, state directory and viewer ports (so it runs beside another stack), samples the
 viewer's VmRSS every ``--sample`` seconds, and at each ``--open`` minute opens the web
 viewer in a fresh headless Chromium (``tests/browser.py``) and times the first screenshot
-with the coloured map (green strips: grey before the first states) and with the plots'
-estimate lines (blue).
+with the coloured map (green strips: grey before the first states), with the plots'
+estimate lines (blue) and with their intervention limits (red).
 
     python -m bench.viewer_soak --minutes 11 --open 5,10 --out /tmp/viewer-soak
 """
@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
                 picture = first_picture(
                     url,
                     out / f"browser-{minute:g}",
-                    wanted=("green", "blue"),
+                    wanted=("green", "blue", "limit"),
                     timeout_s=args.browser_timeout,
                 )
                 if picture.png:
@@ -100,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
                         "started_s": picture.started_s,
                         "map_s": picture.seen_s.get("green"),  # coloured (grey before)
                         "plots_s": picture.seen_s.get("blue"),
+                        "limits_s": picture.seen_s.get("limit"),  # intervention limit (red)
                         "all_s": picture.drawn_s,
                         "missing": picture.missing,
                         "pixels": hue_pixels(picture.png) if picture.png else {},
