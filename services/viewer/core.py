@@ -12,9 +12,10 @@ One blueprint, sent once at start: a browser that connects late replays every bl
 ever sent (about 0.8 s each on a software renderer), so the layout never changes. Its plot
 rows are fixed **slots** (``worst/1`` … ``worst/N``, ``selected``) that the core fills: each
 time a slot shows another segment, the segment's kept history goes to a new **generation**
-of entities under the slot (``{slot}/{ind}/g{n}/…``) and the previous generation is hidden
-by a static ``visible_series = false`` (a time series plot draws every row in its window
-whatever Clear says, so one entity cannot be re-used for another segment).
+of entities under the slot (``{slot}/{ind}/g{n}/…``, every row carrying its series style)
+and the previous generation is hidden by a static ``visible_series = false`` (a time series
+plot draws every row in its window whatever Clear says, so one entity cannot be re-used for
+another segment).
 
 Volume: the core keeps, per segment and event-day, the newest state and on-board index
 (:data:`HISTORY_DAYS` days) and every TRC record, compactly; it writes the slots' new rows
@@ -193,16 +194,44 @@ def state_series(levels: Sequence[str]) -> list[str]:
 def state_style(levels: Sequence[str], prefix: str = "") -> rr.SeriesLines:
     """One line style per instance of a ``…/state`` row (see :func:`state_series`), the
     names prefixed with ``prefix`` (the segment, shown when hovering a line)."""
-    colors = [(80, 160, 255), _BAND_RGBA, _BAND_RGBA]
-    colors += [_LIMIT_RGB.get(level, (200, 200, 200)) for level in levels]
-    widths = [2.0, 1.0, 1.0, *([1.5] * len(levels))]
-    names = [f"{prefix}{name}" for name in state_series(levels)]
+    colors, widths, names = _state_style_lists(levels, prefix)
     return rr.SeriesLines(colors=colors, widths=widths, names=names)
+
+
+def _state_style_lists(
+    levels: Sequence[str], prefix: str
+) -> tuple[list[tuple[int, ...]], list[float], list[str]]:
+    colors = [(80, 160, 255, 255), _BAND_RGBA, _BAND_RGBA]
+    colors += [(*_LIMIT_RGB.get(level, (200, 200, 200)), 255) for level in levels]
+    widths = [2.0, 1.0, 1.0, *([1.5] * len(levels))]
+    return colors, widths, [f"{prefix}{name}" for name in state_series(levels)]
 
 
 def point_style(kind: str, prefix: str = "") -> rr.SeriesPoints:
     """The style of an ``onboard`` or ``trc`` entity."""
     return rr.SeriesPoints(**_POINT_STYLE[kind], names=f"{prefix}{_POINT_NAMES[kind]}")
+
+
+def _style_columns(kind: str, levels: Sequence[str], prefix: str, rows: int) -> list[object]:
+    """:func:`state_style` or :func:`point_style` as columns repeated on ``rows`` rows (a plot
+    takes a row's style from that row: a style on the first row only would fall out of the
+    plot's window once that row is older than the window)."""
+    if kind == "state":
+        colors, widths, names = _state_style_lists(levels, prefix)
+        return list(
+            rr.SeriesLines.columns(
+                colors=colors * rows, widths=widths * rows, names=names * rows
+            ).partition([len(names)] * rows)
+        )
+    spec = _POINT_STYLE[kind]
+    return list(
+        rr.SeriesPoints.columns(
+            colors=[spec["colors"]] * rows,
+            markers=[spec["markers"]] * rows,
+            marker_sizes=[spec["marker_sizes"]] * rows,
+            names=[f"{prefix}{_POINT_NAMES[kind]}"] * rows,
+        )
+    )
 
 
 def slot_names(worst_n: int) -> list[str]:
@@ -762,26 +791,24 @@ class ViewerCore:
                 values = np.stack([row[2] for row in same])  # (rows, indicators[, series])
                 for i, indicator in enumerate(INDICATORS):
                     path = slot.path(indicator, kind)
-                    if slot.styled.get(path) != levels:
-                        style = (
-                            state_style(levels, prefix)
-                            if kind == "state"
-                            else point_style(kind, prefix)
-                        )
-                        self.rec.log(path, style, static=True)
-                        slot.styled[path] = levels
+                    slot.styled[path] = levels
                     column = values[:, i]
                     keep = ~np.isnan(column).all(axis=-1) if column.ndim > 1 else ~np.isnan(column)
                     if keep.any():
-                        self._send(path, t[keep], column[keep])
+                        style = _style_columns(kind, levels, prefix, int(keep.sum()))
+                        self._send(path, t[keep], column[keep], style)
 
-    def _send(self, path: str, t: np.ndarray, values: np.ndarray) -> None:
-        """Rows of scalars at event times ``t``: one chunk (``values`` is (rows,) or
-        (rows, instances))."""
+    def _send(
+        self, path: str, t: np.ndarray, values: np.ndarray, style: Iterable[object] = ()
+    ) -> None:
+        """Rows of scalars at event times ``t`` with their style on every row: one chunk
+        (``values`` is (rows,) or (rows, instances)). The style goes with the rows, not as
+        static data: the server keeps every static message for every browser that connects
+        later, and a slot gets new entities each time it shows another segment."""
         self.rec.send_columns(
             path,
             indexes=[rr.TimeColumn(TIMELINE, timestamp=t)],
-            columns=rr.Scalars.columns(scalars=values.astype(float)),
+            columns=[*rr.Scalars.columns(scalars=values.astype(float)), *style],
         )
         self.rows_written += len(t)
 

@@ -237,9 +237,10 @@ def test_core_writes_series_map_trains_and_alerts(recording):
     contents = rrd_contents(path)
     base = "worst/1/{}/g1"
     for indicator in ("top6", "align10"):
-        # estimate, band, limits: one row per state (days 0, 1, 2 and 4), one static style
+        # estimate, band, limits: one row per state (days 0, 1, 2 and 4), each with its style
+        # (not static: the server would keep every generation's for each late browser)
         assert contents[f"{base.format(indicator)}/state"]["Scalars:scalars"] == 4
-        assert contents[f"{base.format(indicator)}/state"]["SeriesLines:colors"] == 1
+        assert contents[f"{base.format(indicator)}/state"]["SeriesLines:colors"] == 4
         for series in ("onboard", "trc"):
             assert contents[f"{base.format(indicator)}/{series}"]["Scalars:scalars"] == 1
             assert contents[f"{base.format(indicator)}/{series}"]["SeriesPoints:markers"] == 1
