@@ -385,11 +385,11 @@ class ServiceRuntime:
 
     def declare_queryable(self, key: str, handler: Any = None, **kwargs: Any) -> zenoh.Queryable:
         """A queryable; a callback handler may reply directly (keep it short)."""
-        return self.track(self.session.declare_queryable(key, handler, **kwargs))
+        return self.undeclare_at_close(self.session.declare_queryable(key, handler, **kwargs))
 
     def declare_publisher(self, key: str, **kwargs: Any) -> zenoh.Publisher:
         """A long-lived publisher (do not declare one per changing key, see zenoh#1518)."""
-        return self.track(self.session.declare_publisher(key, **kwargs))
+        return self.undeclare_at_close(self.session.declare_publisher(key, **kwargs))
 
     def reliable_publisher(self, cache_samples: int | None = None) -> ReliablePublisher:
         """``put(key, payload)`` with a per-key cache for late and returning subscribers
@@ -398,9 +398,9 @@ class ServiceRuntime:
         settings = self.delivery
         if cache_samples is not None:
             settings = dataclasses.replace(settings, cache_samples=cache_samples)
-        return self.track(ReliablePublisher(self.session, settings))
+        return self.undeclare_at_close(ReliablePublisher(self.session, settings))
 
-    def track(self, entity: _U) -> _U:
+    def undeclare_at_close(self, entity: _U) -> _U:
         """Undeclare ``entity`` at close (advanced subscribers, matching listeners, …)."""
         self._declared.append(entity)
         return entity

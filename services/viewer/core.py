@@ -63,6 +63,7 @@ import rerun.blueprint as rrb
 from rerun.encodings import TimeRange
 
 from schemas import (
+    DAY_S,
     INDICATORS,
     Alert,
     GpsFix,
@@ -73,6 +74,7 @@ from schemas import (
     TrcRecord,
     ViewerSelect,
 )
+from schemas.keys import SegmentId
 from simulators.network import Network
 
 TIMELINE = "event_time"  # timestamp timeline of the messages' event time t (epoch s)
@@ -81,7 +83,6 @@ RANKING_PATH = "worst/ranking"
 HEALTH_PATH = "health"
 SELECTED = "selected"
 INTERVENTION = "intervention"  # the limit level the map colour and the worst ranking use
-DAY_S = 86_400.0
 DEFAULT_WORST_N = 3
 WORST_MARGIN = 0.25  # a segment replaces a plotted one if its p is higher by more than this
 DEFAULT_PLOT_FLUSH_S = 30.0  # wall seconds between two writes of the slots' rows
@@ -95,7 +96,6 @@ _STOPS_P = np.array([0.0, 0.5, 1.0])
 _STOPS_RGB = np.array([(40, 170, 60), (240, 200, 30), (220, 40, 40)], dtype=float)  # green→red
 LEGEND_P = (0.0, 0.25, 0.5, 0.75, 1.0)
 
-SegmentKey = tuple[str, str]  # (line, segment)
 
 _BAND_RGBA = (80, 160, 255, 110)
 _POINT_STYLE = {
@@ -133,17 +133,17 @@ def segment_exceedance(state: SegmentState) -> float:
     return float(p[row].max())
 
 
-def select_worst(p_exceed: Mapping[SegmentKey, float], n: int) -> list[SegmentKey]:
+def select_worst(p_exceed: Mapping[SegmentId, float], n: int) -> list[SegmentId]:
     """The ``n`` segments with the highest probability, highest first; ties by (line, segment)."""
     return [key for _, key in heapq.nsmallest(n, ((-p, key) for key, p in p_exceed.items()))]
 
 
 def select_worst_sticky(
-    p_exceed: Mapping[SegmentKey, float],
+    p_exceed: Mapping[SegmentId, float],
     n: int,
-    shown: Sequence[SegmentKey],
+    shown: Sequence[SegmentId],
     margin: float,
-) -> list[SegmentKey]:
+) -> list[SegmentId]:
     """Like :func:`select_worst`, but a segment already ``shown`` keeps its place unless
     one not shown has a probability more than ``min(margin, p / 2)`` above its ``p``:
     near-ties (many segments close to p = 1) do not swap the plots back and forth, while a
@@ -338,8 +338,8 @@ def health_markdown(
 
 @dataclass
 class _Map:
-    keys: list[SegmentKey]  # strip order: the network's lines, each in chainage order
-    index: dict[SegmentKey, int]  # segment -> strip
+    keys: list[SegmentId]  # strip order: the network's lines, each in chainage order
+    index: dict[SegmentId, int]  # segment -> strip
     colors: np.ndarray  # (k, 3) uint8, the current colours
     changed_t: float | None = None  # newest event time of a colour change not yet logged
 
@@ -407,7 +407,7 @@ class _Slot:
     that holds that segment's rows."""
 
     name: str  # "worst/1" … or "selected"
-    key: SegmentKey | None = None
+    key: SegmentId | None = None
     generation: int = 0
     written: dict[str, float] = field(default_factory=dict)  # kind -> newest t written
     styled: dict[str, tuple[str, ...]] = field(default_factory=dict)  # entity -> levels
@@ -454,16 +454,16 @@ class ViewerCore:
         self.worst_n = worst_n
         self.plot_flush_s = plot_flush_s
         self.live_flush_s = live_flush_s
-        self.p_exceed: dict[SegmentKey, float] = {}
+        self.p_exceed: dict[SegmentId, float] = {}
         self.handled = 0  # messages taken (GPS fixes without a fix included)
         self.rows_written = 0  # rows of the plots' entities written
         self.blueprints_sent = 0
         self.generations = 0  # plot generations started (a slot showing another segment)
-        self._newest_t: dict[SegmentKey, float] = {}
+        self._newest_t: dict[SegmentId, float] = {}
         self._newest_event_t: float | None = None
-        self._history: dict[SegmentKey, _History] = {}
+        self._history: dict[SegmentId, _History] = {}
         self._slots = [_Slot(name) for name in slot_names(worst_n)]
-        self._selected: SegmentKey | None = None
+        self._selected: SegmentId | None = None
         self._map: _Map | None = None
         self._map_start_t: float | None = None  # first state's event time on the map
         self._map_started = False
@@ -664,7 +664,7 @@ class ViewerCore:
         self.flush(0.0 if now is None else now, force=now is None)
         return n
 
-    def _history_of(self, key: SegmentKey) -> _History:
+    def _history_of(self, key: SegmentId) -> _History:
         history = self._history.get(key)
         if history is None:
             history = self._history[key] = _History()
@@ -728,12 +728,12 @@ class ViewerCore:
 
     # --- plots ---------------------------------------------------------------------------
 
-    def worst(self) -> list[SegmentKey]:
+    def worst(self) -> list[SegmentId]:
         """The segments to plot: :func:`select_worst_sticky` around the plotted ones."""
         shown = [slot.key for slot in self._slots[: self.worst_n] if slot.key is not None]
         return select_worst_sticky(self.p_exceed, self.worst_n, shown, WORST_MARGIN)
 
-    def shown(self) -> dict[str, SegmentKey | None]:
+    def shown(self) -> dict[str, SegmentId | None]:
         """Slot → the segment it shows."""
         return {slot.name: slot.key for slot in self._slots}
 
@@ -756,7 +756,7 @@ class ViewerCore:
                 self._write_slot(slot)
         self._log_ranking()
 
-    def _show(self, slot: _Slot, key: SegmentKey | None) -> None:
+    def _show(self, slot: _Slot, key: SegmentId | None) -> None:
         """Let ``slot`` show ``key``: hide the current generation, start a new one."""
         if slot.key == key:
             return

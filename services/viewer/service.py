@@ -253,7 +253,7 @@ class ViewerAdapter:
                 self._decoder(kind, message_type),
                 capacity=SUBSCRIPTION_CAPACITY,
             )
-        self.rt.track(
+        self.rt.undeclare_at_close(
             self.rt.session.liveliness().declare_subscriber(
                 keys.alive_all(ns), self._on_alive, history=True
             )

@@ -30,7 +30,7 @@ import pytest
 import zenoh
 from browser import CHROMIUM, first_picture, hue_pixels
 
-from schemas import Alert, GpsFix, StackHealth, decode, encode, keys
+from schemas import DAY_S, Alert, GpsFix, StackHealth, decode, encode, keys
 from services.alerting.testing import T0, make_state, p_top6
 from services.runtime.config import zenoh_config
 from services.viewer import service as viewer
@@ -38,9 +38,8 @@ from simulators.network import DEMO_NETWORK, demo_network
 
 TIMEOUT_S = 5.0
 # Upper bounds only (each loop ends as soon as its condition holds). SwiftShader renders on
-# the CPU: with three busy processes beside the suite, 30 s to draw was once not enough.
+# the CPU: with three busy processes beside the suite, 30 s to draw is not always enough.
 DRAW_S = 120.0  # navigation → Wasm download, compile, first frame → the map drawn
-DAY_S = 86_400.0
 # `make run` (15,000x, 4 service trains per line and day) publishes about 65,000 on-board
 # indices in 5 minutes (52 simulated days; filtering's coalesced states: about half that).
 # The world here runs 3x faster.

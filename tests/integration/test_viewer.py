@@ -12,6 +12,7 @@ from pathlib import Path
 import zenoh
 
 from schemas import (
+    DAY_S,
     Alert,
     DeadLetter,
     GpsFix,
@@ -30,7 +31,6 @@ from simulators.network import DEMO_NETWORK, demo_network
 
 PUT = zenoh.SampleKind.PUT
 TIMEOUT_S = 5.0
-DAY_S = 86_400.0
 
 
 class Logged:

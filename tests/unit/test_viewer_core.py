@@ -12,7 +12,16 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from schemas import Alert, GpsFix, OnboardIndex, ServiceHealth, StackHealth, TrcRecord, ViewerSelect
+from schemas import (
+    DAY_S,
+    Alert,
+    GpsFix,
+    OnboardIndex,
+    ServiceHealth,
+    StackHealth,
+    TrcRecord,
+    ViewerSelect,
+)
 from services.alerting.testing import T0, make_state, p_top6
 from services.viewer.core import (
     UNKNOWN_RGB,
@@ -26,8 +35,6 @@ from services.viewer.core import (
 )
 from services.viewer.testing import rrd_contents, verify_rrd
 from simulators.network import demo_network
-
-DAY_S = 86_400.0
 
 
 @pytest.mark.parametrize(
