@@ -230,6 +230,15 @@ class MaintenanceEvent(Message, frozen=True, kw_only=True):
         check_int("revision", self.revision)
         check(self.t_end >= self.t_start, f"t_end: {self.t_end} before t_start {self.t_start}")
 
+    @property
+    def rank(self) -> tuple[int, float, float, float]:
+        """Which of two reports of one ``event_id`` holds: the higher rank. A higher
+        ``revision`` first (an explicit correction), then the narrower interval (a known time
+        is an interval of width 0, so it replaces an interval-only report), then the later
+        ``(t_start, t_end)``. Equal ranks are the same report; the one held therefore does
+        not depend on which arrived first."""
+        return (self.revision, -(self.t_end - self.t_start), self.t_start, self.t_end)
+
 
 class Calibration(Message, frozen=True, kw_only=True):
     """Observation model y = H z + b + e, e ~ N(0, R) (paper Eq. 3-6) with diagnostics."""

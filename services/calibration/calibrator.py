@@ -168,7 +168,10 @@ class Calibrator:
         for rec in state.trc:
             self._add_trc(rec)
         for ev in state.maintenance:
-            self._maint.setdefault((ev.line, ev.segment), {})[maintenance_id(ev)] = ev
+            known = self._maint.setdefault((ev.line, ev.segment), {})
+            held = known.get(maintenance_id(ev))
+            if held is None or ev.rank > held.rank:
+                known[maintenance_id(ev)] = ev
         for idx in state.pending:
             self._pending.setdefault((idx.line, idx.segment), {})[index_id(idx)] = idx
         for pair in state.pairs:
@@ -414,9 +417,11 @@ class Calibrator:
         seg = (ev.line, ev.segment)
         mid = maintenance_id(ev)
         known = self._maint.setdefault(seg, {})
-        if mid in known:
+        if mid in known and ev.rank <= known[mid].rank:
             self.stats["maintenance_duplicates"] += 1
             return False
+        if mid in known:  # a correction (MaintenanceEvent.rank): it replaces the report
+            self.stats["maintenance_corrections"] += 1
         known[mid] = ev
         self._changes.maintenance.append(ev)
         self.stats["maintenance"] += 1

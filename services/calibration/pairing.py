@@ -20,7 +20,9 @@ Pairing
     keys, and a replay or an import of a year of records arrives in any interleaving.
     Duplicates (same identity: TRC ``(line, segment, run_id)``, index
     ``(line, segment, train, unit, t)``, tamping ``(line, segment, event_id)``) are ignored,
-    as is a second TRC record of a segment at the same instant. A pair's time is the index's.
+    as is a second TRC record of a segment at the same instant, except that a tamping report
+    that outranks the one held (``MaintenanceEvent.rank``: a correction) replaces it, as in
+    filtering, whatever the order. A pair's time is the index's.
 
 """
 

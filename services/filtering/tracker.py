@@ -12,7 +12,7 @@ change it:
   record, ``event_id`` for a tamping and ``(train, unit, t)`` for an on-board index. A second
   event with an identity already in the log is a duplicate and is ignored, except that a
   tamping report replaces the one held under its ``event_id`` when it ranks higher
-  (:func:`report_rank`: higher ``revision``, then the narrower interval, then the later
+  (``MaintenanceEvent.rank``: higher ``revision``, then the narrower interval, then the later
   time), so that a correction wins whatever the order of arrival.
 - **Log window**: every event at or after the segment's latest TRC record (every event while
   there is none). A TRC record drops the events before it; an event older than the latest
@@ -148,17 +148,6 @@ def tamping_time(msg: MaintenanceEvent) -> float:
     if msg.t_start == msg.t_end:
         return msg.t_start
     return 0.5 * (msg.t_start + msg.t_end)
-
-
-def report_rank(msg: MaintenanceEvent) -> tuple[int, float, float, float]:
-    """Which of two reports of one ``event_id`` holds: the higher rank.
-
-    A higher ``revision`` first (an explicit correction), then the narrower interval (a
-    known time is an interval of width 0, so it replaces an interval-only report), then the
-    later ``(t_start, t_end)``. Equal ranks are the same report. The rank depends only on
-    the reports, so the one held does not depend on which arrived first.
-    """
-    return (msg.revision, -(msg.t_end - msg.t_start), msg.t_start, msg.t_end)
 
 
 def event_of(msg: EventMessage) -> Event:
@@ -690,7 +679,7 @@ def replay(hist: SegmentHistory, models: Models) -> SegmentHistory:
 def add_event(hist: SegmentHistory, event: Event) -> tuple[SegmentHistory, str]:
     """Insert ``event`` into the log (state untouched): ``(hist, "")`` or ``(hist, reason)``.
 
-    A tamping report that outranks the one held under its ``event_id`` (:func:`report_rank`)
+    A tamping report that outranks the one held under its ``event_id`` (``MaintenanceEvent.rank``)
     replaces it, and is accepted even when its time is now before the latest TRC record:
     the held report then leaves the log (the TRC record already measured the tamping).
     """
@@ -706,7 +695,7 @@ def add_event(hist: SegmentHistory, event: Event) -> tuple[SegmentHistory, str]:
         else:  # a reported tamping replaces the detected ones near it
             log = tuple(e for e in log if not (e in near and e.message.detected))
     if held is not None:
-        if event.kind != TAMPING or report_rank(event.message) <= report_rank(held.message):
+        if event.kind != TAMPING or event.message.rank <= held.message.rank:
             return hist, "duplicate"
         log = tuple(e for e in log if e is not held)
         if trc_t is not None and event.t_s < trc_t:

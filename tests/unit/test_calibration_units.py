@@ -100,3 +100,24 @@ def test_unit_models_survive_a_restart(tmp_path):
     ).load())  # fmt: skip
     assert again.unit_calibrations == core.unit_calibrations
     assert unit_key("TA", "u1") in again.published_at
+
+
+def test_a_tamping_correction_replaces_the_report_in_calibration_whatever_the_order(tmp_path):
+    from schemas import MaintenanceEvent
+
+    report = MaintenanceEvent(
+        line="L1", segment="s0", event_id="m1", t_start=T0, t_end=T0 + 10 * 86_400.0
+    )
+    fixed = MaintenanceEvent(
+        line="L1", segment="s0", event_id="m1", t_start=T0 + 2 * 86_400.0,
+        t_end=T0 + 2 * 86_400.0,
+    )  # fmt: skip
+    assert fixed.rank > report.rank
+    for order in ([report, fixed], [fixed, report]):
+        store = SqliteStore(tmp_path / f"cal-{order[0] is report}.sqlite")
+        core = Calibrator(CalibratorConfig(), store.load())
+        core.step(order)
+        store.apply(core.drain_changes())
+        assert core._maint[("L1", "s0")] == {"L1/s0/m1": fixed}
+        again = Calibrator(CalibratorConfig(), SqliteStore(store.path).load())
+        assert again._maint[("L1", "s0")] == {"L1/s0/m1": fixed}
