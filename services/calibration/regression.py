@@ -197,7 +197,7 @@ def fit_observation(
     G = (vt.T / sv_c**2) @ vt  # (Zc^T Zc)^-1 without forming it
     se_H = np.sqrt(np.outer(s_ii, np.diag(G)))
     se_b = np.sqrt(s_ii * (1.0 / N + zbar @ G @ zbar))
-    se_R = np.sqrt((R**2 + np.outer(np.diag(R), np.diag(R))) / dof)
+    se_R = _se_R(R, dof)
     return ObservationFit(
         H=H,
         b=b,
@@ -212,6 +212,11 @@ def fit_observation(
         se_b=se_b,
         se_R=se_R,
     )
+
+
+def _se_R(R: np.ndarray, dof: float) -> np.ndarray:
+    """Sampling standard error of each element of ``R`` (Wishart, ``dof`` degrees of freedom)."""
+    return np.sqrt((R**2 + np.outer(np.diag(R), np.diag(R))) / dof)
 
 
 def fit_unit_observation(Z, Y, *, H0, b0, R0, design, shrink_pairs: float) -> ObservationFit:
@@ -272,5 +277,5 @@ def fit_unit_observation(Z, Y, *, H0, b0, R0, design, shrink_pairs: float) -> Ob
         z_max=Z.max(axis=0),
         se_H=se[:, :n],
         se_b=se[:, n],
-        se_R=np.sqrt((R**2 + np.outer(np.diag(R), np.diag(R))) / dof),
+        se_R=_se_R(R, dof),
     )

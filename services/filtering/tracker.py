@@ -448,24 +448,25 @@ class _Banks:
         for part, sel in self._blocks(rows):
             dt = (t_s[part] - self.t_s[sel]) / DAY_S
             z, P = transition_unchecked(self.z[sel], self.P[sel], params(sel), dt)
-            self._cusum_step(rows[part], t_s[part], low_score(z, P, y[part], obs, self.log_w[sel]))
+            # the weights before the update: weights_from_log without its check (log_w is
+            # the fold's own), for the CUSUM's score and the NIS
+            log_w = self.log_w[sel]
+            w = np.exp(log_w - log_w.max(-1, keepdims=True))
+            w /= w.sum(-1, keepdims=True)
+            self._cusum_step(rows[part], t_s[part], low_score(z, P, y[part], obs, w))
             z, P, nis, loglik = update_unchecked(z, P, y[part], obs.H, obs.b, obs.R, loglik=True)
             want = slice(None) if last is None else last[part]
             at = rows[part][want]
             if len(at):
-                # weights_from_log without its check (log_w is the fold's own), and a sum
-                # over the last axis, not ``w @ nis``: BLAS dot's order depends on the call
-                log_w = self.log_w[at]
-                w = np.exp(log_w - log_w.max(-1, keepdims=True))
-                w /= w.sum(-1, keepdims=True)
-                self.nis[at] = (w * nis[want]).sum(-1)
+                # a sum over the last axis, not ``w @ nis``: BLAS dot's order depends on the call
+                self.nis[at] = (w[want] * nis[want]).sum(-1)
             self.z[sel], self.P[sel] = z, P
             self.log_w[sel] += loglik
             self.n_updates[sel] += 1
         self.t_s[rows] = t_s
 
 
-def low_score(z, P, y, obs: ObservationModel, log_w) -> np.ndarray:
+def low_score(z, P, y, obs: ObservationModel, w) -> np.ndarray:
     r"""How far below its prediction an index reads, in predictive standard deviations.
 
     For the sum of the indicators :math:`u = \mathbf 1^T y` the mixture predictive has, per
@@ -479,13 +480,11 @@ def low_score(z, P, y, obs: ObservationModel, log_w) -> np.ndarray:
         \bar\nu = \sum_j w_j \nu_j .
 
     A tamping lowers every indicator at once, so its indices give :math:`s \ll 0`.
-    ``z`` (k, Ns, n), ``P`` (k, Ns, n, n) predicted; ``y`` (k, m); ``log_w`` (k, Ns).
+    ``z`` (k, Ns, n), ``P`` (k, Ns, n, n) predicted; ``y`` (k, m); ``w`` (k, Ns), normalised.
     """
     h = obs.H.sum(axis=0)  # H^T 1
     nu = y.sum(-1)[:, None] - (z @ h + obs.b.sum())
     v = (P @ h) @ h + obs.R.sum()
-    w = np.exp(log_w - log_w.max(-1, keepdims=True))
-    w /= w.sum(-1, keepdims=True)
     mean = (w * nu).sum(-1)
     var = (w * (v + nu * nu)).sum(-1) - mean * mean
     return mean / np.sqrt(np.maximum(var, 1e-300))
