@@ -34,9 +34,9 @@ from services.calibration.calibrator import Calibrator
 from services.calibration.config import CalibratorConfig
 from services.calibration.initial import initial_models
 from services.defaults import default_file
-from simulators.network import demo_network
 from simulators.truth import load_config
 from simulators.world import WorldSpec, world_events
+from track.network import demo_network
 
 START_T = 1_767_225_600.0  # 2026-01-01T00:00Z, the simulator's default start
 ROOT = Path(__file__).resolve().parents[1]

@@ -90,9 +90,9 @@ from services.filtering.mixture import effective_sample_size, summarize
 from services.filtering.tracker import TAMPING, Tracker, state_weights, tamping_time
 from services.limits import load_limits
 from simulators.fleet import MIXED
-from simulators.network import demo_network
 from simulators.truth import Truth, load_config
 from simulators.world import WorldSpec, world_events
+from track.network import demo_network
 
 START_T = 1_767_225_600.0  # 2026-01-01T00:00Z
 ROOT = Path(__file__).resolve().parents[1]

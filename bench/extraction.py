@@ -20,9 +20,10 @@ import numpy as np
 from scipy import signal
 
 from schemas import ACCEL_CHANNELS, NDArray, PositionedChunk
-from services.extraction.pipeline import LineSegments, SegmentTable, UnitPipeline
+from services.extraction.pipeline import UnitPipeline
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
+from track.segments import LineSegments, SegmentTable
 
 TARGET = 12e6  # raw samples / s / core, ingestion + extraction together (DESIGN)
 UNITS, SECONDS, REPEATS = 16, 120, 2

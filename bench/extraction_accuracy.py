@@ -23,11 +23,12 @@ import numpy as np
 
 from schemas import ACCEL_CHANNELS, NDArray, OnboardIndex, PositionedChunk
 from services.calibration.regression import fit_observation
-from services.extraction.pipeline import Extractor, SegmentTable
-from simulators.network import Network, demo_network
+from services.extraction.pipeline import Extractor
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
 from simulators.truth import Truth, load_config
+from track.network import Network, demo_network
+from track.segments import SegmentTable
 
 G_MPS2 = 9.80665
 START_T = 1_767_225_600.0  # 2026-01-01

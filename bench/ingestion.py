@@ -25,9 +25,9 @@ import numpy as np
 from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode
 from services.ingestion.core import IngestionCore
 from simulators.gateway import key_and_payload
-from simulators.network import demo_network
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
+from track.network import demo_network
 
 TARGET_SAMPLES_PER_S = 12e6  # DESIGN: ingestion + extraction, per core
 T0 = 1_767_225_600.0

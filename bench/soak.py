@@ -92,9 +92,9 @@ import zenoh
 from schemas import DAY_S, NDArray, OnboardIndex, keys
 from schemas.keys import SegmentId
 from services.extraction.pipeline import ExtractionConfig
-from services.extraction.versine import END_GUARD_M
 from services.runtime.config import zenoh_config
-from simulators.network import demo_network
+from track.network import demo_network
+from track.versine import END_GUARD_M
 
 REPO = Path(__file__).resolve().parents[1]
 SERVICES = ("calibration", "filtering", "alerting", "ingestion", "extraction")

@@ -52,8 +52,8 @@ import numpy as np
 
 from schemas import DAY_S, Message, OnboardIndex, RawChunk, TrcRecord
 from simulators.fleet import Fleet
-from simulators.network import Network
 from simulators.truth import Tamping, Truth
+from track.network import Network
 
 SCHEMA_VERSION = 2
 _TEXT = {"line", "segment", "class", "run_id", "train", "unit", "event_id", "cause", "report"}

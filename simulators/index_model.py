@@ -22,8 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas import DAY_S, OnboardIndex
-from simulators.network import Network, stable_rng
+from simulators.network import stable_rng
 from simulators.truth import Truth, config_pair
+from track.network import Network
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft
 
-from services.extraction.versine import (
+from track.versine import (
     ALIGN_CHORD_M,
     END_GUARD_M,
     TOP_CHORD_M,

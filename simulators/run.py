@@ -16,22 +16,13 @@ from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_f
 from services.runtime.service import configure_logging
 from simulators.gateway import publish
 from simulators.groundtruth import GroundTruthWriter
-from simulators.network import Network, demo_network, generate_network
+from simulators.network import generate_network
 from simulators.truth import load_config
 from simulators.world import WorldSpec, message_count, world_events
+from track.network import load_network
 
 log = logging.getLogger(__name__)
 DEFAULT_START = "2026-01-01T00:00:00+00:00"
-
-
-def load_network(path: str | None, segment_length_m: float = 200.0) -> Network:
-    """The demo network, or a GeoJSON file; ValueError saying what to fix when it is bad."""
-    if path is None:
-        return demo_network(segment_length_m)
-    try:
-        return Network.from_geojson(Path(path), segment_length_m=segment_length_m)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"--network {path}: {exc}") from None
 
 
 def main_simulate(

@@ -30,8 +30,9 @@ import numpy as np
 
 from schemas import DAY_S, Message, OnboardIndex, TrcRecord
 from simulators.index_model import IndexSensorModel
-from simulators.network import Network, stable_rng
+from simulators.network import stable_rng
 from simulators.truth import Truth, config_pair
+from track.network import Network
 
 TRC_TRAIN = "TRC"
 

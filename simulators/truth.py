@@ -57,7 +57,8 @@ import numpy as np
 
 from schemas import DAY_S, MaintenanceEvent
 from services.defaults import default_file
-from simulators.network import Network, stable_rng
+from simulators.network import stable_rng
+from track.network import Network
 
 DEFAULT_CONFIG = default_file("simulator.json5")
 

@@ -19,11 +19,11 @@ from dataclasses import dataclass
 from schemas import DAY_S, Message
 from simulators.fleet import Fleet
 from simulators.index_model import index_pass_events
-from simulators.network import Network
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
 from simulators.trc import trc_events
 from simulators.truth import Truth, truth_events
+from track.network import Network
 
 
 @dataclass(frozen=True)

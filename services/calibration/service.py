@@ -125,7 +125,7 @@ def known_segments(network: Path | None) -> frozenset[SegmentId] | None:
     service's ``--network``."""
     if network is None:
         return None
-    from services.extraction.pipeline import SegmentTable  # the network reader we have
+    from track.segments import SegmentTable
 
     try:
         table = SegmentTable.from_geojson(network)

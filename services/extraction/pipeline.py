@@ -78,14 +78,14 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, field, fields
-from pathlib import Path
 
 import numpy as np
 from scipy import signal
 
 from schemas import OnboardIndex, PositionedChunk, SchemaError
 from schemas.messages import INDEX_MAX_MM
-from services.extraction.versine import (
+from track.segments import LineSegments, SegmentTable
+from track.versine import (
     ALIGN_CHORD_M,
     TOP_CHORD_M,
     chord_versine,
@@ -98,8 +98,6 @@ __all__ = [
     "Counters",
     "ExtractionConfig",
     "Extractor",
-    "LineSegments",
-    "SegmentTable",
     "UnitPipeline",
 ]
 
@@ -198,65 +196,6 @@ class Counters:
             + self.skipped_coverage
             + self.skipped_implausible
         )
-
-
-# --- segments ----------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class LineSegments:
-    """Segment bounds of one line: ``[starts[k], ends[k])`` with ids, increasing chainage."""
-
-    line: str
-    ids: tuple[str, ...]
-    starts: np.ndarray
-    ends: np.ndarray
-
-    def __post_init__(self) -> None:
-        n = len(self.ids)
-        if n == 0 or self.starts.shape != (n,) or self.ends.shape != (n,):
-            raise ValueError(f"line {self.line}: ids, starts and ends must have one entry each")
-        if not (np.all(self.ends > self.starts) and np.all(self.starts[1:] >= self.ends[:-1])):
-            raise ValueError(f"line {self.line}: segments must be increasing and not overlap")
-
-    def locate(self, x: np.ndarray, inset_m: float = 0.0) -> np.ndarray:
-        """Segment index of each chainage in ``[start + inset, end - inset)``, else -1."""
-        k = np.searchsorted(self.starts, x, side="right") - 1
-        kc = np.clip(k, 0, len(self.ids) - 1)
-        inside = (x >= self.starts[kc] + inset_m) & (x < self.ends[kc] - inset_m)
-        return np.where((k >= 0) & inside, kc, -1)
-
-
-class SegmentTable:
-    """The network's segments by line id (what the extraction needs of the network)."""
-
-    def __init__(self, lines: dict[str, LineSegments]) -> None:
-        self.lines = dict(lines)
-
-    @classmethod
-    def from_network(cls, network) -> SegmentTable:
-        """From a :class:`simulators.network.Network` (lines with ``segments``)."""
-        out = {}
-        for line_id, line in network.lines.items():
-            segs = line.segments
-            out[line_id] = LineSegments(
-                line_id,
-                tuple(s.id for s in segs),
-                np.array([s.start_m for s in segs], dtype=np.float64),
-                np.array([s.end_m for s in segs], dtype=np.float64),
-            )
-        return cls(out)
-
-    @classmethod
-    def from_geojson(cls, path: str | Path, segment_length_m: float = 200.0) -> SegmentTable:
-        """Read a network GeoJSON file (the reader of :mod:`simulators.network`)."""
-        from simulators.network import Network  # the network file reader we have
-
-        return cls.from_network(Network.from_geojson(Path(path), segment_length_m))
-
-    @property
-    def n_segments(self) -> int:
-        return sum(len(s.ids) for s in self.lines.values())
 
 
 # --- filters -----------------------------------------------------------------------------

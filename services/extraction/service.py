@@ -19,9 +19,10 @@ from pathlib import Path
 
 from schemas import PositionedChunk, decode, encode, keys
 from services.defaults import default_file
-from services.extraction.pipeline import ExtractionConfig, Extractor, SegmentTable
+from services.extraction.pipeline import ExtractionConfig, Extractor
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 from services.runtime.service import ServiceRuntime, configure_logging
+from track.segments import SegmentTable
 
 log = logging.getLogger(__name__)
 

@@ -100,7 +100,7 @@ def known_segments(network: str | Path | None) -> dict:
     """``PersistentTracker`` keywords: the (line, segment) ids of a network file, if given."""
     if network is None:
         return {}
-    from services.extraction.pipeline import SegmentTable  # the network reader we have
+    from track.segments import SegmentTable
 
     try:
         table = SegmentTable.from_geojson(network)

@@ -26,20 +26,12 @@ from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore, Output, Rejection
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 from services.runtime.service import ServiceRuntime, configure_logging
-from simulators.network import Network
+from track.network import load_network
 
 log = logging.getLogger(__name__)
 
 SERVICE = "ingestion"
 DEFAULT_NETWORK = default_file("demo-network.geojson")
-
-
-def load_network(path: str | Path) -> Network:
-    """Read the network GeoJSON; ValueError says what to fix."""
-    try:
-        return Network.from_geojson(Path(path))
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"network {path}: {exc}") from None
 
 
 def decode_gateway(kind: str, key: str, payload: bytes) -> RawChunk | GpsFix:
@@ -122,7 +114,7 @@ def main(
     (:class:`services.ingestion.config.IngestionConfig` field names).
     """
     config = ingestion_config(conf)
-    network = load_network(network_path or DEFAULT_NETWORK)
+    network = load_network(network_path)
     core = IngestionCore(network, config)
     log.info("%s: %r", SERVICE, network)
     with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:

@@ -332,7 +332,7 @@ def to_geojson(rows: Iterable[dict], geometry: dict[SegmentId, list]) -> dict:
 
 
 def segment_geometry(network_path: str | None) -> dict[SegmentId, list]:
-    from simulators.run import load_network
+    from track.network import load_network
 
     network = load_network(network_path)
     return {

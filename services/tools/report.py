@@ -419,8 +419,7 @@ def network_map(network_path: str | None = None) -> NetworkMap:
     A line feature may name its stations with ``station_names`` (one per ``stations``
     chainage); without names a station is labelled with its chainage in km.
     """
-    # simulators.network alone: simulators.run (load_network) imports scipy.signal, 4 s here
-    from simulators.network import DEMO_NETWORK, Network
+    from track.network import DEMO_NETWORK, Network
 
     path = Path(network_path or DEMO_NETWORK)
     try:

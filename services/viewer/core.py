@@ -75,7 +75,7 @@ from schemas import (
     ViewerSelect,
 )
 from schemas.keys import SegmentId
-from simulators.network import Network
+from track.network import Network
 
 TIMELINE = "event_time"  # timestamp timeline of the messages' event time t (epoch s)
 MAP_PATH = "map/segments"  # every segment of the network, one line strip each

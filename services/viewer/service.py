@@ -67,7 +67,7 @@ from services.viewer.core import (
     ViewerCore,
     coalesce_key,
 )
-from simulators.network import DEMO_NETWORK, Network
+from track.network import DEMO_NETWORK, Network
 
 log = logging.getLogger(__name__)
 

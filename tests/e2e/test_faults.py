@@ -39,9 +39,10 @@ from services.limits import DEFAULT_LIMITS_FILE, load_limits
 from services.runtime.config import zenoh_config
 from services.runtime.delivery import declare_reliable_subscriber
 from simulators.network import generate_network
-from simulators.run import DEFAULT_START, load_network
+from simulators.run import DEFAULT_START
 from simulators.truth import load_config
 from simulators.world import WorldSpec, world_events
+from track.network import load_network
 
 DAYS, TRAINS, SPEEDUP = 100, 2, 120_000.0  # ≈ 72 s of publishing
 WAIT_S = 120.0

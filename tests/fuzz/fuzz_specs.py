@@ -47,9 +47,9 @@ from services.runtime.config import RuntimeConfig
 from services.viewer import service as viewer
 from services.viewer.core import ViewerCore
 from simulators.gateway import key_and_payload
-from simulators.network import DEMO_NETWORK, demo_network
 from simulators.profile import LineProfile
 from simulators.train import RAW_CHANNELS, TrainSimulator
+from track.network import DEMO_NETWORK, demo_network
 
 T0 = 1_767_225_600.0  # 2026-01-01
 EXTRA = "fuzzchunk"  # an unexpected key chunk

@@ -27,7 +27,7 @@ from schemas import (
 from services.alerting.testing import T0, make_state, p_top6
 from services.viewer import service as viewer
 from services.viewer.testing import blueprint_views, rrd_contents, rrd_printout, verify_rrd
-from simulators.network import DEMO_NETWORK, demo_network
+from track.network import DEMO_NETWORK, demo_network
 
 PUT = zenoh.SampleKind.PUT
 TIMEOUT_S = 5.0

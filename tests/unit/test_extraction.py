@@ -11,15 +11,14 @@ from schemas import ACCEL_CHANNELS, NDArray, OnboardIndex, PositionedChunk
 from services.extraction.pipeline import (
     ExtractionConfig,
     Extractor,
-    LineSegments,
-    SegmentTable,
     UnitPipeline,
     displacement_sos,
 )
-from services.extraction.versine import ALIGN_CHORD_M, TOP_CHORD_M
-from simulators.network import DEMO_NETWORK
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
+from track.network import DEMO_NETWORK
+from track.segments import LineSegments, SegmentTable
+from track.versine import ALIGN_CHORD_M, TOP_CHORD_M
 
 G = 9.80665
 FS = 2000

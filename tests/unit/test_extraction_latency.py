@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from schemas import ACCEL_CHANNELS, NDArray, PositionedChunk
-from services.extraction.pipeline import ExtractionConfig, LineSegments, SegmentTable, UnitPipeline
-from services.extraction.versine import END_GUARD_M
+from services.extraction.pipeline import ExtractionConfig, UnitPipeline
+from track.segments import LineSegments, SegmentTable
+from track.versine import END_GUARD_M
 
 FS = 2000
 EPOCH = 1_767_225_600.0  # 2026-01-01: event times must lie in the schemas' window

@@ -10,7 +10,7 @@ from schemas import GpsFix, RawChunk
 from services.ingestion.core import IngestionCore, Rejection
 from services.ingestion.service import decode_gateway
 from services.tools.gateway_check import GatewayCheck
-from simulators.network import demo_network
+from track.network import demo_network
 
 README = Path(__file__).resolve().parents[2] / "schemas" / "README.md"
 

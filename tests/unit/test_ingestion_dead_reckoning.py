@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 
 from schemas import GpsFix, NDArray, PositionedChunk, RawChunk
-from services.extraction.pipeline import Extractor, SegmentTable
+from services.extraction.pipeline import Extractor
 from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore
-from simulators.network import demo_network
 from simulators.profile import LineProfile
 from simulators.train import RAW_CHANNELS, TrainSimulator
+from track.network import demo_network
+from track.segments import SegmentTable
 
 T0 = 1_767_225_600.0
 N = 2000

@@ -9,7 +9,8 @@ import pytest
 
 from schemas import keys
 from schemas.wire import check_id
-from simulators.network import Network, cut_segments, demo_network, generate_network
+from simulators.network import generate_network
+from track.network import Network, cut_segments, demo_network
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from services.extraction.versine import (
+from simulators.bogie import BogiePhysics, BogieUnit, Kinematics
+from simulators.profile import LineProfile, TrackSpectrum
+from simulators.train import TrainConfig, TrainSimulator
+from track.versine import (
     ALIGN_CHORD_M,
     END_GUARD_M,
     TOP_CHORD_M,
@@ -16,9 +19,6 @@ from services.extraction.versine import (
     half_chord_samples,
     segment_statistic,
 )
-from simulators.bogie import BogiePhysics, BogieUnit, Kinematics
-from simulators.profile import LineProfile, TrackSpectrum
-from simulators.train import TrainConfig, TrainSimulator
 
 QUIET = BogiePhysics(
     outlier_rate_hz=0.0, flatline_rate_hz=0.0, sag_rate_hz=0.0, missing_chunk_prob=0.0

@@ -34,7 +34,7 @@ from services.viewer.core import (
     select_worst_sticky,
 )
 from services.viewer.testing import rrd_contents, verify_rrd
-from simulators.network import demo_network
+from track.network import demo_network
 
 
 @pytest.mark.parametrize(

@@ -1,0 +1,11 @@
+"""The track register: what every part of the system knows about the railway itself.
+
+- :mod:`track.network`: lines as polylines with chainage, cut into segments, with tunnels
+  (GNSS outages), stations and line speeds; GeoJSON reading and writing; projection of a
+  point onto a line (the geometry under map matching).
+- :mod:`track.segments`: the segment bounds by line, as the services look them up.
+- :mod:`track.versine`: the segment index statistic (chord versine SD) that both the
+  on-board chain and the TRC profile import compute.
+
+Services and simulators import this package; no service imports :mod:`simulators`.
+"""
