@@ -16,9 +16,10 @@ batch are therefore not published, only its newest; its final state is the same.
 The queryable ``{ns}/q/state/{selector}`` answers each matching segment's latest state on
 ``{ns}/q/state/{line}/{segment}``.
 
-At start the store is replayed (see :mod:`services.filtering.store`) and the rebuilt states
-are published again (a state committed but not yet published when the process died is then
-not lost; a repeated state is harmless to its consumers). Event time only: the wall clock is
+At start the tracker is restored from the store's checkpoints and the events after them
+(:meth:`PersistentTracker.restore`, see :mod:`services.filtering.store`) and the restored
+states are published again (a state committed but not yet published when the process died
+is then not lost; a repeated state is harmless to its consumers). Event time only: the wall clock is
 never used for a state.
 
 Options (``services.filtering`` in the config file, overridden by the flags): ``selector``
@@ -85,11 +86,12 @@ def main(
     with ExitStack() as stack:
         store = Store(db)
         stack.callback(store.close)  # after the runtime has joined the worker
+        tracker = Tracker(limits_table.for_line, limits_table.levels)
+        node = PersistentTracker(tracker, store, ns=conf.ns, **known_segments(network))
+        stack.callback(node.close)  # checkpoint at a clean stop, once the worker is joined
         rt = stack.enter_context(
             ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop)
         )
-        tracker = Tracker(limits_table.for_line, limits_table.levels)
-        node = PersistentTracker(tracker, store, ns=conf.ns, **known_segments(network))
         FilteringAdapter(rt, node, selector).start()
         log.info("filtering %s: selector %s, store %s", rt.instance, selector, store.path)
         return rt.run()
@@ -122,8 +124,8 @@ class FilteringAdapter:
     def start(self) -> None:
         ns = self.rt.ns
         self.states_out = self.rt.reliable_publisher(STATE_CACHE)
-        for state in self.node.rebuild():
-            self._publish(state)
+        for (line, segment), payload in self.node.restore():
+            self._publish_encoded(line, segment, payload)
         subscriptions = {
             kind: keys.segment_keys(ns, kind, self.selector)
             for kind in ("index", "trc", "maintenance")
@@ -153,6 +155,7 @@ class FilteringAdapter:
             # (its writes are rolled back): either way what the tracker holds is no longer
             # what is persisted; stop so that a restart rebuilds it from the store
             log.exception("filtering: a batch failed in the store transaction; stopping")
+            self.node.broken = True  # no checkpoint of what the store may not hold
             self.rt.exit_code = EXIT_STORE_FAILED if isinstance(e, sqlite3.Error) else EXIT_SOFTWARE
             self.rt.stop()
             return
@@ -172,11 +175,13 @@ class FilteringAdapter:
             )
 
     def _publish(self, state: SegmentState) -> None:
-        payload = encode(state)
-        self.latest.put(keys.q_state(self.rt.ns, state.line, state.segment), payload)
+        self._publish_encoded(state.line, state.segment, encode(state))
+
+    def _publish_encoded(self, line: str, segment: str, payload: bytes) -> None:
+        self.latest.put(keys.q_state(self.rt.ns, line, segment), payload)
         # cached per segment (alerting restarted gets what it missed); BLOCK: a slow
         # consumer slows the worker down rather than losing states
-        self.states_out.put(keys.state(self.rt.ns, state.line, state.segment), payload)
+        self.states_out.put(keys.state(self.rt.ns, line, segment), payload)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

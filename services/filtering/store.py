@@ -18,12 +18,17 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import sqlite3
+import struct
+import time
 from collections.abc import Collection, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from schemas import (
     DAY_S,
@@ -44,15 +49,23 @@ from services.filtering.tracker import (
     RESTART,
     SUPERSEDE_DAYS,
     TAMPING,
+    Checkpoint,
+    Event,
     EventMessage,
+    Filtered,
     ModelMessage,
+    SegmentHistory,
     Step,
     Tracker,
+    canonical_log,
     event_of,
+    models_key,
 )
 
 log = logging.getLogger(__name__)
 
+CHECKPOINT_S = 10.0  # worker time between two checkpoints of the changed segments
+MAX_LOADED = 20_000  # segment logs kept in memory (least recently used beyond are dropped)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS events (
@@ -74,7 +87,89 @@ CREATE TABLE IF NOT EXISTS models (
     key      TEXT NOT NULL,
     payload  BLOB NOT NULL
 );
+CREATE TABLE IF NOT EXISTS checkpoints (
+    line       TEXT NOT NULL,
+    segment    TEXT NOT NULL,
+    seq        INTEGER NOT NULL,  -- the newest events.seq when written: the log it covers
+    last_order TEXT,              -- JSON [t, kind, identity] of the log's last event
+    trc_t      REAL,
+    grp        TEXT,              -- posterior group of the state
+    models     TEXT NOT NULL,     -- the model versions it was folded with (models_key)
+    state      BLOB,              -- the Filtered state, exact float64 (pack_state)
+    summary    BLOB,              -- its encoded SegmentState, if known
+    PRIMARY KEY (line, segment)
+);
+-- an event deleted or rewritten under a checkpoint (a TRC record pruning, a reported
+-- tamping superseding a detected one, a correction) makes it stale: the segment is then
+-- replayed from its log at restart
+CREATE TRIGGER IF NOT EXISTS events_deleted AFTER DELETE ON events BEGIN
+    DELETE FROM checkpoints WHERE line = OLD.line AND segment = OLD.segment;
+END;
+CREATE TRIGGER IF NOT EXISTS events_updated AFTER UPDATE ON events BEGIN
+    DELETE FROM checkpoints WHERE line = OLD.line AND segment = OLD.segment;
+END;
 """
+
+_STATE_HEAD = struct.Struct("<2I 4d q 3d")  # ns, n; t_s, last_trc_t, nis, cusum; n_updates; ...
+
+
+def pack_state(state: Filtered) -> bytes:
+    """A Filtered state as bytes: header, then z, P, log_w as exact little-endian float64
+    (None of ``last_trc_t``/``nis`` as NaN, as the batched bank holds them)."""
+    ns, n = state.z.shape
+    head = _STATE_HEAD.pack(
+        ns,
+        n,
+        state.t_s,
+        math.nan if state.last_trc_t is None else state.last_trc_t,
+        math.nan if state.nis is None else state.nis,
+        state.cusum,
+        state.n_updates,
+        state.cusum_t0,
+        state.cusum_t1,
+        0.0,
+    )
+    arrays = (state.z, state.P, state.log_w)
+    return head + b"".join(np.ascontiguousarray(a, dtype="<f8").tobytes() for a in arrays)
+
+
+def unpack_state(blob: bytes) -> Filtered:
+    """:func:`pack_state` back; ValueError if the bytes are not one."""
+    try:
+        ns, n, t_s, trc, nis, cusum, n_updates, t0, t1, _ = _STATE_HEAD.unpack_from(blob)
+    except struct.error as exc:
+        raise ValueError(f"state: {exc}") from None
+    sizes = (ns * n, ns * n * n, ns)
+    if len(blob) != _STATE_HEAD.size + 8 * sum(sizes) or ns < 1 or n < 1:
+        raise ValueError(f"state: {len(blob)} bytes for Ns={ns}, n={n}")
+    flat = np.frombuffer(blob, dtype="<f8", offset=_STATE_HEAD.size).astype(np.float64)
+    z, P, log_w = np.split(flat, np.cumsum(sizes)[:2])
+    return Filtered(
+        z.reshape(ns, n),
+        P.reshape(ns, n, n),
+        t_s,
+        None if math.isnan(trc) else trc,
+        int(n_updates),
+        None if math.isnan(nis) else nis,
+        log_w,
+        cusum,
+        t0,
+        t1,
+    )
+
+
+_KIND_CODES = {name: code for code, name in KIND_NAMES.items()}
+
+
+def _order_json(order: tuple[float, int, tuple[Any, ...]] | None) -> str | None:
+    return None if order is None else json.dumps([order[0], order[1], list(order[2])])
+
+
+def _order_of(text: str | None) -> tuple[float, int, tuple[Any, ...]] | None:
+    if text is None:
+        return None
+    t, kind, identity = json.loads(text)
+    return (float(t), int(kind), tuple(identity))
 
 
 class Store:
@@ -181,6 +276,46 @@ class Store:
     def count_events(self) -> int:
         return self._db.execute("SELECT COUNT(*) FROM events").fetchone()[0]
 
+    def segment_events(self, line: str, segment: str) -> Iterator[tuple[str, str, bytes]]:
+        """``(kind, key, payload)`` of one segment's stored events (its log, any order)."""
+        yield from self._db.execute(
+            "SELECT kind, key, payload FROM events WHERE line = ? AND segment = ?",
+            (line, segment),
+        )
+
+    def last_seq(self) -> int:
+        """The newest event's ``seq`` (0 if none): what a checkpoint written now covers."""
+        return self._db.execute("SELECT COALESCE(MAX(seq), 0) FROM events").fetchone()[0]
+
+    def put_checkpoints(self, rows: Iterable[tuple[Any, ...]]) -> None:
+        """Write checkpoint rows ``(line, segment, seq, last_order, trc_t, grp, models,
+        state, summary)`` (replacing each segment's previous one)."""
+        self._db.executemany(
+            "INSERT OR REPLACE INTO checkpoints"
+            " (line, segment, seq, last_order, trc_t, grp, models, state, summary)"
+            " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            rows,
+        )
+
+    def checkpoints(self) -> Iterator[tuple[Any, ...]]:
+        """Every checkpoint row, as :meth:`put_checkpoints` takes them."""
+        yield from self._db.execute(
+            "SELECT line, segment, seq, last_order, trc_t, grp, models, state, summary"
+            " FROM checkpoints"
+        )
+
+    def tails(self) -> Iterator[tuple[str, str, str, bytes]]:
+        """``(line, segment, key, payload)`` of the stored events no checkpoint covers
+        (newer than their segment's checkpoint, or of a segment without one)."""
+        yield from self._db.execute(
+            "SELECT e.line, e.segment, e.key, e.payload FROM events e"
+            " LEFT JOIN checkpoints c ON c.line = e.line AND c.segment = e.segment"
+            " WHERE c.seq IS NULL OR e.seq > c.seq ORDER BY e.seq"
+        )
+
+    def delete_checkpoint(self, line: str, segment: str) -> None:
+        self._db.execute("DELETE FROM checkpoints WHERE line = ? AND segment = ?", (line, segment))
+
 
 _EVENT_TYPES = {"index": OnboardIndex, "trc": TrcRecord, "maintenance": MaintenanceEvent}
 _MODEL_TYPES = {"calibration": Calibration, "degradation": DegradationPosterior}
@@ -231,12 +366,21 @@ class PersistentTracker:
         segments: Collection[SegmentId] | None = None,
         network_name: str = "the network",
         ns: str = keys.DEFAULT_NS,
+        checkpoint_s: float = CHECKPOINT_S,
+        max_loaded: int = MAX_LOADED,
     ) -> None:
         self.tracker = tracker
         self.store = store
         self.ns = ns  # the key a detected tamping is stored under
         self.segments = None if segments is None else frozenset(segments)
         self._network_name = network_name
+        if tracker.histories.loader is None:
+            tracker.histories.loader = self.segment_log
+        self.checkpoint_s = checkpoint_s
+        self.max_loaded = max_loaded
+        self.broken = False  # set by the owner when a batch failed: no checkpoint then
+        self._summaries: dict[SegmentId, SegmentState] = {}  # newest, of dirty segments
+        self._checkpointed = time.monotonic()
 
     def _check_known(self, msg: EventMessage) -> None:
         """An event on a segment the network does not have is refused (when one is given):
@@ -348,6 +492,7 @@ class PersistentTracker:
                         accepted += 1
                         self._commit(msg, key)
                 keep(event_states)
+        self._after_batch(states.values(), models=bool(models))
         return BatchResult(tuple(states.values()), tuple(rejected), accepted, tuple(detected))
 
     def _commit(self, msg: EventMessage | ModelMessage, key: str) -> None:
@@ -388,14 +533,127 @@ class PersistentTracker:
                     )
 
     def rebuild(self) -> list[SegmentState]:
-        """Load every stored model and event into the tracker: the publishable states.
+        """:meth:`restore`, decoded: the publishable states of every segment."""
+        return [decode(payload, SegmentState) for _sid, payload in self.restore()]
 
+    def restore(self) -> list[tuple[SegmentId, bytes]]:
+        """Bring the tracker back from the store: ``(segment, encoded SegmentState)`` of
+        every publishable segment.
+
+        Every stored model, then each segment's checkpoint (:meth:`Tracker.restore`): its
+        state as stored and its stored SegmentState when nothing came after it; folded on
+        over the events stored after it when they all sort after its last one; replayed
+        from its whole log (read from the store) when one sorts before (a late event), when
+        the models changed since, when it has no checkpoint, or when its row no longer
+        decodes. The logs are not read otherwise (they load when a segment needs them).
         A stored row that no longer decodes (written before a schema limit was added) is
         skipped with a warning rather than stopping the service at every start.
         """
         models = [m for m in self._decoded(self.store.models()) if m is not None]
-        events = list(self._decoded(self.store.events()))
-        return self.tracker.load(models, events)  # type: ignore[arg-type]
+        checkpoints: list[Checkpoint] = []
+        summaries: dict[SegmentId, bytes] = {}
+        broken: list[SegmentId] = []
+        for line, segment, _seq, order, trc_t, grp, key, blob, summary in self.store.checkpoints():
+            try:
+                state = None if blob is None else unpack_state(blob)
+                ckpt = Checkpoint(line, segment, trc_t, state, grp, _order_of(order), key)
+            except (ValueError, TypeError) as e:
+                log.warning("store: checkpoint of %s/%s no longer decodes (%s)", line, segment, e)
+                broken.append((line, segment))
+                continue
+            checkpoints.append(ckpt)
+            if summary is not None:
+                summaries[(line, segment)] = summary
+        tails: dict[SegmentId, list[Event]] = {}
+        for line, segment, key, payload in self.store.tails():
+            try:
+                msg = decode_keyed(key, payload)
+            except SchemaError as e:
+                log.warning("store: skipping a stored %s that no longer decodes: %s", key, e)
+                continue
+            tails.setdefault((line, segment), []).append(event_of(msg))  # type: ignore[arg-type]
+        for sid in broken:
+            tails.setdefault(sid, [])
+        kept, states = self.tracker.restore(models, checkpoints, tails, broken)  # type: ignore[arg-type]
+        out: list[tuple[SegmentId, bytes]] = []
+        unsummarised = []
+        for sid in kept:
+            if sid in summaries:
+                out.append((sid, summaries[sid]))
+            else:
+                unsummarised.append(self.tracker.histories.resting(sid))
+        hists = [
+            SegmentHistory(c.line, c.segment, (), c.trc_t, c.state, c.group) for c in unsummarised
+        ]
+        fresh = [s for s in (*states, *self.tracker.segment_states(hists)) if s is not None]
+        for state in fresh:
+            sid = (state.line, state.segment)
+            self._summaries[sid] = state
+            self.tracker.histories.dirty.add(sid)
+            out.append((sid, encode(state)))
+        self.checkpoint()
+        return out
+
+    def segment_log(self, line: str, segment: str) -> tuple[tuple[Event, ...], float | None]:
+        """The segment's log from the store (:func:`canonical_log`): the tracker's loader."""
+        rows = self._decoded(self.store.segment_events(line, segment))
+        return canonical_log(event_of(msg) for msg in rows if msg is not None)  # type: ignore[arg-type]
+
+    def _after_batch(self, states: Iterable[SegmentState], *, models: bool) -> None:
+        """After a committed batch: note its states; checkpoint when due (every
+        ``checkpoint_s`` of worker time, or after a model change), then bound the loaded
+        logs to ``max_loaded`` (they are all stored by now)."""
+        for state in states:
+            self._summaries[(state.line, state.segment)] = state
+        if models or time.monotonic() - self._checkpointed >= self.checkpoint_s:
+            self.checkpoint()
+
+    def checkpoint(self) -> int:
+        """Write the checkpoint of every segment changed since the last one (one
+        transaction; the tracker must hold what the store holds, i.e. between batches);
+        then drop the least recently used logs beyond ``max_loaded``. Returns how many."""
+        histories = self.tracker.histories
+        dirty = [sid for sid in histories.dirty if sid in histories]
+        self._checkpointed = time.monotonic()
+        if dirty:
+            with self.store.transaction():
+                seq = self.store.last_seq()
+                self.store.put_checkpoints(self._checkpoint_row(sid, seq) for sid in dirty)
+            histories.dirty.clear()
+            self._summaries.clear()
+        histories.trim(self.max_loaded)
+        return len(dirty)
+
+    def _checkpoint_row(self, sid: SegmentId, seq: int) -> tuple[Any, ...]:
+        rest = self.tracker.histories.resting(sid)
+        state, summary = rest.state, self._summaries.get(sid)
+        if (
+            state is None
+            or summary is None
+            or not (
+                summary.t == state.t_s
+                and summary.n_updates == state.n_updates
+                and summary.nis == state.nis
+                and summary.posterior_group == rest.group
+            )
+        ):
+            summary = None  # not known for this state: summarised again at restart
+        return (
+            *sid,
+            seq,
+            _order_json(rest.last_order),
+            rest.trc_t,
+            rest.group,
+            models_key(self.tracker.models, *sid),
+            None if state is None else pack_state(state),
+            None if summary is None else encode(summary),
+        )
+
+    def close(self) -> None:
+        """At a clean stop: checkpoint what changed (not after a failed batch, when the
+        tracker may hold what the store does not)."""
+        if not self.broken:
+            self.checkpoint()
 
     @staticmethod
     def _decoded(

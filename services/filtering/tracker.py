@@ -80,7 +80,9 @@ returns a :class:`Step` (accepted or not, why, and the SegmentStates to publish)
 from __future__ import annotations
 
 import bisect
-from collections.abc import Iterable, Mapping, Sequence
+import json
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Iterator, Mapping, MutableMapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -112,6 +114,7 @@ HORIZONS_DAYS = (30.0, 90.0, 180.0)
 TAMPING, RESTART, INDEX = 0, 1, 2  # kind priority at equal times: a TRC record after a tamping
 KIND_NAMES = {RESTART: "trc", TAMPING: "maintenance", INDEX: "index"}
 SUMMARY_SEGMENTS = 8  # segments per batched summary: temporaries below the mmap threshold
+RERUN_CHUNK = 2048  # segments re-run together: one chunk of logs in memory at a time
 # Detected maintenance (see :func:`detect`): a one-sided CUSUM of how far below their
 # prediction the indices read, in predictive standard deviations.
 CUSUM_DRIFT = 1.0  # kappa: a reading 1 sd low adds nothing
@@ -616,6 +619,170 @@ class SegmentHistory:
     group: str | None = None  # posterior group of ``state``
 
 
+@dataclass(frozen=True)
+class Checkpoint:
+    """A segment's fold without its log: what a checkpoint stores and a restart restores.
+
+    ``last_order`` is the canonical order key of the log's last event (None: empty log);
+    an event stored later with a smaller key is a late one, and the segment must then be
+    replayed from its log's start. ``models_key`` (:func:`models_key`) names the model
+    versions ``state`` was folded with.
+    """
+
+    line: str
+    segment: str
+    trc_t: float | None
+    state: Filtered | None
+    group: str | None
+    last_order: tuple[float, int, tuple[Any, ...]] | None
+    models_key: str = ""
+
+
+def models_key(models: Models, line: str, segment: str) -> str:
+    """The versions of the models a segment's fold uses: the fleet calibration, every unit
+    calibration (conservatively: a segment's units are not known without its log), its
+    posterior group and that group's version. Two folds of one log with equal keys are
+    the same bits."""
+    group = models.group_for(line, segment)
+    units = sorted([*unit, cal.version] for unit, cal in models.unit_calibrations.items())
+    return json.dumps(
+        [
+            models.calibration.version if models.calibration else 0,
+            units,
+            group,
+            models.posteriors[group].version if group is not None else 0,
+        ]
+    )
+
+
+LogLoader = Callable[[str, str], tuple[tuple[Event, ...], float | None]]
+
+
+class Histories(MutableMapping[SegmentId, SegmentHistory]):
+    """The segment histories by ``(line, segment)``: a dict whose logs load lazily.
+
+    A segment is either *loaded* (a :class:`SegmentHistory` with its log) or *resting*
+    (a :class:`Checkpoint`: its state without the log, e.g. restored from a checkpoint or
+    evicted by :meth:`trim`). Reading a resting segment (``[sid]``, ``get``) asks
+    ``loader(line, segment) -> (log, trc_t)`` for its log in canonical order (the store
+    supplies it; the core does no I/O) and keeps it loaded. Iteration and ``len`` cover
+    every known segment; ``items()``/``values()`` load every log, so the core iterates the
+    keys and uses :meth:`resting` where the state alone is enough. Every assignment marks
+    the segment ``dirty`` (its checkpoint is out of date) until the owner clears it.
+    """
+
+    def __init__(self, loader: LogLoader | None = None) -> None:
+        self.loader = loader
+        self._loaded: OrderedDict[SegmentId, SegmentHistory] = OrderedDict()
+        self._resting: dict[SegmentId, Checkpoint] = {}
+        self.dirty: set[SegmentId] = set()
+
+    def __getitem__(self, sid: SegmentId) -> SegmentHistory:
+        hist = self._loaded.get(sid)
+        if hist is not None:
+            self._loaded.move_to_end(sid)
+            return hist
+        hist = self.load(sid)
+        del self._resting[sid]
+        self._loaded[sid] = hist
+        return hist
+
+    def load(self, sid: SegmentId) -> SegmentHistory:
+        """The segment's history with its log, without keeping a resting one's log loaded."""
+        hist = self._loaded.get(sid)
+        if hist is not None:
+            return hist
+        rest = self._resting[sid]  # KeyError: unknown segment
+        if self.loader is None:
+            raise LookupError(f"segment {sid}: log not loaded and no loader")
+        log, trc_t = self.loader(rest.line, rest.segment)
+        return SegmentHistory(rest.line, rest.segment, log, trc_t, rest.state, rest.group)
+
+    def __setitem__(self, sid: SegmentId, hist: SegmentHistory) -> None:
+        self._resting.pop(sid, None)
+        self._loaded[sid] = hist
+        self._loaded.move_to_end(sid)
+        self.dirty.add(sid)
+
+    def __delitem__(self, sid: SegmentId) -> None:
+        if self._loaded.pop(sid, None) is None:
+            del self._resting[sid]
+        self.dirty.discard(sid)
+
+    def __contains__(self, sid: object) -> bool:
+        return sid in self._loaded or sid in self._resting
+
+    def __iter__(self) -> Iterator[SegmentId]:
+        yield from list(self._loaded)
+        yield from list(self._resting)
+
+    def __len__(self) -> int:
+        return len(self._loaded) + len(self._resting)
+
+    def rest(self, sid: SegmentId, checkpoint: Checkpoint, *, dirty: bool = False) -> None:
+        """Hold ``sid`` as its state alone (its log is then read again when needed)."""
+        self._loaded.pop(sid, None)
+        self._resting[sid] = checkpoint
+        if dirty:
+            self.dirty.add(sid)
+
+    def resting(self, sid: SegmentId) -> Checkpoint:
+        """The segment's state without loading its log (``models_key`` left empty)."""
+        rest = self._resting.get(sid)
+        if rest is not None:
+            return rest
+        hist = self._loaded[sid]
+        return Checkpoint(
+            hist.line,
+            hist.segment,
+            hist.trc_t,
+            hist.state,
+            hist.group,
+            hist.log[-1].order if hist.log else None,
+        )
+
+    def is_loaded(self, sid: SegmentId) -> bool:
+        return sid in self._loaded
+
+    @property
+    def n_loaded(self) -> int:
+        return len(self._loaded)
+
+    def trim(self, max_loaded: int) -> int:
+        """Drop the logs of the least recently used segments beyond ``max_loaded`` (their
+        states stay); only call it when the loader returns those logs (stored); returns
+        how many were dropped."""
+        dropped = 0
+        while len(self._loaded) > max_loaded:
+            sid = next(iter(self._loaded))
+            self._resting[sid] = self.resting(sid)
+            del self._loaded[sid]
+            dropped += 1
+        return dropped
+
+
+def canonical_log(events: Iterable[Event]) -> tuple[tuple[Event, ...], float | None]:
+    """``(log, trc_t)`` of a segment's stored events (any order): the events at or after
+    the latest TRC record, in canonical order. The store holds exactly the accepted log
+    (duplicates refused, superseded tampings and events before a TRC record deleted), except
+    a tamping correction that moved before the latest TRC record, which this drops."""
+    events = list(events)
+    restarts = [e.t_s for e in events if e.kind == RESTART]
+    trc_t = max(restarts) if restarts else None
+    kept = [e for e in events if trc_t is None or e.t_s >= trc_t]
+    kept.sort(key=lambda e: e.order)
+    return tuple(kept), trc_t
+
+
+def _rested(ckpt: Checkpoint, state, group, tail: Sequence[Event]) -> Checkpoint:
+    """``ckpt`` folded on over ``tail`` (in canonical order, after its last event)."""
+    restarts = [e.t_s for e in tail if e.kind == RESTART]
+    if ckpt.trc_t is not None:
+        restarts.append(ckpt.trc_t)
+    trc_t = max(restarts, default=None)
+    return replace(ckpt, trc_t=trc_t, state=state, group=group, last_order=tail[-1].order)
+
+
 def _has_index_of(log: Sequence[Event], units: set[tuple[str, str]]) -> bool:
     return any(e.kind == INDEX and (e.message.train, e.message.unit) in units for e in log)
 
@@ -814,9 +981,10 @@ class Tracker:
         horizons_days: Iterable[float] = HORIZONS_DAYS,
         *,
         detect_maintenance: bool = True,
+        loader: LogLoader | None = None,
     ) -> None:
         self.detect_maintenance = detect_maintenance  # :func:`detect` after each index
-        self.histories: dict[SegmentId, SegmentHistory] = {}
+        self.histories = Histories(loader)
         self.models = Models()
         self._limits_mm = limits_mm
         self.limit_levels = list(limit_levels)
@@ -900,10 +1068,10 @@ class Tracker:
         groups = {msg.group for msg in newest.values() if isinstance(msg, DegradationPosterior)}
         affected = [
             sid
-            for sid, hist in self.histories.items()
+            for sid in self.histories
             if calibrated
             or models.group_for(*sid) in groups
-            or (units and _has_index_of(hist.log, units))
+            or (units and _has_index_of(self.histories.load(sid).log, units))
         ]
         accepted = [msg for msg in msgs if newest.get(model_name(msg)) is msg]
         try:
@@ -920,7 +1088,7 @@ class Tracker:
                 tuple(state for u in one_by_one for state in u.states),
             )
         self.models = models
-        self.histories.update(hists)
+        self._swap(hists)
         return ModelUpdate(accepted, ignored, refused, states)
 
     def _newest_models(self, msgs: Iterable[ModelMessage]):
@@ -967,16 +1135,119 @@ class Tracker:
         models_in, *_ = self._newest_models(models)
         hists, states = self._rerun(models_in, list(self.histories))
         self.models = models_in
-        self.histories.update(hists)
+        self._swap(hists)
         return list(states)
+
+    def restore(
+        self,
+        models: Iterable[ModelMessage],
+        checkpoints: Iterable[Checkpoint],
+        tails: Mapping[SegmentId, Sequence[Event]],
+        replay: Iterable[SegmentId] = (),
+    ) -> tuple[list[SegmentId], list[SegmentState]]:
+        """Restart from checkpoints: ``(kept, states)``.
+
+        ``checkpoints``: each segment's last checkpoint; ``tails``: per segment, the stored
+        events its checkpoint does not cover (all of them for a segment without one);
+        ``replay``: segments whose checkpoint is unusable (to replay from the log start,
+        read through the loader). A checkpoint folded with other models than the current
+        ones (:func:`models_key`), or followed by an event that sorts before its last
+        one (a late event), is replayed from the log start too; one followed by newer
+        events only is folded on over them (one :func:`fold_many` for all), which is the
+        fold of the whole log, bit for bit. ``kept`` are the segments restored unchanged
+        (their stored SegmentState still holds), ``states`` the SegmentStates of the
+        others. The restored segments rest (their logs load when needed).
+        """
+        self.models, *_ = self._newest_models(models)
+        full: set[SegmentId] = set(replay)
+        kept: list[SegmentId] = []
+        on: list[tuple[SegmentId, Checkpoint, tuple[Event, ...]]] = []
+        for ckpt in checkpoints:
+            sid = (ckpt.line, ckpt.segment)
+            self.histories.rest(sid, ckpt)
+            tail = sorted(tails.get(sid, ()), key=lambda e: e.order)
+            if ckpt.models_key != models_key(self.models, *sid) or (
+                tail and ckpt.last_order is not None and tail[0].order <= ckpt.last_order
+            ):
+                full.add(sid)
+            elif tail:
+                on.append((sid, ckpt, tuple(tail)))
+            else:
+                kept.append(sid)
+        for sid in tails:
+            if sid not in self.histories:  # no checkpoint: its whole log is in ``tails``
+                self.histories.rest(sid, Checkpoint(*sid, None, None, None, None), dirty=True)
+                full.add(sid)
+        rested = self._fold_on(on)
+        hists, states = self._rerun(self.models, sorted(full))
+        self._swap(hists)
+        for sid in hists:
+            self.histories.dirty.add(sid)
+        return kept, [*self._swap_states(rested), *states]
+
+    def _fold_on(self, on: Sequence[tuple[SegmentId, Checkpoint, tuple[Event, ...]]]):
+        """Fold each checkpoint on over its newer events (:meth:`restore`)."""
+        out: dict[SegmentId, Checkpoint] = {}
+        jobs: dict[int, list[int]] = {}
+        for i, (sid, ckpt, tail) in enumerate(on):
+            group = self.models.group_for(*sid)
+            start = ckpt.state
+            if group is None or not _publishable(tail, self.models, started=start is not None):
+                out[sid] = _rested(ckpt, None, group, tail)
+            else:
+                jobs.setdefault(self.models.params[group].ns, []).append(i)
+        for job in jobs.values():
+            states = fold_many(
+                [on[i][1].state for i in job],
+                [on[i][2] for i in job],
+                [self.models.params[self.models.group_for(*on[i][0])] for i in job],
+                self.models,
+            )
+            for i, state in zip(job, states, strict=True):
+                sid, ckpt, tail = on[i]
+                out[sid] = _rested(ckpt, state, self.models.group_for(*sid), tail)
+        return out
+
+    def _swap_states(self, rested: Mapping[SegmentId, Checkpoint]) -> list[SegmentState]:
+        for sid, ckpt in rested.items():
+            self.histories.rest(sid, ckpt, dirty=True)
+        hists = [
+            SegmentHistory(c.line, c.segment, (), c.trc_t, c.state, c.group)
+            for c in rested.values()
+        ]
+        return [s for s in self.segment_states(hists) if s is not None]
+
+    def _swap(self, hists: Mapping[SegmentId, SegmentHistory | Checkpoint]) -> None:
+        """Put re-run results in place: a history, or a resting state (log not kept)."""
+        for sid, hist in hists.items():
+            if isinstance(hist, Checkpoint):
+                self.histories.rest(sid, hist, dirty=True)
+            else:
+                self.histories[sid] = hist
 
     def _rerun(
         self, models: Models, sids: Sequence[SegmentId]
-    ) -> tuple[dict[SegmentId, SegmentHistory], tuple[SegmentState, ...]]:
-        """Re-run ``sids`` with ``models`` in one batch; nothing is changed in place."""
-        hists = replay_many([self.histories[sid] for sid in sids], models)
-        states = self.segment_states(hists, models)
-        return dict(zip(sids, hists, strict=True)), tuple(s for s in states if s is not None)
+    ) -> tuple[dict[SegmentId, SegmentHistory | Checkpoint], tuple[SegmentState, ...]]:
+        """Re-run ``sids`` with ``models``; nothing is changed in place.
+
+        In chunks of ``RERUN_CHUNK`` segments (one batched :func:`replay_many` and
+        summary each): a segment whose log was not loaded is read through the loader for
+        its chunk only and comes back resting (a :class:`Checkpoint`), so a re-run of every
+        segment holds one chunk of logs at a time.
+        """
+        out: dict[SegmentId, SegmentHistory | Checkpoint] = {}
+        states: list[SegmentState] = []
+        for first in range(0, len(sids), RERUN_CHUNK):
+            chunk = sids[first : first + RERUN_CHUNK]
+            hists = replay_many([self.histories.load(sid) for sid in chunk], models)
+            states.extend(s for s in self.segment_states(hists, models) if s is not None)
+            for sid, hist in zip(chunk, hists, strict=True):
+                if self.histories.is_loaded(sid):
+                    out[sid] = hist
+                else:
+                    last = hist.log[-1].order if hist.log else None
+                    out[sid] = Checkpoint(*sid, hist.trc_t, hist.state, hist.group, last)
+        return out, tuple(states)
 
     def segment_states(
         self, hists: Sequence[SegmentHistory], models: Models | None = None
