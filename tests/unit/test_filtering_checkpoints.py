@@ -1,0 +1,231 @@
+"""Filtering checkpoints and lazily loaded logs: a restart from checkpoints, or a segment
+whose log was dropped from memory, gives the bits of a full replay of the same events."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from schemas import TrcRecord, encode
+from services.filtering import tracker as tracker_module
+from services.filtering.store import PersistentTracker, Store, pack_state, unpack_state
+from services.filtering.tracker import Filtered
+from tests.unit.test_filtering_tracker import (
+    MODELS,
+    assert_same_states,
+    calibration,
+    history,
+    index,
+    keyed,
+    new_tracker,
+    posterior,
+    run,
+    tamping,
+    trc,
+)
+
+SEGMENTS = ("s1", "s2", "s3", "s4")
+
+
+class CountingLoader:
+    """The store's loader, counting which segments' logs were read."""
+
+    def __init__(self, node: PersistentTracker) -> None:
+        self.node = node
+        self.read: list[tuple[str, str]] = []
+
+    def __call__(self, line: str, segment: str):
+        self.read.append((line, segment))
+        return self.node.segment_log(line, segment)
+
+
+def node_on(db, **kw) -> PersistentTracker:
+    return PersistentTracker(new_tracker(), Store(db), **kw)
+
+
+def restarted(db) -> tuple[PersistentTracker, dict, CountingLoader]:
+    node = node_on(db)
+    loader = CountingLoader(node)
+    node.tracker.histories.loader = loader
+    states = dict(node.restore())
+    return node, states, loader
+
+
+def in_time_order(events):
+    return sorted(events, key=lambda m: getattr(m, "t", getattr(m, "t_start", 0.0)))
+
+
+def assert_restored(node: PersistentTracker, states: dict, reference) -> None:
+    """The restored tracker equals ``reference`` (arrays, logs, SegmentState bytes), and
+    the states the restart returns are the reference's, for every publishable segment."""
+    want = {
+        sid: encode(s) for sid in reference.histories if (s := reference.state_of(*sid)) is not None
+    }
+    assert states == want
+    assert_same_states(reference, node.tracker)
+
+
+def test_state_bytes_round_trip_exactly():
+    rng = np.random.default_rng(0)
+    for trc_t, nis, t1 in ((None, None, float("nan")), (5.0, 0.25, 7.0)):
+        state = Filtered(
+            rng.normal(size=(7, 2)),
+            rng.normal(size=(7, 2, 2)),
+            123.5,
+            trc_t,
+            4,
+            nis,
+            rng.normal(size=7),
+            1.5,
+            3.0,
+            t1,
+        )
+        back = unpack_state(pack_state(state))
+        for name in ("z", "P", "log_w"):
+            assert getattr(back, name).tobytes() == getattr(state, name).tobytes()
+        assert (back.t_s, back.last_trc_t, back.n_updates, back.nis, back.cusum) == (
+            123.5,
+            trc_t,
+            4,
+            nis,
+            1.5,
+        )
+        assert back.cusum_t0 == 3.0 and np.array_equal([back.cusum_t1], [t1], equal_nan=True)
+    with pytest.raises(ValueError):
+        unpack_state(pack_state(state)[:-3])
+
+
+def test_restart_from_checkpoints_folds_on_over_the_newer_events_only(tmp_path):
+    events = in_time_order(history(np.random.default_rng(3), SEGMENTS))
+    db = tmp_path / "f.sqlite"
+    first = node_on(db)
+    first.handle_batch([keyed(m) for m in [*MODELS, *events[:50]]])  # models: checkpointed
+    first.handle_batch([keyed(m) for m in events[50:60]])
+    assert first.checkpoint() > 0
+    first.handle_batch([keyed(m) for m in events[60:70]])  # not checkpointed (no close)
+
+    node, states, loader = restarted(db)
+    reference, _ = run([*MODELS, *events[:70]])
+    # replayed from their log's start: only the segments whose TRC record after the
+    # checkpoint pruned their older events (a log of two events then)
+    pruned = {("L1", m.segment) for m in events[60:70] if isinstance(m, TrcRecord)}
+    assert pruned and sorted(loader.read) == sorted(pruned)
+    assert node.tracker.histories.n_loaded == 0
+    assert_restored(node, states, reference)
+
+    # a clean stop checkpoints; the next restart restores every state as stored
+    node.handle_batch([keyed(m) for m in events[70:]])
+    node.close()
+    again, states, loader = restarted(db)
+    reference, _ = run([*MODELS, *events])
+    assert loader.read == []
+    assert_restored(again, states, reference)
+
+
+def test_a_late_event_after_the_checkpoint_replays_its_segment(tmp_path):
+    events = in_time_order(history(np.random.default_rng(4), SEGMENTS))
+    late = next(m for m in events[:40] if m.segment == "s2" and type(m).__name__ == "OnboardIndex")
+    early = [m for m in events[:40] if m is not late]
+    db = tmp_path / "f.sqlite"
+    first = node_on(db)
+    first.handle_batch([keyed(m) for m in [*MODELS, *early]])
+    first.checkpoint()
+    first.handle_batch([keyed(m) for m in [late, *events[40:45]]])
+
+    node, states, loader = restarted(db)
+    assert set(loader.read) == {("L1", "s2")}
+    assert_restored(node, states, run([*MODELS, *events[:45]])[0])
+
+
+def test_a_duplicate_after_restart_is_refused(tmp_path):
+    events = in_time_order(history(np.random.default_rng(5), SEGMENTS))
+    db = tmp_path / "f.sqlite"
+    first = node_on(db)
+    first.handle_batch([keyed(m) for m in [*MODELS, *events[:50]]])
+    first.close()
+    node, _, _ = restarted(db)
+    stored = node.store.count_events()
+    done = node.handle_batch([keyed(m) for m in events[30:50]])  # all already stored
+    assert done.accepted == 0 and done.states == () and node.store.count_events() == stored
+    assert_same_states(run([*MODELS, *events[:50]])[0], node.tracker)
+
+
+def test_models_changed_after_the_checkpoint_rerun_every_affected_segment(tmp_path):
+    events = in_time_order(history(np.random.default_rng(6), SEGMENTS))
+    db = tmp_path / "f.sqlite"
+    first = node_on(db)
+    first.handle_batch([keyed(m) for m in [*MODELS, *events]])
+    first.checkpoint()
+    first.handle(*keyed(calibration(2, 1.05)))  # stored, never checkpointed (handle())
+
+    node, states, loader = restarted(db)
+    assert sorted(loader.read) == [("L1", s) for s in SEGMENTS]
+    assert_restored(node, states, run([calibration(2, 1.05), posterior(), *events])[0])
+
+
+def test_missing_and_broken_checkpoints_replay_their_segments(tmp_path, caplog):
+    events = in_time_order(history(np.random.default_rng(7), SEGMENTS))
+    db = tmp_path / "f.sqlite"
+    first = node_on(db)
+    first.handle_batch([keyed(m) for m in [*MODELS, *events]])
+    first.close()
+    first.store.delete_checkpoint("L1", "s1")
+    first.store._db.execute("UPDATE checkpoints SET state = x'00ff' WHERE segment = 's3'")
+
+    with caplog.at_level(logging.WARNING):
+        node, states, loader = restarted(db)
+    assert "checkpoint of L1/s3 no longer decodes" in caplog.text
+    assert sorted(loader.read) == [("L1", "s1"), ("L1", "s3")]
+    assert_restored(node, states, run([*MODELS, *events])[0])
+    node.close()  # the replayed segments get their checkpoints back
+    assert node.store._db.execute("SELECT COUNT(*) FROM checkpoints").fetchone()[0] == 4
+
+
+def test_a_pruning_trc_record_or_a_superseding_report_invalidates_the_checkpoint(tmp_path):
+    db = tmp_path / "f.sqlite"
+    first = node_on(db)
+    first.handle_batch([keyed(m) for m in [*MODELS, trc(0.0), index(3.0, 2.2, 2.0)]])
+    first.handle_batch([keyed(m) for m in [index(9.0, 2.3, 2.1), trc(0.0, segment="s2")]])
+    first.checkpoint()
+    rows = "SELECT segment FROM checkpoints ORDER BY segment"
+    assert [r[0] for r in first.store._db.execute(rows)] == ["s1", "s2"]
+    tail = [trc(10.0, 2.0, 1.9), index(12.0, 2.1, 2.0), tamping(5.0, 8.0, segment="s2")]
+    first.handle_batch([keyed(m) for m in tail])
+    assert [r[0] for r in first.store._db.execute(rows)] == ["s2"]  # s1's events pruned
+
+    node, states, loader = restarted(db)
+    assert loader.read == [("L1", "s1")]
+    assert_restored(node, states, run([*MODELS, trc(0.0), trc(0.0, segment="s2"), *tail])[0])
+
+
+def test_a_dropped_log_is_read_again_when_needed(tmp_path):
+    """LRU bound of the loaded logs: an evicted segment steps, refuses duplicates and
+    re-runs on a model change exactly as one held in memory."""
+    events = in_time_order(history(np.random.default_rng(8), SEGMENTS))
+    node = node_on(tmp_path / "f.sqlite", max_loaded=1)
+    node.handle_batch([keyed(m) for m in [*MODELS, *events[:60]]])
+    node.checkpoint()
+    assert node.tracker.histories.n_loaded == 1 and len(node.tracker.histories) == 4
+    assert node.handle_batch([keyed(events[10])]).accepted == 0  # duplicate of a dropped one
+    node.handle_batch([keyed(m) for m in events[60:]])
+    node.checkpoint()
+    assert_same_states(run([*MODELS, *events])[0], node.tracker)
+
+
+def test_a_model_change_reruns_in_chunks_without_keeping_the_logs(tmp_path, monkeypatch):
+    monkeypatch.setattr(tracker_module, "RERUN_CHUNK", 3)
+    events = in_time_order(history(np.random.default_rng(9), SEGMENTS))
+    node = node_on(tmp_path / "f.sqlite", max_loaded=0)
+    node.handle_batch([keyed(m) for m in [*MODELS, *events]])
+    node.checkpoint()
+    assert node.tracker.histories.n_loaded == 0
+    done = node.handle_batch([keyed(calibration(2, 1.1)), keyed(posterior(version=2, seed=3))])
+    assert done.accepted == 2 and len(done.states) == 4
+    assert node.tracker.histories.n_loaded == 0
+    reference = run([calibration(2, 1.1), posterior(version=2, seed=3), *events])[0]
+    assert {(s.line, s.segment): encode(s) for s in done.states} == {
+        sid: encode(reference.state_of(*sid)) for sid in reference.histories
+    }
+    assert_same_states(reference, node.tracker)
