@@ -1,10 +1,13 @@
 """Real processes: `trackfusion router` and `trackfusion filtering`; SIGKILL the filtering
-process mid-run, restart it on the same --db: the final states equal an uninterrupted run."""
+process mid-run (before any checkpoint, then between committed events and the next
+checkpoint), stop it cleanly (checkpoints), restart it on the same --db each time: the
+final states equal an uninterrupted run."""
 
 from __future__ import annotations
 
 import queue
 import signal
+import sqlite3
 
 import numpy as np
 import zenoh
@@ -151,18 +154,36 @@ def test_sigkill_and_restart_give_the_uninterrupted_states(
     assert first.wait(5) == -signal.SIGKILL
     assert alive.get(WAIT_S) == (zenoh.SampleKind.DELETE, alive_key)
 
+    # replayed from the events (no checkpoint yet); a clean stop then checkpoints
     second = spawn("filtering", *filtering_args)
     assert alive.get(READY_S) == (zenoh.SampleKind.PUT, alive_key), second.log()
-    send_and_wait(after, second)
+    split = len(after) // 2
+    send_and_wait(after[:split], second)
+    second.signal(signal.SIGTERM)
+    assert second.wait(5) == 0, second.log()
+    assert alive.get(WAIT_S) == (zenoh.SampleKind.DELETE, alive_key)
+    with sqlite3.connect(tmp_path / "filtering.sqlite") as db:
+        assert db.execute("SELECT COUNT(*) FROM checkpoints").fetchone()[0] == len(SEGMENTS)
 
+    # from the checkpoints; the rest (a late index, duplicates) is committed, then SIGKILL
+    # before the next checkpoint (CHECKPOINT_S): the restart folds on over those events
+    third = spawn("filtering", *filtering_args)
+    assert alive.get(READY_S) == (zenoh.SampleKind.PUT, alive_key), third.log()
+    send_and_wait(after[split:], third)
+    third.signal(signal.SIGKILL)
+    assert third.wait(5) == -signal.SIGKILL
+    assert alive.get(WAIT_S) == (zenoh.SampleKind.DELETE, alive_key)
+
+    fourth = spawn("filtering", *filtering_args)
+    assert alive.get(READY_S) == (zenoh.SampleKind.PUT, alive_key), fourth.log()
     replies = session.get(keys.q_state_all(namespace), timeout=5)
     queried = {str(r.ok.key_expr): r.ok.payload.to_bytes() for r in replies if r.ok is not None}
     assert queried == {
         keys.q_state(namespace, "L1", seg): encode(reference.state_of("L1", seg))
         for seg in SEGMENTS
     }
-    second.signal(signal.SIGTERM)
-    assert second.wait(5) == 0, second.log()
+    fourth.signal(signal.SIGTERM)
+    assert fourth.wait(5) == 0, fourth.log()
 
 
 def _limits():
