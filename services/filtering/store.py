@@ -305,12 +305,19 @@ class Store:
         )
 
     def tails(self) -> Iterator[tuple[str, str, str, bytes]]:
-        """``(line, segment, key, payload)`` of the stored events no checkpoint covers
-        (newer than their segment's checkpoint, or of a segment without one)."""
+        """``(line, segment, key, payload)`` of the stored events newer than their
+        segment's checkpoint."""
         yield from self._db.execute(
             "SELECT e.line, e.segment, e.key, e.payload FROM events e"
-            " LEFT JOIN checkpoints c ON c.line = e.line AND c.segment = e.segment"
-            " WHERE c.seq IS NULL OR e.seq > c.seq ORDER BY e.seq"
+            " JOIN checkpoints c ON c.line = e.line AND c.segment = e.segment"
+            " WHERE e.seq > c.seq ORDER BY e.seq"
+        )
+
+    def unchecked_segments(self) -> Iterator[tuple[str, str]]:
+        """The segments with stored events and no checkpoint."""
+        yield from self._db.execute(
+            "SELECT DISTINCT line, segment FROM events e WHERE NOT EXISTS (SELECT 1 FROM"
+            " checkpoints c WHERE c.line = e.line AND c.segment = e.segment)"
         )
 
     def delete_checkpoint(self, line: str, segment: str) -> None:
@@ -572,9 +579,8 @@ class PersistentTracker:
                 log.warning("store: skipping a stored %s that no longer decodes: %s", key, e)
                 continue
             tails.setdefault((line, segment), []).append(event_of(msg))  # type: ignore[arg-type]
-        for sid in broken:
-            tails.setdefault(sid, [])
-        kept, states = self.tracker.restore(models, checkpoints, tails, broken)  # type: ignore[arg-type]
+        replay = [*broken, *self.store.unchecked_segments()]  # their logs: by the loader
+        kept, states = self.tracker.restore(models, checkpoints, tails, replay)  # type: ignore[arg-type]
         out: list[tuple[SegmentId, bytes]] = []
         unsummarised = []
         for sid in kept:

@@ -1148,11 +1148,11 @@ class Tracker:
         """Restart from checkpoints: ``(kept, states)``.
 
         ``checkpoints``: each segment's last checkpoint; ``tails``: per segment, the stored
-        events its checkpoint does not cover (all of them for a segment without one);
-        ``replay``: segments whose checkpoint is unusable (to replay from the log start,
-        read through the loader). A checkpoint folded with other models than the current
-        ones (:func:`models_key`), or followed by an event that sorts before its last
-        one (a late event), is replayed from the log start too; one followed by newer
+        events its checkpoint does not cover; ``replay``: segments without a usable
+        checkpoint (replayed from the log start, read through the loader). A checkpoint
+        folded with other models than the current ones (:func:`models_key`), or followed
+        by an event that sorts before its last one (a late event), is replayed from the
+        log start too; one followed by newer
         events only is folded on over them (one :func:`fold_many` for all), which is the
         fold of the whole log, bit for bit. ``kept`` are the segments restored unchanged
         (their stored SegmentState still holds), ``states`` the SegmentStates of the
@@ -1174,10 +1174,9 @@ class Tracker:
                 on.append((sid, ckpt, tuple(tail)))
             else:
                 kept.append(sid)
-        for sid in tails:
-            if sid not in self.histories:  # no checkpoint: its whole log is in ``tails``
+        for sid in full:
+            if sid not in self.histories:  # no (usable) checkpoint: all from its log
                 self.histories.rest(sid, Checkpoint(*sid, None, None, None, None), dirty=True)
-                full.add(sid)
         rested = self._fold_on(on)
         hists, states = self._rerun(self.models, sorted(full))
         self._swap(hists)
