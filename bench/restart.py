@@ -1,0 +1,323 @@
+"""Restart and model change of one filtering instance holding many segments (issue 16).
+
+A store of ``--segments`` segments, each with a TRC record and ``2 × --days`` OnboardIndex
+since (Ns = 200 posterior samples), is written directly with SQL (the rows the service
+itself writes: re-encoded payloads, identities, times) together with the models. Then the
+real service (``trackfusion filtering`` in its own process, a router in this one on
+loopback) is started on it, four times:
+
+1. *first start*: no checkpoint, every segment replayed from its log (what every restart
+   cost before checkpoints), then a clean stop (SIGTERM: checkpoints written);
+2. *restart*: from the checkpoints;
+3. *model change*: a new Calibration published; time until every segment's state with
+   the new version has arrived here; then one new index on every tenth segment and SIGKILL
+   before the next checkpoint;
+4. *restart after SIGKILL*: checkpoints and the events stored after them.
+
+Ready is the service's liveliness token; *answering* is a ``q/state`` query here returning
+every segment. The time is from the process start (interpreter and imports included).
+RSS is the service process's (``VmHWM``: peak; ``VmRSS`` once ready). Baseline in this
+process: :func:`services.filtering.tracker.fold_many` of the same events, alone, on a
+sample of segments, extrapolated per event.
+
+Run: ``python -m bench.restart [--segments 100000 --days 60]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import zenoh
+
+from schemas import DAY_S, OnboardIndex, SegmentState, TrcRecord, decode, encode, keys
+from services.filtering.store import Store
+from services.filtering.testing import example_models
+from services.filtering.tracker import Models, event_of, fold_many, parse_model
+from services.runtime.config import zenoh_config
+
+NS_SAMPLES = 200
+T0 = 1_767_225_600.0
+READY_S = 1800.0  # upper bound of a start at the largest size
+CHUNK = 2000  # segments written per executemany
+
+
+def build_store(db: Path, segments: int, days: int, ns: str, models) -> int:
+    """The store the service would have written for these events; returns the event count."""
+    rng = np.random.default_rng(1)
+    with Store(db) as store:
+        for msg in models:
+            name = "calibration" if msg.__class__.__name__ == "Calibration" else "degradation/net"
+            key = keys.calibration(ns) if name == "calibration" else keys.degradation(ns, "net")
+            store.put_model(
+                name=name, kind=name.split("/")[0], version=1, key=key, payload=encode(msg)
+            )
+    db_ = sqlite3.connect(db, isolation_level=None)
+    db_.execute("PRAGMA synchronous=OFF")
+    n = 0
+    times = T0 + (np.arange(2 * days) // 2 + 0.25 + 0.5 * (np.arange(2 * days) % 2)) * DAY_S
+    for first in range(0, segments, CHUNK):
+        rows = []
+        for k in range(first, min(segments, first + CHUNK)):
+            seg = f"s{k:06d}"
+            trc = TrcRecord(line="L1", segment=seg, t=T0, top6_mm=3.0, align10_mm=2.4, run_id="r0")
+            rows.append(
+                (
+                    "L1",
+                    seg,
+                    "trc",
+                    keys.trc(ns, "L1", seg),
+                    json.dumps(["trc", "r0", T0]),
+                    T0,
+                    encode(trc),
+                )
+            )
+            y = np.exp(rng.normal([0.8, 0.5], 0.1, (len(times), 2))).tolist()
+            key = keys.index(ns, "L1", seg)
+            for i, t in enumerate(times.tolist()):
+                train = f"T{i % 2}"
+                msg = OnboardIndex(
+                    line="L1",
+                    segment=seg,
+                    train=train,
+                    unit="u1",
+                    t=t,
+                    top6_mm=y[i][0],
+                    align10_mm=y[i][1],
+                    speed_mps=30.0,
+                    coverage=1.0,
+                )
+                identity = json.dumps(["index", train, "u1", t])
+                rows.append(("L1", seg, "index", key, identity, t, encode(msg)))
+        db_.execute("BEGIN")
+        db_.executemany(
+            "INSERT INTO events (line, segment, kind, key, identity, t, payload)"
+            " VALUES (?, ?, ?, ?, ?, ?, ?)",
+            rows,
+        )
+        db_.execute("COMMIT")
+        n += len(rows)
+    db_.close()
+    return n
+
+
+def fold_rate(db: Path, models, sample: int) -> float:
+    """Events/s of ``fold_many`` alone over the logs of ``sample`` segments of the store."""
+    from services.filtering.store import decode_keyed
+
+    with Store(db) as store:
+        rows = store._db.execute(
+            "SELECT segment, key, payload FROM events WHERE segment < ? ORDER BY segment, t",
+            (f"s{sample:06d}",),
+        ).fetchall()
+    logs: dict[str, list] = {}
+    for seg, key, payload in rows:
+        logs.setdefault(seg, []).append(event_of(decode_keyed(key, payload)))
+    calibration, posterior = models
+    tracker_models = Models(
+        calibration=calibration,
+        observation=parse_model(calibration),
+        posteriors={"net": posterior},
+        params={"net": parse_model(posterior)},
+    )
+    params = tracker_models.params["net"]
+    started = time.perf_counter()
+    fold_many([None] * len(logs), list(logs.values()), [params] * len(logs), tracker_models)
+    return len(rows) / (time.perf_counter() - started)
+
+
+class Watcher:
+    """This process's view of the service: its token, its states, q/state."""
+
+    def __init__(self, session: zenoh.Session, ns: str) -> None:
+        self.session, self.ns = session, ns
+        self.alive = threading.Event()
+        self.cond = threading.Condition()
+        self.versions: dict[str, int] = {}  # segment -> calibration version of its newest state
+        self.times: dict[str, float] = {}  # segment -> t of its newest state
+        alive_key = keys.alive(ns, "filtering", "bench")
+        self._tokens = session.liveliness().declare_subscriber(alive_key, self._on_token)
+        self._states = session.declare_subscriber(keys.segment_keys(ns, "state"), self._on_state)
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.alive.set()
+        else:
+            self.alive.clear()
+
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        state = decode(sample.payload.to_bytes(), SegmentState)
+        with self.cond:
+            self.versions[state.segment] = state.calibration_version
+            self.times[state.segment] = state.t
+            self.cond.notify_all()
+
+    def all_at(self, version: int, segments: int, timeout: float) -> bool:
+        with self.cond:
+            return self.cond.wait_for(
+                lambda: sum(v == version for v in self.versions.values()) >= segments, timeout
+            )
+
+    def answered(self) -> int:
+        replies = self.session.get(keys.q_state_all(self.ns), timeout=READY_S)
+        return sum(r.ok is not None for r in replies)
+
+    def close(self) -> None:
+        self._tokens.undeclare()
+        self._states.undeclare()
+
+
+def rss_mb(pid: int) -> tuple[float, float]:
+    """(VmRSS, VmHWM) of a process, MB."""
+    fields = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        name, _, value = line.partition(":")
+        fields[name] = value
+    return tuple(float(fields[k].split()[0]) / 1024 for k in ("VmRSS", "VmHWM"))  # type: ignore[return-value]
+
+
+def start(args: list[str], watcher: Watcher, segments: int, log: Path):
+    """Start the service; ``(process, ready_s, answering_s, rss, peak)``."""
+    watcher.alive.clear()
+    started = time.perf_counter()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *args],
+        stdout=log.open("ab"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    while not watcher.alive.wait(1.0):  # or the process ended
+        if proc.poll() is not None or time.perf_counter() - started > READY_S:
+            proc.kill()
+            raise RuntimeError(f"not ready ({proc.poll()}):\n{log.read_text()[-2000:]}")
+    ready = time.perf_counter() - started
+    got = watcher.answered()
+    answering = time.perf_counter() - started
+    if got != segments:
+        raise RuntimeError(f"q/state answered {got} of {segments} segments; see {log}")
+    return (proc, ready, answering, *rss_mb(proc.pid))
+
+
+def bench_restart(segments: int = 2000, days: int = 60, sample: int = 500) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    ns = f"tfrestart_{os.getpid()}"
+    models = example_models(NS_SAMPLES, seed=3)
+    router_conf = {"mode": "router", "listen": {"endpoints": [endpoint]}, "scouting": {"delay": 0}}
+    client = {"mode": "client", "connect": {"endpoints": [endpoint]}}
+    with tempfile.TemporaryDirectory() as tmp, zenoh.open(zenoh_config(router_conf)) as _router:
+        db, log = Path(tmp) / "filtering.sqlite", Path(tmp) / "service.log"
+        started = time.perf_counter()
+        n_events = build_store(db, segments, days, ns, models)
+        built = time.perf_counter() - started
+        rate = fold_rate(db, models, min(sample, segments))
+        args = [
+            *("filtering", "--connect", endpoint, "--ns", ns, "--instance", "bench"),
+            *("--db", str(db), "--log-level", "info"),
+        ]
+        rows = []
+        with zenoh.open(zenoh_config(client)) as session:
+            watcher = Watcher(session, ns)
+            try:
+                proc, *first = start(args, watcher, segments, log)
+                t = time.perf_counter()
+                proc.send_signal(signal.SIGTERM)
+                proc.wait(READY_S)
+                stop_s = time.perf_counter() - t
+                rows.append(("first start (no checkpoint: full replay)", *first))
+
+                proc, *again = start(args, watcher, segments, log)
+                rows.append(("restart from checkpoints", *again))
+
+                calibration = msgspec.structs.replace(models[0], version=2)
+                t = time.perf_counter()
+                session.put(keys.calibration(ns), encode(calibration))
+                if not watcher.all_at(2, segments, READY_S):
+                    raise RuntimeError(f"model change incomplete; see {log}")
+                change_s = time.perf_counter() - t
+                change_rss = rss_mb(proc.pid)
+
+                tail = _tail(segments, days)
+                for msg in tail:
+                    session.put(keys.index(ns, msg.line, msg.segment), encode(msg))
+                with watcher.cond:  # published after their commit: stored
+                    done = watcher.cond.wait_for(
+                        lambda: all(watcher.times.get(m.segment) == m.t for m in tail), READY_S
+                    )
+                if not done:
+                    raise RuntimeError(f"the tail's states did not all arrive; see {log}")
+                proc.send_signal(signal.SIGKILL)
+                proc.wait(60)
+                proc, *killed = start(args, watcher, segments, log)
+                rows.append(
+                    (f"restart after SIGKILL ({len(tail)} events after checkpoint)", *killed)
+                )
+                proc.send_signal(signal.SIGTERM)
+                proc.wait(READY_S)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+                watcher.close()
+        size_mb = db.stat().st_size / 1e6
+
+    fold_all = n_events / rate
+    print(
+        f"filtering restart, Ns = {NS_SAMPLES}, {segments:,} segments × {days} days × 2 passes"
+        f" = {n_events:,} events since the TRC records (store {size_mb:,.0f} MB, built in"
+        f" {built:.0f} s):"
+    )
+    print(f"  fold_many alone: {rate:,.0f} events/s, i.e. {fold_all:.1f} s for every event")
+    for name, ready, answering, rss, peak in rows:
+        print(
+            f"  {name}: ready (token) {ready:.1f} s, q/state answering all {answering:.1f} s"
+            f" ({answering / fold_all:.2f}x the fold alone); RSS {rss:,.0f} MB, peak {peak:,.0f} MB"
+        )
+    print(f"  clean stop (checkpoints of every segment) {stop_s:.1f} s")
+    print(
+        f"  model change (new Calibration, every segment re-run, summarised, checkpointed,"
+        f" published, received here): {change_s:.1f} s ({change_s / fold_all:.2f}x the fold"
+        f" alone); RSS then {change_rss[0]:,.0f} MB, peak {change_rss[1]:,.0f} MB"
+    )
+
+
+def _tail(segments: int, days: int) -> list[OnboardIndex]:
+    t = T0 + (days + 0.5) * DAY_S
+    return [
+        OnboardIndex(
+            line="L1",
+            segment=f"s{k:06d}",
+            train="T9",
+            unit="u1",
+            t=t,
+            top6_mm=2.5,
+            align10_mm=2.0,
+            speed_mps=30.0,
+            coverage=1.0,
+        )
+        for k in range(0, segments, 10)
+    ]
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--segments", type=int, default=2000)
+    parser.add_argument("--days", type=int, default=60)
+    args = parser.parse_args(argv)
+    bench_restart(args.segments, args.days)
+
+
+if __name__ == "__main__":
+    main()
