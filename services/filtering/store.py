@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from schemas import (
@@ -304,11 +305,11 @@ class Store:
             " FROM checkpoints"
         )
 
-    def tails(self) -> Iterator[tuple[str, str, str, bytes]]:
-        """``(line, segment, key, payload)`` of the stored events newer than their
+    def tails(self) -> Iterator[tuple[str, str, str, str, bytes]]:
+        """``(line, segment, kind, key, payload)`` of the stored events newer than their
         segment's checkpoint."""
         yield from self._db.execute(
-            "SELECT e.line, e.segment, e.key, e.payload FROM events e"
+            "SELECT e.line, e.segment, e.kind, e.key, e.payload FROM events e"
             " JOIN checkpoints c ON c.line = e.line AND c.segment = e.segment"
             " WHERE e.seq > c.seq ORDER BY e.seq"
         )
@@ -346,6 +347,26 @@ def decode_keyed(key: str, payload: bytes) -> EventMessage | ModelMessage | None
     message = decode(payload, message_type)
     keys.check_key(key, message)
     return message
+
+
+_STORED = {kind: msgspec.msgpack.Decoder(t) for kind, t in _EVENT_TYPES.items()}
+
+
+def _stored_events(rows: Iterable[tuple[str, str, bytes]]) -> Iterator[Event]:
+    """The core's events of stored ``(kind, key, payload)`` rows.
+
+    The rows are the service's own re-encoding of messages it validated and whose key it
+    checked, so they skip what guards the wire (size limit, nesting scan, key check): a
+    re-run decodes every stored event, and those checks cost more than the fold. The
+    messages' own checks still run; a row failing them is skipped with a warning.
+    """
+    for kind, key, payload in rows:
+        try:
+            msg = _STORED[kind].decode(payload)
+        except (KeyError, msgspec.DecodeError, msgspec.ValidationError, SchemaError) as e:
+            log.warning("store: skipping a stored %s that no longer decodes: %s", key, e)
+            continue
+        yield event_of(msg)
 
 
 @dataclass(frozen=True)
@@ -572,13 +593,9 @@ class PersistentTracker:
             if summary is not None:
                 summaries[(line, segment)] = summary
         tails: dict[SegmentId, list[Event]] = {}
-        for line, segment, key, payload in self.store.tails():
-            try:
-                msg = decode_keyed(key, payload)
-            except SchemaError as e:
-                log.warning("store: skipping a stored %s that no longer decodes: %s", key, e)
-                continue
-            tails.setdefault((line, segment), []).append(event_of(msg))  # type: ignore[arg-type]
+        for line, segment, kind, key, payload in self.store.tails():
+            for event in _stored_events([(kind, key, payload)]):
+                tails.setdefault((line, segment), []).append(event)
         replay = [*broken, *self.store.unchecked_segments()]  # their logs: by the loader
         kept, states = self.tracker.restore(models, checkpoints, tails, replay)  # type: ignore[arg-type]
         out: list[tuple[SegmentId, bytes]] = []
@@ -602,8 +619,7 @@ class PersistentTracker:
 
     def segment_log(self, line: str, segment: str) -> tuple[tuple[Event, ...], float | None]:
         """The segment's log from the store (:func:`canonical_log`): the tracker's loader."""
-        rows = self._decoded(self.store.segment_events(line, segment))
-        return canonical_log(event_of(msg) for msg in rows if msg is not None)  # type: ignore[arg-type]
+        return canonical_log(_stored_events(self.store.segment_events(line, segment)))
 
     def _after_batch(self, states: Iterable[SegmentState], *, models: bool) -> None:
         """After a committed batch: note its states; checkpoint when due (every
