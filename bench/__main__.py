@@ -22,6 +22,9 @@ Workloads (DESIGN "Performance targets"):
    against the filter bank alone and the one-segment-at-a-time re-run (``bench/rerun.py``).
 9. model versions calibration publishes per simulated month of the demo world, with the
    publication rule against without it (``bench/calibration_versions.py``).
+10. filtering restart and model change on a store of 2,000 segments x 60 days (first start
+    without checkpoints, restart from them, after SIGKILL; a new calibration), against
+    ``fold_many`` alone (``bench/restart.py``; ``--segments 100000`` for issue 16's size).
 """
 
 from __future__ import annotations
@@ -181,6 +184,7 @@ def main() -> None:
     from bench.filtering import bench_filtering_service
     from bench.ingestion import bench_ingestion
     from bench.rerun import bench_rerun
+    from bench.restart import bench_restart
     from bench.simulator import bench_raw_generation
 
     rng = np.random.default_rng(1)
@@ -194,6 +198,7 @@ def main() -> None:
     bench_filtering_service()
     bench_delivery()
     bench_calibration_versions([])
+    bench_restart()
 
 
 if __name__ == "__main__":

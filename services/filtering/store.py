@@ -66,7 +66,7 @@ from services.filtering.tracker import (
 log = logging.getLogger(__name__)
 
 CHECKPOINT_S = 10.0  # worker time between two checkpoints of the changed segments
-MAX_LOADED = 20_000  # segment logs kept in memory (least recently used beyond are dropped)
+MAX_LOADED = 4096  # segment logs kept in memory (~1 KB an event; least recently used dropped)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS events (

@@ -71,9 +71,13 @@ change it:
   mixture weights before that update (the predictive distribution the index is checked
   against); ``n_updates`` counts the updates since the last TRC record (or since the
   tamping that started the state).
+- **Logs held lazily** (:class:`Histories`): a segment's log can rest outside memory (in
+  the store) while its state stays; it is read back through a loader the first time it
+  is needed (a late event, a duplicate check, detection, a re-run). A re-run of every
+  segment goes through them in chunks (``RERUN_CHUNK``), so it holds one chunk of logs.
 
-:class:`Tracker` keeps the segment histories in a dict and the models; its :meth:`step`
-returns a :class:`Step` (accepted or not, why, and the SegmentStates to publish), its
+:class:`Tracker` keeps the segment histories (:class:`Histories`) and the models; its
+:meth:`step` returns a :class:`Step` (accepted or not, why, and the SegmentStates to publish), its
 :meth:`~Tracker.update_models` a :class:`ModelUpdate`.
 """
 
@@ -1152,11 +1156,11 @@ class Tracker:
         checkpoint (replayed from the log start, read through the loader). A checkpoint
         folded with other models than the current ones (:func:`models_key`), or followed
         by an event that sorts before its last one (a late event), is replayed from the
-        log start too; one followed by newer
-        events only is folded on over them (one :func:`fold_many` for all), which is the
-        fold of the whole log, bit for bit. ``kept`` are the segments restored unchanged
-        (their stored SegmentState still holds), ``states`` the SegmentStates of the
-        others. The restored segments rest (their logs load when needed).
+        log start too; one followed by newer events only is folded on over them (one
+        :func:`fold_many` for all), which is the fold of the whole log, bit for bit.
+        ``kept`` are the segments restored unchanged (their stored SegmentState still
+        holds), ``states`` the SegmentStates of the others. The restored segments rest
+        (their logs load when needed).
         """
         self.models, *_ = self._newest_models(models)
         full: set[SegmentId] = set(replay)
