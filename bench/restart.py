@@ -210,7 +210,9 @@ def start(args: list[str], watcher: Watcher, segments: int, log: Path):
     return (proc, ready, answering, *rss_mb(proc.pid))
 
 
-def bench_restart(segments: int = 2000, days: int = 60, sample: int = 500) -> None:
+def bench_restart(
+    segments: int = 2000, days: int = 60, sample: int = 500, service_log: Path | None = None
+) -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
@@ -272,6 +274,8 @@ def bench_restart(segments: int = 2000, days: int = 60, sample: int = 500) -> No
                     proc.kill()
                 watcher.close()
         size_mb = db.stat().st_size / 1e6
+        if service_log is not None:
+            service_log.write_bytes(log.read_bytes())
 
     fold_all = n_events / rate
     print(
@@ -315,8 +319,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--segments", type=int, default=2000)
     parser.add_argument("--days", type=int, default=60)
+    parser.add_argument("--service-log", type=Path, help="keep the service's log there")
     args = parser.parse_args(argv)
-    bench_restart(args.segments, args.days)
+    bench_restart(args.segments, args.days, service_log=args.service_log)
 
 
 if __name__ == "__main__":

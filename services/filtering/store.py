@@ -81,6 +81,8 @@ CREATE TABLE IF NOT EXISTS events (
     UNIQUE (line, segment, identity)
 );
 CREATE INDEX IF NOT EXISTS events_segment_t ON events (line, segment, t);
+-- a restart reads each segment's events after its checkpoint's seq, and no others
+CREATE INDEX IF NOT EXISTS events_segment_seq ON events (line, segment, seq);
 CREATE TABLE IF NOT EXISTS models (
     name     TEXT PRIMARY KEY,  -- "calibration" or "degradation/{group}"
     kind     TEXT NOT NULL,     -- calibration, degradation
@@ -309,17 +311,26 @@ class Store:
         """``(line, segment, kind, key, payload)`` of the stored events newer than their
         segment's checkpoint."""
         yield from self._db.execute(
-            "SELECT e.line, e.segment, e.kind, e.key, e.payload FROM events e"
-            " JOIN checkpoints c ON c.line = e.line AND c.segment = e.segment"
-            " WHERE e.seq > c.seq ORDER BY e.seq"
+            "SELECT e.line, e.segment, e.kind, e.key, e.payload FROM checkpoints c"
+            " JOIN events e INDEXED BY events_segment_seq"
+            " ON e.line = c.line AND e.segment = c.segment AND e.seq > c.seq"
         )
 
     def unchecked_segments(self) -> Iterator[tuple[str, str]]:
-        """The segments with stored events and no checkpoint."""
-        yield from self._db.execute(
-            "SELECT DISTINCT line, segment FROM events e WHERE NOT EXISTS (SELECT 1 FROM"
-            " checkpoints c WHERE c.line = e.line AND c.segment = e.segment)"
-        )
+        """The segments with stored events and no checkpoint: one index seek per segment
+        (a skip scan), not a read of every event."""
+        checked = set(self._db.execute("SELECT line, segment FROM checkpoints"))
+        sid = self._db.execute(
+            "SELECT line, segment FROM events ORDER BY line, segment LIMIT 1"
+        ).fetchone()
+        while sid is not None:
+            if sid not in checked:
+                yield sid
+            sid = self._db.execute(
+                "SELECT line, segment FROM events WHERE (line, segment) > (?, ?)"
+                " ORDER BY line, segment LIMIT 1",
+                sid,
+            ).fetchone()
 
     def delete_checkpoint(self, line: str, segment: str) -> None:
         self._db.execute("DELETE FROM checkpoints WHERE line = ? AND segment = ?", (line, segment))
