@@ -17,10 +17,11 @@ The queryable ``{ns}/q/state/{selector}`` answers each matching segment's latest
 ``{ns}/q/state/{line}/{segment}``.
 
 At start the tracker is restored from the store's checkpoints and the events after them
-(:meth:`PersistentTracker.restore`, see :mod:`services.filtering.store`) and the restored
-states are published again (a state committed but not yet published when the process died
-is then not lost; a repeated state is harmless to its consumers). Event time only: the wall clock is
-never used for a state.
+(:meth:`PersistentTracker.restore`, see :mod:`services.filtering.store`); every restored
+state answers ``q/state`` at once, and is published again in the background, before any
+newer one (a state committed but not yet published when the process died is then not
+lost; a repeated state is harmless).
+Event time only: the wall clock is never used for a state.
 
 Options (``services.filtering`` in the config file, overridden by the flags): ``selector``
 (default ``**``), ``db`` (default ``./var/filtering-{instance}.sqlite`` with the configured
@@ -124,8 +125,19 @@ class FilteringAdapter:
     def start(self) -> None:
         ns = self.rt.ns
         self.states_out = self.rt.reliable_publisher(STATE_CACHE)
-        for (line, segment), payload in self.node.restore():
-            self._publish_encoded(line, segment, payload)
+        restored = self.node.restore()
+        for (line, segment), payload, _unpublished in restored:
+            self.latest.put(keys.q_state(ns, line, segment), payload)
+        log.info(
+            "restored %d states, %d of them possibly never published",
+            len(restored),
+            sum(new for *_, new in restored),
+        )
+        # published again in the background: a first put on each key declares its cached
+        # publisher (milliseconds each), which must not hold up readiness; the worker
+        # waits for it before its first batch, so no newer state goes out before it
+        self._republished = threading.Event()
+        self.rt.spawn(self._republish, restored, name="filtering-republish")
         subscriptions = {
             kind: keys.segment_keys(ns, kind, self.selector)
             for kind in ("index", "trc", "maintenance")
@@ -146,8 +158,20 @@ class FilteringAdapter:
 
     # --- the worker ---------------------------------------------------------------------
 
+    def _republish(self, restored: list[tuple[tuple[str, str], bytes, bool]]) -> None:
+        """Publish the restored states again (a state committed but not yet published
+        when the process died is then not lost; a repeated one is harmless)."""
+        try:
+            for (line, segment), payload, _unpublished in restored:
+                if self.rt.stopping:
+                    return
+                self.states_out.put(keys.state(self.rt.ns, line, segment), payload)
+        finally:
+            self._republished.set()
+
     def _handle_batch(self, batch: list[tuple[str, str, bytes]]) -> None:
         """What is queued, in one store transaction; then the changed states are published."""
+        self._republished.wait()  # the restored states go out first
         try:
             done = self.node.handle_batch((key, payload) for _kind, key, payload in batch)
         except Exception as e:
@@ -175,13 +199,11 @@ class FilteringAdapter:
             )
 
     def _publish(self, state: SegmentState) -> None:
-        self._publish_encoded(state.line, state.segment, encode(state))
-
-    def _publish_encoded(self, line: str, segment: str, payload: bytes) -> None:
-        self.latest.put(keys.q_state(self.rt.ns, line, segment), payload)
+        payload = encode(state)
+        self.latest.put(keys.q_state(self.rt.ns, state.line, state.segment), payload)
         # cached per segment (alerting restarted gets what it missed); BLOCK: a slow
         # consumer slows the worker down rather than losing states
-        self.states_out.put(keys.state(self.rt.ns, line, segment), payload)
+        self.states_out.put(keys.state(self.rt.ns, state.line, state.segment), payload)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -100,7 +100,14 @@ CREATE TABLE IF NOT EXISTS checkpoints (
     models     TEXT NOT NULL,     -- the model versions it was folded with (models_key)
     state      BLOB,              -- the Filtered state, exact float64 (pack_state)
     summary    BLOB,              -- its encoded SegmentState, if known
+    gen        INTEGER NOT NULL DEFAULT 0,  -- the checkpoint (transaction) that wrote it
     PRIMARY KEY (line, segment)
+);
+-- published_gen: the newest checkpoint whose states were all published (the one before
+-- the latest, or the latest after a clean stop)
+CREATE TABLE IF NOT EXISTS checkpoint_meta (
+    name  TEXT PRIMARY KEY,
+    value INTEGER NOT NULL
 );
 -- an event deleted or rewritten under a checkpoint (a TRC record pruning, a reported
 -- tamping superseding a detected one, a correction) makes it stale: the segment is then
@@ -290,20 +297,43 @@ class Store:
         """The newest event's ``seq`` (0 if none): what a checkpoint written now covers."""
         return self._db.execute("SELECT COALESCE(MAX(seq), 0) FROM events").fetchone()[0]
 
-    def put_checkpoints(self, rows: Iterable[tuple[Any, ...]]) -> None:
+    def put_checkpoints(self, rows: Iterable[tuple[Any, ...]], *, published: bool = True) -> int:
         """Write checkpoint rows ``(line, segment, seq, last_order, trc_t, grp, models,
-        state, summary)`` (replacing each segment's previous one)."""
+        state, summary)`` (replacing each segment's previous one) as a new generation;
+        unless ``published`` is False the previous generation is then marked published
+        (its states were published before this one was written: see
+        :meth:`PersistentTracker.checkpoint`). Returns the generation."""
+        gen = self._db.execute("SELECT COALESCE(MAX(gen), 0) + 1 FROM checkpoints").fetchone()[0]
         self._db.executemany(
             "INSERT OR REPLACE INTO checkpoints"
-            " (line, segment, seq, last_order, trc_t, grp, models, state, summary)"
-            " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            " (line, segment, seq, last_order, trc_t, grp, models, state, summary, gen)"
+            f" VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, {int(gen)})",
             rows,
         )
+        if published:
+            self.set_published(gen - 1)
+        return gen
+
+    def set_published(self, gen: int | None = None) -> None:
+        """Every checkpoint up to ``gen`` (default: the latest) holds published states."""
+        if gen is None:
+            gen = self._db.execute("SELECT COALESCE(MAX(gen), 0) FROM checkpoints").fetchone()[0]
+        self._db.execute(
+            "INSERT INTO checkpoint_meta (name, value) VALUES ('published_gen', ?)"
+            " ON CONFLICT (name) DO UPDATE SET value = MAX(value, excluded.value)",
+            (gen,),
+        )
+
+    def published_gen(self) -> int:
+        row = self._db.execute(
+            "SELECT value FROM checkpoint_meta WHERE name = 'published_gen'"
+        ).fetchone()
+        return 0 if row is None else row[0]
 
     def checkpoints(self) -> Iterator[tuple[Any, ...]]:
-        """Every checkpoint row, as :meth:`put_checkpoints` takes them."""
+        """Every checkpoint row, as :meth:`put_checkpoints` takes them, and its generation."""
         yield from self._db.execute(
-            "SELECT line, segment, seq, last_order, trc_t, grp, models, state, summary"
+            "SELECT line, segment, seq, last_order, trc_t, grp, models, state, summary, gen"
             " FROM checkpoints"
         )
 
@@ -573,11 +603,13 @@ class PersistentTracker:
 
     def rebuild(self) -> list[SegmentState]:
         """:meth:`restore`, decoded: the publishable states of every segment."""
-        return [decode(payload, SegmentState) for _sid, payload in self.restore()]
+        return [decode(payload, SegmentState) for _sid, payload, _new in self.restore()]
 
-    def restore(self) -> list[tuple[SegmentId, bytes]]:
-        """Bring the tracker back from the store: ``(segment, encoded SegmentState)`` of
-        every publishable segment.
+    def restore(self) -> list[tuple[SegmentId, bytes, bool]]:
+        """Bring the tracker back from the store: ``(segment, encoded SegmentState,
+        unpublished)`` of every publishable segment; ``unpublished`` is False for a state
+        restored from a checkpoint known to have been published (one older than the last
+        checkpoint, or the last one after a clean stop), True otherwise (to publish again).
 
         Every stored model, then each segment's checkpoint (:meth:`Tracker.restore`): its
         state as stored and its stored SegmentState when nothing came after it; folded on
@@ -591,8 +623,11 @@ class PersistentTracker:
         models = [m for m in self._decoded(self.store.models()) if m is not None]
         checkpoints: list[Checkpoint] = []
         summaries: dict[SegmentId, bytes] = {}
+        published: set[SegmentId] = set()
+        published_gen = self.store.published_gen()
         broken: list[SegmentId] = []
-        for line, segment, _seq, order, trc_t, grp, key, blob, summary in self.store.checkpoints():
+        rows = self.store.checkpoints()
+        for line, segment, _seq, order, trc_t, grp, key, blob, summary, gen in rows:
             try:
                 state = None if blob is None else unpack_state(blob)
                 ckpt = Checkpoint(line, segment, trc_t, state, grp, _order_of(order), key)
@@ -603,17 +638,19 @@ class PersistentTracker:
             checkpoints.append(ckpt)
             if summary is not None:
                 summaries[(line, segment)] = summary
+                if gen <= published_gen:
+                    published.add((line, segment))
         tails: dict[SegmentId, list[Event]] = {}
         for line, segment, kind, key, payload in self.store.tails():
             for event in _stored_events([(kind, key, payload)]):
                 tails.setdefault((line, segment), []).append(event)
         replay = [*broken, *self.store.unchecked_segments()]  # their logs: by the loader
         kept, states = self.tracker.restore(models, checkpoints, tails, replay)  # type: ignore[arg-type]
-        out: list[tuple[SegmentId, bytes]] = []
+        out: list[tuple[SegmentId, bytes, bool]] = []
         unsummarised = []
         for sid in kept:
             if sid in summaries:
-                out.append((sid, summaries[sid]))
+                out.append((sid, summaries[sid], sid not in published))
             else:
                 unsummarised.append(self.tracker.histories.resting(sid))
         hists = [
@@ -624,8 +661,9 @@ class PersistentTracker:
             sid = (state.line, state.segment)
             self._summaries[sid] = state
             self.tracker.histories.dirty.add(sid)
-            out.append((sid, encode(state)))
-        self.checkpoint()
+            out.append((sid, encode(state), True))
+        # what is restored has not been published again yet: not marked published
+        self.checkpoint(published=False)
         return out
 
     def segment_log(self, line: str, segment: str) -> tuple[tuple[Event, ...], float | None]:
@@ -641,17 +679,22 @@ class PersistentTracker:
         if models or time.monotonic() - self._checkpointed >= self.checkpoint_s:
             self.checkpoint()
 
-    def checkpoint(self) -> int:
+    def checkpoint(self, *, published: bool = True) -> int:
         """Write the checkpoint of every segment changed since the last one (one
         transaction; the tracker must hold what the store holds, i.e. between batches);
-        then drop the least recently used logs beyond ``max_loaded``. Returns how many."""
+        then drop the least recently used logs beyond ``max_loaded``. Returns how many.
+
+        The owner publishes a batch's states before it hands over the next batch, so when
+        a checkpoint is written the previous one's states have been published
+        (:meth:`Store.put_checkpoints` marks them so)."""
         histories = self.tracker.histories
         dirty = [sid for sid in histories.dirty if sid in histories]
         self._checkpointed = time.monotonic()
         if dirty:
             with self.store.transaction():
                 seq = self.store.last_seq()
-                self.store.put_checkpoints(self._checkpoint_row(sid, seq) for sid in dirty)
+                rows = (self._checkpoint_row(sid, seq) for sid in dirty)
+                self.store.put_checkpoints(rows, published=published)
             histories.dirty.clear()
             self._summaries.clear()
         histories.trim(self.max_loaded)
@@ -687,6 +730,7 @@ class PersistentTracker:
         tracker may hold what the store does not)."""
         if not self.broken:
             self.checkpoint()
+            self.store.set_published()  # the worker published everything before it ended
 
     @staticmethod
     def _decoded(

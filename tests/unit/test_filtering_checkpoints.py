@@ -49,7 +49,7 @@ def restarted(db) -> tuple[PersistentTracker, dict, CountingLoader]:
     node = node_on(db)
     loader = CountingLoader(node)
     node.tracker.histories.loader = loader
-    states = dict(node.restore())
+    states = {sid: payload for sid, payload, _new in node.restore()}
     return node, states, loader
 
 
@@ -229,3 +229,26 @@ def test_a_model_change_reruns_in_chunks_without_keeping_the_logs(tmp_path, monk
         sid: encode(reference.state_of(*sid)) for sid in reference.histories
     }
     assert_same_states(reference, node.tracker)
+
+
+def test_a_restart_republishes_only_what_may_not_have_been_published(tmp_path):
+    """A checkpoint's states were published once the next one is written (the owner
+    publishes a batch before the next), or at a clean stop; the rest is published again."""
+    db = tmp_path / "f.sqlite"
+    first = node_on(db)
+    first.handle_batch([keyed(m) for m in [*MODELS, trc(0.0), trc(0.0, segment="s2")]])
+    first.checkpoint()  # generation 2 (the models' was 1): s1, s2
+    first.handle_batch([keyed(index(3.0, 2.2, 2.0, segment="s2"))])
+    first.checkpoint()  # generation 3: s2; generation 2 is now known published
+    first.handle_batch([keyed(trc(0.0, segment="s3"))])  # committed, no checkpoint
+
+    def unpublished(db) -> dict:
+        node = node_on(db)
+        return node, {sid[1]: new for sid, _payload, new in node.restore()}
+
+    node, flags = unpublished(db)
+    assert flags == {"s1": False, "s2": True, "s3": True}
+    # killed again before publishing anything: the same ones are still to publish
+    assert unpublished(db)[1] == {"s1": False, "s2": True, "s3": True}
+    node.close()  # a clean stop: everything restored was published at start
+    assert unpublished(db)[1] == {"s1": False, "s2": False, "s3": False}
