@@ -116,6 +116,10 @@ class Line:
         Chainages where trains stop.
     line_speed_mps : float
         Cruise speed.
+    name : str
+        What operators call it (``""``: none; labels then use the id).
+    station_names : sequence of str
+        One per station in the order given (``()``: none).
     """
 
     def __init__(
@@ -128,8 +132,11 @@ class Line:
         tunnels=(),
         stations=(),
         line_speed_mps: float = 25.0,
+        name: str = "",
+        station_names=(),
     ):
         self.id = check_id("id", id)
+        self.name = str(name)
         ll = np.asarray(lonlat, dtype=np.float64)
         if ll.ndim != 2 or ll.shape[1] != 2 or not np.isfinite(ll).all():
             raise ValueError(f"line {id}: lonlat must be finite (k, 2), got shape {ll.shape}")
@@ -151,7 +158,12 @@ class Line:
         for a, b in self.tunnels:
             if not 0 <= a < b <= self.length_m:
                 raise ValueError(f"line {id}: tunnel ({a}, {b}) not within [0, {self.length_m}]")
-        self.stations = sorted(float(c) for c in stations)
+        names = [str(n) for n in station_names]
+        if names and len(names) != len(stations):
+            raise ValueError(f"line {id}: one station name per station, or none")
+        pairs = sorted(zip([float(c) for c in stations], names or [""] * len(stations)))
+        self.stations = [c for c, _ in pairs]
+        self.station_names = [n for _, n in pairs] if names else []
         if any(not 0 <= c <= self.length_m for c in self.stations):
             raise ValueError(f"line {id}: stations must lie within [0, {self.length_m:.1f}] m")
         self.line_speed_mps = float(line_speed_mps)
@@ -262,7 +274,8 @@ class Network:
 
         Line features carry ``properties.id`` and optionally ``tunnels`` ([[start_m,
         end_m], ...]), ``stations`` ([chainage_m, ...]) and ``line_speed_mps``. Features
-        with ``properties.kind == "segment"`` (written by :meth:`to_geojson`) are skipped.
+        Optional ``name`` and ``station_names`` (one per station) are what labels show.
+        Features with ``properties.kind == "segment"`` (written by :meth:`to_geojson`) are skipped.
         The local origin is the collection's ``origin_lonlat`` member if present, else the
         centre of the bounding box.
         """
@@ -321,6 +334,8 @@ class Network:
                     tunnels=props.get("tunnels") or (),
                     stations=props.get("stations") or (),
                     line_speed_mps=props.get("line_speed_mps", 25.0),
+                    name=props.get("name") or "",
+                    station_names=props.get("station_names") or (),
                 )
             except (TypeError, ValueError) as exc:
                 raise ValueError(f"{where}: {exc}") from None
@@ -339,6 +354,10 @@ class Network:
                 "tunnels": [list(t) for t in line.tunnels],
                 "stations": line.stations,
             }
+            if line.name:
+                props["name"] = line.name
+            if line.station_names:
+                props["station_names"] = line.station_names
             features.append(_feature(line.lonlat, props))
         if include_segments:
             for line, seg in self.segments():
