@@ -161,7 +161,9 @@ class Line:
         names = [str(n) for n in station_names]
         if names and len(names) != len(stations):
             raise ValueError(f"line {id}: one station name per station, or none")
-        pairs = sorted(zip([float(c) for c in stations], names or [""] * len(stations)))
+        pairs = sorted(
+            zip([float(c) for c in stations], names or [""] * len(stations), strict=True)
+        )
         self.stations = [c for c, _ in pairs]
         self.station_names = [n for _, n in pairs] if names else []
         if any(not 0 <= c <= self.length_m for c in self.stations):
@@ -269,7 +271,7 @@ class Network:
         return xy_to_lonlat(xy, self.origin_lonlat)
 
     @classmethod
-    def from_geojson(cls, obj_or_path, segment_length_m: float = 200.0) -> Network:
+    def from_geojson(cls, obj_or_path, segment_length_m: float | None = None) -> Network:
         """Read a FeatureCollection of LineString lines (path, JSON text or parsed dict).
 
         Line features carry ``properties.id`` and optionally ``tunnels`` ([[start_m,
@@ -277,7 +279,8 @@ class Network:
         Optional ``name`` and ``station_names`` (one per station) are what labels show.
         Features with ``properties.kind == "segment"`` (written by :meth:`to_geojson`) are skipped.
         The local origin is the collection's ``origin_lonlat`` member if present, else the
-        centre of the bounding box.
+        centre of the bounding box; the segment length, ``segment_length_m`` if given, else
+        the collection's ``segment_length_m`` member (what wrote it cut), else 200 m.
         """
         obj = obj_or_path
         if isinstance(obj, Path) or (isinstance(obj, str) and not obj.lstrip().startswith("{")):
@@ -319,6 +322,10 @@ class Network:
         ids = [p["id"] for _, p, _ in raw]
         if len(set(map(str, ids))) != len(ids):
             raise ValueError(f"GeoJSON: line ids must be unique, got {ids}")
+        if segment_length_m is None:
+            segment_length_m = obj.get("segment_length_m", 200.0)
+            if not isinstance(segment_length_m, int | float) or not segment_length_m > 0:
+                raise ValueError(f"GeoJSON: segment_length_m must be > 0, got {segment_length_m}")
         origin = obj.get("origin_lonlat")
         if origin is None:
             all_ll = np.concatenate([ll for _, _, ll in raw])
@@ -380,13 +387,13 @@ def _feature(lonlat: np.ndarray, props: dict) -> dict:
     }
 
 
-def demo_network(segment_length_m: float = 200.0) -> Network:
+def demo_network(segment_length_m: float | None = None) -> Network:
     """The demo network of ``services/defaults/demo-network.geojson`` (3 lines, ~60 km,
     Brisbane)."""
     return Network.from_geojson(DEMO_NETWORK, segment_length_m)
 
 
-def load_network(path: str | None, segment_length_m: float = 200.0) -> Network:
+def load_network(path: str | None, segment_length_m: float | None = None) -> Network:
     """The demo network, or a GeoJSON file; ValueError saying what to fix when it is bad."""
     if path is None:
         return demo_network(segment_length_m)

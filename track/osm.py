@@ -53,7 +53,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from track.network import EARTH_RADIUS_M, Line, Network, lonlat_to_xy
+from track.network import Line, Network, lonlat_to_xy
 
 MIN_LENGTH_M = 100.0  # a joined line shorter than this is dropped
 STATION_SNAP_M = 150.0  # a station this far from every line is dropped
@@ -202,7 +202,7 @@ def read_osm(obj) -> tuple[list[OsmWay], list[OsmPoint], list[tuple[str, str]]]:
         return _read_overpass(obj["elements"])
     if not isinstance(obj, Mapping) or obj.get("type") != "FeatureCollection":
         raise ValueError(
-            'expected a GeoJSON FeatureCollection (osmium export, ogr2ogr, overpass-turbo) '
+            "expected a GeoJSON FeatureCollection (osmium export, ogr2ogr, overpass-turbo) "
             'or Overpass JSON ({"elements": [...]})'
         )
     features = obj.get("features")
@@ -506,8 +506,8 @@ def import_osm(
         else:
             report.drop(reason, p.id)
     snapped: dict[str, list[tuple[float, str, OsmPoint]]] = defaultdict(list)
-    for line_id, chain, ll, _ in made:
-        probe = Line(line_id, ll, origin, segment_length_m=segment_length_m)
+    probes = {m[0]: Line(m[0], m[2], origin, segment_length_m=segment_length_m) for m in made}
+    for line_id, probe in probes.items():
         for p in station_points:
             c, lateral = probe.project(lonlat_to_xy(np.array(p.lonlat), origin))
             if abs(float(lateral)) <= station_snap_m:
@@ -519,7 +519,7 @@ def import_osm(
         first = chain.pieces[0][0]
         pieces = list(zip(chain.pieces, bounds[:-1], bounds[1:], strict=True))
         # scale the ways' chainages to the line's (the same projection: equal up to rounding)
-        probe_len = Line(line_id, ll, origin, segment_length_m=segment_length_m).length_m
+        probe_len = probes[line_id].length_m
         scale = probe_len / bounds[-1] if bounds[-1] > 0 else 1.0
         tunnels = _ranges([(a * scale, b * scale) for (w, _), a, b in pieces if _tunnel(w)])
         bridges = _ranges(
@@ -592,7 +592,8 @@ def _stations(
     chainages: list[float] = []
     names: list[str] = []
     for c, name in found:
-        if any(n == name and abs(c - c0) <= 2 * snap_m for c0, n in zip(chainages, names)):
+        kept = zip(chainages, names, strict=True)
+        if any(n == name and abs(c - c0) <= 2 * snap_m for c0, n in kept):
             continue
         chainages.append(math.floor(c * 10) / 10)  # 0.1 m, never past the end
         names.append(name)
