@@ -4,7 +4,7 @@ Input is what the usual tools export (``osmium export``, ``ogr2ogr``, overpass-t
 GeoJSON, or Overpass JSON with ``out geom``): ways as LineStrings with their tags, and
 station points. Tags may be flat in ``properties``, nested under ``properties.tags``, or in
 ogr2ogr's ``other_tags`` string; the OSM id comes from ``@id``/``id`` (``"way/123"``,
-``"w123"`` or a number).
+``"w123"`` or a number, with ``@type``).
 
 The rules, in order:
 
@@ -166,6 +166,8 @@ def _tags(props: Mapping) -> dict[str, str]:
 
 def _osm_id(feature: Mapping, props: Mapping, kind: str, n: int) -> str:
     """``way/123`` from ``@id``/``id``/``osm_id`` as ``way/123``, ``w123`` or ``123``."""
+    if props.get("@type") in ("node", "way", "relation"):  # osmium export -a type,id
+        kind = props["@type"]
     for raw in (props.get("@id"), props.get("id"), props.get("osm_id"), feature.get("id")):
         if raw is None or raw == "":
             continue

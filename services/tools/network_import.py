@@ -24,7 +24,7 @@ def main(
     station_snap_m: float = STATION_SNAP_M,
     segment_length_m: float = 200.0,
     min_length_m: float = MIN_LENGTH_M,
-    out: TextIO = sys.stdout,
+    out: TextIO | None = None,
 ) -> int:
     """Import ``in_path`` into the network file ``out_path``; print the report; 0.
 
@@ -58,6 +58,7 @@ def main(
         Path(out_path).write_text(json.dumps(to_geojson(network, extra)) + "\n")
     except OSError as exc:
         raise ValueError(f"--out {out_path}: cannot write it ({exc})") from None
+    out = out if out is not None else sys.stdout  # the stdout of now, not of the import
     print(report.text(), file=out)
     print(f"wrote {out_path}: trackfusion up --network {out_path}", file=out)
     return 0
