@@ -36,6 +36,10 @@ The rules, in order:
    or knots; ``none``, ``signals``, country codes and the like are unknown; of a list
    (``"80;100"``) the lowest counts. A line's ``line_speed_mps`` is the length-weighted
    median of its ways' known speeds, ``default_speed_mps`` when none is known.
+9. **Warnings.** An extract reaching farther than 200 km from its centre (the local metric
+   plane's range), a line without any known speed, and tracks of one route closer than
+   10 m to each other (:func:`close_tracks_warnings`: GPS map matching cannot tell them
+   apart).
 
 Pure: parsed JSON in, a :class:`~track.network.Network`, the extra line properties and an
 :class:`ImportReport` out. ``trackfusion network import-osm`` (``services/tools/
@@ -58,6 +62,7 @@ from track.network import Line, Network, lonlat_to_xy
 MIN_LENGTH_M = 100.0  # a joined line shorter than this is dropped
 STATION_SNAP_M = 150.0  # a station this far from every line is dropped
 DEFAULT_SPEED_MPS = 25.0  # a line without any known maxspeed (90 km/h)
+PARALLEL_M = 10.0  # ingestion's ambiguity_m: GPS map matching cannot tell lines this close
 PLANE_RADIUS_M = 200e3  # track.network's projection is good within about this of the origin
 STATION_RAILWAY = ("station", "halt", "stop")
 NON_TRAIN_MODES = ("bus", "tram", "trolleybus", "share_taxi", "ferry", "light_rail", "subway")
@@ -574,7 +579,37 @@ def import_osm(
         raise ValueError(
             f"no line of at least {min_length_m:g} m could be joined from the railway=rail ways"
         )
+    report.warnings += close_tracks_warnings(lines)
     return Network(lines, segment_length_m, origin), extra, report
+
+
+def close_tracks_warnings(lines: Mapping[str, Line], within_m: float = PARALLEL_M) -> list[str]:
+    """Warnings for tracks of one route that run within ``within_m`` of each other.
+
+    GPS map matching (``services/ingestion/matching.py``) acquires a train only on a line
+    ``ambiguity_m`` (10 m) closer than any other, so trains with raw GPS on such tracks are
+    not positioned; the on-board indices of ``simulate --fidelity index`` and TRC records
+    name their line and are not affected. Checked every 50 m along each track, against the
+    other tracks of its route only (the ones drawn side by side).
+    """
+    by_route: dict[str, list[Line]] = defaultdict(list)
+    for line in lines.values():
+        by_route[line.name or line.id].append(line)
+    warnings = []
+    for tracks in by_route.values():
+        for k, a in enumerate(tracks):
+            probe = np.arange(0.0, a.length_m, 50.0)
+            points = a.xy_at(probe)
+            for b in tracks[k + 1 :]:
+                _, lateral = b.project(points)
+                close_km = float((np.abs(lateral) < within_m).sum()) * 50.0 / 1e3
+                if close_km > 0:
+                    warnings.append(
+                        f"lines {a.id} and {b.id} run within {within_m:g} m of each other "
+                        f"over {close_km:.1f} km: GPS map matching (ingestion) cannot tell "
+                        "them apart, so raw-GPS trains there are not positioned"
+                    )
+    return warnings
 
 
 def _tunnel(way: OsmWay) -> bool:

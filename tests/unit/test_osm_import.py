@@ -255,6 +255,13 @@ def test_an_extract_beyond_the_local_plane_is_warned_about():
     assert not [w for w in import_osm(lakeside())[2].warnings if "200 km" in w]
 
 
+def test_tracks_too_close_for_gps_map_matching_are_warned_about(imported):
+    _, _, report = imported
+    (close,) = [w for w in report.warnings if "cannot tell them apart" in w]
+    assert close.startswith("lines 650-t1 and 650-t2 run within 10 m")
+    assert "over 6.0 km" in close  # the tracks are 8 m apart all along
+
+
 def test_overpass_json_joins_by_node_ids():
     network, extra, report = import_osm(json.loads(OVERPASS.read_text()))
     (line,) = network.lines.values()
