@@ -63,6 +63,7 @@ MIN_LENGTH_M = 100.0  # a joined line shorter than this is dropped
 STATION_SNAP_M = 150.0  # a station this far from every line is dropped
 DEFAULT_SPEED_MPS = 25.0  # a line without any known maxspeed (90 km/h)
 PARALLEL_M = 10.0  # ingestion's ambiguity_m: GPS map matching cannot tell lines this close
+CLOSE_STEP_M = 200.0  # along-track step of that check
 PLANE_RADIUS_M = 200e3  # track.network's projection is good within about this of the origin
 STATION_RAILWAY = ("station", "halt", "stop")
 NON_TRAIN_MODES = ("bus", "tram", "trolleybus", "share_taxi", "ferry", "light_rail", "subway")
@@ -119,8 +120,9 @@ class ImportReport:
     def drop(self, reason: str, osm_id: str) -> None:
         self.dropped[reason].append(osm_id)
 
-    def text(self, max_ids: int = 8) -> str:
-        """The report as lines of text for an operator."""
+    def text(self, max_ids: int = 8, max_lines: int = 50) -> str:
+        """The report as lines of text for an operator (the first ``max_lines`` lines, the
+        first ``max_ids`` ids of each reason)."""
         km = sum(line.length_m for line in self.lines) / 1e3
         out = [
             f"read {self.ways_read} ways and {self.points_read} points",
@@ -129,13 +131,15 @@ class ImportReport:
             f"{sum(line.tunnels for line in self.lines)} tunnels, "
             f"{sum(line.stations for line in self.lines)} stations",
         ]
-        for line in self.lines:
+        for line in self.lines[:max_lines]:
             speed = f"{line.speed_mps * 3.6:.0f} km/h" + ("" if line.speed_known else " (default)")
             out.append(
                 f"  {line.id:<20} {line.name[:30]:<30} {line.length_m / 1e3:7.2f} km "
                 f"{line.segments:5d} segments {line.tunnels:3d} tunnels "
                 f"{line.stations:3d} stations {speed:>17}  {len(line.ways)} ways"
             )
+        if len(self.lines) > max_lines:
+            out.append(f"  ... and {len(self.lines) - max_lines} more lines")
         if self.dropped:
             n = sum(len(ids) for ids in self.dropped.values())
             out.append(f"dropped {n}:")
@@ -514,11 +518,16 @@ def import_osm(
             report.drop(reason, p.id)
     snapped: dict[str, list[tuple[float, str, OsmPoint]]] = defaultdict(list)
     probes = {m[0]: Line(m[0], m[2], origin, segment_length_m=segment_length_m) for m in made}
+    station_xy = lonlat_to_xy(np.array([p.lonlat for p in station_points]).reshape(-1, 2), origin)
     for line_id, probe in probes.items():
-        for p in station_points:
-            c, lateral = probe.project(lonlat_to_xy(np.array(p.lonlat), origin))
-            if abs(float(lateral)) <= station_snap_m:
-                snapped[p.id].append((float(c), line_id, p))
+        lo, hi = probe.xy.min(axis=0) - station_snap_m, probe.xy.max(axis=0) + station_snap_m
+        near = np.flatnonzero(((station_xy >= lo) & (station_xy <= hi)).all(axis=1))
+        if not len(near):
+            continue
+        chainage, lateral = probe.project(station_xy[near])
+        for k, c, off in zip(near, chainage, lateral, strict=True):
+            if abs(float(off)) <= station_snap_m:
+                snapped[station_points[k].id].append((float(c), line_id, station_points[k]))
     for p in station_points:
         if not snapped[p.id]:
             report.drop(f"station farther than {station_snap_m:g} m from every line", p.id)
@@ -583,33 +592,42 @@ def import_osm(
     return Network(lines, segment_length_m, origin), extra, report
 
 
-def close_tracks_warnings(lines: Mapping[str, Line], within_m: float = PARALLEL_M) -> list[str]:
+def close_tracks_warnings(
+    lines: Mapping[str, Line], within_m: float = PARALLEL_M, max_listed: int = 5
+) -> list[str]:
     """Warnings for tracks of one route that run within ``within_m`` of each other.
 
     GPS map matching (``services/ingestion/matching.py``) acquires a train only on a line
     ``ambiguity_m`` (10 m) closer than any other, so trains with raw GPS on such tracks are
     not positioned; the on-board indices of ``simulate --fidelity index`` and TRC records
-    name their line and are not affected. Checked every 50 m along each track, against the
-    other tracks of its route only (the ones drawn side by side).
+    name their line and are not affected. Checked every 200 m along each track, against the
+    other tracks of its route only (the ones drawn side by side). More than ``max_listed``
+    pairs make one warning listing the first of them.
     """
     by_route: dict[str, list[Line]] = defaultdict(list)
     for line in lines.values():
         by_route[line.name or line.id].append(line)
-    warnings = []
+    pairs = []
     for tracks in by_route.values():
         for k, a in enumerate(tracks):
-            probe = np.arange(0.0, a.length_m, 50.0)
-            points = a.xy_at(probe)
+            points = a.xy_at(np.linspace(0.0, a.length_m, int(a.length_m // CLOSE_STEP_M) + 2))
             for b in tracks[k + 1 :]:
                 _, lateral = b.project(points)
-                close_km = float((np.abs(lateral) < within_m).sum()) * 50.0 / 1e3
+                close_km = float((np.abs(lateral) < within_m).mean()) * a.length_m / 1e3
                 if close_km > 0:
-                    warnings.append(
-                        f"lines {a.id} and {b.id} run within {within_m:g} m of each other "
-                        f"over {close_km:.1f} km: GPS map matching (ingestion) cannot tell "
-                        "them apart, so raw-GPS trains there are not positioned"
-                    )
-    return warnings
+                    pairs.append((a.id, b.id, close_km))
+    why = "GPS map matching (ingestion) cannot tell them apart, so raw-GPS trains there are "
+    why += "not positioned"
+    if len(pairs) <= max_listed:
+        return [
+            f"lines {a} and {b} run within {within_m:g} m of each other over {km:.1f} km: {why}"
+            for a, b, km in pairs
+        ]
+    listed = ", ".join(f"{a}/{b} ({km:.1f} km)" for a, b, km in pairs[:max_listed])
+    return [
+        f"{len(pairs)} pairs of lines run within {within_m:g} m of each other, "
+        f"{sum(km for *_, km in pairs):.0f} km in all: {listed}, ... : {why}"
+    ]
 
 
 def _tunnel(way: OsmWay) -> bool:
