@@ -5,15 +5,19 @@ from __future__ import annotations
 
 import copy
 import json
+import uuid
 from pathlib import Path
 
 import numpy as np
 import pytest
+import rerun as rr
 
 from services.calibration.service import known_segments as calibration_segments
 from services.cli import main as cli_main
 from services.filtering.service import known_segments as filtering_segments
 from services.tools.report import network_map
+from services.viewer.core import ViewerCore
+from services.viewer.testing import rrd_printout
 from track.network import Line, Network, check_id, load_network, lonlat_to_xy
 from track.osm import import_osm, parse_maxspeed, slug, to_geojson
 from track.segments import SegmentTable
@@ -367,3 +371,17 @@ def test_a_bad_file_exits_2_with_one_line_naming_it(tmp_path, capsys):
     assert str(bad) in err and "feature 0 (way/9)" in err
     code = cli_main(["network", "import-osm", str(tmp_path / "missing.geojson"), "--out", "x"])
     assert code == 2 and "missing.geojson" in capsys.readouterr().err
+
+
+def test_the_viewer_map_shows_the_imported_names(imported, tmp_path):
+    network, _, _ = imported
+    path = tmp_path / "map.rrd"
+    rec = rr.RecordingStream("TrackFusion", recording_id=uuid.uuid4())
+    rec.save(path)
+    ViewerCore(rec, network, worst_n=1).start(now=0.0)
+    rec.flush()
+    rec.disconnect()
+    printed = rrd_printout(path)  # long cells are cut: the first labels of each
+    first = network.lines["650-t1"]
+    assert f"[{first.id} Lakeside Line, {first.id} Lakeside Line, 650-t2 Lakeside" in printed
+    assert f"[Westbrook ({first.id} km {first.stations[0] / 1e3:.1f}), Lakeside Halt" in printed
