@@ -11,6 +11,8 @@ backoff. The board flags stalled flows (indices arriving but no state published,
 no index) and is written each second to ``{state_dir}/health.json`` for programs to read
 and published on ``{ns}/health/stack`` (a StackHealth) for the viewer's health board.
 Supervision runs on ``time.monotonic()``: it is about wall time, not event time.
+``up --network FILE`` runs the stack on another network: ``{network}`` in the processes'
+args (the default stack gives it to every process that reads a network) becomes FILE.
 Ctrl-C (or SIGTERM) stops the children (SIGTERM, SIGKILL after 5 s) and then the router.
 """
 
