@@ -359,9 +359,13 @@ def _ends(way: OsmWay, by_node: bool) -> tuple:
 
 
 def _direction(lonlat: np.ndarray) -> np.ndarray:
-    """Unit vector (east, north) from the first vertex to the second, locally scaled."""
-    d = (lonlat[1] - lonlat[0]) * (math.cos(math.radians(lonlat[0, 1])), 1.0)
-    return d / max(float(np.hypot(*d)), 1e-15)
+    """Unit vector (east, north) from the first vertex to the next distinct one, locally
+    scaled."""
+    moved = np.flatnonzero((lonlat[1:] != lonlat[0]).any(axis=1))
+    if not len(moved):
+        return np.zeros(2)
+    d = (lonlat[moved[0] + 1] - lonlat[0]) * (math.cos(math.radians(lonlat[0, 1])), 1.0)
+    return d / float(np.hypot(*d))
 
 
 def join_ways(ways: list[OsmWay]) -> list[_Chain]:
@@ -465,6 +469,8 @@ def import_osm(
     kept = []
     for w in ways:
         reason = _why_dropped(w.tags, keep_service)
+        if reason is None and len(w.lonlat) < 2:
+            reason = "a way of fewer than 2 points"
         if reason:
             report.drop(reason, w.id)
         else:
@@ -489,9 +495,10 @@ def import_osm(
         xy = lonlat_to_xy(ll, origin)
         length = float(np.hypot(*np.diff(xy, axis=0).T).sum())
         ids = [w.id for w, _ in chain.pieces]
-        if length < min_length_m:
+        if length < min_length_m or length == 0:
+            short = f"shorter than {min_length_m:g} m after joining" if length else "zero length"
             for i in ids:
-                report.drop(f"shorter than {min_length_m:g} m after joining", i)
+                report.drop(short, i)
             continue
         name_or_ref, track_ref = chain.key
         base = slug(name_or_ref) or "way" + re.sub(r"\D", "", chain.pieces[0][0].id)

@@ -385,3 +385,25 @@ def test_the_viewer_map_shows_the_imported_names(imported, tmp_path):
     first = network.lines["650-t1"]
     assert f"[{first.id} Lakeside Line, {first.id} Lakeside Line, 650-t2 Lakeside" in printed
     assert f"[Westbrook ({first.id} km {first.stations[0] / 1e3:.1f}), Lakeside Halt" in printed
+
+
+def test_degenerate_ways_are_dropped_not_fatal():
+    def way(n, coords):
+        return {
+            "type": "Feature",
+            "properties": {"@id": f"way/{n}", "railway": "rail", "name": "Spur"},
+            "geometry": {"type": "LineString", "coordinates": coords},
+        }
+
+    doc = {
+        "type": "FeatureCollection",
+        "features": [
+            way(1, [[8.3, 47.0]]),  # one point
+            way(2, [[8.5, 47.0], [8.5, 47.0]]),  # zero length
+            way(3, [[8.4, 47.0], [8.4, 47.0], [8.41, 47.0]]),  # a repeated first vertex
+        ],
+    }
+    network, extra, report = import_osm(doc, min_length_m=0.0)
+    assert report.dropped["a way of fewer than 2 points"] == ["way/1"]
+    assert report.dropped["zero length"] == ["way/2"]
+    assert [extra[i]["osm_ways"] for i in network.lines] == [["way/3"]]
