@@ -407,3 +407,31 @@ def test_degenerate_ways_are_dropped_not_fatal():
     assert report.dropped["a way of fewer than 2 points"] == ["way/1"]
     assert report.dropped["zero length"] == ["way/2"]
     assert [extra[i]["osm_ways"] for i in network.lines] == [["way/3"]]
+
+
+@pytest.mark.parametrize(
+    ("feature_id", "props", "expected"),
+    [
+        ("w123", {}, "way/123"),  # osmium export --add-unique-id=type_id
+        (None, {"@type": "way", "@id": 123}, "way/123"),  # osmium export -a type,id
+        (None, {"@id": "way/123"}, "way/123"),  # overpass-turbo
+        (None, {"id": "way/123"}, "way/123"),  # osmtogeojson, tags nested
+        (None, {"osm_id": "123"}, "way/123"),  # ogr2ogr
+        (None, {}, "feature0"),
+    ],
+)
+def test_the_osm_id_is_read_as_each_exporter_writes_it(feature_id, props, expected):
+    feature = {
+        "type": "Feature",
+        "properties": {"railway": "tram", **props},
+        "geometry": {"type": "LineString", "coordinates": [[8.3, 47.0], [8.31, 47.0]]},
+    }
+    if feature_id is not None:
+        feature["id"] = feature_id
+    rail = {
+        "type": "Feature",
+        "properties": {"railway": "rail", "@id": "way/1"},
+        "geometry": {"type": "LineString", "coordinates": [[8.4, 47.0], [8.41, 47.0]]},
+    }
+    _, _, report = import_osm({"type": "FeatureCollection", "features": [feature, rail]})
+    assert report.dropped["railway=tram"] == [expected]
