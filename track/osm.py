@@ -12,11 +12,13 @@ The rules, in order:
    crossover) is left out unless ``keep_service``; every other way is dropped with its
    reason (``railway=tram``, ``railway=abandoned``, ``no railway tag``, ...).
 2. **Joining.** Ways join at shared end nodes (node ids when the input has them, else
-   coordinates rounded to 1e-7 degree) when their *route key* is the same: ``ref`` (else
-   ``name``) and ``railway:track_ref``. A way drawn the other way round is reversed. Where
-   more than two ways of one route key meet, the walk goes on with the one that continues
-   straightest. So a double-track route gives one line per track: by ``railway:track_ref``,
-   or, without it, because the two tracks are not joined end to end.
+   coordinates rounded to 1e-7 degree) when they are of the same route (``ref``, else
+   ``name``) and their ``railway:track_ref`` agrees (equal, or either untagged; a joined
+   line keeps the first track ref it meets). A way drawn the other way round is reversed.
+   Where more than two ways meet, the walk goes on with the one of the line's own track
+   ref, else the straightest, never turning 90 degrees or more (:func:`join_ways`). So a
+   double-track route gives one line per track: by ``railway:track_ref``, or, without it,
+   because the two tracks are not joined end to end (crossovers are ``service=*``).
 3. **Direction.** A joined line runs west to east (south to north when its ends have the
    same longitude), so both tracks of a route share their chainage direction.
 4. **Too short.** A joined line shorter than ``min_length_m`` (100 m) is dropped.
@@ -311,9 +313,14 @@ def slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "-", ascii_text).strip("-.")
 
 
-def route_key(tags: Mapping[str, str]) -> tuple[str, str]:
-    """Ways with the same ``(ref or name, railway:track_ref)`` may join."""
-    return (tags.get("ref") or tags.get("name") or "", tags.get("railway:track_ref") or "")
+def route_of(tags: Mapping[str, str]) -> str:
+    """Ways of the same route (``ref``, else ``name``) may join."""
+    return tags.get("ref") or tags.get("name") or ""
+
+
+def track_of(tags: Mapping[str, str]) -> str:
+    """The way's ``railway:track_ref`` (``""``: untagged, joins any track of its route)."""
+    return tags.get("railway:track_ref") or ""
 
 
 def _why_dropped(tags: Mapping[str, str], keep_service: bool) -> str | None:
@@ -369,51 +376,60 @@ def _direction(lonlat: np.ndarray) -> np.ndarray:
 
 
 def join_ways(ways: list[OsmWay]) -> list[_Chain]:
-    """Chains of ways with the same route key joined end to end (rules 2 and 3)."""
+    """Chains of ways of one route joined end to end (rules 2 and 3).
+
+    A chain is walked from an end node no other way of its route shares (a terminus), then
+    from junctions, then what is left (rings). At each end node it goes on with an unused
+    way of its route that turns less than 90 degrees and whose track ref agrees (equal, or
+    either untagged), preferring the chain's own track ref, then the straightest. A chain
+    takes the first track ref it meets: untagged open line joins the numbered tracks of a
+    station, and the two tracks of a route never cross over to each other on it.
+    """
     by_node = bool(ways) and all(w.end_nodes is not None for w in ways)
-    groups: dict[tuple[str, str], list[OsmWay]] = defaultdict(list)
+    groups: dict[str, list[OsmWay]] = defaultdict(list)
     for w in ways:
-        groups[route_key(w.tags)].append(w)
+        groups[route_of(w.tags)].append(w)
     chains = []
-    for key, members in groups.items():
+    for route, members in groups.items():
         ends = [_ends(w, by_node) for w in members]
+        tracks = [track_of(w.tags) for w in members]
         touching: dict[tuple, list[int]] = defaultdict(list)
         for i, (a, b) in enumerate(ends):
             touching[a].append(i)
             touching[b].append(i)
         used = [False] * len(members)
-        # Start at a chain end (an end node no other way, or more than one other, shares)
-        # so that no chain is cut in the middle; what is left after those are rings.
-        loose = [[len(touching[node]) != 2 for node in pair] for pair in ends]
-        starts = [(i, False) for i in range(len(members)) if loose[i][0]]
-        starts += [(i, True) for i in range(len(members)) if loose[i][1]]
-        starts += [(i, False) for i in range(len(members))]
+        degree = [[len(touching[node]) for node in pair] for pair in ends]
+        starts = [(i, rev) for i in range(len(members)) for rev in (False, True)]
+        starts.sort(key=lambda s: {1: 0, 2: 2}.get(degree[s[0]][s[1]], 1))  # stable
         for first, first_rev in starts:
             if used[first]:
                 continue
             used[first] = True
+            track = tracks[first]
             pieces = [(first, first_rev)]
             while True:
                 i, rev = pieces[-1]
                 node = ends[i][0] if rev else ends[i][1]
                 arriving = -_direction(members[i].lonlat[::-1] if not rev else members[i].lonlat)
-                best, best_turn = None, math.inf
+                best, best_rank = None, (2, math.pi / 2)
                 for j in touching[node]:
-                    if used[j]:
+                    if used[j] or (track and tracks[j] and tracks[j] != track):
                         continue
                     rev_j = ends[j][0] != node
                     leaving = _direction(members[j].lonlat[::-1] if rev_j else members[j].lonlat)
                     turn = math.acos(float(np.clip(arriving @ leaving, -1.0, 1.0)))
-                    if turn < best_turn:
-                        best, best_turn = (j, rev_j), turn
+                    rank = (0 if track and tracks[j] == track else 1, turn)
+                    if turn < math.pi / 2 and rank < best_rank:
+                        best, best_rank = (j, rev_j), rank
                 if best is None:
                     break
                 used[best[0]] = True
                 pieces.append(best)
-            chain = _Chain(key, [(members[i], rev) for i, rev in pieces])
+                track = track or tracks[best[0]]
+            chain = _Chain((route, track), [(members[i], rev) for i, rev in pieces])
             ll = chain.lonlat()
             if tuple(ll[-1]) < tuple(ll[0]):  # west to east, else south to north
-                chain = _Chain(key, [(w, not r) for w, r in reversed(chain.pieces)])
+                chain = _Chain(chain.key, [(w, not r) for w, r in reversed(chain.pieces)])
             chains.append(chain)
     return chains
 

@@ -116,6 +116,10 @@ def test_where_more_ways_of_a_route_meet_the_walk_goes_on_straight_ahead():
     network, extra, _ = import_osm(doc)
     assert extra["X-1"]["osm_ways"] == ["way/1", "way/3"]
     assert extra["X-1-2"]["osm_ways"] == ["way/2"]
+    # a hairpin (back the way it came) is no way on: a train cannot turn so
+    doc["features"] = [way(1, [a, b]), way(4, [b, [8.30, 47.0502]])]
+    network, extra, _ = import_osm(doc)
+    assert sorted(extra[i]["osm_ways"] for i in network.lines) == [["way/1"], ["way/4"]]
 
 
 def test_what_is_left_out_is_reported_with_its_reason(imported):
@@ -435,3 +439,38 @@ def test_the_osm_id_is_read_as_each_exporter_writes_it(feature_id, props, expect
     }
     _, _, report = import_osm({"type": "FeatureCollection", "features": [feature, rail]})
     assert report.dropped["railway=tram"] == [expected]
+
+
+def test_untagged_open_line_joins_the_numbered_tracks_of_a_station():
+    """Double track without ``railway:track_ref`` between stations, tracks 1, 2 and a loop
+    3 tagged in the station: one line per track through the station, the loop its own."""
+    k = 1 / (111_195 * np.cos(np.radians(47.0)))
+
+    def way(n, xy, track=None):
+        tags = {"railway": "rail", "ref": "R"} | ({"railway:track_ref": track} if track else {})
+        coords = [[8.3 + x * k, 47.0 + y / 111_195] for x, y in xy]
+        return {
+            "type": "Feature",
+            "properties": {"@id": f"way/{n}", **tags},
+            "geometry": {"type": "LineString", "coordinates": coords},
+        }
+
+    doc = {
+        "type": "FeatureCollection",
+        "features": [
+            way(1, [(0, 0), (1000, 0)]),
+            way(2, [(0, 4.5), (1000, 4.5)]),
+            way(3, [(1000, 0), (1600, 0)], "1"),
+            way(4, [(1600, 4.5), (1000, 4.5)], "2"),
+            way(5, [(1000, 0), (1050, -5), (1550, -5), (1600, 0)], "3"),
+            way(6, [(3000, 0), (1600, 0)]),
+            way(7, [(1600, 4.5), (3000, 4.5)]),
+        ],
+    }
+    network, extra, _ = import_osm(doc)
+    assert {i: extra[i]["osm_ways"] for i in network.lines} == {
+        "R-t1": ["way/1", "way/3", "way/6"],
+        "R-t2": ["way/2", "way/4", "way/7"],
+        "R-t3": ["way/5"],
+    }
+    assert network.lines["R-t1"].length_m == pytest.approx(3000.0, rel=1e-3)
