@@ -8,9 +8,11 @@ ogr2ogr's ``other_tags`` string; the OSM id comes from ``@id``/``id`` (``"way/12
 
 The rules, in order:
 
-1. **Which ways.** ``railway=rail`` ways are kept; any ``service=*`` (yard, siding, spur,
-   crossover) is left out unless ``keep_service``; every other way is dropped with its
-   reason (``railway=tram``, ``railway=abandoned``, ``no railway tag``, ...).
+1. **Which ways.** ``railway=rail`` ways are kept (``railway_values``: also e.g.
+   ``narrow_gauge``, as metre-gauge main lines are tagged in some countries); any
+   ``service=*`` (yard, siding, spur, crossover) is left out unless ``keep_service``; every
+   other way is dropped with its reason (``railway=tram``, ``railway=abandoned``, ``no
+   railway tag``, ...).
 2. **Joining.** Ways join at shared end nodes (node ids when the input has them, else
    coordinates rounded to 1e-7 degree) when they are of the same route (``ref``, else
    ``name``) and their ``railway:track_ref`` agrees (equal, or either untagged; a joined
@@ -323,11 +325,11 @@ def track_of(tags: Mapping[str, str]) -> str:
     return tags.get("railway:track_ref") or ""
 
 
-def _why_dropped(tags: Mapping[str, str], keep_service: bool) -> str | None:
+def _why_dropped(tags: Mapping[str, str], keep_service: bool, railway_values) -> str | None:
     railway = tags.get("railway")
     if railway is None:
         return "no railway tag"
-    if railway != "rail":
+    if railway not in railway_values:
         return f"railway={railway}"
     if "service" in tags and not keep_service:
         return f"service={tags['service']} (yards and sidings: --keep-service to keep them)"
@@ -459,6 +461,7 @@ def import_osm(
     obj,
     *,
     keep_service: bool = False,
+    railway_values: tuple[str, ...] = ("rail",),
     station_snap_m: float = STATION_SNAP_M,
     segment_length_m: float = 200.0,
     min_length_m: float = MIN_LENGTH_M,
@@ -484,7 +487,7 @@ def import_osm(
         report.drop(reason, osm_id)
     kept = []
     for w in ways:
-        reason = _why_dropped(w.tags, keep_service)
+        reason = _why_dropped(w.tags, keep_service, railway_values)
         if reason is None and len(w.lonlat) < 2:
             reason = "a way of fewer than 2 points"
         if reason:
@@ -493,7 +496,10 @@ def import_osm(
             kept.append(w)
     chains = join_ways(kept)
     if not chains:
-        raise ValueError("no railway=rail way to make a line of (is it an OSM railway export?)")
+        kept_text = "|".join(railway_values)
+        raise ValueError(
+            f"no railway={kept_text} way to make a line of (is it an OSM railway export?)"
+        )
     all_ll = np.concatenate([c.lonlat() for c in chains])
     origin = tuple(0.5 * (all_ll.min(axis=0) + all_ll.max(axis=0)))
     reach_m = float(np.hypot(*lonlat_to_xy(all_ll, origin).T).max())

@@ -21,6 +21,7 @@ def main(
     out_path: str | Path,
     *,
     keep_service: bool = False,
+    railway_values: tuple[str, ...] = ("rail",),
     station_snap_m: float = STATION_SNAP_M,
     segment_length_m: float = 200.0,
     min_length_m: float = MIN_LENGTH_M,
@@ -48,6 +49,7 @@ def main(
         network, extra, report = import_osm(
             doc,
             keep_service=keep_service,
+            railway_values=railway_values,
             station_snap_m=station_snap_m,
             segment_length_m=segment_length_m,
             min_length_m=min_length_m,
@@ -90,6 +92,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="keep service=* ways (yards, sidings, spurs, crossovers); left out by default",
     )
     parser.add_argument(
+        "--railway",
+        default="rail",
+        metavar="VALUES",
+        help="railway=* values to keep, comma-separated (default %(default)s; e.g. "
+        "rail,narrow_gauge where metre-gauge main lines are tagged so)",
+    )
+    parser.add_argument(
         "--station-snap-m",
         type=_positive,
         default=STATION_SNAP_M,
@@ -117,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
         args.input,
         args.out,
         keep_service=args.keep_service,
+        railway_values=tuple(v.strip() for v in args.railway.split(",") if v.strip()),
         station_snap_m=args.station_snap_m,
         segment_length_m=args.segment_length,
         min_length_m=args.min_length,

@@ -474,3 +474,15 @@ def test_untagged_open_line_joins_the_numbered_tracks_of_a_station():
         "R-t3": ["way/5"],
     }
     assert network.lines["R-t1"].length_m == pytest.approx(3000.0, rel=1e-3)
+
+
+def test_other_railway_values_are_kept_when_asked():
+    doc = lakeside()
+    for f in doc["features"]:
+        tags = f["properties"].get("tags") or f["properties"]
+        if tags.get("ref") == "651":
+            tags["railway"] = "narrow_gauge"
+    network, _, report = import_osm(doc)
+    assert "651" not in network.lines and report.dropped["railway=narrow_gauge"]
+    network, _, report = import_osm(doc, railway_values=("rail", "narrow_gauge"))
+    assert "651" in network.lines and "railway=narrow_gauge" not in report.dropped
