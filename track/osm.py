@@ -557,6 +557,10 @@ def import_osm(
         for k, c, off in zip(near, chainage, lateral, strict=True):
             if abs(float(off)) <= station_snap_m:
                 snapped[station_points[k].id].append((float(c), line_id, station_points[k]))
+    on_line: dict[str, list[tuple[float, OsmPoint]]] = defaultdict(list)
+    for hits in snapped.values():
+        for c, line_id, p in hits:
+            on_line[line_id].append((c, p))
     for p in station_points:
         if not snapped[p.id]:
             report.drop(f"station farther than {station_snap_m:g} m from every line", p.id)
@@ -575,7 +579,7 @@ def import_osm(
         known = [(s, length) for s, length in speeds if s is not None]
         speed = _weighted_median(*zip(*known, strict=True)) if known else default_speed_mps
         speed = round(speed, 3)
-        stations, station_names = _stations(line_id, snapped, station_snap_m, probe_len)
+        stations, station_names = _stations(on_line[line_id], station_snap_m, probe_len)
         name = first.tags.get("name") or chain.key[0]
         line = Line(
             line_id,
@@ -664,15 +668,10 @@ def _tunnel(way: OsmWay) -> bool:
 
 
 def _stations(
-    line_id: str, snapped: Mapping[str, list], snap_m: float, length_m: float
+    hits: list[tuple[float, OsmPoint]], snap_m: float, length_m: float
 ) -> tuple[list[float], list[str]]:
     """One line's stations (chainage, name), a name's duplicates within 2 snap_m merged."""
-    found = sorted(
-        (min(max(c, 0.0), length_m), p.tags.get("name") or p.id)
-        for hits in snapped.values()
-        for c, lid, p in hits
-        if lid == line_id
-    )
+    found = sorted((min(max(c, 0.0), length_m), p.tags.get("name") or p.id) for c, p in hits)
     chainages: list[float] = []
     names: list[str] = []
     for c, name in found:
