@@ -486,3 +486,12 @@ def test_other_railway_values_are_kept_when_asked():
     assert "651" not in network.lines and report.dropped["railway=narrow_gauge"]
     network, _, report = import_osm(doc, railway_values=("rail", "narrow_gauge"))
     assert "651" in network.lines and "railway=narrow_gauge" not in report.dropped
+
+
+def test_the_readme_shows_what_the_command_prints(tmp_path, monkeypatch, capsys):
+    readme = (Path(__file__).parents[2] / "README.md").read_text()
+    start = readme.index("read 18 ways and 7 points\n")
+    shown = readme[start : readme.index("```", start)]
+    monkeypatch.chdir(tmp_path)
+    assert cli_main(["network", "import-osm", str(LAKESIDE), "--out", "network.geojson"]) == 0
+    assert capsys.readouterr().out == shown
