@@ -275,9 +275,9 @@ class Network:
         """Read a FeatureCollection of LineString lines (path, JSON text or parsed dict).
 
         Line features carry ``properties.id`` and optionally ``tunnels`` ([[start_m,
-        end_m], ...]), ``stations`` ([chainage_m, ...]) and ``line_speed_mps``. Features
-        Optional ``name`` and ``station_names`` (one per station) are what labels show.
-        Features with ``properties.kind == "segment"`` (written by :meth:`to_geojson`) are skipped.
+        end_m], ...]), ``stations`` ([chainage_m, ...]), ``line_speed_mps``, and ``name``
+        and ``station_names`` (one per station), which labels show. Features with
+        ``properties.kind == "segment"`` (written by :meth:`to_geojson`) are skipped.
         The local origin is the collection's ``origin_lonlat`` member if present, else the
         centre of the bounding box; the segment length, ``segment_length_m`` if given, else
         the collection's ``segment_length_m`` member (what wrote it cut), else 200 m.
