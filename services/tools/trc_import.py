@@ -160,10 +160,10 @@ def format_report(
     else:
         used = result.alignment.used
         out.append(
-            f"alignment to run {reference.run_id}: {len(used)} of "
-            f"{len(result.alignment.windows)} windows used"
+            f"alignment to run {reference.run_id} (offset = its chainage - this run's): "
+            f"{len(used)} of {len(result.alignment.windows)} windows used"
         )
-        out.append(f"  {'window start m':>14} {'offset m':>9} {'peak':>6}  ")
+        out.append(f"  {'window start m':>14} {'offset m':>9} {'peak':>6}")
         for w in result.alignment.windows:
             state = "used" if w.used else f"rejected: {w.reason}"
             out.append(f"  {w.start_m:14.2f} {w.offset_m:9.3f} {w.peak:6.3f}  {state}")
