@@ -8,8 +8,10 @@ aligned profile in the archive for the next run of the line.
 The archive (``--archive``, default ``./var/trc-profiles.sqlite``) is a SQLite file with
 one row per ``(line, run_id, t)``: the run's profile after alignment, on the network grid
 ``x_j = j * 0.25 m``. The reference of a run is the latest run of the same line with an
-earlier ``t``; a line's first run is taken as it is. Importing a run that is already in
-the archive publishes it again and leaves the archive as it is.
+earlier ``t`` that shares at least one alignment window (400 m) with it; a line's first run
+(of that stretch) is taken as it is and so sets the chainage datum of the runs after it.
+Importing a run that is already in the archive publishes it again and leaves the archive as
+it is.
 
 Every record carries ``t`` = ``--t``: a TRC run is one inspection, the time a planner
 refers to (the car passes 2 km in about a minute).
@@ -18,6 +20,7 @@ refers to (the car passes 2 km in about a minute).
 from __future__ import annotations
 
 import argparse
+import math
 import sqlite3
 import sys
 from collections.abc import Iterator
@@ -37,6 +40,7 @@ from track.network import check_id, load_network
 from track.segments import SegmentTable
 from track.trc_profile import (
     MAX_OFFSET_M,
+    WINDOW_M,
     GridProfile,
     ProfileFileError,
     RunResult,
@@ -88,12 +92,18 @@ class ProfileArchive:
     def close(self) -> None:
         self._db.close()
 
-    def latest_before(self, line: str, t: float) -> ArchivedRun | None:
-        """The latest run of ``line`` with a time before ``t``: the reference of a run at t."""
+    def latest_before(
+        self, line: str, t: float, span_m: tuple[float, float] = (-math.inf, math.inf)
+    ) -> ArchivedRun | None:
+        """The reference of a run at ``t`` over chainages ``span_m``: the latest run of
+        ``line`` before ``t`` that overlaps the span by at least ``WINDOW_M``."""
+        lo, hi = span_m
         row = self._db.execute(
             "SELECT run_id, t, first_index, spacing_m, n, channels, data FROM trc_profile "
-            "WHERE line = ? AND t < ? ORDER BY t DESC LIMIT 1",
-            (line, t),
+            "WHERE line = ? AND t < ? "
+            "AND MIN(?, (first_index + n - 1) * spacing_m) - MAX(?, first_index * spacing_m) >= ? "
+            "ORDER BY t DESC LIMIT 1",
+            (line, t, hi, lo, WINDOW_M),
         ).fetchone()
         if row is None:
             return None
@@ -154,7 +164,9 @@ def format_report(
     if profile.ignored_columns:
         out.append(f"ignored columns: {', '.join(profile.ignored_columns)}")
     if reference is None:
-        out.append("alignment: no earlier run of the line in the archive, taken as it is")
+        out.append(
+            "alignment: no earlier run of this stretch of the line in the archive, taken as it is"
+        )
     elif result.alignment.identity:
         out.append(f"alignment: skipped (--no-align); reference would be run {reference.run_id}")
     else:
@@ -220,7 +232,8 @@ def main_import_trc_profile(
             print(f"{path}:{line_no}: {reason}", file=sys.stderr)
         raise ValueError(f"--profile {path}: {exc}; nothing imported") from None
     with _archive(Path(archive_path or default_archive())) as archive:
-        reference = archive.latest_before(line, t)
+        span = (float(profile.chainage_m[0]), float(profile.chainage_m[-1]))
+        reference = archive.latest_before(line, t, span)
         result = process_run(
             profile,
             table.lines[line],

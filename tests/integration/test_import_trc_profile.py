@@ -36,7 +36,7 @@ def test_two_runs_are_published_the_second_aligned_to_the_first(
         return result.stdout, records
 
     report, first = import_run("trc-L1-run1.csv", "r1", "2026-03-02T09:00:00Z")
-    assert "no earlier run of the line in the archive" in report
+    assert "no earlier run of this stretch of the line" in report
     assert "skipped, not fully covered by the run: 2 (s00014, s00021)" in report
 
     report, second = import_run("trc-L1-run2.csv", "r2", "2026-05-04T09:00:00Z")
