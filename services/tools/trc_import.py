@@ -24,7 +24,7 @@ import math
 import sqlite3
 import sys
 from collections.abc import Iterator
-from contextlib import closing, contextmanager
+from contextlib import ExitStack, closing, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
@@ -231,9 +231,13 @@ def main_import_trc_profile(
         for line_no, reason in exc.problems:
             print(f"{path}:{line_no}: {reason}", file=sys.stderr)
         raise ValueError(f"--profile {path}: {exc}; nothing imported") from None
-    with _archive(Path(archive_path or default_archive())) as archive:
+    archive_file = Path(archive_path or default_archive())
+    with ExitStack() as stack:
+        archive = None  # a dry run creates no archive
+        if archive_file.exists() or not dry_run:
+            archive = stack.enter_context(_archive(archive_file))
         span = (float(profile.chainage_m[0]), float(profile.chainage_m[-1]))
-        reference = archive.latest_before(line, t, span)
+        reference = archive.latest_before(line, t, span) if archive else None
         result = process_run(
             profile,
             table.lines[line],
@@ -246,7 +250,7 @@ def main_import_trc_profile(
             format_report(path, profile, result, line, run_id, reference, len(records), refused),
             file=out,
         )
-        if dry_run:
+        if dry_run or archive is None:
             print("dry run: nothing published, nothing archived", file=out)
             return 0
         with _session(conf) as session:

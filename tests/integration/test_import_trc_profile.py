@@ -35,6 +35,13 @@ def test_two_runs_are_published_the_second_aligned_to_the_first(
         assert {(r.line, r.run_id) for r in records} == {("L1", run_id)}
         return result.stdout, records
 
+    dry = run_cli(
+        "import-trc", "--profile", str(EXAMPLES / "trc-L1-run1.csv"), "--line", "L1",
+        "--run-id", "dry", "--t", "2026-03-01T09:00:00Z", "--dry-run", *wiring, timeout=60,
+    )  # fmt: skip
+    assert dry.returncode == 0, dry.stderr
+    assert "dry run: nothing published, nothing archived" in dry.stdout
+    assert not archive.exists()  # and its records, had it published any, come first below
     report, first = import_run("trc-L1-run1.csv", "r1", "2026-03-02T09:00:00Z")
     assert "no earlier run of this stretch of the line" in report
     assert "skipped, not fully covered by the run: 2 (s00014, s00021)" in report
