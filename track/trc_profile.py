@@ -177,7 +177,7 @@ def parse_profile_csv(text: str, spacing_m: float = SPACING_M) -> TrcProfile:
     if len(values) < 2:
         problems.append((header_no, "fewer than 2 samples"))
     if problems:
-        raise ProfileFileError(problems[:MAX_PROBLEMS], len(problems) - MAX_PROBLEMS)
+        raise ProfileFileError(problems[:MAX_PROBLEMS], max(0, len(problems) - MAX_PROBLEMS))
 
     x = values[:, 0]
     step = np.diff(x)
@@ -197,15 +197,18 @@ def parse_profile_csv(text: str, spacing_m: float = SPACING_M) -> TrcProfile:
             reason = f"step of {d:g} m after chainage {x[k]:g}, expected {spacing_m:g} m"
         problems.append((n, reason))
     if problems:
-        raise ProfileFileError(problems[:MAX_PROBLEMS], len(problems) - MAX_PROBLEMS)
+        raise ProfileFileError(problems[:MAX_PROBLEMS], max(0, len(problems) - MAX_PROBLEMS))
 
     if POSITION_COLUMNS[0] in index:
         lat, lon = values[:, used.index("lat")], values[:, used.index("lon")]
         bad = np.flatnonzero((np.abs(lat) > 90) | (np.abs(lon) > 180))
         if bad.size:
             raise ProfileFileError(
-                [(int(line_nos[k]), "lat, lon outside [-90, 90], [-180, 180]") for k in bad[:20]],
-                max(0, bad.size - 20),
+                [
+                    (int(line_nos[k]), "lat, lon outside [-90, 90], [-180, 180]")
+                    for k in bad[:MAX_PROBLEMS]
+                ],
+                max(0, bad.size - MAX_PROBLEMS),
             )
     order = slice(None, None, -1) if sign < 0 else slice(None)
     return TrcProfile(

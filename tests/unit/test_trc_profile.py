@@ -142,7 +142,8 @@ def test_a_bad_file_is_refused_with_the_line_number_of_each_problem(text, line_n
         parse_profile_csv(text)
     problems = refused.value.problems
     assert any(n == line_no and words in reason for n, reason in problems), problems
-    assert str(refused.value).startswith(f"line {refused.value.problems[0][0]}: ")
+    assert str(refused.value).startswith(f"line {problems[0][0]}: ")
+    assert ("more problem" in str(refused.value)) == (len(problems) > 1)
 
 
 def test_every_problem_is_listed_up_to_a_bound_and_counted_beyond():
