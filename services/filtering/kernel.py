@@ -141,4 +141,3 @@ def index_step(z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_
         if nis_rows[r]:
             nis[row] = nis_mean
         t_s[row] = t_new[r]
-
