@@ -112,3 +112,12 @@ def test_a_bad_section_of_a_service_without_settings_exits_2(tmp_path, capsys):
     assert cli.main(["alerting", "--config", str(path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "unknown section 'alerting'" in err
+
+
+@pytest.mark.parametrize("argv", [["viewer", "--rrd", "x.rrd"], ["ingestion"], ["report"]])
+def test_a_bad_network_file_exits_2_naming_the_file(tmp_path, capsys, argv):
+    path = tmp_path / "net.geojson"
+    path.write_text('{"type": "FeatureCollection", "features": []}')
+    assert cli.main([*argv, "--network", str(path), "--log-level", "warning"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(path) in err and "no LineString" in err
