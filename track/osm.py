@@ -27,7 +27,7 @@ The rules, in order:
 5. **Ids.** ``slug(ref or name)``, then ``-t{track_ref}`` if tagged, then ``-2``, ``-3``
    ... for further lines with the same id; ``way{n}`` when the way has neither ref nor
    name. Ids are safe key chunks and, for the same input, the same. The human name is kept
-   as the line's ``name``.
+   as the line's ``name`` (the ``name`` of most of its length).
 6. **Tunnels and bridges.** The chainage ranges of ways with ``tunnel`` (``bridge``) other
    than ``no``, merged where they touch: tunnels are GNSS outages; bridges are a property.
 7. **Stations.** Points with ``railway=station|halt|stop``, or ``public_transport=
@@ -575,12 +575,18 @@ def import_osm(
             [(a * scale, b * scale) for (w, _), a, b in pieces if _yes(w.tags.get("bridge"))]
         )
         tunnels = [(round(a, 1), min(round(b, 1), probe_len)) for a, b in tunnels]
+        tunnels = [(a, b) for a, b in tunnels if b > a]  # none of under 0.1 m
         speeds = [(parse_maxspeed(w.tags.get("maxspeed")), b - a) for (w, _), a, b in pieces]
         known = [(s, length) for s, length in speeds if s is not None]
         speed = _weighted_median(*zip(*known, strict=True)) if known else default_speed_mps
         speed = round(speed, 3)
         stations, station_names = _stations(on_line[line_id], station_snap_m, probe_len)
-        name = first.tags.get("name") or chain.key[0]
+        # the name of most of its length (a bridge's own name on one way does not win)
+        named: dict[str, float] = defaultdict(float)
+        for (w, _), a, b in pieces:
+            if w.tags.get("name"):
+                named[w.tags["name"]] += b - a
+        name = max(named, key=lambda n: named[n]) if named else chain.key[0]
         line = Line(
             line_id,
             ll,

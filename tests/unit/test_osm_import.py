@@ -495,3 +495,12 @@ def test_the_readme_shows_what_the_command_prints(tmp_path, monkeypatch, capsys)
     monkeypatch.chdir(tmp_path)
     assert cli_main(["network", "import-osm", str(LAKESIDE), "--out", "network.geojson"]) == 0
     assert capsys.readouterr().out == shown
+
+
+def test_a_line_is_named_after_most_of_its_length():
+    doc = lakeside()
+    first = osm_feature(doc, "way/101")  # the first 1.5 km of 6 km
+    first["properties"]["name"] = "Westbrook Viaduct"
+    network, _, _ = import_osm(doc)
+    assert network.lines["650-t1"].name == "Lakeside Line"
+    assert network.lines["650-t1"].id == "650-t1"  # joined by ref all the same
