@@ -34,6 +34,7 @@ from services.defaults import default_file
 EARTH_RADIUS_M = 6_371_008.8  # mean radius (IUGG)
 DEMO_NETWORK = default_file("demo-network.geojson")
 _ID_FORBIDDEN = set("/*$?# ")
+RUNNING = ("increasing", "decreasing", "both")  # Line.running: normal direction of chainage
 
 
 def check_id(name: str, value) -> str:
@@ -120,6 +121,13 @@ class Line:
         What operators call it (``""``: none; labels then use the id).
     station_names : sequence of str
         One per station in the order given (``()``: none).
+    route : str
+        Id of the route this line is a track of (``""``: the line is its own route). The
+        tracks of a double-track route lie a few metres apart, closer than GPS can tell.
+    running : str
+        ``"increasing"``, ``"decreasing"`` or ``"both"``: the direction of chainage trains
+        normally run in on this track. Map matching tells the tracks of one route apart by
+        it, since on double track each track normally carries one direction.
     """
 
     def __init__(
@@ -134,9 +142,17 @@ class Line:
         line_speed_mps: float = 25.0,
         name: str = "",
         station_names=(),
+        route: str = "",
+        running: str = "both",
     ):
         self.id = check_id("id", id)
         self.name = str(name)
+        self.route = check_id("route", route) if route else ""
+        if running not in RUNNING:
+            raise ValueError(
+                f"line {id}: running must be one of {', '.join(RUNNING)}, got {running!r}"
+            )
+        self.running = running
         ll = np.asarray(lonlat, dtype=np.float64)
         if ll.ndim != 2 or ll.shape[1] != 2 or not np.isfinite(ll).all():
             raise ValueError(f"line {id}: lonlat must be finite (k, 2), got shape {ll.shape}")
@@ -189,6 +205,17 @@ class Line:
     def lonlat_at(self, chainage) -> np.ndarray:
         """WGS84 lon, lat (degrees) at chainages, shape ``chainage.shape + (2,)``."""
         return xy_to_lonlat(self.xy_at(chainage), self.origin_lonlat)
+
+    @property
+    def route_id(self) -> str:
+        """The route this line is a track of: ``route``, or the line's own id."""
+        return self.route or self.id
+
+    def runs(self, direction: int) -> bool:
+        """Whether trains normally run on this track in ``direction`` (+1/-1 chainage)."""
+        return self.running == "both" or self.running == (
+            "increasing" if direction > 0 else "decreasing"
+        )
 
     def heading_at(self, chainage) -> np.ndarray:
         """Direction of increasing chainage in radians, counter-clockwise from east (x)."""
@@ -276,7 +303,9 @@ class Network:
 
         Line features carry ``properties.id`` and optionally ``tunnels`` ([[start_m,
         end_m], ...]), ``stations`` ([chainage_m, ...]), ``line_speed_mps``, and ``name``
-        and ``station_names`` (one per station), which labels show. Features with
+        and ``station_names`` (one per station), which labels show, and ``route`` and
+        ``running`` (see :class:`Line`: tracks of one route told apart by the direction
+        trains run on them). Features with
         ``properties.kind == "segment"`` (written by :meth:`to_geojson`) are skipped.
         The local origin is the collection's ``origin_lonlat`` member if present, else the
         centre of the bounding box; the segment length, ``segment_length_m`` if given, else
@@ -343,6 +372,8 @@ class Network:
                     line_speed_mps=props.get("line_speed_mps", 25.0),
                     name=props.get("name") or "",
                     station_names=props.get("station_names") or (),
+                    route=props.get("route") or "",
+                    running=props.get("running") or "both",
                 )
             except (TypeError, ValueError) as exc:
                 raise ValueError(f"{where}: {exc}") from None
@@ -365,6 +396,10 @@ class Network:
                 props["name"] = line.name
             if line.station_names:
                 props["station_names"] = line.station_names
+            if line.route:
+                props["route"] = line.route
+            if line.running != "both":
+                props["running"] = line.running
             features.append(_feature(line.lonlat, props))
         if include_segments:
             for line, seg in self.segments():

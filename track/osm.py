@@ -40,10 +40,21 @@ The rules, in order:
    or knots; ``none``, ``signals``, country codes and the like are unknown; of a list
    (``"80;100"``) the lowest counts. A line's ``line_speed_mps`` is the length-weighted
    median of its ways' known speeds, ``default_speed_mps`` when none is known.
-9. **Warnings.** An extract reaching farther than 200 km from its centre (the local metric
+9. **Routes and running.** The lines of one route (the same ``ref``, else ``name``) when it
+   has several get the same ``route`` (the slug of it). Two tracks of a route drawn side
+   by side get ``running`` from the side trains keep to (``running="left"`` or
+   ``"right"``, :func:`running_of_pair`): with left-hand running the track on the left of
+   a train moving towards increasing chainage carries that direction (``"increasing"``),
+   the other ``"decreasing"``. There is no default side: it is a fact about the country
+   (left in the UK, France, Switzerland, Italy, Sweden, Japan, Australia...; right in
+   Germany, Austria, the Netherlands, Spain, North America, China...), and a wrong guess
+   would put every raw-GPS train on the other track without a sign, where no guess leaves
+   them visibly unpositioned. Without it, and on routes of one or more than two tracks,
+   ``running`` stays ``"both"``.
+10. **Warnings.** An extract reaching farther than 200 km from its centre (the local metric
    plane's range), a line without any known speed, and tracks of one route closer than
-   10 m to each other (:func:`close_tracks_warnings`: GPS map matching cannot tell them
-   apart).
+   10 m to each other (:func:`close_tracks_warnings`: GPS map matching tells them apart
+   only by their running direction, so they need ``running``).
 
 Pure: parsed JSON in, a :class:`~track.network.Network`, the extra line properties and an
 :class:`ImportReport` out. ``trackfusion network import-osm`` (``services/tools/
@@ -68,6 +79,8 @@ STATION_SNAP_M = 150.0  # a station this far from every line is dropped
 DEFAULT_SPEED_MPS = 25.0  # a line without any known maxspeed (90 km/h)
 PARALLEL_M = 10.0  # ingestion's ambiguity_m: GPS map matching cannot tell lines this close
 CLOSE_STEP_M = 200.0  # along-track step of that check
+SIDE_BY_SIDE_M = 50.0  # two tracks of a route this close are a double track (running)
+RUNNING_SIDES = ("left", "right")
 PLANE_RADIUS_M = 200e3  # track.network's projection is good within about this of the origin
 STATION_RAILWAY = ("station", "halt", "stop")
 NON_TRAIN_MODES = ("bus", "tram", "trolleybus", "share_taxi", "ferry", "light_rail", "subway")
@@ -466,6 +479,7 @@ def import_osm(
     segment_length_m: float = 200.0,
     min_length_m: float = MIN_LENGTH_M,
     default_speed_mps: float = DEFAULT_SPEED_MPS,
+    running: str | None = None,
 ) -> tuple[Network, dict[str, dict], ImportReport]:
     """A network of a parsed OSM export (module docstring: the rules).
 
@@ -478,6 +492,8 @@ def import_osm(
         ``bridges`` ([[start_m, end_m], ...]) and ``osm_ways``.
     report : ImportReport
     """
+    if running is not None and running not in RUNNING_SIDES:
+        raise ValueError(f"running: the side trains keep to, left or right, got {running!r}")
     if not station_snap_m > 0 or not segment_length_m > 0 or not min_length_m >= 0:
         raise ValueError("station snap and segment length must be > 0, min length >= 0")
     report = ImportReport()
@@ -564,6 +580,19 @@ def import_osm(
     for p in station_points:
         if not snapped[p.id]:
             report.drop(f"station farther than {station_snap_m:g} m from every line", p.id)
+    by_route: dict[tuple[str, str], list[str]] = defaultdict(list)
+    for line_id, chain, _, _ in made:
+        by_route[chain.key[0], slug(chain.key[0]) or line_id].append(line_id)
+    route_of_line: dict[str, str] = {}
+    running_of_line: dict[str, str] = {}
+    for (_, route), ids in by_route.items():
+        if len(ids) < 2:
+            continue
+        route_of_line |= dict.fromkeys(ids, route)
+        if running is not None and len(ids) == 2:
+            pair = running_of_pair(probes[ids[0]], probes[ids[1]], running)
+            if pair is not None:
+                running_of_line |= dict(zip(ids, pair, strict=True))
     for line_id, chain, ll, bounds in sorted(made, key=lambda m: m[0]):
         first = chain.pieces[0][0]
         pieces = list(zip(chain.pieces, bounds[:-1], bounds[1:], strict=True))
@@ -597,6 +626,8 @@ def import_osm(
             station_names=station_names,
             line_speed_mps=speed,
             name=name,
+            route=route_of_line.get(line_id, ""),
+            running=running_of_line.get(line_id, "both"),
         )
         lines[line_id] = line
         extra[line_id] = {
@@ -631,21 +662,47 @@ def import_osm(
     return Network(lines, segment_length_m, origin), extra, report
 
 
+def running_of_pair(a: Line, b: Line, side: str) -> tuple[str, str] | None:
+    """``running`` of two tracks of one route drawn side by side, trains keeping to ``side``.
+
+    Points of ``a`` every 200 m within ``SIDE_BY_SIDE_M`` of ``b`` are projected on ``b``;
+    the sign of the median lateral offset (positive left of ``b``'s increasing chainage)
+    says on which side ``a`` lies. A train running towards increasing chainage keeps to
+    ``side``, so the track on that side is ``"increasing"``, the other ``"decreasing"``.
+    None when the tracks are not side by side, or do not share their chainage direction
+    there (then neither can be told from the other by direction).
+    """
+    if side not in RUNNING_SIDES:
+        raise ValueError(f"side: left or right, got {side!r}")
+    at = np.linspace(0.0, a.length_m, int(a.length_m // CLOSE_STEP_M) + 2)
+    chainage, lateral = b.project(a.xy_at(at))
+    near = np.abs(lateral) <= SIDE_BY_SIDE_M
+    if not near.any():
+        return None
+    turn = a.heading_at(at[near]) - b.heading_at(chainage[near])
+    if np.median(np.cos(turn)) <= 0:
+        return None
+    a_left = float(np.median(lateral[near])) > 0
+    a_increasing = a_left == (side == "left")
+    return ("increasing", "decreasing") if a_increasing else ("decreasing", "increasing")
+
+
 def close_tracks_warnings(
     lines: Mapping[str, Line], within_m: float = PARALLEL_M, max_listed: int = 5
 ) -> list[str]:
     """Warnings for tracks of one route that run within ``within_m`` of each other.
 
-    GPS map matching (``services/ingestion/matching.py``) acquires a train only on a line
-    ``ambiguity_m`` (10 m) closer than any other, so trains with raw GPS on such tracks are
-    not positioned; the on-board indices of ``simulate --fidelity index`` and TRC records
-    name their line and are not affected. Checked every 200 m along each track, against the
-    other tracks of its route only (the ones drawn side by side). More than ``max_listed``
-    pairs make one warning listing the first of them.
+    GPS cannot tell such tracks apart: map matching (``services/ingestion/matching.py``)
+    tells them apart by the direction a train runs in, when they have ``running`` set to
+    opposite directions (the warning says so); otherwise trains with raw GPS there are not
+    positioned (the warning says to pass ``--running``). The on-board indices of ``simulate
+    --fidelity index`` and TRC records name their line and are not affected. Checked every
+    200 m along each track, against the other tracks of its route only (the ones drawn side
+    by side). More than ``max_listed`` pairs make one warning listing the first of them.
     """
     by_route: dict[str, list[Line]] = defaultdict(list)
     for line in lines.values():
-        by_route[line.name or line.id].append(line)
+        by_route[line.route or line.name or line.id].append(line)
     pairs = []
     for tracks in by_route.values():
         for k, a in enumerate(tracks):
@@ -654,18 +711,24 @@ def close_tracks_warnings(
                 _, lateral = b.project(points)
                 close_km = float((np.abs(lateral) < within_m).mean()) * a.length_m / 1e3
                 if close_km > 0:
-                    pairs.append((a.id, b.id, close_km))
-    why = "GPS map matching (ingestion) cannot tell them apart, so raw-GPS trains there are "
-    why += "not positioned"
+                    apart = {a.running, b.running} == {"increasing", "decreasing"}
+                    pairs.append((a.id, b.id, close_km, apart))
+    if all(apart for *_, apart in pairs):
+        why = "GPS cannot tell them apart; map matching (ingestion) tells them apart by "
+        why += "their running direction"
+    else:
+        why = "GPS map matching (ingestion) cannot tell them apart, so raw-GPS trains there "
+        why += "are not positioned: pass --running left|right (the side trains keep to) to "
+        why += "tell double tracks apart by their running direction"
     if len(pairs) <= max_listed:
         return [
             f"lines {a} and {b} run within {within_m:g} m of each other over {km:.1f} km: {why}"
-            for a, b, km in pairs
+            for a, b, km, _ in pairs
         ]
-    listed = ", ".join(f"{a}/{b} ({km:.1f} km)" for a, b, km in pairs[:max_listed])
+    listed = ", ".join(f"{a}/{b} ({km:.1f} km)" for a, b, km, _ in pairs[:max_listed])
     return [
         f"{len(pairs)} pairs of lines run within {within_m:g} m of each other, "
-        f"{sum(km for *_, km in pairs):.0f} km in all: {listed}, ... : {why}"
+        f"{sum(km for _, _, km, _ in pairs):.0f} km in all: {listed}, ... : {why}"
     ]
 
 

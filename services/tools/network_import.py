@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import TextIO
 
-from track.osm import MIN_LENGTH_M, STATION_SNAP_M, import_osm, to_geojson
+from track.osm import MIN_LENGTH_M, RUNNING_SIDES, STATION_SNAP_M, import_osm, to_geojson
 
 
 def main(
@@ -25,6 +25,7 @@ def main(
     station_snap_m: float = STATION_SNAP_M,
     segment_length_m: float = 200.0,
     min_length_m: float = MIN_LENGTH_M,
+    running: str | None = None,
     out: TextIO | None = None,
 ) -> int:
     """Import ``in_path`` into the network file ``out_path``; print the report; 0.
@@ -53,6 +54,7 @@ def main(
             station_snap_m=station_snap_m,
             segment_length_m=segment_length_m,
             min_length_m=min_length_m,
+            running=running,
         )
     except ValueError as exc:
         raise ValueError(f"{in_path}: {exc}") from None
@@ -119,6 +121,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="M",
         help="a joined line shorter than this is dropped (default %(default)g)",
     )
+    parser.add_argument(
+        "--running",
+        choices=RUNNING_SIDES,
+        default=None,
+        help="the side trains keep to on double track (left: UK, France, Switzerland, Italy, "
+        "Sweden, Japan, Australia...; right: Germany, Austria, the Netherlands, Spain, North "
+        "America...): sets each track's running direction, by which GPS map matching tells "
+        "the two tracks of a route apart. No default (a wrong guess would misplace every "
+        "train silently): without it, trains with raw GPS on double track are not positioned",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -130,4 +142,5 @@ def run(args: argparse.Namespace) -> int:
         station_snap_m=args.station_snap_m,
         segment_length_m=args.segment_length,
         min_length_m=args.min_length,
+        running=args.running,
     )

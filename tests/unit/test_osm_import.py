@@ -19,7 +19,7 @@ from services.tools.report import network_map
 from services.viewer.core import ViewerCore
 from services.viewer.testing import rrd_printout
 from track.network import Line, Network, check_id, load_network, lonlat_to_xy
-from track.osm import import_osm, parse_maxspeed, slug, to_geojson
+from track.osm import import_osm, parse_maxspeed, running_of_pair, slug, to_geojson
 from track.segments import SegmentTable
 
 FIXTURES = Path(__file__).parents[1] / "fixtures" / "osm"
@@ -268,6 +268,49 @@ def test_tracks_too_close_for_gps_map_matching_are_warned_about(imported):
     (close,) = [w for w in report.warnings if "cannot tell them apart" in w]
     assert close.startswith("lines 650-t1 and 650-t2 run within 10 m")
     assert "over 6.0 km" in close  # the tracks are 8 m apart all along
+    assert "not positioned: pass --running left|right" in close
+    _, _, told = import_osm(lakeside(), running="left")
+    (close,) = [w for w in told.warnings if "cannot tell them apart" in w]
+    assert "tells them apart by their running direction" in close
+    assert "not positioned" not in close
+
+
+def test_tracks_of_one_route_share_it_and_the_branch_is_its_own_route(imported):
+    network, _, _ = imported
+    routes = {line.id: line.route for line in network.lines.values()}
+    assert routes == {"650-t1": "650", "650-t2": "650", "651": ""}
+    assert network.lines["651"].route_id == "651"
+    # no side given: no guess, every track runs both ways
+    assert {line.running for line in network.lines.values()} == {"both"}
+
+
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_running_is_the_direction_of_the_side_trains_keep_to(side):
+    network, _, _ = import_osm(lakeside(), running=side)
+    t1, t2 = network.lines["650-t1"], network.lines["650-t2"]
+    # where t2 lies, seen from t1, independently of the import: the sign of its lateral
+    _, lateral = t1.project(t2.xy_at(np.linspace(0.0, t2.length_m, 31)))
+    t2_left = bool(np.median(lateral) > 0)
+    assert t2_left  # the fixture draws track 2 north of track 1, both running east
+    # a train running towards increasing chainage (east) keeps to `side`
+    eastbound = t2 if (side == "left") == t2_left else t1
+    westbound = t1 if eastbound is t2 else t2
+    assert (eastbound.running, westbound.running) == ("increasing", "decreasing")
+    assert network.lines["651"].running == "both"  # a single track
+
+
+def test_running_is_left_unset_for_tracks_not_side_by_side_or_opposed():
+    origin = (8.3, 47.05)
+    a = Line("a", [[8.30, 47.05], [8.32, 47.05]], origin)
+    beside = Line("b", [[8.30, 47.05007], [8.32, 47.05007]], origin)  # 8 m north
+    far = Line("c", [[8.30, 47.06], [8.32, 47.06]], origin)  # 1.1 km north
+    turned = Line("d", [[8.32, 47.05007], [8.30, 47.05007]], origin)  # drawn westwards
+    assert running_of_pair(a, beside, "left") == ("decreasing", "increasing")
+    assert running_of_pair(a, beside, "right") == ("increasing", "decreasing")
+    assert running_of_pair(a, far, "left") is None
+    assert running_of_pair(a, turned, "left") is None
+    with pytest.raises(ValueError, match="left or right"):
+        import_osm(lakeside(), running="middle")
 
 
 def test_overpass_json_joins_by_node_ids():
@@ -333,6 +376,7 @@ def test_the_written_file_reads_back_in_every_reader(imported, tmp_path):
         assert got.tunnels == line.tunnels
         assert got.stations == line.stations and got.station_names == line.station_names
         assert got.name == line.name and got.line_speed_mps == line.line_speed_mps
+        assert (got.route, got.running) == (line.route, line.running)
     assert Network.from_geojson(path).origin_lonlat == network.origin_lonlat
     ids = {(line.id, seg.id) for line, seg in network.segments()}
     assert calibration_segments(path) == ids
@@ -355,6 +399,12 @@ def test_the_command_writes_the_file_and_prints_the_report(tmp_path, capsys):
     network = load_network(str(out))  # what the services read: cut as written
     assert network.segment_length_m == 500.0
     assert SegmentTable.from_geojson(out).n_segments == network.n_segments < 71 / 2
+    code = cli_main(
+        ["network", "import-osm", str(LAKESIDE), "--out", str(out), "--running", "left"]
+    )
+    assert code == 0
+    running = {line.id: line.running for line in load_network(str(out)).lines.values()}
+    assert running == {"650-t1": "decreasing", "650-t2": "increasing", "651": "both"}
 
 
 def test_a_bad_file_exits_2_with_one_line_naming_it(tmp_path, capsys):
@@ -493,7 +543,8 @@ def test_the_readme_shows_what_the_command_prints(tmp_path, monkeypatch, capsys)
     start = readme.index("read 18 ways and 7 points\n")
     shown = readme[start : readme.index("```", start)]
     monkeypatch.chdir(tmp_path)
-    assert cli_main(["network", "import-osm", str(LAKESIDE), "--out", "network.geojson"]) == 0
+    command = ["network", "import-osm", str(LAKESIDE), "--running", "left"]
+    assert cli_main([*command, "--out", "network.geojson"]) == 0
     assert capsys.readouterr().out == shown
 
 
