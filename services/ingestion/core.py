@@ -124,6 +124,7 @@ class TrainState:
     # on a route of close tracks: the track was chosen by the running direction (until then
     # the train is not positioned on either)
     track_known: bool = False
+    matched_fix_t: float | None = None  # the previous fix map matching saw
     last_fix_t: float | None = None
     last_good_t: float | None = None
     now: float = -math.inf  # newest event time of the train

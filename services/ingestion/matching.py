@@ -18,7 +18,8 @@ the train takes the track whose ``running`` is its direction of travel along the
 learnt from its chainage as above, and keeps it while it keeps that direction. A reversal
 moves it to a close track that runs the new way, if there is one. Until the direction is
 known (the first fixes, a standstill), or when no single track runs that way, the train is
-not positioned (its chunks are refused as ``unpositioned``).
+not positioned (its chunks are refused as ``unpositioned``). A fix more than
+``reacquire_s`` after the previous one (a gateway that was off) starts matching over.
 """
 
 from __future__ import annotations
@@ -185,6 +186,10 @@ class Positioner:
         """A knot for one fix (matched or dead-reckoned), updating the matching state."""
         cfg = self.cfg
         last = st.knots[-1] if st.knots else None
+        silent = st.matched_fix_t is not None and fix.t - st.matched_fix_t > cfg.reacquire_s
+        st.matched_fix_t = fix.t
+        if silent:  # the gateway was off: wherever the train is now, start over
+            st.line, st.direction, st.track_known, last = None, 0, False, None
         if fix.fix_quality == 0:
             st.stats.no_fix += 1
             if st.line is None or last is None or last.line != st.line:

@@ -126,3 +126,33 @@ def test_the_single_track_branch_is_positioned_from_the_first_fix():
     out = IngestionCore(network).run(events)
     assert rejections(out) == []
     assert {c.line for c in positioned(out)} == {"651"}
+
+
+def test_a_simulated_one_way_train_is_on_its_track_every_trip():
+    """The simulator's train on the eastbound track sends nothing on its way back (that
+    runs on the other track): after each silence map matching starts over at the west end
+    and takes the eastbound track again, never the westbound one."""
+    network = lakeside()
+    line = network.lines["650-t2"]
+    profile = LineProfile(line.id, [(s.start_m, s.end_m) for s in line.segments], 1)
+    sim = TrainSimulator("T1", line, profile, 1, start_t=T0, phase_s=0.0)
+    seconds = int(1.6 * sim.cycle_s)
+    t = T0 + np.arange(seconds)
+    sent = sim.in_service(t)
+    assert (sim.position(t)[3][sent] == 1).all() and not sent.all()
+    events: list[RawChunk | GpsFix] = []
+    for k in np.flatnonzero(sent):
+        events.append(chunk(int(k)))
+        events += sim.gps_fixes(T0 + k, T0 + k + 1)
+    # in a fleet the other trains' fixes show the silence is no clock jump; alone, the
+    # train's own clock would be doubted (max_ahead_s), which is not what is tested here
+    cfg = IngestionConfig(max_ahead_s=1e9)
+    out = IngestionCore(network, cfg).run(events)
+    chunks = positioned(out)
+    assert {c.line for c in chunks} == {"650-t2"}
+    assert all(r.reason.startswith("unpositioned") for r in rejections(out))
+    second_trip = [c for c in chunks if c.t0 > T0 + sim.cycle_s]
+    assert len(second_trip) > 60  # positioned again after the silence
+    chain = np.concatenate([c.knot_chainage_m.array() for c in second_trip])
+    truth = sim.position(np.concatenate([c.knot_t.array() for c in second_trip]))[0]
+    assert np.median(np.abs(chain - truth)) < 3.0
