@@ -211,12 +211,6 @@ class Line:
         """The route this line is a track of: ``route``, or the line's own id."""
         return self.route or self.id
 
-    def runs(self, direction: int) -> bool:
-        """Whether trains normally run on this track in ``direction`` (+1/-1 chainage)."""
-        return self.running == "both" or self.running == (
-            "increasing" if direction > 0 else "decreasing"
-        )
-
     def heading_at(self, chainage) -> np.ndarray:
         """Direction of increasing chainage in radians, counter-clockwise from east (x)."""
         _, i = self._piece(chainage)
