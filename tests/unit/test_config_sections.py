@@ -44,7 +44,7 @@ KNOWN = {
     "filtering": "db, limits, network, selector",
     "calibration": ", ".join(sorted(calibration.OPTIONS)),
     "ingestion": None,  # IngestionConfig's fields, checked below
-    "delivery": "cache_samples, heartbeat_s",
+    "delivery": "cache_samples, heartbeat_s, max_publishers",
 }
 
 
