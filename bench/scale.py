@@ -15,9 +15,9 @@ For each size S in ``--segments`` (default 10,000, 30,000, 100,000 segments of 2
 3. **load**: ``simulate --fidelity index --trains T --days D --speedup inf`` on router 1
    (``T`` service passes per line and day, an on-board index per segment and pass, plus the
    world's TRC runs and tampings; every line's first TRC run within the first half day, so
-   that every segment's filter starts and has a state). A year at 100,000 segments is tens of millions of events,
-   far beyond two cores in minutes, so the default is a few days of a light service
-   (``--days``, ``--trains``); the figures say how many events went through.
+   that every segment's filter starts and has a state). A year at 100,000 segments is tens
+   of millions of events, far beyond two cores in minutes, so the default is a few days of
+   a light service (``--days``, ``--trains``); the figures say how many events went through.
 4. **throughput**: this process subscribes to the events and states; the shards are drained
    when every segment's newest state carries its newest event's time. events/s = events
    on the bus / (drained − simulator start).
