@@ -169,13 +169,17 @@ def wait(predicate, timeout: float, what: str, deployment: Deployment, step: flo
         time.sleep(step)
 
 
-def count_states(session: zenoh.Session, selector: str) -> int:
+def count_states(session: zenoh.Session, region: str) -> tuple[int, int]:
+    """(segments of ``region`` whose state ``q/state`` answers, answers for other lines:
+    a shard's selector must take its own region's lines only)."""
     replies = session.get(
-        keys.q_state_keys(NS, selector),
+        keys.q_state_keys(NS, f"{region}$*/**"),
         timeout=30.0,
         consolidation=zenoh.ConsolidationMode.NONE,
     )
-    return sum(reply.ok is not None for reply in replies)
+    lines = [keys.parse_q_state(str(r.ok.key_expr))[0] for r in replies if r.ok is not None]
+    own = sum(line.startswith(region) for line in lines)
+    return own, len(lines) - own
 
 
 def run_size(segments: int, args: argparse.Namespace, workdir: Path) -> dict:
@@ -313,11 +317,13 @@ def _run(segments, net, net_path, args, deployment, session, r1, r2, workdir) ->
     wait(lambda: token in alive, 600, lambda: "fA not alive again", deployment)
     alive_s = alive[token] - restarted
     owned = sum(1 for line, _ in probe.events.snapshot() if line.startswith("A"))
-    answered = 0
+    answered = foreign = 0
 
     def answers_all() -> bool:
-        nonlocal answered
-        answered = count_states(session, "A$*/**")
+        nonlocal answered, foreign
+        answered, foreign = count_states(session, "A")
+        if foreign:
+            raise RuntimeError(f"q/state of shard A answered {foreign} keys of other lines")
         return answered >= owned
 
     wait(answers_all, 600, lambda: f"q/state answers {answered} of {owned}", deployment)
