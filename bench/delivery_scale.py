@@ -94,7 +94,7 @@ def role_publisher(endpoint: str, n: int, bound: int | None, plain: bool) -> Non
                     break
                 print(
                     json.dumps(
-                        {"s": time.perf_counter() - started, "evictions": reliable.evictions}
+                        {"s": time.perf_counter() - started, "plain_puts": reliable.plain_puts}
                     ),
                     flush=True,
                 )
