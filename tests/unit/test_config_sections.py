@@ -16,6 +16,7 @@ from services.calibration import service as calibration
 from services.filtering import service as filtering
 from services.ingestion import service as ingestion
 from services.runtime.config import SECTIONS, load_config
+from services.runtime.delivery import DeliverySettings
 from services.runtime.service import ServiceRuntime
 from services.tools import gateway_check
 
@@ -112,3 +113,10 @@ def test_a_bad_section_of_a_service_without_settings_exits_2(tmp_path, capsys):
     assert cli.main(["alerting", "--config", str(path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "unknown section 'alerting'" in err
+
+
+@pytest.mark.parametrize("bad", [0, -1, 2.5, "many"])
+def test_delivery_max_publishers_must_be_a_positive_integer(bad):
+    with pytest.raises(ValueError, match=r"services\.delivery\.max_publishers must be"):
+        DeliverySettings.from_options({"max_publishers": bad})
+    assert DeliverySettings.from_options({"max_publishers": 5}).max_publishers == 5
