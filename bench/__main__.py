@@ -22,6 +22,11 @@ Workloads (DESIGN "Performance targets"):
    against the filter bank alone and the one-segment-at-a-time re-run (``bench/rerun.py``).
 9. model versions calibration publishes per simulated month of the demo world, with the
    publication rule against without it (``bench/calibration_versions.py``).
+
+Not run here (minutes each, real processes): ``make scale`` (``bench/scale.py``, a national
+deployment: two routers, four filtering shards, 10,000 to 100,000 segments) and
+``python -m bench.delivery_scale`` (what N advanced publishers cost a process, the router
+and a subscriber); ``make soak``.
 """
 
 from __future__ import annotations

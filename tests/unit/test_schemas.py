@@ -514,6 +514,23 @@ def test_selectors_narrow_the_queryable_and_the_subscriptions_alike():
     assert ke(keys.raw_all("tf")).includes(one_train)
 
 
+@pytest.mark.parametrize("kind", ["index", "trc", "maintenance", "state"])
+def test_a_region_selector_splits_a_network_by_line_prefix(kind):
+    # a national deployment (README "National deployment", bench/scale.py): line ids carry a
+    # region letter, and one selector per filtering instance takes a region's lines
+    ke = zenoh.KeyExpr
+    shards = {r: ke(keys.segment_keys("tf", kind, f"{r}$*/**")) for r in "ABCD"}
+    queryables = {r: ke(keys.q_state_keys("tf", f"{r}$*/**")) for r in "ABCD"}
+    for line in ("A001", "B017", "C200", "D042"):
+        concrete = ke(getattr(keys, kind)("tf", line, "s0001"))
+        owners = [r for r, k in shards.items() if k.includes(concrete)]
+        assert owners == [line[0]]
+        answering = [
+            r for r, k in queryables.items() if k.includes(ke(keys.q_state("tf", line, "s1")))
+        ]
+        assert answering == [line[0]]
+
+
 @pytest.mark.parametrize("message", examples(), ids=lambda m: type(m).__name__)
 def test_every_message_has_its_key_and_refuses_another(message):
     key = keys.key_of("tf", message)
