@@ -49,6 +49,7 @@ from services.filtering.tracker import (
     Step,
     Tracker,
     event_of,
+    model_name,
 )
 
 log = logging.getLogger(__name__)
@@ -355,7 +356,7 @@ class PersistentTracker:
         match msg:
             case Calibration():
                 self.store.put_model(
-                    name="calibration",
+                    name=model_name(msg),  # a unit's own model beside the fleet's
                     kind="calibration",
                     version=msg.version,
                     key=key,

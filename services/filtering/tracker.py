@@ -573,10 +573,22 @@ def fold_many(
     whose :meth:`~Models.observation_for` gives each index its unit's; there must be one
     for an index that follows a start (the caller checks it, see :func:`_publishable`).
     """
+    return _fold_many(starts, logs, params, obs)[0]
+
+
+def _fold_many(starts, logs, params, obs, halt_cusum: float | None = None):
+    """:func:`fold_many`, and how many events of each log were folded: ``(states, folded)``.
+
+    ``halt_cusum``: a segment stops after the first index that leaves its CUSUM at or above
+    this (:func:`detect`'s condition), its state the one after that index, and ``folded[i]``
+    says how many of its events that was. Every index's NIS is then computed (a halted
+    row's last update is not known in advance); the bits do not change, since the NIS of a
+    row is a sum over its own samples.
+    """
     obs_for = obs.observation_for_event if isinstance(obs, Models) else (lambda _e: obs)
     size = len(logs)
     if size == 0:
-        return []
+        return [], []
     ns, n = params[0].ns, params[0].n
     order = sorted(range(size), key=lambda i: -len(logs[i]))
     depth = len(logs[order[0]])
@@ -603,6 +615,7 @@ def fold_many(
     banks = _Banks([starts[i] for i in order], ns, n)
     rows_params = _RowParams([params[i] for i in order])
     lengths = np.array([len(logs[i]) for i in order])
+    folded = lengths.copy()  # events folded per row (fewer if halted)
     # position of each row's last index: the NIS of a state is that of its last update
     last_index = depth - 1 - np.argmax(kinds[:, ::-1] == INDEX, axis=1)
     for k in range(depth):
@@ -623,14 +636,20 @@ def fold_many(
                 assert (ids >= 0).all()
                 for j in np.unique(ids):  # the rows whose index is read by model j
                     sub = rows if len(observations) == 1 else rows[ids == j]
-                    last = last_index[sub] == k
+                    last = None if halt_cusum is not None else last_index[sub] == k
                     banks.index(
                         sub, times[sub, k], values[sub, k], rows_params, observations[j], last
                     )
+                    if halt_cusum is not None:
+                        halted = sub[banks.cusum[sub] >= halt_cusum]
+                        kinds[halted, k + 1 :] = -1  # nothing more is folded on these rows
+                        folded[halted] = k + 1
     out: list[Filtered | None] = [None] * size
+    counts = [0] * size
     for row, i in enumerate(order):
         out[i] = banks.state(row)
-    return out
+        counts[i] = int(folded[row])
+    return out, counts
 
 
 def apply_event(
@@ -905,29 +924,134 @@ class Tracker:
 
         Returns ``(reasons, states, detected)``: per message ``""`` if accepted, else why
         not; the newest SegmentState of each changed, publishable segment; and the tampings
-        :func:`detect` found on the way. The histories are the same
-        as after stepping the messages one by one (same fold), and so are the final states
-        (:meth:`segment_states` is :meth:`segment_state` in batches, bit for bit); only the
-        intermediate states of a segment are not summarised. If anything raises, nothing
-        is changed.
+        :func:`detect` found on the way. The histories are the same as after stepping the
+        messages one by one, bit for bit (:meth:`fold_events`), and so are the final states
+        (:meth:`segment_states` is :meth:`segment_state` in batches); only the intermediate
+        states of a segment are not summarised. If anything raises, nothing is changed.
         """
-        changed: dict[SegmentId, SegmentHistory] = {}
-        reasons, detected = [], []
-        for msg in msgs:
-            sid = (msg.line, msg.segment)
-            hist = (
-                changed.get(sid) or self.histories.get(sid) or SegmentHistory(msg.line, msg.segment)
-            )
-            hist, reason = step_segment(hist, event_of(msg), self.models)
-            reasons.append(reason)
-            if not reason:
-                hist, found = self._detect(hist)
-                if found is not None:
-                    detected.append(found)
-                changed[sid] = hist
+        reasons, changed, detected = self._fold_events(msgs)
         states = self.segment_states(list(changed.values()))  # before the swap
         self.histories.update(changed)
         return reasons, tuple(state for state in states if state is not None), detected
+
+    def fold_events(self, msgs: Sequence[EventMessage]) -> tuple[list[str], list, list]:
+        """:meth:`step_events` without the summaries: ``(reasons, changed, detected)``, with
+        the ids of the segments whose history changed (their states: :meth:`states_of`)."""
+        reasons, changed, detected = self._fold_events(msgs)
+        self.histories.update(changed)
+        return reasons, list(changed), detected
+
+    def states_of(self, sids: Iterable[SegmentId]) -> list[SegmentState]:
+        """The publishable SegmentStates of the segments ``sids`` (in batches)."""
+        hists = [h for h in (self.histories.get(sid) for sid in sids) if h is not None]
+        return [state for state in self.segment_states(hists) if state is not None]
+
+    def _fold_events(self, msgs: Sequence[EventMessage]):
+        """``(reasons, changed, detected)`` of stepping ``msgs`` one by one, nothing swapped.
+
+        The usual event, an on-board index after the last event of its segment's log on a
+        segment with a state (live, a backfill in time order), is appended and left
+        pending; the pending indices of all segments are folded from their states in one
+        :func:`fold_many` at the end (several per segment: the logs differ in length).
+        Anything else (a late index, a duplicate, a TRC record, a tamping, a segment
+        without a state or a calibration for the index's unit) first folds its segment's
+        pending indices, then takes the exact path of :meth:`step` (:func:`step_segment`,
+        :func:`detect`). Detection runs after each index one by one: the batched fold halts
+        a segment at the first index whose CUSUM reaches ``CUSUM_THRESHOLD``, runs
+        :func:`detect` there and steps the segment's later indices one by one, so the
+        result is bit for bit that of :meth:`step` per message (the fold does not depend
+        on the other segments of a call, see :class:`_Banks`).
+        """
+        models = self.models
+        changed: dict[SegmentId, SegmentHistory] = {}
+        pending: dict[SegmentId, list[tuple[int, Event]]] = {}  # appended, not yet folded
+        reasons = [""] * len(msgs)
+        detected: list[tuple[int, MaintenanceEvent]] = []  # (message position, tamping)
+
+        def current(sid: SegmentId, msg: EventMessage) -> SegmentHistory:
+            return (
+                changed.get(sid) or self.histories.get(sid) or SegmentHistory(msg.line, msg.segment)
+            )
+
+        def exact(i: int, sid: SegmentId, hist: SegmentHistory, event: Event) -> None:
+            hist, reason = step_segment(hist, event, models)
+            reasons[i] = reason
+            if not reason:
+                hist, found = self._detect(hist)
+                if found is not None:
+                    detected.append((i, found))
+                changed[sid] = hist
+
+        def flush(sids: Sequence[SegmentId]) -> None:
+            if not sids:
+                return
+            hists = [changed.get(sid) or self.histories[sid] for sid in sids]
+            groups = [models.group_for(h.line, h.segment) for h in hists]
+            logs = [[event for _, event in pending.pop(sid)] for sid in sids]
+            jobs: dict[int, list[int]] = {}  # by Ns
+            for k, group in enumerate(groups):
+                jobs.setdefault(models.params[group].ns, []).append(k)
+            halt = CUSUM_THRESHOLD if self.detect_maintenance else None
+            for job in jobs.values():
+                states, folded = _fold_many(
+                    [hists[k].state for k in job],
+                    [logs[k] for k in job],
+                    [models.params[groups[k]] for k in job],
+                    models,
+                    halt,
+                )
+                for k, state, count in zip(job, states, folded, strict=True):
+                    own = replace(
+                        state, z=state.z.copy(), P=state.P.copy(), log_w=state.log_w.copy()
+                    )
+                    hist = hists[k]
+                    hist = replace(
+                        hist, log=hist.log + tuple(logs[k][:count]), state=own, group=groups[k]
+                    )
+                    sid = sids[k]
+                    changed[sid] = hist
+                    if count < len(logs[k]) or halt is not None and own.cusum >= halt:
+                        hist, found = self._detect(hist)
+                        if found is not None:
+                            detected.append((positions[sid][count - 1], found))
+                        changed[sid] = hist
+                        for i in positions[sid][count:]:
+                            exact(i, sid, changed[sid], events_at[i])
+
+        positions: dict[SegmentId, list[int]] = {}  # message positions of the pending events
+        events_at: dict[int, Event] = {}
+        for i, msg in enumerate(msgs):
+            sid = (msg.line, msg.segment)
+            event = event_of(msg)
+            queued = pending.get(sid)
+            if event.kind == INDEX:
+                hist = current(sid, msg)
+                if queued:
+                    last = queued[-1][1]
+                elif hist.state is not None and hist.log:
+                    last = hist.log[-1]
+                else:
+                    last = None
+                if (
+                    last is not None
+                    and event.order > last.order
+                    and models.group_for(msg.line, msg.segment) is not None
+                    and models.observation_for_event(event) is not None
+                ):
+                    if not queued:
+                        pending[sid] = queued = []
+                        positions[sid] = []
+                    queued.append((i, event))
+                    positions[sid].append(i)
+                    events_at[i] = event
+                    continue
+            if queued:
+                flush([sid])
+                del positions[sid]
+            exact(i, sid, current(sid, msg), event)
+        flush(list(pending))
+        detected.sort(key=lambda found: found[0])
+        return reasons, changed, [found for _, found in detected]
 
     def update_models(self, msgs: Sequence[ModelMessage]) -> ModelUpdate:
         """Apply several model messages at once, re-running each affected segment once.
