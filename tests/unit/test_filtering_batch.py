@@ -7,13 +7,20 @@ and compare every segment's arrays, encoded SegmentState and detected tamping, b
 
 from __future__ import annotations
 
+import json
+
 import msgspec
 import numpy as np
 import pytest
 
 from schemas import DAY_S, encode, keys
-from services.filtering.store import PersistentTracker, Store
-from services.filtering.tracker import CUSUM_THRESHOLD, Calibration, DegradationPosterior
+from services.filtering.store import PersistentTracker, Store, decode_keyed
+from services.filtering.tracker import (
+    CUSUM_THRESHOLD,
+    Calibration,
+    DegradationPosterior,
+    event_of,
+)
 from tests.unit.test_filtering_tracker import (
     MU,
     Z_PLUS,
@@ -188,7 +195,11 @@ def test_a_batch_commits_what_one_by_one_commits(tmp_path):
         batched.handle_batch([keyed(m) for m in batch])
     # the same rows; not in the same order: a batch commits its detected tampings first
     rows = "SELECT line, segment, kind, key, identity, t, payload FROM events ORDER BY 1, 2, 5"
-    assert list(one.store._db.execute(rows)) == list(batched.store._db.execute(rows))
+    stored = list(batched.store._db.execute(rows))
+    assert list(one.store._db.execute(rows)) == stored
+    for _line, _segment, _kind, key, identity, t, payload in stored:
+        event = event_of(decode_keyed(key, payload))
+        assert (identity, t) == (json.dumps(list(event.identity)), event.t_s)
     rebuilt = PersistentTracker(new_tracker(), Store(tmp_path / "batch.sqlite"))
     rebuilt.rebuild()
     assert_same_states(one.tracker, rebuilt.tracker)
