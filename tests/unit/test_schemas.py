@@ -582,3 +582,20 @@ def test_wire_reference_documents_every_field_of_every_message():
         version, fields = documented[message_type.__name__]
         assert version == schemas.SCHEMA_VERSION
         assert fields == list(message_type.__struct_fields__), message_type.__name__
+
+
+def test_nesting_just_beyond_the_limit_is_found_and_at_the_limit_is_not():
+    """The scan's shortcut (too few container header bytes to be that deep) keeps the
+    boundary: 33 nested non-empty containers in a value are refused, 32 are not."""
+    from schemas.wire import MAX_NESTING, too_deep
+
+    for depth, found in ((MAX_NESTING, None), (MAX_NESTING + 1, "'x'")):
+        value = b"\x91" * depth + b"\x01"
+        assert too_deep(_with_first(_gps(), msgpack.packb("x"), value)) == found
+
+
+def test_an_id_refused_stays_refused_after_valid_ones_were_seen():
+    for _ in range(2):  # the second time the valid ids come from the cache of checked ids
+        assert decode(_gps(train="T1"), GpsFix).train == "T1"
+        with pytest.raises(SchemaError, match="whitespace or control"):
+            decode(_gps(train="T 1"), GpsFix)
