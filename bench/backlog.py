@@ -86,6 +86,11 @@ def bench_backlog(segments: int = SEGMENTS, events: int = EVENTS, profile: bool 
         tracker = node.tracker
         params, obs = tracker.models.params["net"], tracker.models.observation
         bank_states = {sid: hist.state for sid, hist in tracker.histories.items()}
+        # warm-up (numba's compiled kernels load on first use), results discarded
+        for rows in (8, 512):
+            warm = [[event_of(m)] for m in indices[:rows]]
+            sids = [(m.line, m.segment) for m in indices[:rows]]
+            fold_many([bank_states[sid] for sid in sids], warm, [params] * rows, obs)
 
         dirty: dict = {}
         service_s = bank_s = 0.0

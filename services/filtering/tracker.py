@@ -326,9 +326,16 @@ class _Banks:
 
     def __init__(self, starts: Sequence[Filtered | None], ns: int, n: int) -> None:
         size = len(starts)
-        self.z = np.zeros((size, ns, n))
-        self.P = np.zeros((size, ns, n, n))
-        self.log_w = np.zeros((size, ns))
+        rows = [row for row, state in enumerate(starts) if state is not None]
+        have = [starts[row] for row in rows]
+        if have and len(have) == size:  # every row started (a backlog): one copy, no zeros
+            self.z = np.stack([state.z for state in have])
+            self.P = np.stack([state.P for state in have])
+            self.log_w = np.stack([state.log_w for state in have])
+        else:
+            self.z = np.zeros((size, ns, n))
+            self.P = np.zeros((size, ns, n, n))
+            self.log_w = np.zeros((size, ns))
         self.t_s = np.zeros(size)
         self.last_trc_t = np.full(size, np.nan)  # NaN: None
         self.n_updates = np.zeros(size, dtype=np.int64)
@@ -337,31 +344,41 @@ class _Banks:
         self.cusum = np.zeros(size)
         self.cusum_t0 = np.full(size, np.nan)
         self.cusum_t1 = np.full(size, np.nan)
-        for row, state in enumerate(starts):
-            if state is None:
-                continue
-            self.z[row], self.P[row], self.log_w[row] = state.z, state.P, state.log_w
-            self.cusum[row], self.cusum_t0[row] = state.cusum, state.cusum_t0
-            self.cusum_t1[row] = state.cusum_t1
-            self.t_s[row], self.n_updates[row] = state.t_s, state.n_updates
-            self.last_trc_t[row] = np.nan if state.last_trc_t is None else state.last_trc_t
-            self.nis[row] = np.nan if state.nis is None else state.nis
-            self.started[row] = True
+        if have:  # one copy per field for all started rows (a backlog starts ~1,000)
+            nan = float("nan")
+            if len(have) < size:
+                self.z[rows] = np.stack([state.z for state in have])
+                self.P[rows] = np.stack([state.P for state in have])
+                self.log_w[rows] = np.stack([state.log_w for state in have])
+            self.cusum[rows] = [state.cusum for state in have]
+            self.cusum_t0[rows] = [state.cusum_t0 for state in have]
+            self.cusum_t1[rows] = [state.cusum_t1 for state in have]
+            self.t_s[rows] = [state.t_s for state in have]
+            self.n_updates[rows] = [state.n_updates for state in have]
+            self.last_trc_t[rows] = [
+                nan if state.last_trc_t is None else state.last_trc_t for state in have
+            ]
+            self.nis[rows] = [nan if state.nis is None else state.nis for state in have]
+            self.started[rows] = True
         self._block = max(1, BLOCK_FILTERS // max(ns, 1))
 
-    def state(self, row: int) -> Filtered | None:
-        """Row ``row`` as a :class:`Filtered` (views of the stacked arrays), None if unstarted."""
+    def state(self, row: int, *, copy: bool = False) -> Filtered | None:
+        """Row ``row`` as a :class:`Filtered`, None if unstarted: views of the stacked arrays,
+        or copies (``copy``: a state kept alone does not hold the whole stack's memory)."""
         if not self.started[row]:
             return None
         last_trc_t, nis = float(self.last_trc_t[row]), float(self.nis[row])
+        z, P, log_w = self.z[row], self.P[row], self.log_w[row]
+        if copy:
+            z, P, log_w = z.copy(), P.copy(), log_w.copy()
         return Filtered(
-            self.z[row],
-            self.P[row],
+            z,
+            P,
             float(self.t_s[row]),
             None if np.isnan(last_trc_t) else last_trc_t,
             int(self.n_updates[row]),
             None if np.isnan(nis) else nis,
-            self.log_w[row],
+            log_w,
             float(self.cusum[row]),
             float(self.cusum_t0[row]),
             float(self.cusum_t1[row]),
@@ -576,14 +593,15 @@ def fold_many(
     return _fold_many(starts, logs, params, obs)[0]
 
 
-def _fold_many(starts, logs, params, obs, halt_cusum: float | None = None):
+def _fold_many(starts, logs, params, obs, halt_cusum: float | None = None, copy=False):
     """:func:`fold_many`, and how many events of each log were folded: ``(states, folded)``.
 
     ``halt_cusum``: a segment stops after the first index that leaves its CUSUM at or above
     this (:func:`detect`'s condition), its state the one after that index, and ``folded[i]``
     says how many of its events that was. Every index's NIS is then computed (a halted
     row's last update is not known in advance); the bits do not change, since the NIS of a
-    row is a sum over its own samples.
+    row is a sum over its own samples. ``copy``: each state owns its arrays
+    (:meth:`_Banks.state`).
     """
     obs_for = obs.observation_for_event if isinstance(obs, Models) else (lambda _e: obs)
     size = len(logs)
@@ -647,7 +665,7 @@ def _fold_many(starts, logs, params, obs, halt_cusum: float | None = None):
     out: list[Filtered | None] = [None] * size
     counts = [0] * size
     for row, i in enumerate(order):
-        out[i] = banks.state(row)
+        out[i] = banks.state(row, copy=copy)
         counts[i] = int(folded[row])
     return out, counts
 
@@ -999,11 +1017,9 @@ class Tracker:
                     [models.params[groups[k]] for k in job],
                     models,
                     halt,
+                    copy=True,  # a segment's state must not keep the batch's arrays alive
                 )
-                for k, state, count in zip(job, states, folded, strict=True):
-                    own = replace(
-                        state, z=state.z.copy(), P=state.P.copy(), log_w=state.log_w.copy()
-                    )
+                for k, own, count in zip(job, states, folded, strict=True):
                     hist = hists[k]
                     hist = replace(
                         hist, log=hist.log + tuple(logs[k][:count]), state=own, group=groups[k]
