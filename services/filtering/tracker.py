@@ -1004,7 +1004,7 @@ class Tracker:
             if not sids:
                 return
             hists = [changed.get(sid) or self.histories[sid] for sid in sids]
-            groups = [models.group_for(h.line, h.segment) for h in hists]
+            groups = [group_of[sid] for sid in sids]
             logs = [[event for _, event in pending.pop(sid)] for sid in sids]
             jobs: dict[int, list[int]] = {}  # by Ns
             for k, group in enumerate(groups):
@@ -1035,23 +1035,24 @@ class Tracker:
                             exact(i, sid, changed[sid], events_at[i])
 
         positions: dict[SegmentId, list[int]] = {}  # message positions of the pending events
+        group_of: dict[SegmentId, str | None] = {}  # the models do not change in a batch
         events_at: dict[int, Event] = {}
         for i, msg in enumerate(msgs):
             sid = (msg.line, msg.segment)
             event = event_of(msg)
             queued = pending.get(sid)
             if event.kind == INDEX:
-                hist = current(sid, msg)
                 if queued:
                     last = queued[-1][1]
-                elif hist.state is not None and hist.log:
-                    last = hist.log[-1]
                 else:
-                    last = None
+                    hist = current(sid, msg)
+                    last = hist.log[-1] if hist.state is not None and hist.log else None
+                if sid not in group_of:
+                    group_of[sid] = models.group_for(msg.line, msg.segment)
                 if (
                     last is not None
                     and event.order > last.order
-                    and models.group_for(msg.line, msg.segment) is not None
+                    and group_of[sid] is not None
                     and models.observation_for_event(event) is not None
                 ):
                     if not queued:
