@@ -205,3 +205,19 @@ def test_a_batch_commits_what_one_by_one_commits(tmp_path):
     assert_same_states(one.tracker, rebuilt.tracker)
     for node in (one, batched, rebuilt):
         node.store.close()
+
+
+def test_evolve_is_dataclasses_replace():
+    from dataclasses import replace
+
+    import services.filtering.tracker as core
+
+    messages = mixed_stream(2)
+    tracker = new_tracker()
+    for msg in messages:
+        tracker.step(msg)
+    hist = tracker.histories[SEGMENTS[0]]
+    changes = {"log": hist.log[:3], "state": None, "group": "line.L9"}
+    assert core._evolve(hist, **changes) == replace(hist, **changes)
+    with pytest.raises(TypeError):
+        core._evolve(hist, stat=None)
