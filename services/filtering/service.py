@@ -91,7 +91,8 @@ MODEL_QUERY_TIMEOUT_S = (
 BACKLOG = 64  # queued messages from which the inbox counts as a backlog (publication rule)
 PUBLISH_SHARE = 0.25  # under a backlog: publishing time per batch, a share of the batch's time
 SUMMARY_CHUNK = 8  # dirty segments summarised together (Tracker.segment_states' batch)
-STOP_PUBLISH_S = 1.0  # at a stop: dirty segments published for at most this long
+STOP_PUBLISH_S = 0.4  # at a stop: dirty segments published for at most this long (the
+# worker drains for up to DRAIN_S = 1.5 s first and is joined within JOIN_TIMEOUT_S = 2 s)
 
 
 def main(
@@ -237,7 +238,10 @@ class FilteringAdapter:
     def _at_end(self) -> None:
         """The inbox is drained at a stop: publish what is dirty, within ``STOP_PUBLISH_S``
         (the rest is republished at the next start)."""
-        self._publish_dirty(STOP_PUBLISH_S)
+        try:
+            self._publish_dirty(STOP_PUBLISH_S)
+        except Exception:  # a put after the session went: the rebuild republishes them
+            log.exception("filtering: publishing at the stop failed")
         if self.dirty:
             log.info("filtering: %d changed segments left to the next start", len(self.dirty))
 
