@@ -49,9 +49,11 @@ from services.filtering.tracker import (
     Step,
     Tracker,
     event_of,
+    model_name,
 )
 
 log = logging.getLogger(__name__)
+_dumps = json.JSONEncoder().encode  # json.dumps with its defaults, without the per-call setup
 
 
 _SCHEMA = """
@@ -133,12 +135,22 @@ class Store:
     ) -> None:
         """Commit one accepted event; one row per identity, so a tamping report that the
         tracker accepted as a correction of its ``event_id`` replaces the stored one."""
-        self._db.execute(
+        self.add_events([(line, segment, kind, key, identity, t, payload)])
+
+    def add_events(
+        self, rows: Iterable[tuple[str, str, str, str, tuple[Any, ...], float, bytes]]
+    ) -> None:
+        """:meth:`add_event` of several ``(line, segment, kind, key, identity, t, payload)``
+        rows, in order, in one ``executemany``."""
+        self._db.executemany(
             "INSERT INTO events (line, segment, kind, key, identity, t, payload)"
             " VALUES (?, ?, ?, ?, ?, ?, ?)"
             " ON CONFLICT (line, segment, identity) DO UPDATE SET"
             " kind = excluded.kind, key = excluded.key, t = excluded.t, payload = excluded.payload",
-            (line, segment, kind, key, json.dumps(list(identity)), t, bytes(payload)),
+            [
+                (line, segment, kind, key, _dumps(list(identity)), t, bytes(payload))
+                for line, segment, kind, key, identity, t, payload in rows
+            ],
         )
 
     def delete_detected(self, line: str, segment: str, t: float, within_s: float) -> int:
@@ -214,6 +226,8 @@ class BatchResult:
     rejected: tuple[tuple[str, str, bytes], ...]  # (key, reason, payload): dead letters
     accepted: int
     detected: tuple[MaintenanceEvent, ...] = ()  # tamping found in the data: to publish
+    # with ``summarize=False``: the segments the batch's events changed (not in ``states``)
+    changed: tuple[SegmentId, ...] = ()
 
 
 class PersistentTracker:
@@ -263,7 +277,9 @@ class PersistentTracker:
         for msg in found:
             self._commit(msg, keys.maintenance(self.ns, msg.line, msg.segment))
 
-    def handle_batch(self, items: Iterable[tuple[str, bytes]]) -> BatchResult:
+    def handle_batch(
+        self, items: Iterable[tuple[str, bytes]], *, summarize: bool = True
+    ) -> BatchResult:
         """Several ``(key, payload)`` in one store transaction.
 
         Model messages go first and are coalesced (:meth:`Tracker.update_models`): of
@@ -275,6 +291,11 @@ class PersistentTracker:
         reason. A store error (``sqlite3.Error``) propagates: nothing of the batch is then
         persisted, and the caller must not go on with this tracker (nor after any other
         exception out of this method: the tracker may have moved on without the store).
+
+        ``summarize=False``: the events' states are not summarised; ``changed`` lists the
+        segments they changed, whose states :meth:`Tracker.states_of` gives when the
+        caller publishes them (a model update's re-run states are in ``states`` still).
+        The accepted rows go to the store grouped (:meth:`Store.add_events`), in order.
         """
         rejected: list[tuple[str, str, bytes]] = []
         models: list[tuple[ModelMessage, str, bytes]] = []
@@ -305,6 +326,7 @@ class PersistentTracker:
 
         accepted = 0
         detected: list[MaintenanceEvent] = []
+        changed: list[SegmentId] = []
         with self.store.transaction():
             if models:
                 origin = {id(msg): (key, payload) for msg, key, payload in models}
@@ -312,14 +334,19 @@ class PersistentTracker:
                 for msg, reason in update.refused:
                     key, payload = origin[id(msg)]
                     rejected.append((key, reason, payload))
-                for msg in update.accepted:
-                    self._commit(msg, origin[id(msg)][0])
+                self._commit_many([(msg, origin[id(msg)][0]) for msg in update.accepted])
                 accepted += len(update.accepted)
                 keep(update.states)
             try:
-                reasons, event_states, found = self.tracker.step_events(
-                    [msg for msg, _, _ in events]
-                )
+                if summarize:
+                    reasons, event_states, found = self.tracker.step_events(
+                        [msg for msg, _, _ in events]
+                    )
+                else:
+                    reasons, changed, found = self.tracker.fold_events(
+                        [msg for msg, _, _ in events]
+                    )
+                    event_states = ()
             except Exception:  # one of them cannot be folded: find it, one at a time
                 log.info("a batch of %d events failed; stepping them one by one", len(events))
                 for msg, key, payload in events:
@@ -343,49 +370,65 @@ class PersistentTracker:
                 # them then deletes its row, as the tracker dropped it from the log
                 self._commit_detected(found)
                 detected.extend(found)
-                for (msg, key, _payload), reason in zip(events, reasons, strict=True):
-                    if not reason:
-                        accepted += 1
-                        self._commit(msg, key)
+                taken = [
+                    (msg, key)
+                    for (msg, key, _payload), reason in zip(events, reasons, strict=True)
+                    if not reason
+                ]
+                accepted += len(taken)
+                self._commit_many(taken)
                 keep(event_states)
-        return BatchResult(tuple(states.values()), tuple(rejected), accepted, tuple(detected))
+        return BatchResult(
+            tuple(states.values()), tuple(rejected), accepted, tuple(detected), tuple(changed)
+        )
 
     def _commit(self, msg: EventMessage | ModelMessage, key: str) -> None:
-        payload = encode(msg)  # not what was received: unknown fields are not kept
-        match msg:
-            case Calibration():
-                self.store.put_model(
-                    name="calibration",
-                    kind="calibration",
-                    version=msg.version,
-                    key=key,
-                    payload=payload,
-                )
-            case DegradationPosterior():
-                self.store.put_model(
-                    name=f"degradation/{msg.group}",
-                    kind="degradation",
-                    version=msg.version,
-                    key=key,
-                    payload=payload,
-                )
-            case _:
-                event = event_of(msg)
-                self.store.add_event(
-                    line=msg.line,
-                    segment=msg.segment,
-                    kind=KIND_NAMES[event.kind],
-                    key=key,
-                    identity=event.identity,
-                    t=event.t_s,
-                    payload=payload,
-                )
-                if event.kind == RESTART:
-                    self.store.prune(msg.line, msg.segment, event.t_s)
-                elif event.kind == TAMPING and not msg.detected:
-                    self.store.delete_detected(
-                        msg.line, msg.segment, event.t_s, SUPERSEDE_DAYS * DAY_S
+        self._commit_many([(msg, key)])
+
+    def _commit_many(self, items: Iterable[tuple[EventMessage | ModelMessage, str]]) -> None:
+        """Write accepted messages in order: runs of event rows in one ``executemany``; a
+        TRC record's prune and a reported tamping's removal of detected ones run after the
+        rows before them, as one message at a time would."""
+        rows: list[tuple[str, str, str, str, tuple[Any, ...], float, bytes]] = []
+        for msg, key in items:
+            payload = encode(msg)  # not what was received: unknown fields are not kept
+            match msg:
+                case Calibration():
+                    self.store.put_model(
+                        name=model_name(msg),  # a unit's own model beside the fleet's
+                        kind="calibration",
+                        version=msg.version,
+                        key=key,
+                        payload=payload,
                     )
+                case DegradationPosterior():
+                    self.store.put_model(
+                        name=f"degradation/{msg.group}",
+                        kind="degradation",
+                        version=msg.version,
+                        key=key,
+                        payload=payload,
+                    )
+                case OnboardIndex():  # event_of's identity and time, without its logs
+                    rows.append(
+                        (msg.line, msg.segment, "index", key,
+                         ("index", msg.train, msg.unit, msg.t), msg.t, payload)
+                    )  # fmt: skip
+                case _:
+                    event = event_of(msg)
+                    kind = KIND_NAMES[event.kind]
+                    line, segment = msg.line, msg.segment
+                    rows.append((line, segment, kind, key, event.identity, event.t_s, payload))
+                    if event.kind == RESTART:
+                        self.store.add_events(rows)
+                        rows = []
+                        self.store.prune(line, segment, event.t_s)
+                    elif event.kind == TAMPING and not msg.detected:
+                        self.store.add_events(rows)
+                        rows = []
+                        self.store.delete_detected(line, segment, event.t_s, SUPERSEDE_DAYS * DAY_S)
+        if rows:
+            self.store.add_events(rows)
 
     def rebuild(self) -> list[SegmentState]:
         """Load every stored model and event into the tracker: the publishable states.

@@ -16,6 +16,7 @@ from services.calibration import service as calibration
 from services.filtering import service as filtering
 from services.ingestion import service as ingestion
 from services.runtime.config import SECTIONS, load_config
+from services.runtime.delivery import DeliverySettings
 from services.runtime.service import ServiceRuntime
 from services.tools import gateway_check
 
@@ -44,7 +45,7 @@ KNOWN = {
     "filtering": "db, limits, network, selector",
     "calibration": ", ".join(sorted(calibration.OPTIONS)),
     "ingestion": None,  # IngestionConfig's fields, checked below
-    "delivery": "cache_samples, heartbeat_s",
+    "delivery": "cache_samples, heartbeat_s, max_publishers",
 }
 
 
@@ -121,3 +122,10 @@ def test_a_bad_network_file_exits_2_naming_the_file(tmp_path, capsys, argv):
     assert cli.main([*argv, "--network", str(path), "--log-level", "warning"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(path) in err and "no LineString" in err
+
+
+@pytest.mark.parametrize("bad", [0, -1, 2.5, "many"])
+def test_delivery_max_publishers_must_be_a_positive_integer(bad):
+    with pytest.raises(ValueError, match=r"services\.delivery\.max_publishers must be"):
+        DeliverySettings.from_options({"max_publishers": bad})
+    assert DeliverySettings.from_options({"max_publishers": 5}).max_publishers == 5
