@@ -96,15 +96,53 @@ class _LineGeometry:
         c = self.chainage_m
         i0 = 0 if lo == -math.inf else max(0, int(np.searchsorted(c, lo, side="right")) - 1)
         i1 = len(self.a) if hi == math.inf else max(i0 + 1, int(np.searchsorted(c, hi)))
-        a, d, dd = self.a[i0:i1], self.d[i0:i1], self.dd[i0:i1]
+        return self._project(p, slice(i0, i1))
+
+    def _project(self, p: np.ndarray, pieces: slice | np.ndarray) -> tuple[float, float]:
+        a, d, dd = self.a[pieces], self.d[pieces], self.dd[pieces]
         q = p - a
         f = np.clip((q * d).sum(axis=1) / dd, 0.0, 1.0)
         r = q - f[:, None] * d
         dist2 = (r * r).sum(axis=1)
         j = int(dist2.argmin())
         cross = d[j, 0] * q[j, 1] - d[j, 1] * q[j, 0]
-        chain = float(c[i0 + j] + f[j] * math.sqrt(dd[j]))
+        i = (pieces.start or 0) + j if isinstance(pieces, slice) else int(pieces[j])
+        chain = float(self.chainage_m[i] + f[j] * math.sqrt(dd[j]))
         return chain, math.copysign(math.sqrt(float(dist2[j])), cross)
+
+
+class _PieceGrid:
+    """The pieces of a line near each cell of a square grid, to project a point on the
+    pieces near it only (a track's other tracks are looked up at every fix: projecting on
+    all the pieces of a 300 km line would cost ~2 ms a fix).
+
+    Pieces are sampled every ``cell_m / 2`` and each sample registered in its cell and the
+    8 around it. A point of a piece is within ``cell_m / 4`` of a sample, so every piece
+    within ``cell_m * 3 / 4`` of a point is registered in the point's cell: :meth:`near`
+    is exact within ``reach_m``.
+    """
+
+    def __init__(self, g: _LineGeometry, cell_m: float = 100.0) -> None:
+        self.cell_m, self.reach_m = cell_m, 0.75 * cell_m
+        n = np.maximum(1, np.ceil(np.sqrt(g.dd) / (cell_m / 2)).astype(np.int64)) + 1
+        piece = np.repeat(np.arange(len(g.a)), n)  # n samples of each piece, ends included
+        first = np.repeat(np.cumsum(n) - n, n)
+        f = (np.arange(len(piece)) - first) / np.repeat(n - 1, n)
+        cell = np.floor((g.a[piece] + f[:, None] * g.d[piece]) / cell_m).astype(np.int64)
+        ring = np.array([(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)])
+        cell = (cell[:, None, :] + ring[None]).reshape(-1, 2)
+        rows = np.c_[cell, np.repeat(piece, len(ring))]
+        rows = rows[np.lexsort((rows[:, 2], rows[:, 1], rows[:, 0]))]  # by cell, then piece
+        rows = rows[np.r_[True, (np.diff(rows, axis=0) != 0).any(axis=1)]]  # once each
+        starts = np.r_[0, np.flatnonzero((np.diff(rows[:, :2], axis=0) != 0).any(axis=1)) + 1]
+        self.cells = {
+            (int(rows[i, 0]), int(rows[i, 1])): rows[i:j, 2]
+            for i, j in zip(starts, np.r_[starts[1:], len(rows)], strict=True)
+        }
+
+    def near(self, p: np.ndarray) -> np.ndarray | None:
+        """Indices of the pieces that may lie within ``reach_m`` of ``p`` (None: none)."""
+        return self.cells.get((int(p[0] // self.cell_m), int(p[1] // self.cell_m)))
 
 
 class Positioner:
@@ -121,6 +159,11 @@ class Positioner:
         self.siblings = {
             line_id: [other for other in routes[g.route] if other != line_id]
             for line_id, g in self.lines.items()
+        }
+        self.grids = {
+            line_id: _PieceGrid(self.lines[line_id])
+            for line_id, others in self.siblings.items()
+            if others
         }
 
     def best_line(self, p: np.ndarray, exclude: str | None = None) -> tuple[str, float] | None:
@@ -153,10 +196,18 @@ class Positioner:
             return []
         g = self.lines[line_id]
         q, h = g.point_at(chain), g.heading_at(chain)
+        # a close track's nearest point lies within this of p
+        within = float(np.hypot(*(q - p))) + self.cfg.ambiguity_m
         out = []
         for other in self.siblings[line_id]:
-            o = self.lines[other]
-            c, _ = o.project(p)
+            o, grid = self.lines[other], self.grids[other]
+            if within <= grid.reach_m:
+                pieces = grid.near(p)
+                if pieces is None:
+                    continue  # no piece of it near p
+                c, _ = o._project(p, pieces)
+            else:  # far off the line: every piece
+                c, _ = o.project(p)
             if float(np.hypot(*(o.point_at(c) - q))) <= self.cfg.ambiguity_m:
                 out.append((other, 1 if float(o.heading_at(c) @ h) >= 0 else -1))
         return out

@@ -156,3 +156,24 @@ def test_a_simulated_one_way_train_is_on_its_track_every_trip():
     chain = np.concatenate([c.knot_chainage_m.array() for c in second_trip])
     truth = sim.position(np.concatenate([c.knot_t.array() for c in second_trip]))[0]
     assert np.median(np.abs(chain - truth)) < 3.0
+
+
+def test_the_piece_grid_finds_the_nearest_piece_within_its_reach():
+    """Projecting on the pieces the grid lists near a point gives the whole-line answer for
+    every point within ``reach_m`` of the line, and lists nothing far from it."""
+    from services.ingestion.matching import _LineGeometry, _PieceGrid
+
+    line = lakeside().lines["650-t1"]
+    g = _LineGeometry.of(line)
+    grid = _PieceGrid(g)
+    rng = np.random.default_rng(5)
+    chain = rng.uniform(0.0, line.length_m, 2_000)
+    heading = line.heading_at(chain)
+    normal = np.stack([-np.sin(heading), np.cos(heading)], -1)
+    offset = rng.uniform(-grid.reach_m, grid.reach_m, 2_000)
+    points = line.xy_at(chain) + offset[:, None] * normal
+    for p in points:
+        pieces = grid.near(p)
+        assert pieces is not None
+        assert np.allclose(g._project(p, pieces), g.project(p), atol=1e-9)
+    assert grid.near(line.xy_at(np.array(1_000.0)) + np.array([0.0, 1_000.0])) is None
