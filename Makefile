@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench soak soak-demo soak-trains lint format clean
+.PHONY: run test bench scale soak soak-demo soak-trains lint format clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,6 +22,13 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m bench
+
+# `make scale`: a national deployment on this machine (bench/scale.py): two routers, four
+# filtering shards by selector, calibration, a fast-mode simulator, at 10,000, 30,000 and
+# 100,000 segments (~15-20 min); events/s, memory per instance, restart of one shard. Not
+# part of `make bench` or `make test`. A smoke run: `make scale SCALE_ARGS=--quick`.
+scale: $(STAMP)
+	$(BIN)/python -m bench.scale $(SCALE_ARGS)
 
 # `make soak`: first what `make run` starts, left running for 30 minutes with a headless
 # browser on the web viewer (bench/demo_soak.py: alive, state gaps, q/state, memory, first

@@ -22,9 +22,17 @@ Workloads (DESIGN "Performance targets"):
    against the filter bank alone and the one-segment-at-a-time re-run (``bench/rerun.py``).
 9. model versions calibration publishes per simulated month of the demo world, with the
    publication rule against without it (``bench/calibration_versions.py``).
-10. filtering restart and model change on a store of 2,000 segments x 60 days (first start
+10. one filtering instance with a backlog, in process: ``handle_batch`` on SQLite against the
+    fold alone on the same batches, then the publication of the dirty states
+    (``bench/backlog.py``).
+11. filtering restart and model change on a store of 2,000 segments x 60 days (first start
     without checkpoints, restart from them, after SIGKILL; a new calibration), against
     ``fold_many`` alone (``bench/restart.py``; ``--segments 100000`` for issue 16's size).
+
+Not run here (minutes each, real processes): ``make scale`` (``bench/scale.py``, a national
+deployment: two routers, four filtering shards, 10,000 to 100,000 segments) and
+``python -m bench.delivery_scale`` (what N advanced publishers cost a process, the router
+and a subscriber); ``make soak``.
 """
 
 from __future__ import annotations
@@ -178,6 +186,7 @@ def bench_study() -> None:
 
 
 def main() -> None:
+    from bench.backlog import bench_backlog
     from bench.calibration_versions import main as bench_calibration_versions
     from bench.delivery import bench_delivery
     from bench.extraction import bench_extraction
@@ -191,6 +200,7 @@ def main() -> None:
     bench_replay(rng)
     bench_single_event(rng)
     bench_rerun()
+    bench_backlog()
     bench_study()
     bench_raw_generation()
     bench_ingestion()

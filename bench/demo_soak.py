@@ -15,16 +15,19 @@ stack — for ``--minutes`` (30 by default), and watches it from outside:
   after ``--warmup-minutes`` to the last;
 - **the viewer in a browser** (where Debian's chromium is installed): at each ``--open``
   minute a fresh headless Chromium opens the web viewer and the time to the coloured map is
-  taken (:func:`tests.browser.first_picture`).
+  taken (:func:`tests.browser.first_picture`);
+- **wrong input**: at minute ``--hostile`` (half the run by default) the bad messages of
+  :mod:`bench.hostile` are put on the stack's bus; each must get a dead letter with its
+  reason on ``{ns}/deadletter/**`` within a minute, and no process may stop.
 
 The run passes when every process stayed alive (no restart), no state gap while indices
 flowed exceeded 30 s, every q/state answer covered the segments tracked, the viewer stayed
 within 500 MB, no process grew by more than 20 % over the second half of the run (memory
 bounded once the demo's caches and TRC cycles have filled), and each browser drew the map
-within 15 s. A summary table is printed, and ``--json FILE`` writes
-it; the exit code is 1 when a check failed.
+within 15 s, and every bad message got its dead letter. A summary table is printed, and
+``--json FILE`` writes it; the exit code is 1 when a check failed.
 
-    python -m bench.demo_soak --minutes 30 --open 2,10,20,29
+    python -m bench.demo_soak --minutes 30 --open 2,10,20,29 --hostile 15
 """
 
 from __future__ import annotations
@@ -42,19 +45,24 @@ import tempfile
 import threading
 import time
 import uuid
+from datetime import datetime
 from pathlib import Path
 
 import zenoh
 
-from schemas import keys
+from bench.hostile import DeadLetters, Hostile, answered, hostile_messages, unanswered
+from schemas import DAY_S, keys
 from services.defaults import default_file
 from services.runtime.config import zenoh_config
+from simulators.run import DEFAULT_START
 
 REPO = Path(__file__).resolve().parents[1]
 STATE_GAP_LIMIT_S = 30.0
 VIEWER_RSS_LIMIT_MB = 500.0
 GROWTH_LIMIT = 0.2
 FIRST_PICTURE_LIMIT_S = 15.0
+HOSTILE_LINE = "L1"  # a line of the demo network
+HOSTILE_T = datetime.fromisoformat(DEFAULT_START).timestamp() + 30 * DAY_S  # in the demo's year
 
 
 def free_port() -> int:
@@ -144,6 +152,9 @@ def run(args: argparse.Namespace) -> dict:
     samples: list[dict] = []
     answers: list[dict] = []
     pictures: list[dict] = []
+    letters = DeadLetters()
+    hostile: list[Hostile] = []
+    hostile_at = args.minutes / 2 if args.hostile is None else args.hostile
     not_alive: dict[str, float] = {}  # process -> seconds seen not alive (after start-up)
     restarts: dict[str, int] = {}
     opens = sorted(float(m) for m in args.open.split(",") if m) if args.open else []
@@ -167,6 +178,7 @@ def run(args: argparse.Namespace) -> dict:
             subs = [
                 session.declare_subscriber(keys.segment_keys(ns, "index"), flows.on_index),
                 session.declare_subscriber(keys.segment_keys(ns, "state"), flows.on_state),
+                session.declare_subscriber(keys.deadletter_all(ns), letters.on_sample),
             ]
             next_sample = next_query = time.monotonic() + 30
             while (now := time.monotonic()) < end and up.poll() is None:
@@ -194,6 +206,11 @@ def run(args: argparse.Namespace) -> dict:
                 if now >= next_query:
                     next_query = now + 60
                     answers.append(ask_states(session, ns, minute, health))
+                if not hostile and hostile_at >= 0 and minute >= hostile_at:
+                    hostile = hostile_messages(ns, HOSTILE_LINE, HOSTILE_T)
+                    for message in hostile:
+                        session.put(message.key, message.payload)
+                    print(f"{minute:5.1f} min  put {len(hostile)} bad messages", flush=True)
                 if opens and browser and minute >= opens[0]:
                     opens.pop(0)
                     pictures.append(open_viewer(health, out, minute))
@@ -208,7 +225,18 @@ def run(args: argparse.Namespace) -> dict:
             except subprocess.TimeoutExpired:
                 os.killpg(up.pid, signal.SIGKILL)
                 up.wait()
-    return summarize(args, out, flows, samples, answers, pictures, not_alive, restarts, up)
+    wrong_input = {
+        "put": [m.what for m in hostile],
+        "unanswered": unanswered(hostile, letters.snapshot()),
+        "dead_letters": [
+            f"{d.service}: {d.key}: {d.reason[:160]}"
+            for m in hostile
+            for d in answered(m, letters.snapshot())
+        ],
+    }
+    return summarize(
+        args, out, flows, samples, answers, pictures, not_alive, restarts, up, wrong_input
+    )
 
 
 def read_json(path: Path) -> dict | None:
@@ -241,7 +269,9 @@ def open_viewer(health: dict | None, out: Path, minute: float) -> dict:
             "missing": picture.missing}  # fmt: skip
 
 
-def summarize(args, out, flows, samples, answers, pictures, not_alive, restarts, up) -> dict:
+def summarize(
+    args, out, flows, samples, answers, pictures, not_alive, restarts, up, wrong_input
+) -> dict:
     # bounded: what a process still grows over the second half of the run (after the
     # warm-up), when the demo's caches and TRC cycles have filled
     warm = [s for s in samples if s["minute"] >= max(args.warmup_minutes, args.minutes / 2)]
@@ -265,6 +295,8 @@ def summarize(args, out, flows, samples, answers, pictures, not_alive, restarts,
             g <= GROWTH_LIMIT for g in growth.values()
         ),
     }
+    if wrong_input["put"]:
+        checks["every bad message got a dead letter"] = not wrong_input["unanswered"]
     if pictures:
         checks[f"coloured map within {FIRST_PICTURE_LIMIT_S:.0f} s"] = all(
             p.get("map_s") is not None and p["map_s"] <= FIRST_PICTURE_LIMIT_S for p in pictures
@@ -288,6 +320,7 @@ def summarize(args, out, flows, samples, answers, pictures, not_alive, restarts,
         "rss_peak_mb": {k: round(v, 0) for k, v in peak.items() if v},
         "rss_growth_second_half": {k: round(v, 3) for k, v in growth.items()},
         "browser": pictures,
+        "wrong_input": wrong_input,
         "checks": checks,
     }
 
@@ -307,6 +340,11 @@ def table(summary: dict) -> str:
         lines.append(f"  q/state: {len(summary['q_state'])} asks, slowest {worst}")
     for p in summary["browser"]:
         lines.append(f"  browser at {p['minute']} min: {p}")
+    wrong = summary["wrong_input"]
+    if wrong["put"]:
+        counts = f"{len(wrong['put'])} bad messages, {len(wrong['dead_letters'])} dead letters"
+        lines.append(f"  wrong input: {counts}, unanswered {wrong['unanswered']}")
+        lines.extend(f"    {letter}" for letter in wrong["dead_letters"])
     for name, ok in summary["checks"].items():
         lines.append(f"  {'PASS' if ok else 'FAIL'}  {name}")
     return "\n".join(lines)
@@ -322,6 +360,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--warmup-minutes", type=float, default=5.0)
     p.add_argument("--out", help="directory for the stack's files (default: a new temp dir)")
     p.add_argument("--json", metavar="FILE", help="also write the summary here")
+    p.add_argument(
+        "--hostile",
+        type=float,
+        metavar="MINUTE",
+        help="when to put the bad messages of bench/hostile.py (default: half the run; <0: never)",
+    )
     args = p.parse_args(argv)
     summary = run(args)
     print(table(summary))

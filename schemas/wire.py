@@ -19,6 +19,7 @@ NESTING_SCAN_ITEMS = 10_000  # items looked at for nesting before decoding (a va
 T_MIN = 946_684_800.0  # 2000-01-01T00:00:00Z: event times are on or after it
 T_MAX = 4_102_444_800.0  # 2100-01-01T00:00:00Z: and before it (a fixed window, not the clock)
 INT_MAX = 2**53  # counters and versions: exact in a float64 and in SQLite's INTEGER
+_ITEMSIZE = {code: np.dtype(dtype).itemsize for code, dtype in DTYPES.items()}
 
 
 class SchemaError(ValueError):
@@ -33,9 +34,12 @@ def check(condition: bool, message: str) -> None:
 def check_finite(name: str, value: float | None, *, positive: bool = False) -> None:
     if value is None:
         return
-    check(math.isfinite(value), f"{name}: must be finite, got {value!r}")
-    if positive:
-        check(value > 0, f"{name}: must be > 0, got {value!r}")
+    # ``if not …: raise`` rather than ``check(…, f"…")``: the message is only formatted when
+    # it is needed (these checks run for every field of every message decoded)
+    if not math.isfinite(value):
+        raise SchemaError(f"{name}: must be finite, got {value!r}")
+    if positive and not value > 0:
+        raise SchemaError(f"{name}: must be > 0, got {value!r}")
 
 
 def check_range(name: str, value: float | None, low: float, high: float) -> None:
@@ -43,7 +47,8 @@ def check_range(name: str, value: float | None, low: float, high: float) -> None
     if value is None:
         return
     check_finite(name, value)
-    check(low <= value <= high, f"{name}: {value!r} outside [{low:g}, {high:g}]")
+    if not low <= value <= high:
+        raise SchemaError(f"{name}: {value!r} outside [{low:g}, {high:g}]")
 
 
 def check_time(name: str, value: float | None) -> None:
@@ -51,15 +56,16 @@ def check_time(name: str, value: float | None) -> None:
     if value is None:
         return
     check_finite(name, value)
-    check(
-        T_MIN <= value < T_MAX,
-        f"{name}: {value!r} outside [{T_MIN:.0f}, {T_MAX:.0f}) (2000-01-01 to 2100-01-01 UTC)",
-    )
+    if not T_MIN <= value < T_MAX:
+        raise SchemaError(
+            f"{name}: {value!r} outside [{T_MIN:.0f}, {T_MAX:.0f}) (2000-01-01 to 2100-01-01 UTC)"
+        )
 
 
 def check_int(name: str, value: int, low: int = 0, high: int = INT_MAX) -> None:
     """An integer in [low, high] (by default a count: [0, 2^53])."""
-    check(low <= value <= high, f"{name}: {_short(value)} outside [{low}, {_int_text(high)}]")
+    if not low <= value <= high:
+        raise SchemaError(f"{name}: {_short(value)} outside [{low}, {_int_text(high)}]")
 
 
 def _int_text(value: int) -> str:
@@ -71,18 +77,32 @@ def _short(value: object, limit: int = 60) -> str:
     return text if len(text) <= limit else f"{text[: limit - 3]}..."
 
 
+_VALID_IDS: set[str] = set()  # ids that passed check_id (a few thousand lines, segments, trains)
+_VALID_IDS_MAX = 200_000  # forgotten beyond this many: a flood of new ids cannot grow it
+
+
 def check_id(name: str, value: str) -> None:
     """Ids become key-expression chunks: 1 to 64 characters, no `/ * $ ? #`, no whitespace or
-    control characters, no leading `@` (Zenoh's verbatim chunks, never delivered to ``**``)."""
-    check(bool(value), f"{name}: must be a non-empty string")
-    check(len(value) <= ID_MAX_CHARS, f"{name}: {len(value)} characters > {ID_MAX_CHARS}")
+    control characters, no leading `@` (Zenoh's verbatim chunks, never delivered to ``**``).
+
+    An id that passed once passes again without the checks (every event repeats its line,
+    segment, train and unit ids; the checks were a fifth of a backlog's decode)."""
+    if value in _VALID_IDS:
+        return
+    if not value:
+        raise SchemaError(f"{name}: must be a non-empty string")
+    if len(value) > ID_MAX_CHARS:
+        raise SchemaError(f"{name}: {len(value)} characters > {ID_MAX_CHARS}")
     bad = ID_FORBIDDEN.intersection(value)
-    check(not bad, f"{name}: {value!r} contains forbidden characters {sorted(bad)}")
-    check(
-        all(c.isprintable() and not c.isspace() for c in value),
-        f"{name}: {value!r} contains whitespace or control characters",
-    )
-    check(not value.startswith("@"), f"{name}: {value!r} starts with '@' (a verbatim chunk)")
+    if bad:
+        raise SchemaError(f"{name}: {value!r} contains forbidden characters {sorted(bad)}")
+    if not (value.isprintable() and not any(c.isspace() for c in value)):
+        raise SchemaError(f"{name}: {value!r} contains whitespace or control characters")
+    if value.startswith("@"):
+        raise SchemaError(f"{name}: {value!r} starts with '@' (a verbatim chunk)")
+    if len(_VALID_IDS) >= _VALID_IDS_MAX:
+        _VALID_IDS.clear()
+    _VALID_IDS.add(value)
 
 
 class NDArray(msgspec.Struct, frozen=True):
@@ -93,19 +113,23 @@ class NDArray(msgspec.Struct, frozen=True):
     data: bytes
 
     def __post_init__(self) -> None:
-        check(self.dtype in DTYPES, f"dtype: {self.dtype!r} not one of {sorted(DTYPES)}")
-        check(len(self.shape) <= 8, f"shape: {len(self.shape)} dimensions > 8")
-        check(all(s >= 0 for s in self.shape), f"shape: negative extent in {self.shape}")
+        if self.dtype not in DTYPES:
+            raise SchemaError(f"dtype: {self.dtype!r} not one of {sorted(DTYPES)}")
+        if len(self.shape) > 8:
+            raise SchemaError(f"shape: {len(self.shape)} dimensions > 8")
+        if any(s < 0 for s in self.shape):
+            raise SchemaError(f"shape: negative extent in {self.shape}")
         size = math.prod(self.shape)
-        check(size <= MAX_ARRAY_ELEMENTS, f"shape: {size} elements > {MAX_ARRAY_ELEMENTS}")
-        itemsize = np.dtype(DTYPES[self.dtype]).itemsize
-        check(
-            len(self.data) == size * itemsize,
-            f"data: {len(self.data)} bytes, shape {self.shape} of {self.dtype} needs "
-            f"{size * itemsize}",
-        )
-        if self.dtype[0] == "f":
-            check(bool(np.isfinite(self.array()).all()), "data: contains NaN or inf")
+        if size > MAX_ARRAY_ELEMENTS:
+            raise SchemaError(f"shape: {size} elements > {MAX_ARRAY_ELEMENTS}")
+        itemsize = _ITEMSIZE[self.dtype]
+        if len(self.data) != size * itemsize:
+            raise SchemaError(
+                f"data: {len(self.data)} bytes, shape {self.shape} of {self.dtype} needs "
+                f"{size * itemsize}"
+            )
+        if self.dtype[0] == "f" and not np.isfinite(self.array()).all():
+            raise SchemaError("data: contains NaN or inf")
 
     def array(self) -> np.ndarray:
         """A read-only numpy view of the bytes."""
@@ -119,12 +143,13 @@ class NDArray(msgspec.Struct, frozen=True):
 
 def check_array(name: str, value: NDArray, shape: tuple[int | None, ...], kinds: str = "f") -> None:
     """Check an array field's rank, extents (None = any) and dtype kind."""
-    check(value.dtype[0] in kinds, f"{name}: dtype {value.dtype} not of kind {kinds!r}")
-    check(
+    if value.dtype[0] not in kinds:
+        raise SchemaError(f"{name}: dtype {value.dtype} not of kind {kinds!r}")
+    if not (
         len(value.shape) == len(shape)
-        and all(want is None or want == got for want, got in zip(shape, value.shape, strict=True)),
-        f"{name}: shape {value.shape} does not match {list(shape)}",
-    )
+        and all(want is None or want == got for want, got in zip(shape, value.shape, strict=True))
+    ):
+        raise SchemaError(f"{name}: shape {value.shape} does not match {list(shape)}")
 
 
 _encoder = msgspec.msgpack.Encoder()
@@ -174,6 +199,7 @@ _SIZED = {  # type byte -> (length bytes, extra bytes): bin, str and ext
     0xC7: (1, 1), 0xC8: (2, 1), 0xC9: (4, 1),
 }  # fmt: skip
 _COUNTED = {0xDC: (2, 1), 0xDD: (4, 1), 0xDE: (2, 2), 0xDF: (4, 2)}  # array/map: count bytes
+_CONTAINER_BYTES = bytes([*range(0x80, 0xA0), *_COUNTED])  # a map's or array's header byte
 
 
 def _item(buf: bytes, pos: int) -> tuple[int, int]:
@@ -211,6 +237,11 @@ def too_deep(
     None when the payload is not a map or no value within the items looked at is that deep.
     """
     buf = payload if isinstance(payload, bytes) else bytes(payload)
+    # Nesting deeper than ``limit`` needs more than ``limit`` container headers, each one
+    # byte of the ranges below; a payload with fewer such bytes (strings and numbers may
+    # hold some too) cannot be that deep: the usual message, decided in one C call.
+    if len(buf) - len(buf.translate(None, _CONTAINER_BYTES)) <= limit:
+        return None
     budget = max_items
     try:
         pos, items = _item(buf, 0)

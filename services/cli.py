@@ -56,6 +56,8 @@ COMMANDS = (
     Command("network", "network files", subcommands=(
         Command("generate", "generate a large random network as GeoJSON",
                 "simulators.run:network_generate_"),
+        Command("import-osm", "a network file from an OpenStreetMap railway extract (GeoJSON)",
+                "services.tools.network_import"),
     )),
     Command("status", "which services are alive (liveliness tokens)",
             "services.tools.operator:status_"),

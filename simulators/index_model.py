@@ -80,8 +80,9 @@ def index_pass_events(
     Every simulated day (from ``truth.t``, which must be the start) each line gets
     ``trains_per_line_per_day`` passes, departures evenly spread over the ``index.service_hours``
     with a random offset, alternating direction (even slots run up the chainage, odd
-    down). A pass runs at ``line_speed_mps * U(index.speed_factor)`` and reaches a
-    segment's middle at ``departure + distance / speed``; its indices come from the
+    down; every slot in the line's ``running`` direction on a track of double track). A
+    pass runs at ``line_speed_mps * U(index.speed_factor)`` and reaches a segment's middle
+    at ``departure + distance / speed``; its indices come from the
     observation model of the train's unit (:class:`simulators.fleet.Fleet`: its vehicle
     class and its sensor; ``model`` instead, if given, for every train) applied to the
     truth at that instant, and its speed factor is its vehicle class's. Train ids are
@@ -126,8 +127,10 @@ def index_pass_events(
             slots = np.linspace(h0 * 3600, last, n + 1)[:-1] if n else np.zeros(0)
             dep = day0 + slots + rng.uniform(0, (last - h0 * 3600) / max(n, 1), n)
             sl = truth.line_slices[line.id]
+            running = getattr(line, "running", "both")
             for k in range(n):
-                dist = mids[line.id] if k % 2 == 0 else line.length_m - mids[line.id]
+                up = running == "increasing" or (running == "both" and k % 2 == 0)
+                dist = mids[line.id] if up else line.length_m - mids[line.id]
                 t_all.append(dep[k] + dist / speed[k])
                 seg_all.append(np.arange(sl.start, sl.stop))
                 meta.append((line.id, k, speed[k], len(dist)))

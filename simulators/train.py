@@ -17,8 +17,12 @@ a dwell at each stop. ``position(t)`` interpolates this precomputed cycle: no lo
 samples.
 
 ``line`` is duck-typed: ``.length_m``, ``.stations`` (chainages; both ends are always
-stops), ``.line_speed_mps`` (optional, default 30), ``.lonlat_at(chainage) -> (lon, lat)``
-and ``.tunnels`` (list of ``(start, end)`` chainages).
+stops), ``.line_speed_mps`` (optional, default 30), ``.lonlat_at(chainage) -> (lon, lat)``,
+``.tunnels`` (list of ``(start, end)`` chainages) and ``.running`` (optional, default
+``"both"``). On a track of double track that runs one way (``"increasing"`` or
+``"decreasing"``) the train is in service only on the legs in that direction
+(:meth:`TrainSimulator.in_service`): the way back runs on the other track, which this
+simulator does not model, so its gateway sends nothing then.
 """
 
 from __future__ import annotations
@@ -137,6 +141,8 @@ class TrainSimulator:
         ]
         self._next = [-1] * units
         self._tunnels = np.asarray(getattr(line, "tunnels", []) or [], dtype=float).reshape(-1, 2)
+        running = getattr(line, "running", "both")
+        self.running_dir = {"increasing": 1, "decreasing": -1}.get(running, 0)  # 0: both
         g = np.random.default_rng([*self._key, _GPS_TAG])
         self._gps_w, self._gps_phase = (
             2 * np.pi / g.uniform(60, 600, (2, 2)),
@@ -212,6 +218,12 @@ class TrainSimulator:
         d = self._dir[i]
         odo = cycles * self.cycle_m + self._odo[i] + f * (self._odo[i + 1] - self._odo[i])
         return Kinematics(t, x - d * unit * self.cfg.unit_spacing_m, v, a, d, odo)
+
+    def in_service(self, t) -> np.ndarray:
+        """Whether the train runs on this line at epoch times ``t``: always, unless the
+        line runs one way only and unit 0 is on a leg the other way."""
+        direction = self.kinematics(np.asarray(t, dtype=np.float64)).direction
+        return (self.running_dir == 0) | (direction == self.running_dir)
 
     # -- outputs --------------------------------------------------------------------
 

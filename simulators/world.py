@@ -50,8 +50,10 @@ def raw_train_events(spec: WorldSpec) -> Iterator[tuple[float, list[Message]]]:
     """RawChunk (one per unit, ~1 s) and GpsFix (1 Hz) of ``spec.trains`` trains.
 
     Trains are spread over the lines in turn (train i on line i mod L), each at its own
-    phase of its route cycle. Track profiles follow the truth day by day: a segment's
-    amplitude is exp(z) of that day and its shape changes after a tamping (epoch).
+    phase of its route cycle; on a track that runs one way a train sends nothing while on
+    its way back (:meth:`TrainSimulator.in_service`: that runs on the other track). Track
+    profiles follow the truth day by day: a segment's amplitude is exp(z) of that day and
+    its shape changes after a tamping (epoch).
     """
     truth = Truth(spec.network, spec.config, spec.start_t, spec.seed)
     lines = list(spec.network.lines.values())
@@ -91,6 +93,8 @@ def raw_train_events(spec: WorldSpec) -> Iterator[tuple[float, list[Message]]]:
             refresh_profiles()
         messages: list[Message] = []
         for train in trains:
+            if not train.in_service(t):
+                continue
             for unit in range(spec.units):
                 chunk, dropped = train.raw_chunk(k, unit)
                 if not dropped:  # a lost chunk's seq is skipped: ingestion sees a gap

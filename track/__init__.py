@@ -4,6 +4,8 @@
   (GNSS outages), stations and line speeds; GeoJSON reading and writing; projection of a
   point onto a line (the geometry under map matching).
 - :mod:`track.segments`: the segment bounds by line, as the services look them up.
+- :mod:`track.osm`: a network from an OpenStreetMap railway extract (ways joined into one
+  line per track, tunnels, stations, speeds), for ``trackfusion network import-osm``.
 - :mod:`track.versine`: the segment index statistic (chord versine SD) that both the
   on-board chain and the TRC profile import compute.
 

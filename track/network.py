@@ -34,6 +34,7 @@ from services.defaults import default_file
 EARTH_RADIUS_M = 6_371_008.8  # mean radius (IUGG)
 DEMO_NETWORK = default_file("demo-network.geojson")
 _ID_FORBIDDEN = set("/*$?# ")
+RUNNING = ("increasing", "decreasing", "both")  # Line.running: normal direction of chainage
 
 
 def check_id(name: str, value) -> str:
@@ -116,6 +117,17 @@ class Line:
         Chainages where trains stop.
     line_speed_mps : float
         Cruise speed.
+    name : str
+        What operators call it (``""``: none; labels then use the id).
+    station_names : sequence of str
+        One per station in the order given (``()``: none).
+    route : str
+        Id of the route this line is a track of (``""``: the line is its own route). The
+        tracks of a double-track route lie a few metres apart, closer than GPS can tell.
+    running : str
+        ``"increasing"``, ``"decreasing"`` or ``"both"``: the direction of chainage trains
+        normally run in on this track. Map matching tells the tracks of one route apart by
+        it, since on double track each track normally carries one direction.
     """
 
     def __init__(
@@ -128,8 +140,19 @@ class Line:
         tunnels=(),
         stations=(),
         line_speed_mps: float = 25.0,
+        name: str = "",
+        station_names=(),
+        route: str = "",
+        running: str = "both",
     ):
         self.id = check_id("id", id)
+        self.name = str(name)
+        self.route = check_id("route", route) if route else ""
+        if running not in RUNNING:
+            raise ValueError(
+                f"line {id}: running must be one of {', '.join(RUNNING)}, got {running!r}"
+            )
+        self.running = running
         ll = np.asarray(lonlat, dtype=np.float64)
         if ll.ndim != 2 or ll.shape[1] != 2 or not np.isfinite(ll).all():
             raise ValueError(f"line {id}: lonlat must be finite (k, 2), got shape {ll.shape}")
@@ -151,7 +174,14 @@ class Line:
         for a, b in self.tunnels:
             if not 0 <= a < b <= self.length_m:
                 raise ValueError(f"line {id}: tunnel ({a}, {b}) not within [0, {self.length_m}]")
-        self.stations = sorted(float(c) for c in stations)
+        names = [str(n) for n in station_names]
+        if names and len(names) != len(stations):
+            raise ValueError(f"line {id}: one station name per station, or none")
+        pairs = sorted(
+            zip([float(c) for c in stations], names or [""] * len(stations), strict=True)
+        )
+        self.stations = [c for c, _ in pairs]
+        self.station_names = [n for _, n in pairs] if names else []
         if any(not 0 <= c <= self.length_m for c in self.stations):
             raise ValueError(f"line {id}: stations must lie within [0, {self.length_m:.1f}] m")
         self.line_speed_mps = float(line_speed_mps)
@@ -175,6 +205,11 @@ class Line:
     def lonlat_at(self, chainage) -> np.ndarray:
         """WGS84 lon, lat (degrees) at chainages, shape ``chainage.shape + (2,)``."""
         return xy_to_lonlat(self.xy_at(chainage), self.origin_lonlat)
+
+    @property
+    def route_id(self) -> str:
+        """The route this line is a track of: ``route``, or the line's own id."""
+        return self.route or self.id
 
     def heading_at(self, chainage) -> np.ndarray:
         """Direction of increasing chainage in radians, counter-clockwise from east (x)."""
@@ -257,14 +292,18 @@ class Network:
         return xy_to_lonlat(xy, self.origin_lonlat)
 
     @classmethod
-    def from_geojson(cls, obj_or_path, segment_length_m: float = 200.0) -> Network:
+    def from_geojson(cls, obj_or_path, segment_length_m: float | None = None) -> Network:
         """Read a FeatureCollection of LineString lines (path, JSON text or parsed dict).
 
         Line features carry ``properties.id`` and optionally ``tunnels`` ([[start_m,
-        end_m], ...]), ``stations`` ([chainage_m, ...]) and ``line_speed_mps``. Features
-        with ``properties.kind == "segment"`` (written by :meth:`to_geojson`) are skipped.
+        end_m], ...]), ``stations`` ([chainage_m, ...]), ``line_speed_mps``, and ``name``
+        and ``station_names`` (one per station), which labels show, and ``route`` and
+        ``running`` (see :class:`Line`: tracks of one route told apart by the direction
+        trains run on them). Features with
+        ``properties.kind == "segment"`` (written by :meth:`to_geojson`) are skipped.
         The local origin is the collection's ``origin_lonlat`` member if present, else the
-        centre of the bounding box.
+        centre of the bounding box; the segment length, ``segment_length_m`` if given, else
+        the collection's ``segment_length_m`` member (what wrote it cut), else 200 m.
         """
         obj = obj_or_path
         if isinstance(obj, Path) or (isinstance(obj, str) and not obj.lstrip().startswith("{")):
@@ -306,6 +345,10 @@ class Network:
         ids = [p["id"] for _, p, _ in raw]
         if len(set(map(str, ids))) != len(ids):
             raise ValueError(f"GeoJSON: line ids must be unique, got {ids}")
+        if segment_length_m is None:
+            segment_length_m = obj.get("segment_length_m", 200.0)
+            if not isinstance(segment_length_m, int | float) or not segment_length_m > 0:
+                raise ValueError(f"GeoJSON: segment_length_m must be > 0, got {segment_length_m}")
         origin = obj.get("origin_lonlat")
         if origin is None:
             all_ll = np.concatenate([ll for _, _, ll in raw])
@@ -321,6 +364,10 @@ class Network:
                     tunnels=props.get("tunnels") or (),
                     stations=props.get("stations") or (),
                     line_speed_mps=props.get("line_speed_mps", 25.0),
+                    name=props.get("name") or "",
+                    station_names=props.get("station_names") or (),
+                    route=props.get("route") or "",
+                    running=props.get("running") or "both",
                 )
             except (TypeError, ValueError) as exc:
                 raise ValueError(f"{where}: {exc}") from None
@@ -339,6 +386,14 @@ class Network:
                 "tunnels": [list(t) for t in line.tunnels],
                 "stations": line.stations,
             }
+            if line.name:
+                props["name"] = line.name
+            if line.station_names:
+                props["station_names"] = line.station_names
+            if line.route:
+                props["route"] = line.route
+            if line.running != "both":
+                props["running"] = line.running
             features.append(_feature(line.lonlat, props))
         if include_segments:
             for line, seg in self.segments():
@@ -361,13 +416,13 @@ def _feature(lonlat: np.ndarray, props: dict) -> dict:
     }
 
 
-def demo_network(segment_length_m: float = 200.0) -> Network:
+def demo_network(segment_length_m: float | None = None) -> Network:
     """The demo network of ``services/defaults/demo-network.geojson`` (3 lines, ~60 km,
     Brisbane)."""
     return Network.from_geojson(DEMO_NETWORK, segment_length_m)
 
 
-def load_network(path: str | None, segment_length_m: float = 200.0) -> Network:
+def load_network(path: str | None, segment_length_m: float | None = None) -> Network:
     """The demo network, or a GeoJSON file; ValueError saying what to fix when it is bad."""
     if path is None:
         return demo_network(segment_length_m)

@@ -60,7 +60,7 @@ class SegmentTable:
         return cls(out)
 
     @classmethod
-    def from_geojson(cls, path: str | Path, segment_length_m: float = 200.0) -> SegmentTable:
+    def from_geojson(cls, path: str | Path, segment_length_m: float | None = None) -> SegmentTable:
         """Read a network GeoJSON file (:meth:`track.network.Network.from_geojson`)."""
         return cls.from_network(Network.from_geojson(Path(path), segment_length_m))
 

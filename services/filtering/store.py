@@ -60,10 +60,12 @@ from services.filtering.tracker import (
     Tracker,
     canonical_log,
     event_of,
+    model_name,
     models_key,
 )
 
 log = logging.getLogger(__name__)
+_dumps = json.JSONEncoder().encode  # json.dumps with its defaults, without the per-call setup
 
 CHECKPOINT_S = 10.0  # worker time between two checkpoints of the changed segments
 MAX_LOADED = 4096  # segment logs kept in memory (~1 KB an event; least recently used dropped)
@@ -238,12 +240,22 @@ class Store:
     ) -> None:
         """Commit one accepted event; one row per identity, so a tamping report that the
         tracker accepted as a correction of its ``event_id`` replaces the stored one."""
-        self._db.execute(
+        self.add_events([(line, segment, kind, key, identity, t, payload)])
+
+    def add_events(
+        self, rows: Iterable[tuple[str, str, str, str, tuple[Any, ...], float, bytes]]
+    ) -> None:
+        """:meth:`add_event` of several ``(line, segment, kind, key, identity, t, payload)``
+        rows, in order, in one ``executemany``."""
+        self._db.executemany(
             "INSERT INTO events (line, segment, kind, key, identity, t, payload)"
             " VALUES (?, ?, ?, ?, ?, ?, ?)"
             " ON CONFLICT (line, segment, identity) DO UPDATE SET"
             " kind = excluded.kind, key = excluded.key, t = excluded.t, payload = excluded.payload",
-            (line, segment, kind, key, json.dumps(list(identity)), t, bytes(payload)),
+            [
+                (line, segment, kind, key, _dumps(list(identity)), t, bytes(payload))
+                for line, segment, kind, key, identity, t, payload in rows
+            ],
         )
 
     def delete_detected(self, line: str, segment: str, t: float, within_s: float) -> int:
@@ -418,6 +430,8 @@ class BatchResult:
     rejected: tuple[tuple[str, str, bytes], ...]  # (key, reason, payload): dead letters
     accepted: int
     detected: tuple[MaintenanceEvent, ...] = ()  # tamping found in the data: to publish
+    # with ``summarize=False``: the segments the batch's events changed (not in ``states``)
+    changed: tuple[SegmentId, ...] = ()
 
 
 class PersistentTracker:
@@ -476,7 +490,9 @@ class PersistentTracker:
         for msg in found:
             self._commit(msg, keys.maintenance(self.ns, msg.line, msg.segment))
 
-    def handle_batch(self, items: Iterable[tuple[str, bytes]]) -> BatchResult:
+    def handle_batch(
+        self, items: Iterable[tuple[str, bytes]], *, summarize: bool = True
+    ) -> BatchResult:
         """Several ``(key, payload)`` in one store transaction.
 
         Model messages go first and are coalesced (:meth:`Tracker.update_models`): of
@@ -488,6 +504,11 @@ class PersistentTracker:
         reason. A store error (``sqlite3.Error``) propagates: nothing of the batch is then
         persisted, and the caller must not go on with this tracker (nor after any other
         exception out of this method: the tracker may have moved on without the store).
+
+        ``summarize=False``: the events' states are not summarised; ``changed`` lists the
+        segments they changed, whose states :meth:`Tracker.states_of` gives when the
+        caller publishes them (a model update's re-run states are in ``states`` still).
+        The accepted rows go to the store grouped (:meth:`Store.add_events`), in order.
         """
         rejected: list[tuple[str, str, bytes]] = []
         models: list[tuple[ModelMessage, str, bytes]] = []
@@ -518,6 +539,7 @@ class PersistentTracker:
 
         accepted = 0
         detected: list[MaintenanceEvent] = []
+        changed: list[SegmentId] = []
         with self.store.transaction():
             if models:
                 origin = {id(msg): (key, payload) for msg, key, payload in models}
@@ -525,14 +547,19 @@ class PersistentTracker:
                 for msg, reason in update.refused:
                     key, payload = origin[id(msg)]
                     rejected.append((key, reason, payload))
-                for msg in update.accepted:
-                    self._commit(msg, origin[id(msg)][0])
+                self._commit_many([(msg, origin[id(msg)][0]) for msg in update.accepted])
                 accepted += len(update.accepted)
                 keep(update.states)
             try:
-                reasons, event_states, found = self.tracker.step_events(
-                    [msg for msg, _, _ in events]
-                )
+                if summarize:
+                    reasons, event_states, found = self.tracker.step_events(
+                        [msg for msg, _, _ in events]
+                    )
+                else:
+                    reasons, changed, found = self.tracker.fold_events(
+                        [msg for msg, _, _ in events]
+                    )
+                    event_states = ()
             except Exception:  # one of them cannot be folded: find it, one at a time
                 log.info("a batch of %d events failed; stepping them one by one", len(events))
                 for msg, key, payload in events:
@@ -556,50 +583,66 @@ class PersistentTracker:
                 # them then deletes its row, as the tracker dropped it from the log
                 self._commit_detected(found)
                 detected.extend(found)
-                for (msg, key, _payload), reason in zip(events, reasons, strict=True):
-                    if not reason:
-                        accepted += 1
-                        self._commit(msg, key)
+                taken = [
+                    (msg, key)
+                    for (msg, key, _payload), reason in zip(events, reasons, strict=True)
+                    if not reason
+                ]
+                accepted += len(taken)
+                self._commit_many(taken)
                 keep(event_states)
         self._after_batch(states.values(), models=bool(models))
-        return BatchResult(tuple(states.values()), tuple(rejected), accepted, tuple(detected))
+        return BatchResult(
+            tuple(states.values()), tuple(rejected), accepted, tuple(detected), tuple(changed)
+        )
 
     def _commit(self, msg: EventMessage | ModelMessage, key: str) -> None:
-        payload = encode(msg)  # not what was received: unknown fields are not kept
-        match msg:
-            case Calibration():
-                self.store.put_model(
-                    name="calibration",
-                    kind="calibration",
-                    version=msg.version,
-                    key=key,
-                    payload=payload,
-                )
-            case DegradationPosterior():
-                self.store.put_model(
-                    name=f"degradation/{msg.group}",
-                    kind="degradation",
-                    version=msg.version,
-                    key=key,
-                    payload=payload,
-                )
-            case _:
-                event = event_of(msg)
-                self.store.add_event(
-                    line=msg.line,
-                    segment=msg.segment,
-                    kind=KIND_NAMES[event.kind],
-                    key=key,
-                    identity=event.identity,
-                    t=event.t_s,
-                    payload=payload,
-                )
-                if event.kind == RESTART:
-                    self.store.prune(msg.line, msg.segment, event.t_s)
-                elif event.kind == TAMPING and not msg.detected:
-                    self.store.delete_detected(
-                        msg.line, msg.segment, event.t_s, SUPERSEDE_DAYS * DAY_S
+        self._commit_many([(msg, key)])
+
+    def _commit_many(self, items: Iterable[tuple[EventMessage | ModelMessage, str]]) -> None:
+        """Write accepted messages in order: runs of event rows in one ``executemany``; a
+        TRC record's prune and a reported tamping's removal of detected ones run after the
+        rows before them, as one message at a time would."""
+        rows: list[tuple[str, str, str, str, tuple[Any, ...], float, bytes]] = []
+        for msg, key in items:
+            payload = encode(msg)  # not what was received: unknown fields are not kept
+            match msg:
+                case Calibration():
+                    self.store.put_model(
+                        name=model_name(msg),  # a unit's own model beside the fleet's
+                        kind="calibration",
+                        version=msg.version,
+                        key=key,
+                        payload=payload,
                     )
+                case DegradationPosterior():
+                    self.store.put_model(
+                        name=f"degradation/{msg.group}",
+                        kind="degradation",
+                        version=msg.version,
+                        key=key,
+                        payload=payload,
+                    )
+                case OnboardIndex():  # event_of's identity and time, without its logs
+                    rows.append(
+                        (msg.line, msg.segment, "index", key,
+                         ("index", msg.train, msg.unit, msg.t), msg.t, payload)
+                    )  # fmt: skip
+                case _:
+                    event = event_of(msg)
+                    kind = KIND_NAMES[event.kind]
+                    line, segment = msg.line, msg.segment
+                    rows.append((line, segment, kind, key, event.identity, event.t_s, payload))
+                    if event.kind == RESTART:
+                        self.store.add_events(rows)
+                        rows = []
+                        self.store.prune(line, segment, event.t_s)
+                    elif event.kind == TAMPING and not msg.detected:
+                        self.store.add_events(rows)
+                        rows = []
+                        self.store.delete_detected(line, segment, event.t_s, SUPERSEDE_DAYS * DAY_S)
+        if rows:
+            self.store.add_events(rows)
 
     def rebuild(self) -> list[SegmentState]:
         """:meth:`restore`, decoded: the publishable states of every segment."""
@@ -674,19 +717,27 @@ class PersistentTracker:
         """After a committed batch: note its states; checkpoint when due (every
         ``checkpoint_s`` of worker time, or after a model change), then bound the loaded
         logs to ``max_loaded`` (they are all stored by now)."""
-        for state in states:
-            self._summaries[(state.line, state.segment)] = state
+        self.note_states(states)
         if models or time.monotonic() - self._checkpointed >= self.checkpoint_s:
             self.checkpoint()
+
+    def note_states(self, states: Iterable[SegmentState]) -> None:
+        """The newest SegmentStates summarised for segments changed since the checkpoint:
+        the next checkpoint stores each with its state when they still match (else the
+        restart summarises it again)."""
+        for state in states:
+            self._summaries[(state.line, state.segment)] = state
 
     def checkpoint(self, *, published: bool = True) -> int:
         """Write the checkpoint of every segment changed since the last one (one
         transaction; the tracker must hold what the store holds, i.e. between batches);
         then drop the least recently used logs beyond ``max_loaded``. Returns how many.
 
-        The owner publishes a batch's states before it hands over the next batch, so when
-        a checkpoint is written the previous one's states have been published
-        (:meth:`Store.put_checkpoints` marks them so)."""
+        When the owner publishes a batch's states before it hands over the next batch, the
+        previous checkpoint's states have been published when this one is written
+        (:meth:`Store.put_checkpoints` marks them so). The service publishes changed
+        segments later under a backlog, so it does not rely on the mark: it publishes
+        every restored state again (the mark only feeds its log line)."""
         histories = self.tracker.histories
         dirty = [sid for sid in histories.dirty if sid in histories]
         self._checkpointed = time.monotonic()

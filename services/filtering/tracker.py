@@ -112,6 +112,7 @@ from services.filtering.bank import (
     update_unchecked,
 )
 from services.filtering.degradation import DegradationParams, transition_unchecked
+from services.filtering.kernel import index_step
 from services.filtering.mixture import summarize_unchecked, weights_from_log
 
 HORIZONS_DAYS = (30.0, 90.0, 180.0)
@@ -332,9 +333,16 @@ class _Banks:
 
     def __init__(self, starts: Sequence[Filtered | None], ns: int, n: int) -> None:
         size = len(starts)
-        self.z = np.zeros((size, ns, n))
-        self.P = np.zeros((size, ns, n, n))
-        self.log_w = np.zeros((size, ns))
+        rows = [row for row, state in enumerate(starts) if state is not None]
+        have = [starts[row] for row in rows]
+        if have and len(have) == size:  # every row started (a backlog): one copy, no zeros
+            self.z = np.stack([state.z for state in have])
+            self.P = np.stack([state.P for state in have])
+            self.log_w = np.stack([state.log_w for state in have])
+        else:
+            self.z = np.zeros((size, ns, n))
+            self.P = np.zeros((size, ns, n, n))
+            self.log_w = np.zeros((size, ns))
         self.t_s = np.zeros(size)
         self.last_trc_t = np.full(size, np.nan)  # NaN: None
         self.n_updates = np.zeros(size, dtype=np.int64)
@@ -343,31 +351,41 @@ class _Banks:
         self.cusum = np.zeros(size)
         self.cusum_t0 = np.full(size, np.nan)
         self.cusum_t1 = np.full(size, np.nan)
-        for row, state in enumerate(starts):
-            if state is None:
-                continue
-            self.z[row], self.P[row], self.log_w[row] = state.z, state.P, state.log_w
-            self.cusum[row], self.cusum_t0[row] = state.cusum, state.cusum_t0
-            self.cusum_t1[row] = state.cusum_t1
-            self.t_s[row], self.n_updates[row] = state.t_s, state.n_updates
-            self.last_trc_t[row] = np.nan if state.last_trc_t is None else state.last_trc_t
-            self.nis[row] = np.nan if state.nis is None else state.nis
-            self.started[row] = True
+        if have:  # one copy per field for all started rows (a backlog starts ~1,000)
+            nan = float("nan")
+            if len(have) < size:
+                self.z[rows] = np.stack([state.z for state in have])
+                self.P[rows] = np.stack([state.P for state in have])
+                self.log_w[rows] = np.stack([state.log_w for state in have])
+            self.cusum[rows] = [state.cusum for state in have]
+            self.cusum_t0[rows] = [state.cusum_t0 for state in have]
+            self.cusum_t1[rows] = [state.cusum_t1 for state in have]
+            self.t_s[rows] = [state.t_s for state in have]
+            self.n_updates[rows] = [state.n_updates for state in have]
+            self.last_trc_t[rows] = [
+                nan if state.last_trc_t is None else state.last_trc_t for state in have
+            ]
+            self.nis[rows] = [nan if state.nis is None else state.nis for state in have]
+            self.started[rows] = True
         self._block = max(1, BLOCK_FILTERS // max(ns, 1))
 
-    def state(self, row: int) -> Filtered | None:
-        """Row ``row`` as a :class:`Filtered` (views of the stacked arrays), None if unstarted."""
+    def state(self, row: int, *, copy: bool = False) -> Filtered | None:
+        """Row ``row`` as a :class:`Filtered`, None if unstarted: views of the stacked arrays,
+        or copies (``copy``: a state kept alone does not hold the whole stack's memory)."""
         if not self.started[row]:
             return None
         last_trc_t, nis = float(self.last_trc_t[row]), float(self.nis[row])
+        z, P, log_w = self.z[row], self.P[row], self.log_w[row]
+        if copy:
+            z, P, log_w = z.copy(), P.copy(), log_w.copy()
         return Filtered(
-            self.z[row],
-            self.P[row],
+            z,
+            P,
             float(self.t_s[row]),
             None if np.isnan(last_trc_t) else last_trc_t,
             int(self.n_updates[row]),
             None if np.isnan(nis) else nis,
-            self.log_w[row],
+            log_w,
             float(self.cusum[row]),
             float(self.cusum_t0[row]),
             float(self.cusum_t1[row]),
@@ -451,7 +469,42 @@ class _Banks:
 
         ``last`` (k,) bool: the rows whose last update this is; only their NIS is computed
         (a later update would overwrite it). None: every row.
+
+        With a 2 x 2 observation model (Top6 and Align10 read by two indices, the system's
+        case) the whole step is one compiled pass (:func:`kernel.index_step`); the numpy
+        form below serves any other shape.
         """
+        if obs.H.shape == (2, 2) and self.z.shape[-1] == 2:
+            self.index_compiled(rows, t_s, y, params, obs, last)
+        else:
+            self.index_numpy(rows, t_s, y, params, obs, last)
+
+    def index_compiled(self, rows, t_s, y, params, obs: ObservationModel, last=None) -> None:
+        """:meth:`index` for n = m = 2 through :func:`kernel.index_step` (the same maths)."""
+        score = np.empty(len(rows))
+        index_step(
+            self.z,
+            self.P,
+            self.log_w,
+            self.t_s,
+            np.ascontiguousarray(rows, dtype=np.int64),
+            np.ascontiguousarray(t_s, dtype=np.float64),
+            np.ascontiguousarray(y, dtype=np.float64),
+            params.stack.mu,
+            params.stack.sigma,
+            params.row_group[rows],
+            obs.H,
+            obs.b,
+            obs.R,
+            np.ones(len(rows), dtype=bool) if last is None else np.asarray(last, dtype=bool),
+            self.nis,
+            score,
+        )
+        self._cusum_step(rows, t_s, score)
+        self.n_updates[rows] += 1
+
+    def index_numpy(self, rows, t_s, y, params, obs: ObservationModel, last=None) -> None:
+        """:meth:`index` for any n, m with numpy (the reference of the compiled step)."""
         for part, sel in self._blocks(rows):
             dt = (t_s[part] - self.t_s[sel]) / DAY_S
             z, P = transition_unchecked(self.z[sel], self.P[sel], params(sel), dt)
@@ -490,27 +543,42 @@ def low_score(z, P, y, obs: ObservationModel, w) -> np.ndarray:
     ``z`` (k, Ns, n), ``P`` (k, Ns, n, n) predicted; ``y`` (k, m); ``w`` (k, Ns), normalised.
     """
     h = obs.H.sum(axis=0)  # H^T 1
-    nu = y.sum(-1)[:, None] - (z @ h + obs.b.sum())
-    v = (P @ h) @ h + obs.R.sum()
+    if len(h) == 2:  # the tracker's state: elementwise, 3x faster than stacked matmuls
+        h0, h1 = h.tolist()
+        zh = z[..., 0] * h0 + z[..., 1] * h1
+        Ph = (P[..., 0, 0] * h0 + P[..., 0, 1] * h1) * h0
+        Ph += (P[..., 1, 0] * h0 + P[..., 1, 1] * h1) * h1
+    else:
+        zh, Ph = z @ h, (P @ h) @ h
+    nu = y.sum(-1)[:, None] - (zh + obs.b.sum())
+    v = Ph + obs.R.sum()
     mean = (w * nu).sum(-1)
     var = (w * (v + nu * nu)).sum(-1) - mean * mean
     return mean / np.sqrt(np.maximum(var, 1e-300))
 
 
-def _params_of(params: Sequence[DegradationParams]):
-    """``rows -> DegradationParams`` of those rows: shared if every row has the same."""
-    first = params[0]
-    if all(p is first for p in params):
-        return lambda rows: first
-    unique: dict[int, int] = {}
-    for p in params:
-        unique.setdefault(id(p), len(unique))
-    groups = {id(p): p for p in params}
-    stack = DegradationParams.__new__(DegradationParams)
-    for name in ("mu", "sigma", "z_plus", "sigma_z_plus"):
-        object.__setattr__(stack, name, np.stack([getattr(groups[k], name) for k in unique]))
-    row_group = np.array([unique[id(p)] for p in params])
-    return lambda rows: stack.take(row_group[rows])
+class _RowParams:
+    """The degradation parameters of each row of a fold: ``(rows) -> DegradationParams``.
+
+    ``mu`` (G, Ns, n), ``sigma`` (G, Ns, n, n) stack the distinct parameter sets (one when
+    every row shares it) and ``row_group`` (S,) says which one each row uses.
+    """
+
+    def __init__(self, params: Sequence[DegradationParams]) -> None:
+        first = params[0]
+        self.shared = first if all(p is first for p in params) else None
+        unique: dict[int, int] = {}
+        for p in params:
+            unique.setdefault(id(p), len(unique))
+        groups = {id(p): p for p in params}
+        stack = DegradationParams.__new__(DegradationParams)
+        for name in ("mu", "sigma", "z_plus", "sigma_z_plus"):
+            object.__setattr__(stack, name, np.stack([getattr(groups[k], name) for k in unique]))
+        self.stack = stack
+        self.row_group = np.array([unique[id(p)] for p in params], dtype=np.int64)
+
+    def __call__(self, rows) -> DegradationParams:
+        return self.shared if self.shared is not None else self.stack.take(self.row_group[rows])
 
 
 def fold_many(
@@ -529,10 +597,23 @@ def fold_many(
     whose :meth:`~Models.observation_for` gives each index its unit's; there must be one
     for an index that follows a start (the caller checks it, see :func:`_publishable`).
     """
+    return _fold_many(starts, logs, params, obs)[0]
+
+
+def _fold_many(starts, logs, params, obs, halt_cusum: float | None = None, copy=False):
+    """:func:`fold_many`, and how many events of each log were folded: ``(states, folded)``.
+
+    ``halt_cusum``: a segment stops after the first index that leaves its CUSUM at or above
+    this (:func:`detect`'s condition), its state the one after that index, and ``folded[i]``
+    says how many of its events that was. Every index's NIS is then computed (a halted
+    row's last update is not known in advance); the bits do not change, since the NIS of a
+    row is a sum over its own samples. ``copy``: each state owns its arrays
+    (:meth:`_Banks.state`).
+    """
     obs_for = obs.observation_for_event if isinstance(obs, Models) else (lambda _e: obs)
     size = len(logs)
     if size == 0:
-        return []
+        return [], []
     ns, n = params[0].ns, params[0].n
     order = sorted(range(size), key=lambda i: -len(logs[i]))
     depth = len(logs[order[0]])
@@ -557,8 +638,9 @@ def fold_many(
                         observations.append(model)
                     obs_ids[row, k] = known[id(model)]
     banks = _Banks([starts[i] for i in order], ns, n)
-    rows_params = _params_of([params[i] for i in order])
+    rows_params = _RowParams([params[i] for i in order])
     lengths = np.array([len(logs[i]) for i in order])
+    folded = lengths.copy()  # events folded per row (fewer if halted)
     # position of each row's last index: the NIS of a state is that of its last update
     last_index = depth - 1 - np.argmax(kinds[:, ::-1] == INDEX, axis=1)
     for k in range(depth):
@@ -579,14 +661,20 @@ def fold_many(
                 assert (ids >= 0).all()
                 for j in np.unique(ids):  # the rows whose index is read by model j
                     sub = rows if len(observations) == 1 else rows[ids == j]
-                    last = last_index[sub] == k
+                    last = None if halt_cusum is not None else last_index[sub] == k
                     banks.index(
                         sub, times[sub, k], values[sub, k], rows_params, observations[j], last
                     )
+                    if halt_cusum is not None:
+                        halted = sub[banks.cusum[sub] >= halt_cusum]
+                        kinds[halted, k + 1 :] = -1  # nothing more is folded on these rows
+                        folded[halted] = k + 1
     out: list[Filtered | None] = [None] * size
+    counts = [0] * size
     for row, i in enumerate(order):
-        out[i] = banks.state(row)
-    return out
+        out[i] = banks.state(row, copy=copy)
+        counts[i] = int(folded[row])
+    return out, counts
 
 
 def apply_event(
@@ -785,6 +873,17 @@ def _rested(ckpt: Checkpoint, state, group, tail: Sequence[Event]) -> Checkpoint
         restarts.append(ckpt.trc_t)
     trc_t = max(restarts, default=None)
     return replace(ckpt, trc_t=trc_t, state=state, group=group, last_order=tail[-1].order)
+
+
+def _evolve(hist: SegmentHistory, **changes: Any) -> SegmentHistory:
+    """``dataclasses.replace(hist, **changes)`` without its per-call field introspection
+    (a tenth of a backlog's time): every field, whatever they are, copied, then changed."""
+    if not changes.keys() <= SegmentHistory.__dataclass_fields__.keys():
+        raise TypeError(f"SegmentHistory has no field {set(changes) - set(vars(hist))}")
+    new = object.__new__(SegmentHistory)
+    new.__dict__.update(hist.__dict__)
+    new.__dict__.update(changes)
+    return new
 
 
 def _has_index_of(log: Sequence[Event], units: set[tuple[str, str]]) -> bool:
@@ -1026,29 +1125,133 @@ class Tracker:
 
         Returns ``(reasons, states, detected)``: per message ``""`` if accepted, else why
         not; the newest SegmentState of each changed, publishable segment; and the tampings
-        :func:`detect` found on the way. The histories are the same
-        as after stepping the messages one by one (same fold), and so are the final states
-        (:meth:`segment_states` is :meth:`segment_state` in batches, bit for bit); only the
-        intermediate states of a segment are not summarised. If anything raises, nothing
-        is changed.
+        :func:`detect` found on the way. The histories are the same as after stepping the
+        messages one by one, bit for bit (:meth:`fold_events`), and so are the final states
+        (:meth:`segment_states` is :meth:`segment_state` in batches); only the intermediate
+        states of a segment are not summarised. If anything raises, nothing is changed.
         """
-        changed: dict[SegmentId, SegmentHistory] = {}
-        reasons, detected = [], []
-        for msg in msgs:
-            sid = (msg.line, msg.segment)
-            hist = (
-                changed.get(sid) or self.histories.get(sid) or SegmentHistory(msg.line, msg.segment)
-            )
-            hist, reason = step_segment(hist, event_of(msg), self.models)
-            reasons.append(reason)
-            if not reason:
-                hist, found = self._detect(hist)
-                if found is not None:
-                    detected.append(found)
-                changed[sid] = hist
+        reasons, changed, detected = self._fold_events(msgs)
         states = self.segment_states(list(changed.values()))  # before the swap
         self.histories.update(changed)
         return reasons, tuple(state for state in states if state is not None), detected
+
+    def fold_events(self, msgs: Sequence[EventMessage]) -> tuple[list[str], list, list]:
+        """:meth:`step_events` without the summaries: ``(reasons, changed, detected)``, with
+        the ids of the segments whose history changed (their states: :meth:`states_of`)."""
+        reasons, changed, detected = self._fold_events(msgs)
+        self.histories.update(changed)
+        return reasons, list(changed), detected
+
+    def states_of(self, sids: Iterable[SegmentId]) -> list[SegmentState]:
+        """The publishable SegmentStates of the segments ``sids`` (in batches)."""
+        hists = [h for h in (self.histories.get(sid) for sid in sids) if h is not None]
+        return [state for state in self.segment_states(hists) if state is not None]
+
+    def _fold_events(self, msgs: Sequence[EventMessage]):
+        """``(reasons, changed, detected)`` of stepping ``msgs`` one by one, nothing swapped.
+
+        The usual event, an on-board index after the last event of its segment's log on a
+        segment with a state (live, a backfill in time order), is appended and left
+        pending; the pending indices of all segments are folded from their states in one
+        :func:`fold_many` at the end (several per segment: the logs differ in length).
+        Anything else (a late index, a duplicate, a TRC record, a tamping, a segment
+        without a state or a calibration for the index's unit) first folds its segment's
+        pending indices, then takes the exact path of :meth:`step` (:func:`step_segment`,
+        :func:`detect`). Detection runs after each index one by one: the batched fold halts
+        a segment at the first index whose CUSUM reaches ``CUSUM_THRESHOLD``, runs
+        :func:`detect` there and steps the segment's later indices one by one, so the
+        result is bit for bit that of :meth:`step` per message (the fold does not depend
+        on the other segments of a call, see :class:`_Banks`).
+        """
+        models = self.models
+        changed: dict[SegmentId, SegmentHistory] = {}
+        pending: dict[SegmentId, list[tuple[int, Event]]] = {}  # appended, not yet folded
+        reasons = [""] * len(msgs)
+        detected: list[tuple[int, MaintenanceEvent]] = []  # (message position, tamping)
+
+        def current(sid: SegmentId, msg: EventMessage) -> SegmentHistory:
+            return (
+                changed.get(sid) or self.histories.get(sid) or SegmentHistory(msg.line, msg.segment)
+            )
+
+        def exact(i: int, sid: SegmentId, hist: SegmentHistory, event: Event) -> None:
+            hist, reason = step_segment(hist, event, models)
+            reasons[i] = reason
+            if not reason:
+                hist, found = self._detect(hist)
+                if found is not None:
+                    detected.append((i, found))
+                changed[sid] = hist
+
+        def flush(sids: Sequence[SegmentId]) -> None:
+            if not sids:
+                return
+            hists = [changed.get(sid) or self.histories[sid] for sid in sids]
+            groups = [group_of[sid] for sid in sids]
+            logs = [[event for _, event in pending.pop(sid)] for sid in sids]
+            jobs: dict[int, list[int]] = {}  # by Ns
+            for k, group in enumerate(groups):
+                jobs.setdefault(models.params[group].ns, []).append(k)
+            halt = CUSUM_THRESHOLD if self.detect_maintenance else None
+            for job in jobs.values():
+                states, folded = _fold_many(
+                    [hists[k].state for k in job],
+                    [logs[k] for k in job],
+                    [models.params[groups[k]] for k in job],
+                    models,
+                    halt,
+                    copy=True,  # a segment's state must not keep the batch's arrays alive
+                )
+                for k, own, count in zip(job, states, folded, strict=True):
+                    hist = hists[k]
+                    hist = _evolve(
+                        hist, log=hist.log + tuple(logs[k][:count]), state=own, group=groups[k]
+                    )
+                    sid = sids[k]
+                    changed[sid] = hist
+                    if count < len(logs[k]) or halt is not None and own.cusum >= halt:
+                        hist, found = self._detect(hist)
+                        if found is not None:
+                            detected.append((positions[sid][count - 1], found))
+                        changed[sid] = hist
+                        for i in positions[sid][count:]:
+                            exact(i, sid, changed[sid], events_at[i])
+
+        positions: dict[SegmentId, list[int]] = {}  # message positions of the pending events
+        group_of: dict[SegmentId, str | None] = {}  # the models do not change in a batch
+        events_at: dict[int, Event] = {}
+        for i, msg in enumerate(msgs):
+            sid = (msg.line, msg.segment)
+            event = event_of(msg)
+            queued = pending.get(sid)
+            if event.kind == INDEX:
+                if queued:
+                    last = queued[-1][1]
+                else:
+                    hist = current(sid, msg)
+                    last = hist.log[-1] if hist.state is not None and hist.log else None
+                if sid not in group_of:
+                    group_of[sid] = models.group_for(msg.line, msg.segment)
+                if (
+                    last is not None
+                    and event.order > last.order
+                    and group_of[sid] is not None
+                    and models.observation_for_event(event) is not None
+                ):
+                    if not queued:
+                        pending[sid] = queued = []
+                        positions[sid] = []
+                    queued.append((i, event))
+                    positions[sid].append(i)
+                    events_at[i] = event
+                    continue
+            if queued:
+                flush([sid])
+                del positions[sid]
+            exact(i, sid, current(sid, msg), event)
+        flush(list(pending))
+        detected.sort(key=lambda found: found[0])
+        return reasons, changed, [found for _, found in detected]
 
     def update_models(self, msgs: Sequence[ModelMessage]) -> ModelUpdate:
         """Apply several model messages at once, re-running each affected segment once.

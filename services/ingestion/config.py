@@ -42,6 +42,9 @@ class IngestionConfig:
     fuse_gain: float = 0.3  # weight of the projection against the speed prediction
     fuse_gate_m: float = 20.0  # projections farther from the prediction are taken as is
     search_m: float = 300.0  # projection window around the predicted chainage
+    # A fix this long after the train's previous fix (a gateway that was off or away: every
+    # fix is sent, fix_quality 0 without GNSS) starts map matching over, not a continuation.
+    reacquire_s: float = 60.0
     knot_keep_s: float = 60.0  # knots kept behind the train's event time
     # Time plausibility ("the train's clock", module docstring): event times outside
     # [valid_t_min, valid_t_max) are refused; a fix or chunk more than max_ahead_s ahead of

@@ -121,6 +121,10 @@ class TrainState:
     direction: int = 0  # +1 / -1 along the chainage, 0 not known yet
     extreme_m: float = 0.0  # farthest chainage reached in ``direction`` (or the start)
     off_count: int = 0
+    # on a route of close tracks: the track was chosen by the running direction (until then
+    # the train is not positioned on either)
+    track_known: bool = False
+    matched_fix_t: float | None = None  # the previous fix map matching saw
     last_fix_t: float | None = None
     last_good_t: float | None = None
     now: float = -math.inf  # newest event time of the train

@@ -1,5 +1,6 @@
 """Questions an engineer asks the running system: `trackfusion status|state|alerts|plan|
-import-trc|export`. Each opens a short-lived Zenoh session, asks, prints, and closes.
+import-trc|export`. Each opens a short-lived Zenoh session, asks, prints, and closes
+(``import-trc --profile`` is in :mod:`services.tools.trc_import`).
 
 Pure parts (CSV parsing, formatting, GeoJSON building) are plain functions, tested without
 Zenoh; the thin part is ``ask`` (a ``session.get`` on a queryable) and ``main_*``.
@@ -438,15 +439,26 @@ def plan_run(args: argparse.Namespace) -> int:
 
 
 def import_trc_add_arguments(parser: argparse.ArgumentParser) -> None:
+    from services.tools.trc_import import add_profile_arguments
+
     parser.description = (
         "Publish every good row of a TRC CSV export as a TrcRecord; bad rows are reported "
-        "with their line numbers (exit code 1 when there were any)."
+        "with their line numbers (exit code 1 when there were any). With --profile, a "
+        "sampled TRC run instead: aligned to the line's previous run, Top6/Align10 computed "
+        "per segment, published and archived."
     )
-    parser.add_argument("file", metavar="FILE.csv")
+    parser.add_argument("file", metavar="FILE.csv", nargs="?", help="per-segment TRC export")
+    add_profile_arguments(parser)
     add_query_arguments(parser, timeout=False)
 
 
 def import_trc_run(args: argparse.Namespace) -> int:
+    if (args.file is None) == (args.profile is None):
+        raise ValueError("give either FILE.csv (per-segment values) or --profile FILE.csv")
+    if args.profile is not None:
+        from services.tools.trc_import import run_profile
+
+        return run_profile(args, config_from_args(args))
     return main_import_trc(config_from_args(args), args.file)
 
 

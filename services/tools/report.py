@@ -426,7 +426,7 @@ def network_map(network_path: str | None = None) -> NetworkMap:
         raw = json.loads(path.read_text())
         network = Network.from_geojson(raw)
     except (OSError, ValueError) as exc:
-        raise SystemExit(f"--network {path}: {exc}") from None
+        raise ValueError(f"--network {path}: {exc}") from None  # the CLI exits 2
     props = {
         f["properties"]["id"]: f["properties"]
         for f in raw["features"]

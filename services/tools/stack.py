@@ -11,6 +11,8 @@ backoff. The board flags stalled flows (indices arriving but no state published,
 no index) and is written each second to ``{state_dir}/health.json`` for programs to read
 and published on ``{ns}/health/stack`` (a StackHealth) for the viewer's health board.
 Supervision runs on ``time.monotonic()``: it is about wall time, not event time.
+``up --network FILE`` runs the stack on another network: ``{network}`` in the processes'
+args (the default stack gives it to every process that reads a network) becomes FILE.
 Ctrl-C (or SIGTERM) stops the children (SIGTERM, SIGKILL after 5 s) and then the router.
 """
 
@@ -45,6 +47,9 @@ DEFAULT_STACK = default_file("stack.json5")
 # In a stack file's args: the directory of the packaged default files (services/defaults/),
 # so that a stack names them wherever the package is installed and `up` is run.
 DEFAULTS = "{defaults}"
+# In a stack file's args: the network file, `up --network FILE` or the demo network.
+NETWORK = "{network}"
+DEMO_NETWORK = f"{DEFAULTS}/demo-network.geojson"
 WATCHED = ("state", "index", "alert", "gps", "trc", "maintenance", "deadletter")
 RESTART_POLICIES = ("always", "on-failure", "never")
 TICK_S = 0.5  # supervision step
@@ -98,13 +103,16 @@ class Stack:
     supervision: Supervision = field(default_factory=Supervision)
 
 
-def _process_spec(raw: dict[str, Any]) -> ProcessSpec:
+def _process_spec(raw: dict[str, Any], network: str) -> ProcessSpec:
     command = raw.get("command", raw["name"])
     restart = raw.get("restart", "on-failure" if command == "simulate" else "always")
     if restart not in RESTART_POLICIES:
         raise ValueError(f"{raw['name']}: restart must be one of {RESTART_POLICIES}")
     defaults = str(DEFAULT_STACK.parent)
-    args = tuple(str(arg).replace(DEFAULTS, defaults) for arg in raw.get("args", []))
+    args = tuple(
+        str(arg).replace(NETWORK, network).replace(DEFAULTS, defaults)
+        for arg in raw.get("args", [])
+    )
     return ProcessSpec(raw["name"], command, args, restart)
 
 
@@ -118,15 +126,22 @@ def _supervision(raw: dict[str, Any]) -> Supervision:
     return settings
 
 
-def load_stack(path: str | Path = DEFAULT_STACK, *, ns: str | None = None, listen=None) -> Stack:
-    """Read a stack file; ValueError saying what to fix when it is malformed."""
+def load_stack(
+    path: str | Path = DEFAULT_STACK, *, ns: str | None = None, listen=None, network=None
+) -> Stack:
+    """Read a stack file; ValueError saying what to fix when it is malformed.
+
+    ``{network}`` in its args becomes ``network`` (absolute), by default the demo network;
+    a ``network`` given to a stack file that has no ``{network}`` is an error, not ignored.
+    """
+    network_arg = str(Path(network).absolute()) if network is not None else DEMO_NETWORK
     try:
         raw = json5.loads(Path(path).read_text())
         stack = Stack(
             ns=ns or raw.get("ns", keys.DEFAULT_NS),
             listen=listen or raw["router"]["listen"],
             state_dir=Path(raw.get("state_dir", "var")).absolute(),  # where `up` runs
-            processes=tuple(_process_spec(p) for p in raw["processes"]),
+            processes=tuple(_process_spec(p, network_arg) for p in raw["processes"]),
             supervision=_supervision(raw.get("supervision", {})),
         )
     except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -134,6 +149,13 @@ def load_stack(path: str | Path = DEFAULT_STACK, *, ns: str | None = None, liste
     names = [p.name for p in stack.processes]
     if len(set(names)) != len(names):
         raise ValueError(f"{path}: process names must be unique, got {names}")
+    if network is not None and not any(
+        NETWORK in str(arg) for p in raw["processes"] for arg in p.get("args", [])
+    ):
+        raise ValueError(
+            f"--network {network}: the stack file {path} has no {NETWORK} in its processes' "
+            f'args; give them "--network", "{NETWORK}"'
+        )
     return stack
 
 
@@ -584,6 +606,10 @@ class Supervisor:
 
 
 def main(stack_path: str | Path = DEFAULT_STACK, *, out: TextIO = sys.stdout, **overrides) -> int:
+    if overrides.get("network") is not None:  # a bad file stops `up` now, not each child
+        from track.network import load_network
+
+        load_network(str(overrides["network"]))
     stack = load_stack(stack_path, **overrides)
     stack.state_dir.mkdir(parents=True, exist_ok=True)
     stop = threading.Event()
@@ -693,9 +719,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--ns", help="namespace (stack file's by default)")
     parser.add_argument("--listen", metavar="ENDPOINT", help="router endpoint (stack file's)")
+    parser.add_argument(
+        "--network",
+        metavar="FILE.geojson",
+        help="network file for every process ({network} in the stack file; default: the demo), "
+        "e.g. from `trackfusion network import-osm`",
+    )
     parser.add_argument("--log-level", default="warning", choices=["debug", "info", "warning"])
 
 
 def run(args: argparse.Namespace) -> int:
     configure_logging(args.log_level)
-    return main(args.stack, ns=args.ns, listen=args.listen)
+    return main(args.stack, ns=args.ns, listen=args.listen, network=args.network)

@@ -534,16 +534,18 @@ class ViewerCore:
                 ]
                 tunnels.append(_screen(line.xy_at(chainage)))
                 tunnel_labels.append(f"{line.id} tunnel {a / 1e3:.1f}–{b / 1e3:.1f} km")
-            for c in line.stations:
+            station_names = line.station_names or [""] * len(line.stations)
+            for c, station_name in zip(line.stations, station_names, strict=True):
                 stations.append(_screen(line.xy_at(c)))
-                station_labels.append(f"{line.id} km {c / 1e3:.1f}")
+                where = f"{line.id} km {c / 1e3:.1f}"
+                station_labels.append(f"{station_name} ({where})" if station_name else where)
             # the line's name beyond both of its ends
             for end, inward in ((0.0, 1.0), (line.length_m, -1.0)):
                 ahead = line.xy_at(np.clip(end + inward * 0.02 * span, 0, line.length_m))
                 at = line.xy_at(end)
                 direction = (at - ahead) / max(1e-9, float(np.hypot(*(at - ahead))))
                 names.append(_screen(at + direction * 0.025 * span))
-                name_labels.append(line.id)
+                name_labels.append(f"{line.id} {line.name}" if line.name else line.id)
         if tunnels:
             self.rec.log(
                 "map/tunnels",

@@ -67,7 +67,7 @@ from services.viewer.core import (
     ViewerCore,
     coalesce_key,
 )
-from track.network import DEMO_NETWORK, Network
+from track.network import DEMO_NETWORK, load_network
 
 log = logging.getLogger(__name__)
 
@@ -340,10 +340,7 @@ def main(
     ``on_logged(total)`` is called by the logging worker after every batch (tests wait on
     it); the recording is flushed and its sink closed before returning.
     """
-    try:
-        network = Network.from_geojson(Path(network_path or DEMO_NETWORK))
-    except (OSError, ValueError) as exc:
-        raise SystemExit(f"viewer: network {network_path or DEMO_NETWORK}: {exc}") from None
+    network = load_network(network_path)  # ValueError: the CLI exits 2 with the reason
     rec = rr.RecordingStream(APP_ID, recording_id=uuid.uuid4())
     try:
         open_sink(rec, sink, out if out is not None else sys.stdout)

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
-SOURCES = ("pyproject.toml", "README.md", "schemas", "services", "simulators")
+SOURCES = ("pyproject.toml", "README.md", "schemas", "services", "simulators", "track")
 TIMEOUT_S = 60.0
 
 

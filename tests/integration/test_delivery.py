@@ -141,3 +141,48 @@ def test_messages_published_while_a_link_is_cut_arrive_once_it_is_back(
         assert proxy.wait_connections(2, TIMEOUT_S), "the client did not reconnect"
         put_all(publisher, batch(namespace, 3))
         got.wait_for(set(batch(namespace, 2)) | set(batch(namespace, 3)))
+
+
+def test_a_publisher_bounded_below_its_keys_delivers_every_key_live(
+    open_session, router: str, namespace: str
+) -> None:
+    publisher = ReliablePublisher(
+        open_session(), DeliverySettings(cache_samples=8, max_publishers=10)
+    )
+    got = Received()
+    with ServiceRuntime("filtering", client_conf(namespace, router, "a")) as rt:
+        rt.declare_subscriber(f"{namespace}/index/**", got, reliable=True)
+        # a first message proves the subscription is routed before the rounds begin
+        publisher.put(f"{namespace}/index/L0/s000", b"hello")
+        got.wait_for({(f"{namespace}/index/L0/s000", b"hello")})
+        for r in range(3):  # 40 keys, 10 publishers: 9 keys cached, 31 put plainly
+            put_all(publisher, batch(namespace, r))
+        got.wait_for(set().union(*(batch(namespace, r) for r in range(3))))
+    assert len(publisher) == 10 and publisher.plain_puts == 3 * (SEGMENTS - 9)
+    publisher.undeclare()
+
+
+def test_a_returning_subscriber_recovers_the_keys_within_the_bound(
+    open_session, router: str, namespace: str
+) -> None:
+    publisher = ReliablePublisher(
+        open_session(), DeliverySettings(cache_samples=8, max_publishers=10)
+    )
+    first, second = batch(namespace, 1), batch(namespace, 2)
+    put_all(publisher, first)  # nobody listens: only the first 10 keys have caches
+    cached = {(key, payload) for key, payload in first if publisher.cached(key)}
+    assert len(cached) == 10
+    got = Received()
+    with ServiceRuntime("filtering", client_conf(namespace, router, "a")) as rt:
+        rt.declare_subscriber(f"{namespace}/index/**", got, reliable=True)
+        got.wait_for(cached)
+    put_all(publisher, second)  # published while the subscriber is down
+    again = Received()
+    with ServiceRuntime("filtering", client_conf(namespace, router, "a")) as rt:
+        rt.declare_subscriber(f"{namespace}/index/**", again, reliable=True)
+        missed = {(key, payload) for key, payload in second if publisher.cached(key)}
+        again.wait_for(cached | missed)
+        # what was put plainly reached nobody and is not recovered
+        assert set(again.items) <= cached | missed
+    assert not set(got.items) - cached
+    publisher.undeclare()

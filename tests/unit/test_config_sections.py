@@ -16,6 +16,7 @@ from services.calibration import service as calibration
 from services.filtering import service as filtering
 from services.ingestion import service as ingestion
 from services.runtime.config import SECTIONS, load_config
+from services.runtime.delivery import DeliverySettings
 from services.runtime.service import ServiceRuntime
 from services.tools import gateway_check
 
@@ -44,7 +45,7 @@ KNOWN = {
     "filtering": "db, limits, network, selector",
     "calibration": ", ".join(sorted(calibration.OPTIONS)),
     "ingestion": None,  # IngestionConfig's fields, checked below
-    "delivery": "cache_samples, heartbeat_s",
+    "delivery": "cache_samples, heartbeat_s, max_publishers",
 }
 
 
@@ -112,3 +113,19 @@ def test_a_bad_section_of_a_service_without_settings_exits_2(tmp_path, capsys):
     assert cli.main(["alerting", "--config", str(path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "unknown section 'alerting'" in err
+
+
+@pytest.mark.parametrize("argv", [["viewer", "--rrd", "x.rrd"], ["ingestion"], ["report"]])
+def test_a_bad_network_file_exits_2_naming_the_file(tmp_path, capsys, argv):
+    path = tmp_path / "net.geojson"
+    path.write_text('{"type": "FeatureCollection", "features": []}')
+    assert cli.main([*argv, "--network", str(path), "--log-level", "warning"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(path) in err and "no LineString" in err
+
+
+@pytest.mark.parametrize("bad", [0, -1, 2.5, "many"])
+def test_delivery_max_publishers_must_be_a_positive_integer(bad):
+    with pytest.raises(ValueError, match=r"services\.delivery\.max_publishers must be"):
+        DeliverySettings.from_options({"max_publishers": bad})
+    assert DeliverySettings.from_options({"max_publishers": 5}).max_publishers == 5

@@ -157,5 +157,5 @@ def test_station_names_from_the_network_file_and_a_bad_file(tmp_path):
     path.write_text(json.dumps({"type": "FeatureCollection", "features": [line]}))
     assert [s.label for s in network_map(str(path)).stations] == ["Central", "Park"]
     path.write_text("{")
-    with pytest.raises(SystemExit, match="--network"):
+    with pytest.raises(ValueError, match="--network"):
         network_map(str(path))

@@ -514,6 +514,23 @@ def test_selectors_narrow_the_queryable_and_the_subscriptions_alike():
     assert ke(keys.raw_all("tf")).includes(one_train)
 
 
+@pytest.mark.parametrize("kind", ["index", "trc", "maintenance", "state"])
+def test_a_region_selector_splits_a_network_by_line_prefix(kind):
+    # a national deployment (README "National deployment", bench/scale.py): line ids carry a
+    # region letter, and one selector per filtering instance takes a region's lines
+    ke = zenoh.KeyExpr
+    shards = {r: ke(keys.segment_keys("tf", kind, f"{r}$*/**")) for r in "ABCD"}
+    queryables = {r: ke(keys.q_state_keys("tf", f"{r}$*/**")) for r in "ABCD"}
+    for line in ("A001", "B017", "C200", "D042"):
+        concrete = ke(getattr(keys, kind)("tf", line, "s0001"))
+        owners = [r for r, k in shards.items() if k.includes(concrete)]
+        assert owners == [line[0]]
+        answering = [
+            r for r, k in queryables.items() if k.includes(ke(keys.q_state("tf", line, "s1")))
+        ]
+        assert answering == [line[0]]
+
+
 @pytest.mark.parametrize("message", examples(), ids=lambda m: type(m).__name__)
 def test_every_message_has_its_key_and_refuses_another(message):
     key = keys.key_of("tf", message)
@@ -565,3 +582,20 @@ def test_wire_reference_documents_every_field_of_every_message():
         version, fields = documented[message_type.__name__]
         assert version == schemas.SCHEMA_VERSION
         assert fields == list(message_type.__struct_fields__), message_type.__name__
+
+
+def test_nesting_just_beyond_the_limit_is_found_and_at_the_limit_is_not():
+    """The scan's shortcut (too few container header bytes to be that deep) keeps the
+    boundary: 33 nested non-empty containers in a value are refused, 32 are not."""
+    from schemas.wire import MAX_NESTING, too_deep
+
+    for depth, found in ((MAX_NESTING, None), (MAX_NESTING + 1, "'x'")):
+        value = b"\x91" * depth + b"\x01"
+        assert too_deep(_with_first(_gps(), msgpack.packb("x"), value)) == found
+
+
+def test_an_id_refused_stays_refused_after_valid_ones_were_seen():
+    for _ in range(2):  # the second time the valid ids come from the cache of checked ids
+        assert decode(_gps(train="T1"), GpsFix).train == "T1"
+        with pytest.raises(SchemaError, match="whitespace or control"):
+            decode(_gps(train="T 1"), GpsFix)

@@ -188,3 +188,29 @@ def test_generate_large_network():
     c = np.linspace(0, line.length_m, 300)
     np.testing.assert_allclose(line.project(line.xy_at(c))[0], c, atol=1e-6)
     _same(net, Network.from_geojson(net.to_geojson(include_segments=False)))
+
+
+def test_route_and_running_are_read_written_and_checked(demo):
+    gj = demo.to_geojson(include_segments=False)
+    assert all("route" not in f["properties"] for f in gj["features"])  # defaults not written
+    gj["features"][0]["properties"] |= {"route": "R1", "running": "increasing"}
+    gj["features"][2]["properties"] |= {"route": "R1", "running": "decreasing"}
+    network = Network.from_geojson(gj)
+    got = {line.id: (line.route_id, line.running) for line in network.lines.values()}
+    assert got == {
+        "L1": ("R1", "increasing"),
+        "L2": ("L2", "both"),
+        "L3": ("R1", "decreasing"),
+    }
+    back = Network.from_geojson(network.to_geojson())
+    assert {i: (x.route, x.running) for i, x in back.lines.items()} == {
+        "L1": ("R1", "increasing"),
+        "L2": ("", "both"),
+        "L3": ("R1", "decreasing"),
+    }
+    gj["features"][1]["properties"]["running"] = "up"
+    with pytest.raises(ValueError, match=r"feature 1 \(id 'L2'\): line L2: running must be"):
+        Network.from_geojson(gj)
+    gj["features"][1]["properties"] |= {"running": "both", "route": "R/2"}
+    with pytest.raises(ValueError, match="route"):
+        Network.from_geojson(gj)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 
+import numpy as np
 import pytest
 
 from schemas import (
@@ -97,3 +98,65 @@ def test_raw_chunks_follow_each_other_per_unit():
 def test_bad_world_spec_is_refused():
     with pytest.raises(ValueError, match="fidelity"):
         WorldSpec(demo_network(), load_config(), START, 1.0, 1, 1, "video")
+
+
+def _lakeside(running: str | None):
+    import json
+    from pathlib import Path
+
+    from track.osm import import_osm
+
+    path = Path(__file__).parents[1] / "fixtures" / "osm" / "lakeside.geojson"
+    return import_osm(json.loads(path.read_text()), running=running)[0]
+
+
+def test_raw_trains_on_a_one_way_track_send_only_while_running_its_way():
+    """On the double track imported with left-hand running 650-t1 runs west (decreasing
+    chainage), 650-t2 east; trains T000, T001 run on them, T002 on the single-track
+    branch, both ways."""
+    from simulators.world import raw_train_events
+
+    network = _lakeside("left")
+    spec = WorldSpec(network, load_config(), START, 1500 / DAY_S, 3, 3, "raw")
+    fixes: dict[str, list[float]] = {"T000": [], "T001": [], "T002": []}
+    for _, messages in raw_train_events(spec):
+        for m in messages:
+            if isinstance(m, GpsFix) and m.fix_quality and m.hdop < 2:  # not near a portal
+                lon_lat = [m.lon_deg, m.lat_deg]
+                fixes[m.train].append(network.to_xy(lon_lat))
+    lines = {"T000": "650-t1", "T001": "650-t2", "T002": "651"}
+    for train, xy in fixes.items():
+        chain = network.lines[lines[train]].project(np.array(xy))[0]
+        step = np.diff(chain)
+        moving = np.abs(step) > 8.0  # beyond GPS noise, and no silence jump (> 1 km)
+        trip = moving & (np.abs(step) < 1_000.0)
+        signs = set(np.sign(step[trip]).astype(int).tolist())
+        running = network.lines[lines[train]].running
+        want = {"increasing": {1}, "decreasing": {-1}, "both": {-1, 1}}[running]
+        assert signs == want, (train, running, signs)
+    # the silences: the one-way trains send fewer fixes than the branch's train
+    assert len(fixes["T000"]) < 1400 and len(fixes["T001"]) < 1400
+
+
+def test_index_passes_on_a_one_way_track_all_run_its_way():
+    from simulators.index_model import index_pass_events
+    from simulators.truth import Truth
+
+    network = _lakeside("left")
+    config = load_config()
+    truth = Truth(network, config, START, 3)
+    order: dict[tuple[str, str], list[float]] = {}
+    for _, messages in index_pass_events(network, truth, 4, 1.0, 3, config=config):
+        for m in messages:
+            line = network.lines[m.line]
+            mid = next(s.mid_m for s in line.segments if s.id == m.segment)
+            order.setdefault((m.line, m.train), []).append(mid)
+    for (line_id, train), mids in order.items():
+        step = np.sign(np.diff(mids))
+        running = network.lines[line_id].running
+        if running == "increasing":
+            assert (step > 0).all(), train
+        elif running == "decreasing":
+            assert (step < 0).all(), train
+    branch = [np.sign(np.diff(m))[0] for (line_id, _), m in order.items() if line_id == "651"]
+    assert set(branch) == {-1.0, 1.0}  # both ways on single track

@@ -1,0 +1,327 @@
+"""`trackfusion import-trc --profile FILE.csv --line L --run-id R --t ISO`: a sampled TRC run.
+
+The thin part around :mod:`track.trc_profile` (parse, align, statistic per segment): read
+the file, take the reference run from the archive, publish one TrcRecord per covered
+segment on ``{ns}/trc/{line}/{segment}`` (as ``import-trc FILE.csv`` does) and keep the
+aligned profile in the archive for the next run of the line.
+
+The archive (``--archive``, default ``./var/trc-profiles.sqlite``) is a SQLite file with
+one row per ``(line, run_id, t)``: the run's profile after alignment, on the network grid
+``x_j = j * 0.25 m``. The reference of a run is the latest run of the same line with an
+earlier ``t`` that shares at least one alignment window (400 m) with it; a line's first run
+(of that stretch) is taken as it is and so sets the chainage datum of the runs after it.
+Importing a run that is already in the archive publishes it again and leaves the archive as
+it is.
+
+Every record carries ``t`` = ``--t``: a TRC run is one inspection, the time a planner
+refers to (the car passes 2 km in about a minute).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sqlite3
+import sys
+from collections.abc import Iterator
+from contextlib import ExitStack, closing, contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+import zenoh
+
+from schemas import SchemaError, TrcRecord, encode, keys
+from schemas.wire import check_time
+from services.runtime.config import RuntimeConfig
+from services.tools.operator import _session, parse_time
+from track.network import check_id, load_network
+from track.segments import SegmentTable
+from track.trc_profile import (
+    MAX_OFFSET_M,
+    WINDOW_M,
+    GridProfile,
+    ProfileFileError,
+    RunResult,
+    TrcProfile,
+    parse_profile_csv,
+    process_run,
+)
+
+
+def default_archive() -> Path:
+    """``./var/trc-profiles.sqlite``, next to the services' default files (``default_db``)."""
+    return Path("var") / "trc-profiles.sqlite"
+
+
+@dataclass(frozen=True)
+class ArchivedRun:
+    line: str
+    run_id: str
+    t: float
+    profile: GridProfile
+
+
+class ProfileArchive:
+    """The aligned profiles of the imported runs, one row per ``(line, run_id, t)``."""
+
+    SCHEMA = """
+        CREATE TABLE IF NOT EXISTS trc_profile (
+            line TEXT NOT NULL,
+            run_id TEXT NOT NULL,
+            t REAL NOT NULL,               -- epoch s
+            first_index INTEGER NOT NULL,  -- chainage of sample 0 = first_index * spacing_m
+            spacing_m REAL NOT NULL,
+            n INTEGER NOT NULL,
+            channels TEXT NOT NULL,        -- comma-separated names, the rows of data
+            data BLOB NOT NULL,            -- float64 little-endian, (channels, n) C order
+            PRIMARY KEY (line, run_id, t)
+        )
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._db = sqlite3.connect(self.path)
+            self._db.execute(self.SCHEMA)
+        except (OSError, sqlite3.Error) as exc:
+            raise ValueError(f"--archive {path}: cannot open ({exc})") from None
+
+    def close(self) -> None:
+        self._db.close()
+
+    def latest_before(
+        self, line: str, t: float, span_m: tuple[float, float] = (-math.inf, math.inf)
+    ) -> ArchivedRun | None:
+        """The reference of a run at ``t`` over chainages ``span_m``: the latest run of
+        ``line`` before ``t`` that overlaps the span by at least ``WINDOW_M``."""
+        lo, hi = span_m
+        row = self._db.execute(
+            "SELECT run_id, t, first_index, spacing_m, n, channels, data FROM trc_profile "
+            "WHERE line = ? AND t < ? "
+            "AND MIN(?, (first_index + n - 1) * spacing_m) - MAX(?, first_index * spacing_m) >= ? "
+            "ORDER BY t DESC LIMIT 1",
+            (line, t, hi, lo, WINDOW_M),
+        ).fetchone()
+        if row is None:
+            return None
+        run_id, t_run, first, dx, n, names, data = row
+        values = np.frombuffer(data, dtype="<f8").reshape(-1, n)
+        channels = {name: values[i].copy() for i, name in enumerate(names.split(","))}
+        return ArchivedRun(line, run_id, t_run, GridProfile(first, dx, channels))
+
+    def add(self, line: str, run_id: str, t: float, profile: GridProfile) -> bool:
+        """Keep a run's aligned profile; False when that run is there already."""
+        names = list(profile.channels)
+        data = np.stack([profile.channels[n] for n in names]).astype("<f8").tobytes()
+        with self._db:
+            cursor = self._db.execute(
+                "INSERT OR IGNORE INTO trc_profile VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (line, run_id, t, profile.first_index, profile.spacing_m, profile.n_samples,
+                 ",".join(names), data),
+            )  # fmt: skip
+        return cursor.rowcount == 1
+
+    def count(self, line: str) -> int:
+        return self._db.execute(
+            "SELECT COUNT(*) FROM trc_profile WHERE line = ?", (line,)
+        ).fetchone()[0]
+
+
+def trc_records(result: RunResult, line: str, run_id: str, t: float):
+    """The TrcRecords of a run, and ``(segment, reason)`` for values no record can carry."""
+    records, refused = [], []
+    for v in result.values:
+        try:
+            records.append(TrcRecord(line=line, segment=v.segment, t=t, top6_mm=v.top6_mm,
+                                     align10_mm=v.align10_mm, run_id=run_id))  # fmt: skip
+        except SchemaError as exc:
+            refused.append((v.segment, str(exc)))
+    return records, refused
+
+
+def format_report(
+    path: str,
+    profile: TrcProfile,
+    result: RunResult,
+    line: str,
+    run_id: str,
+    reference: ArchivedRun | None,
+    n_records: int,
+    refused: list[tuple[str, str]],
+) -> str:
+    """What the operator reads: the run, its alignment per window, the segments."""
+    x0, x1 = profile.chainage_m[0], profile.chainage_m[-1]
+    if profile.descending:
+        x0, x1 = x1, x0
+    out = [
+        f"run {run_id} on line {line}: {path}, {profile.n_samples} samples, "
+        f"{profile.direction}, chainage {x0:.2f} -> {x1:.2f} m, "
+        f"channels {', '.join(profile.channels)}"
+    ]
+    if profile.ignored_columns:
+        out.append(f"ignored columns: {', '.join(profile.ignored_columns)}")
+    if reference is None:
+        out.append(
+            "alignment: no earlier run of this stretch of the line in the archive, taken as it is"
+        )
+    elif result.alignment.identity:
+        out.append(f"alignment: skipped (--no-align); reference would be run {reference.run_id}")
+    else:
+        used = result.alignment.used
+        out.append(
+            f"alignment to run {reference.run_id} (offset = its chainage - this run's): "
+            f"{len(used)} of {len(result.alignment.windows)} windows used"
+        )
+        out.append(f"  {'window start m':>14} {'offset m':>9} {'peak':>6}")
+        for w in result.alignment.windows:
+            state = "used" if w.used else f"rejected: {w.reason}"
+            out.append(f"  {w.start_m:14.2f} {w.offset_m:9.3f} {w.peak:6.3f}  {state}")
+    published = [v.segment for v in result.values if v.segment not in dict(refused)]
+    span = f" ({published[0]} .. {published[-1]})" if published else ""
+    out.append(f"segments: {n_records} with a record{span}")
+    if result.partial:
+        out.append(
+            f"skipped, not fully covered by the run: {len(result.partial)} "
+            f"({', '.join(result.partial)})"
+        )
+    if result.outside:
+        out.append(f"skipped, outside the run: {len(result.outside)}")
+    for segment, reason in refused:
+        out.append(f"skipped, no record can carry its value: {segment}: {reason}")
+    return "\n".join(out)
+
+
+@contextmanager
+def _archive(path: Path) -> Iterator[ProfileArchive]:
+    archive = ProfileArchive(path)
+    with closing(archive):
+        yield archive
+
+
+def main_import_trc_profile(
+    conf: RuntimeConfig,
+    path: str,
+    line: str,
+    run_id: str,
+    t: float,
+    *,
+    network_path: str | None = None,
+    archive_path: str | Path | None = None,
+    align: bool = True,
+    max_offset_m: float = MAX_OFFSET_M,
+    dry_run: bool = False,
+    out: TextIO = sys.stdout,
+) -> int:
+    """Parse, align, compute and (unless ``dry_run``) publish and archive one TRC run."""
+    check_id("--line", line)
+    check_id("--run-id", run_id)
+    table = SegmentTable.from_network(load_network(network_path))
+    if line not in table.lines:
+        raise ValueError(f"--line {line}: not a line of the network ({', '.join(table.lines)})")
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"--profile {path}: cannot read ({exc})") from None
+    try:
+        profile = parse_profile_csv(text)
+    except ProfileFileError as exc:
+        for line_no, reason in exc.problems:
+            print(f"{path}:{line_no}: {reason}", file=sys.stderr)
+        raise ValueError(f"--profile {path}: {exc}; nothing imported") from None
+    archive_file = Path(archive_path or default_archive())
+    with ExitStack() as stack:
+        archive = None  # a dry run creates no archive
+        if archive_file.exists() or not dry_run:
+            archive = stack.enter_context(_archive(archive_file))
+        span = (float(profile.chainage_m[0]), float(profile.chainage_m[-1]))
+        reference = archive.latest_before(line, t, span) if archive else None
+        result = process_run(
+            profile,
+            table.lines[line],
+            reference.profile if reference else None,
+            align=align,
+            max_offset_m=max_offset_m,
+        )
+        records, refused = trc_records(result, line, run_id, t)
+        print(
+            format_report(path, profile, result, line, run_id, reference, len(records), refused),
+            file=out,
+        )
+        if dry_run or archive is None:
+            print("dry run: nothing published, nothing archived", file=out)
+            return 0
+        with _session(conf) as session:
+            for record in records:
+                session.put(
+                    keys.trc(conf.ns, line, record.segment),
+                    encode(record),
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )
+        kept = archive.add(line, run_id, t, result.grid)
+    print(
+        f"published {len(records)} TRC records; "
+        + (f"profile archived in {archive.path}" if kept else "run already in the archive"),
+        file=out,
+    )
+    return 0
+
+
+def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
+    """The flags of the ``--profile`` form of ``import-trc``."""
+    group = parser.add_argument_group(
+        "a sampled TRC run (--profile): aligned to the line's previous run, Top6/Align10 "
+        "computed per segment; the CSV format is in README.md (TRC profiles)"
+    )
+    group.add_argument("--profile", metavar="FILE.csv", help="the run's profile export")
+    group.add_argument("--line", help="line id of the run (of --network)")
+    group.add_argument("--run-id", help="id of the run, carried by its TrcRecords")
+    group.add_argument("--t", metavar="ISO", help="time of the run: ISO 8601 or epoch s")
+    group.add_argument("--network", metavar="FILE.geojson", help="segments (default: the demo)")
+    group.add_argument(
+        "--archive",
+        metavar="FILE",
+        type=Path,
+        help=f"aligned profiles of earlier runs (default: ./{default_archive()})",
+    )
+    group.add_argument(
+        "--max-offset",
+        type=float,
+        default=MAX_OFFSET_M,
+        metavar="M",
+        help="search the offset to the previous run within +-M metres (default %(default)g)",
+    )
+    group.add_argument("--no-align", action="store_true", help="take the run's chainage as it is")
+    group.add_argument(
+        "--dry-run", action="store_true", help="print the report; publish and archive nothing"
+    )
+
+
+def run_profile(args: argparse.Namespace, conf: RuntimeConfig) -> int:
+    missing = [flag for flag in ("line", "run_id", "t") if getattr(args, flag) is None]
+    if missing:
+        flags = ", ".join("--" + m.replace("_", "-") for m in missing)
+        raise ValueError(f"--profile needs {flags}")
+    if not 0 < args.max_offset <= 200:
+        raise ValueError(f"--max-offset {args.max_offset:g}: give metres in (0, 200]")
+    try:
+        t = parse_time(args.t)
+        check_time("--t", t)
+    except SchemaError as exc:
+        raise ValueError(str(exc)) from None
+    except ValueError:
+        raise ValueError(f"--t {args.t!r}: not an ISO 8601 time nor epoch seconds") from None
+    return main_import_trc_profile(
+        conf,
+        args.profile,
+        args.line,
+        args.run_id,
+        t,
+        network_path=args.network,
+        archive_path=args.archive,
+        align=not args.no_align,
+        max_offset_m=args.max_offset,
+        dry_run=args.dry_run,
+    )

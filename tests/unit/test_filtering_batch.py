@@ -1,0 +1,223 @@
+"""Issue 16: a batch of events folded together equals its messages stepped one by one.
+
+``Tracker.step_events`` folds the in-order indices of many segments in one vectorised pass
+and takes the exact path for everything else; these tests step one mixed stream both ways
+and compare every segment's arrays, encoded SegmentState and detected tamping, bit for bit.
+"""
+
+from __future__ import annotations
+
+import json
+
+import msgspec
+import numpy as np
+import pytest
+
+from schemas import DAY_S, encode, keys
+from services.filtering.store import PersistentTracker, Store, decode_keyed
+from services.filtering.tracker import (
+    CUSUM_THRESHOLD,
+    Calibration,
+    DegradationPosterior,
+    event_of,
+)
+from tests.unit.test_filtering_tracker import (
+    MU,
+    Z_PLUS,
+    Z_WORN,
+    assert_same_states,
+    calibration,
+    index,
+    new_tracker,
+    onboard_days,
+    posterior,
+    tamping,
+    trc,
+    unit_calibration,
+)
+
+SEGMENTS = [("L1", f"s{k}") for k in range(8)] + [("L2", f"s{k}") for k in range(4)]
+
+
+def on(msg, line: str, segment: str):
+    return msgspec.structs.replace(msg, line=line, segment=segment)
+
+
+def mixed_stream(seed: int) -> list:
+    """Models, then a year-ish of events on twelve segments, in a nearly time-ordered
+    stream with everything the exact path handles: late indices, duplicates, TRC records
+    (one dropping older events, one late and refused), tampings known and interval-only, a
+    correction with a higher revision, a tamping starting a segment without a TRC record,
+    unreported tampings the CUSUM finds, and calibrations (fleet and per unit) arriving
+    in between."""
+    rng = np.random.default_rng(seed)
+    timed: list[tuple[float, int, object]] = []  # (arrival day, tie, message)
+    for k, (line, seg) in enumerate(SEGMENTS):
+        tamped = k % 3 == 0  # an unreported tamping at day 30.3: the CUSUM finds it
+        if k != 5:  # s5 starts from a tamping, no TRC record
+            timed.append((-1.0, 0, trc(0.0, *np.exp(Z_WORN).tolist(), line=line, segment=seg)))
+        else:
+            timed.append((2.0, 0, tamping(1.0, line=line, segment=seg)))
+        days = np.arange(1, 80) + 0.01 * k
+        passes = onboard_days(rng, days, Z_WORN, MU, t_tamp=30.3 if tamped else None, z_plus=Z_PLUS)
+        for day, msg in zip(days, passes, strict=True):
+            msg = on(msg, line, seg)
+            if k % 4 == 1 and day > 50:
+                msg = msgspec.structs.replace(msg, train="T2")  # read with T2's own model
+            arrival = day + (3.5 if rng.random() < 0.08 else 0.0)  # some arrive late
+            timed.append((arrival, 1, msg))
+            if rng.random() < 0.05:
+                timed.append((arrival + rng.uniform(0, 2), 1, msg))  # a duplicate
+        if k % 4 == 2:  # a reported tamping, then its correction (higher revision)
+            report = tamping(40.0, 44.0, line=line, segment=seg)
+            timed.append((45.0, 2, report))
+            fix = msgspec.structs.replace(report, revision=1, t_start=T(41.0), t_end=T(41.0))
+            timed.append((47.5, 2, fix))
+        if k == 7:  # a TRC record that drops the events before it, then a late index
+            timed.append((60.5, 2, trc(60.2, 3.1, 2.6, line=line, segment=seg)))
+            timed.append((61.0, 2, on(index(59.0, 3.0, 2.5), line, seg)))  # refused
+            timed.append((61.0, 2, trc(20.0, 3.0, 2.5, line=line, segment=seg)))  # refused
+    timed.append((-2.0, -1, calibration(1)))
+    timed.append((-2.0, -1, posterior()))
+    timed.append((-2.0, -1, posterior("line.L2", seed=4)))
+    timed.append((35.0, -1, calibration(2, 1.03)))  # a new fleet calibration: re-run
+    timed.append((50.0, -1, unit_calibration("T2", "u1")))  # T2's own model from day 50
+    timed.sort(key=lambda item: (item[0], item[1]))
+    return [msg for _, _, msg in timed]
+
+
+def keyed(msg) -> tuple[str, bytes]:
+    return keys.key_of("tf", msg), encode(msg)
+
+
+def T(days: float) -> float:
+    return 1_767_225_600.0 + days * DAY_S
+
+
+def chunks(messages: list, rng: np.random.Generator, most: int):
+    """The stream cut into batches of random sizes, a model always alone (``handle_batch``
+    applies a batch's models first, which one by one is not)."""
+    batch: list = []
+    for msg in messages:
+        if isinstance(msg, Calibration | DegradationPosterior):
+            if batch:
+                yield batch
+            yield [msg]
+            batch = []
+            continue
+        batch.append(msg)
+        if len(batch) >= rng.integers(1, most + 1):
+            yield batch
+            batch = []
+    if batch:
+        yield batch
+
+
+@pytest.mark.parametrize("most", [1, 7, 64, 400])
+def test_a_batch_folds_to_the_bits_of_its_messages_one_by_one(most):
+    messages = mixed_stream(11)
+    one, one_found, one_reasons = new_tracker(), [], []
+    for msg in messages:
+        step = one.step(msg)
+        one_found.extend(step.detected)
+        one_reasons.append(step.reason)
+    assert len(one_found) >= 3  # the CUSUM found the unreported tampings
+    assert sum(r == "duplicate" for r in one_reasons) >= 3
+    assert "older than the latest TRC record" in one_reasons
+
+    batched, found, reasons, published = new_tracker(), [], [], {}
+    for batch in chunks(messages, np.random.default_rng(most), most):
+        if isinstance(batch[0], Calibration | DegradationPosterior):
+            update = batched.update_models(batch)
+            reasons.append("" if update.accepted else update.ignored[0][1])
+            states = update.states
+        else:
+            got, states, detected = batched.step_events(batch)
+            reasons.extend(got)
+            found.extend(detected)
+        for state in states:
+            published[(state.line, state.segment)] = encode(state)
+
+    assert reasons == one_reasons
+    assert [encode(m) for m in found] == [encode(m) for m in one_found]
+    assert_same_states(one, batched)  # arrays with np.array_equal, encoded states
+    for sid, hist in one.histories.items():
+        assert (hist.state.cusum, hist.state.cusum_t0) == (
+            batched.histories[sid].state.cusum,
+            batched.histories[sid].state.cusum_t0,
+        ) or np.isnan(hist.state.cusum_t0)
+    assert published == {
+        sid: encode(one.segment_state(hist)) for sid, hist in one.histories.items()
+    }
+
+
+def test_a_detection_inside_a_batch_stops_the_fold_there():
+    """Every pass of a tamped segment in one batch: the CUSUM reaches the threshold inside
+    it, the detected tamping and the state after it are those of one pass at a time."""
+    rng = np.random.default_rng(7)
+    record = trc(0.0, *np.exp(Z_WORN).tolist())
+    passes = onboard_days(rng, np.arange(1, 90), Z_WORN, MU, t_tamp=50.3, z_plus=Z_PLUS)
+    one, batched = new_tracker(), new_tracker()
+    found = []
+    for msg in [calibration(), posterior(), record, *passes]:
+        found.extend(one.step(msg).detected)
+    for msg in [calibration(), posterior(), record]:
+        batched.step(msg)
+    reasons, _, detected = batched.step_events(passes)
+    assert not any(reasons) and len(found) == 1
+    assert [encode(m) for m in detected] == [encode(m) for m in found]
+    assert_same_states(one, batched)
+    assert batched.histories[("L1", "s1")].state.cusum < CUSUM_THRESHOLD
+
+
+def test_fold_events_defers_the_summaries_to_states_of():
+    messages = mixed_stream(3)
+    eager, lazy = new_tracker(), new_tracker()
+    events = [m for m in messages if not isinstance(m, Calibration | DegradationPosterior)]
+    for tracker in (eager, lazy):
+        tracker.update_models([calibration(1), posterior(), posterior("line.L2", seed=4)])
+    _, states, _ = eager.step_events(events)
+    _, changed, _ = lazy.fold_events(events)
+    assert sorted(changed) == sorted(SEGMENTS)
+    assert [encode(s) for s in lazy.states_of(changed)] == [
+        encode(s) for s in sorted(states, key=lambda s: changed.index((s.line, s.segment)))
+    ]
+
+
+def test_a_batch_commits_what_one_by_one_commits(tmp_path):
+    """``handle_batch`` (grouped inserts) leaves the store as ``handle`` of each message."""
+    messages = mixed_stream(5)
+    one = PersistentTracker(new_tracker(), Store(tmp_path / "one.sqlite"))
+    for msg in messages:
+        one.handle(*keyed(msg))
+    batched = PersistentTracker(new_tracker(), Store(tmp_path / "batch.sqlite"))
+    for batch in chunks(messages, np.random.default_rng(0), 200):
+        batched.handle_batch([keyed(m) for m in batch])
+    # the same rows; not in the same order: a batch commits its detected tampings first
+    rows = "SELECT line, segment, kind, key, identity, t, payload FROM events ORDER BY 1, 2, 5"
+    stored = list(batched.store._db.execute(rows))
+    assert list(one.store._db.execute(rows)) == stored
+    for _line, _segment, _kind, key, identity, t, payload in stored:
+        event = event_of(decode_keyed(key, payload))
+        assert (identity, t) == (json.dumps(list(event.identity)), event.t_s)
+    rebuilt = PersistentTracker(new_tracker(), Store(tmp_path / "batch.sqlite"))
+    rebuilt.rebuild()
+    assert_same_states(one.tracker, rebuilt.tracker)
+    for node in (one, batched, rebuilt):
+        node.store.close()
+
+
+def test_evolve_is_dataclasses_replace():
+    from dataclasses import replace
+
+    import services.filtering.tracker as core
+
+    messages = mixed_stream(2)
+    tracker = new_tracker()
+    for msg in messages:
+        tracker.step(msg)
+    hist = tracker.histories[SEGMENTS[0]]
+    changes = {"log": hist.log[:3], "state": None, "group": "line.L9"}
+    assert core._evolve(hist, **changes) == replace(hist, **changes)
+    with pytest.raises(TypeError):
+        core._evolve(hist, stat=None)
