@@ -68,6 +68,7 @@ log = logging.getLogger(__name__)
 _dumps = json.JSONEncoder().encode  # json.dumps with its defaults, without the per-call setup
 
 CHECKPOINT_S = 10.0  # worker time between two checkpoints of the changed segments
+CHECKPOINT_SLICE = 64  # segments checkpointed per batch once due (~5 ms of writing)
 MAX_LOADED = 4096  # segment logs kept in memory (~1 KB an event; least recently used dropped)
 
 _SCHEMA = """
@@ -464,6 +465,7 @@ class PersistentTracker:
         self.broken = False  # set by the owner when a batch failed: no checkpoint then
         self._summaries: dict[SegmentId, SegmentState] = {}  # newest, of dirty segments
         self._checkpointed = time.monotonic()
+        self._due: list[SegmentId] | None = None  # a due checkpoint's segments left to write
 
     def _check_known(self, msg: EventMessage) -> None:
         """An event on a segment the network does not have is refused (when one is given):
@@ -718,8 +720,11 @@ class PersistentTracker:
         ``checkpoint_s`` of worker time, or after a model change), then bound the loaded
         logs to ``max_loaded`` (they are all stored by now)."""
         self.note_states(states)
-        if models or time.monotonic() - self._checkpointed >= self.checkpoint_s:
+        if models:
             self.checkpoint()
+        elif self._due is not None or time.monotonic() - self._checkpointed >= self.checkpoint_s:
+            # a slice per batch, so that the live worker never stalls on one big write
+            self.checkpoint(limit=CHECKPOINT_SLICE)
 
     def note_states(self, states: Iterable[SegmentState]) -> None:
         """The newest SegmentStates summarised for segments changed since the checkpoint:
@@ -728,10 +733,14 @@ class PersistentTracker:
         for state in states:
             self._summaries[(state.line, state.segment)] = state
 
-    def checkpoint(self, *, published: bool = True) -> int:
+    def checkpoint(self, *, published: bool = True, limit: int | None = None) -> int:
         """Write the checkpoint of every segment changed since the last one (one
         transaction; the tracker must hold what the store holds, i.e. between batches);
         then drop the least recently used logs beyond ``max_loaded``. Returns how many.
+
+        With ``limit``: the segments changed when the checkpoint fell due, at most ``limit``
+        per call (each segment's row stands alone), the rest by the next calls; what changes
+        meanwhile waits for the next period, which starts once they are all written.
 
         When the owner publishes a batch's states before it hands over the next batch, the
         previous checkpoint's states have been published when this one is written
@@ -739,17 +748,25 @@ class PersistentTracker:
         segments later under a backlog, so it does not rely on the mark: it publishes
         every restored state again (the mark only feeds its log line)."""
         histories = self.tracker.histories
-        dirty = [sid for sid in histories.dirty if sid in histories]
-        self._checkpointed = time.monotonic()
-        if dirty:
+        if limit is None or self._due is None:
+            self._due = [sid for sid in histories.dirty if sid in histories]
+        write = self._due if limit is None else self._due[:limit]
+        self._due = self._due[len(write) :]
+        if write:
             with self.store.transaction():
                 seq = self.store.last_seq()
-                rows = (self._checkpoint_row(sid, seq) for sid in dirty)
+                rows = (self._checkpoint_row(sid, seq) for sid in write)
                 self.store.put_checkpoints(rows, published=published)
-            histories.dirty.clear()
-            self._summaries.clear()
-        histories.trim(self.max_loaded)
-        return len(dirty)
+        for sid in write:
+            histories.dirty.discard(sid)
+            self._summaries.pop(sid, None)
+        if not self._due:
+            self._due = None
+            self._checkpointed = time.monotonic()
+            gone = [sid for sid in histories.dirty if sid not in histories]  # no longer held
+            histories.dirty.difference_update(gone)
+            histories.trim(self.max_loaded)
+        return len(write)
 
     def _checkpoint_row(self, sid: SegmentId, seq: int) -> tuple[Any, ...]:
         rest = self.tracker.histories.resting(sid)

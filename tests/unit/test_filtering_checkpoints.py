@@ -252,3 +252,23 @@ def test_a_restart_republishes_only_what_may_not_have_been_published(tmp_path):
     assert unpublished(db)[1] == {"s1": False, "s2": True, "s3": True}
     node.close()  # a clean stop: everything restored was published at start
     assert unpublished(db)[1] == {"s1": False, "s2": False, "s3": False}
+
+
+def test_a_due_checkpoint_is_written_a_slice_per_batch(tmp_path):
+    """Live, the worker writes at most CHECKPOINT_SLICE segments per batch (no stall on one
+    big write); the period restarts once every changed segment is written, and a restart
+    from those slices is the full replay."""
+    events = in_time_order(history(np.random.default_rng(5), SEGMENTS))
+    db = tmp_path / "f.sqlite"
+    node = node_on(db)
+    node.handle_batch([keyed(m) for m in [*MODELS, *events[:40]]])  # models: all written
+    node.handle_batch([keyed(m) for m in events[40:80]])
+    changed = len(node.tracker.histories.dirty)
+    assert changed == len(SEGMENTS)
+    written = [node.checkpoint(limit=1) for _ in range(changed + 1)]
+    assert written == [1] * changed + [0]
+    assert not node.tracker.histories.dirty
+    restored, states, loader = restarted(db)
+    reference, _ = run([*MODELS, *events[:80]])
+    assert loader.read == []  # every segment from its checkpoint
+    assert_restored(restored, states, reference)
