@@ -1,4 +1,7 @@
-r"""The on-board index step of the filter bank, compiled (numba): one pass over each filter.
+r"""The compiled (numba) loops of the filter: the on-board index step of the filter bank,
+one pass over each filter, and the mixture summary's quantiles and exceedances
+(:func:`mixture_quantile`, :func:`mixture_survival`), one pass over the components per
+evaluation instead of numpy temporaries.
 
 The tracker's fold spends nearly all its time in the index step (predict, the CUSUM score,
 update, log-likelihood, NIS) over ``rows x Ns`` filters. Written with numpy that step is
@@ -171,3 +174,165 @@ def index_step(z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_
         return
     with _PARALLEL_LOCK:
         _index_step_parallel(*args)
+
+
+# --- the mixture quantile (services.filtering.mixture._mixture_quantile) -----------------
+
+_SQRT1_2 = math.sqrt(0.5)
+_SQRT_2PI = math.sqrt(2.0 * math.pi)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _ndtr(u):
+    r""":math:`\Phi(u) = \tfrac12 \operatorname{erfc}(-u / \sqrt 2)`."""
+    return 0.5 * math.erfc(-u * _SQRT1_2)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _quantile_row(i, q, z_q, m, s, w, weighted, tail, tol, max_iter, out):
+    """One row of :func:`mixture_quantile` (inlined into both compiled loops)."""
+    ns = m.shape[1]
+    # the moment-matched Gaussian's quantile: the first guess
+    mean = 0.0
+    for j in range(ns):
+        mean += w[i, j] * m[i, j] if weighted else m[i, j]
+    if not weighted:
+        mean /= ns
+    second = 0.0
+    for j in range(ns):
+        d = m[i, j] - mean
+        v = s[i, j] * s[i, j] + d * d
+        second += w[i, j] * v if weighted else v
+    if not weighted:
+        second /= ns
+    x = mean + math.sqrt(second) * z_q[i]
+    lo, hi = math.inf, -math.inf
+    points = 0
+    for j in range(ns):
+        lo = min(lo, m[i, j] - tail * s[i, j])
+        hi = max(hi, m[i, j] + tail * s[i, j])
+        if s[i, j] == 0.0:
+            points += 1
+    if points == ns:  # point masses only: the (weighted) empirical quantile
+        order = np.argsort(m[i])
+        if weighted:
+            rank, cum = 0, 0.0
+            for k in range(ns):
+                cum += w[i, order[k]]
+                if cum >= q[i] - 1e-12:
+                    rank = k
+                    break
+        else:
+            rank = max(int(math.ceil(q[i] * ns - 1e-12)) - 1, 0)
+        out[i] = m[i, order[rank]]
+        return
+    for _ in range(max_iter):
+        cdf, pdf, slope = 0.0, 0.0, 0.0
+        for j in range(ns):
+            sj = s[i, j]
+            if sj == 0.0:  # a point mass: an exact step
+                c = 1.0 if x >= m[i, j] else 0.0
+                p = 0.0
+                dp = 0.0
+            else:
+                u = (x - m[i, j]) / sj
+                c = _ndtr(u)
+                p = math.exp(-0.5 * u * u) / (_SQRT_2PI * sj)
+                dp = -p * u / sj  # d pdf / dx
+            if weighted:
+                cdf += w[i, j] * c
+                pdf += w[i, j] * p
+                slope += w[i, j] * dp
+            else:
+                cdf += c
+                pdf += p
+                slope += dp
+        if not weighted:
+            cdf /= ns
+            pdf /= ns
+            slope /= ns
+        if cdf < q[i]:
+            lo = x
+        else:
+            hi = x
+        step = 0.5 * (lo + hi)
+        f = cdf - q[i]
+        denominator = 2.0 * pdf * pdf - f * slope
+        if pdf > 0.0 and denominator > 0.0:
+            halley = x - 2.0 * f * pdf / denominator
+            if lo <= halley <= hi:  # closed: a converged step lands on the end just moved
+                step = halley
+        done = abs(step - x) < tol or hi - lo < tol
+        x = step
+        if done:
+            break
+    out[i] = x
+
+
+@numba.njit(cache=True, nogil=True)
+def _quantile_serial(q, z_q, m, s, w, weighted, tail, tol, max_iter, out):
+    for i in range(m.shape[0]):
+        _quantile_row(i, q, z_q, m, s, w, weighted, tail, tol, max_iter, out)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _quantile_parallel(q, z_q, m, s, w, weighted, tail, tol, max_iter, out):
+    for i in numba.prange(m.shape[0]):
+        _quantile_row(i, q, z_q, m, s, w, weighted, tail, tol, max_iter, out)
+
+
+PARALLEL_QUANTILES = 512  # from this many mixtures the quantiles are spread over the cores
+
+
+def mixture_quantile(q, z_q, m, s, w, tail: float, tol: float, max_iter: int) -> np.ndarray:
+    r"""Quantile :math:`\inf\{x : F(x) \ge q_i\}` of each mixture
+    :math:`F(x) = \sum_j w_j \Phi((x - m_{ij}) / s_{ij})`, compiled.
+
+    ``q``, ``z_q`` (rows,): the levels and :math:`\Phi^{-1}(q)`; ``m``, ``s`` (rows, Ns)
+    contiguous; ``w`` (rows, Ns) weights summing to 1, or None for :math:`1 / N_s`.
+    Safeguarded Halley iteration (cubic convergence; :math:`f = F - q`,
+    :math:`x \leftarrow x - 2 f f' / (2 f'^2 - f f'')`) from the moment-matched Gaussian's
+    quantile inside the bracket
+    :math:`[\min_j (m_j - \text{tail}\, s_j), \max_j (m_j + \text{tail}\, s_j)]`, kept
+    with :math:`F(lo) < q \le F(hi)` (also right at a point mass's jump), bisecting
+    whenever the step leaves it, until the step or the bracket is below ``tol``. A
+    mixture of point masses only is the (weighted) empirical quantile. Each row's number
+    depends on that row only, in a fixed order, serial or spread over the cores.
+    """
+    out = np.empty(m.shape[0])
+    weighted = w is not None
+    weights = w if weighted else np.empty((0, 0))
+    args = (q, z_q, m, s, weights, weighted, tail, tol, max_iter, out)
+    if m.shape[0] < PARALLEL_QUANTILES:
+        _quantile_serial(*args)
+    else:
+        with _PARALLEL_LOCK:
+            _quantile_parallel(*args)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _survival(x, rows, m, s, w, weighted, out):
+    ns = m.shape[1]
+    for k in range(x.shape[0]):
+        i = rows[k]
+        total = 0.0
+        for j in range(ns):
+            sj = s[i, j]
+            # a point mass (sj = 0) is an exact step
+            c = _ndtr((m[i, j] - x[k]) / sj) if sj != 0.0 else (1.0 if x[k] < m[i, j] else 0.0)
+            total += w[i, j] * c if weighted else c
+        if not weighted:
+            total /= ns
+        out[k] = min(max(total, 0.0), 1.0)  # weights sum to 1 only up to round-off
+
+
+def mixture_survival(x, rows, m, s, w) -> np.ndarray:
+    r"""Survival :math:`1 - F_i(x_k) = \sum_j w_j \Phi((m_{ij} - x_k) / s_{ij})` of mixture
+    ``i = rows[k]`` at each ``x_k``, compiled; ``m``, ``s``, ``w`` as in
+    :func:`mixture_quantile` (a component with :math:`s = 0` is a point mass: 1 when
+    :math:`x < m`). Kept in [0, 1]."""
+    out = np.empty(x.shape[0])
+    weighted = w is not None
+    _survival(x, rows, m, s, w if weighted else np.empty((0, 0)), weighted, out)
+    return out

@@ -11,13 +11,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import ndtr, ndtri
+from scipy.special import ndtri
 
 from .degradation import DegradationParams, as_finite, check_covariance, transition_unchecked
+from .kernel import mixture_quantile, mixture_survival
 
 _QUANTILE_TOL = 1e-11  # bisection bracket width in log space; the brief asks for 1e-10
 _MAX_ITERATIONS = 200  # bisection alone reaches the tolerance from any bracket in < 60
-_SQRT_2PI = np.sqrt(2 * np.pi)
 _TAIL_SIGMAS = 40.0  # ndtr(-40) ~ 4e-350 underflows to 0: a bracket certain to hold a quantile
 
 
@@ -128,101 +128,42 @@ def credibility_width(P) -> np.ndarray:
     return np.where(sign > 0, np.exp(logdet / P.shape[-1]), 0.0)
 
 
-def _mix(x, w):
-    """Average of ``x`` (..., Ns) over components with weights ``w`` (None: equal)."""
-    return x.mean(-1) if w is None else (x * w).sum(-1)
-
-
-def _mix_probability(x, w):
-    """:func:`_mix` of probabilities, kept in [0, 1] (weights sum to 1 only up to round-off)."""
-    return x.mean(-1) if w is None else np.clip((x * w).sum(-1), 0.0, 1.0)
-
-
-def _marginal_cdf(x, m, s, upper=False, w=None):
-    """Mixture CDF (or survival) at ``x`` (..., 1) of components ``m, s`` (..., Ns).
+def _exceedance(x, m, s, w=None):
+    r"""Mixture survival :math:`1 - F(x) = \sum_j w_j \Phi((m_j - x) / s_j)` at ``x`` (...,
+    1) of components ``m, s`` (..., Ns), compiled (:func:`.kernel.mixture_survival`).
 
     ``w`` (..., Ns): component weights summing to 1, None for equal weights. Zero-variance
     components are point masses: an exact step, no division by zero.
     """
-    point = s == 0
-    if not point.any():  # the same numbers without the masks
-        u = (x - m) / s
-        return _mix_probability(ndtr(-u) if upper else ndtr(u), w)
-    u = (x - m) / np.where(point, 1.0, s)
-    if upper:
-        return _mix_probability(np.where(point, x < m, ndtr(-u)), w)
-    return _mix_probability(np.where(point, x >= m, ndtr(u)), w)
+    shape = np.broadcast_shapes(x.shape[:-1], m.shape[:-1])
+    ns = m.shape[-1]
+    mixtures = m.shape[:-1]
+    m = np.ascontiguousarray(m.reshape(-1, ns))
+    s = np.ascontiguousarray(s.reshape(-1, ns))
+    if w is not None:
+        w = np.ascontiguousarray(np.broadcast_to(w, mixtures + (ns,)).reshape(-1, ns))
+    rows = np.broadcast_to(np.arange(m.shape[0]).reshape(mixtures), shape).reshape(-1)
+    x = np.broadcast_to(x[..., 0], shape).reshape(-1).astype(np.float64)
+    return mixture_survival(x, np.ascontiguousarray(rows), m, s, w).reshape(shape)
 
 
 def _mixture_quantile(q, m, s, w=None):
     r"""Mixture quantile :math:`\inf\{x : F(x) \ge q\}`, vectorised.
 
     ``q`` broadcasts against ``m.shape[:-1]``; ``m, s`` (..., Ns) are component means and
-    standard deviations, ``w`` (..., Ns) their weights (None: equal). Safeguarded Newton:
-    start from the moment-matched Gaussian, keep a bracket with ``F(lo) < q <= F(hi)`` (also
-    the right invariant at the jumps of point-mass components) and bisect whenever the
-    Newton step leaves it; only the mixtures not yet converged are iterated. A mixture of
-    point masses only is the (weighted) empirical quantile. Components of weight 0 only
-    widen the initial bracket.
+    standard deviations, ``w`` (..., Ns) their weights (None: equal). Safeguarded Newton
+    from the moment-matched Gaussian, compiled (:func:`.kernel.mixture_quantile`); a
+    mixture of point masses only is the (weighted) empirical quantile. Components of
+    weight 0 only widen the initial bracket.
     """
     shape = np.broadcast_shapes(q.shape, m.shape[:-1])
     ns = m.shape[-1]
-    m = np.broadcast_to(m, shape + (ns,)).reshape(-1, ns)
-    s = np.broadcast_to(s, shape + (ns,)).reshape(-1, ns)
-    q = np.broadcast_to(q, shape).reshape(-1)
-    if w is None:
-        mean, sd = m.mean(-1), np.sqrt((s**2).mean(-1) + m.var(-1))
-    else:
-        w = np.broadcast_to(w, shape + (ns,)).reshape(-1, ns)
-        mean = _mix(m, w)
-        sd = np.sqrt(_mix(s**2 + (m - mean[:, None]) ** 2, w))
-    x = mean + sd * ndtri(q)
-    lo = (m - _TAIL_SIGMAS * s).min(-1)
-    hi = (m + _TAIL_SIGMAS * s).max(-1)
-    points_only = (s == 0).all(-1)
-    if points_only.any():
-        order = np.argsort(m[points_only], -1)
-        if w is None:
-            rank = np.maximum(np.ceil(q[points_only] * ns - 1e-12).astype(int) - 1, 0)
-        else:  # first sorted atom where the cumulative weight reaches q
-            cum = np.cumsum(np.take_along_axis(w[points_only], order, -1), -1)
-            rank = np.argmax(cum >= q[points_only, None] - 1e-12, -1)
-        atom = np.take_along_axis(order, rank[:, None], -1)
-        x[points_only] = np.take_along_axis(m[points_only], atom, -1)[:, 0]
-    some_points = (s == 0).any(-1)
-    active = np.flatnonzero(~points_only)
-    for _ in range(_MAX_ITERATIONS):
-        if active.size == 0:
-            break
-        xa, qa = x[active], q[active]
-        if active.size == len(x):  # every mixture: views, not gathered copies
-            ma, sa, wa = m, s, w
-        else:
-            ma, sa, wa = m[active], s[active], None if w is None else w[active]
-        if some_points[active].any():
-            point = sa == 0
-            u = (xa[:, None] - ma) / np.where(point, 1.0, sa)
-            cdf = _mix(np.where(point, xa[:, None] >= ma, ndtr(u)), wa)
-            pdf = np.where(
-                point, 0.0, np.exp(-0.5 * u * u) / (_SQRT_2PI * np.where(point, 1.0, sa))
-            )
-        else:  # no point mass (the usual case): the same numbers without the masks
-            u = (xa[:, None] - ma) / sa
-            cdf = _mix(ndtr(u), wa)
-            pdf = np.exp(-0.5 * u * u) / (_SQRT_2PI * sa)
-        pdf = _mix(pdf, wa)
-        below = cdf < qa
-        lo[active] = np.where(below, xa, lo[active])
-        hi[active] = np.where(below, hi[active], xa)
-        la, ha = lo[active], hi[active]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            newton = xa - (cdf - qa) / pdf
-        # Closed bracket: a converged Newton step lands on the end just moved to xa.
-        inside = (pdf > 0) & (newton >= la) & (newton <= ha)
-        step = np.where(inside, newton, 0.5 * (la + ha))
-        x[active] = step
-        done = (np.abs(step - xa) < _QUANTILE_TOL) | (ha - la < _QUANTILE_TOL)
-        active = active[~done]
+    m = np.ascontiguousarray(np.broadcast_to(m, shape + (ns,)).reshape(-1, ns))
+    s = np.ascontiguousarray(np.broadcast_to(s, shape + (ns,)).reshape(-1, ns))
+    q = np.ascontiguousarray(np.broadcast_to(q, shape).reshape(-1), dtype=np.float64)
+    if w is not None:
+        w = np.ascontiguousarray(np.broadcast_to(w, shape + (ns,)).reshape(-1, ns))
+    x = mixture_quantile(q, ndtri(q), m, s, w, _TAIL_SIGMAS, _QUANTILE_TOL, _MAX_ITERATIONS)
     return x.reshape(shape)
 
 
@@ -303,7 +244,7 @@ def _summarize(z, P, log_limits, level: float, w) -> MixtureSummary:
     ci_low, ci_high = _mixture_quantile(q, m, s, w)
     p_exceed = None
     if log_limits is not None:
-        p_exceed = _marginal_cdf(log_limits[..., None], m, s, upper=True, w=w)
+        p_exceed = _exceedance(log_limits[..., None], m, s, w)
     return MixtureSummary(
         mean=mean,
         cov=cov,

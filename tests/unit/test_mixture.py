@@ -87,6 +87,47 @@ def test_batched_summary_equals_per_batch():
                 )
 
 
+@pytest.mark.parametrize("weighted", [False, True])
+def test_summary_bits_do_not_depend_on_the_batch_or_the_cores(weighted):
+    # 400 mixtures x 2 marginals x 2 levels: the compiled quantile runs on all cores
+    # (kernel.PARALLEL_QUANTILES); every number must be the one of that mixture alone.
+    rng = np.random.default_rng(11)
+    zs, Ps = zip(*(random_mixture(rng, 50, 2, i % 4) for i in range(400)), strict=True)
+    z, P = np.array(zs), np.array(Ps)
+    w = rng.random((400, 50)) if weighted else None
+    if w is not None:
+        w /= w.sum(-1, keepdims=True)
+    batched = summarize(z, P, limits_mm=[3.0, 2.5], weights=w)
+    for i in range(0, 400, 37):
+        one = summarize(z[i], P[i], limits_mm=[3.0, 2.5], weights=None if w is None else w[i])
+        for field in ("ci_low", "ci_high", "p_exceed"):
+            np.testing.assert_array_equal(getattr(batched, field)[i], getattr(one, field))
+        # the quantiles solve F(x) = q for the exact mixture CDF (scipy's normal CDF here)
+        wi = np.full(50, 1 / 50) if w is None else w[i]
+        sd = np.sqrt(np.diagonal(P[i], axis1=-2, axis2=-1))
+        for q, bound in ((0.025, one.ci_low), (0.975, one.ci_high)):
+            for k in range(2):
+                live = sd[:, k] > 0
+                cdf = (
+                    wi
+                    * np.where(
+                        live,
+                        norm.cdf(bound[k], z[i, :, k], np.where(live, sd[:, k], 1)),
+                        bound[k] >= z[i, :, k],
+                    )
+                ).sum()
+                step = 1e-9
+                below = (
+                    wi
+                    * np.where(
+                        live,
+                        norm.cdf(bound[k] - step, z[i, :, k], np.where(live, sd[:, k], 1)),
+                        bound[k] - step >= z[i, :, k],
+                    )
+                ).sum()
+                assert below <= q + 1e-12 and cdf >= q - 1e-9
+
+
 @pytest.mark.parametrize(("diag", "w"), [([4.0, 9.0], 6.0), ([1.0, 8.0, 27.0], 6.0), ([0.5], 0.5)])
 def test_credibility_width_of_diagonal(diag, w):
     P = np.diag(diag)
