@@ -100,7 +100,7 @@ def _serve(conf, tmp: Path, stop: threading.Event, adapters: list) -> None:
     try:
         with ServiceRuntime(service.SERVICE, conf, stop_event=stop) as rt:
             node = PersistentTracker(Tracker(limits.for_line, limits.levels), store)
-            adapters.append(service.FilteringAdapter(rt, node, "**"))
+            adapters.append(service.FilteringAdapter(rt, node, "**", freeze_gc=True))
             adapters[0].start()
             rt.run()
     finally:

@@ -272,3 +272,42 @@ def test_a_due_checkpoint_is_written_a_slice_per_batch(tmp_path):
     reference, _ = run([*MODELS, *events[:80]])
     assert loader.read == []  # every segment from its checkpoint
     assert_restored(restored, states, reference)
+
+
+def test_the_generation_goes_on_from_a_file_written_before_it_was_kept(tmp_path):
+    """The newest generation is kept in checkpoint_meta (no scan of the checkpoints per
+    slice); a file without that row goes on from its newest checkpoint row."""
+    db = tmp_path / "f.sqlite"
+    store = Store(db)
+    assert store.put_checkpoints([]) == 1
+    row = ("L1", "s1", 0, None, None, "", "", None, None)
+    assert store.put_checkpoints([row]) == 2
+    store._db.execute("DELETE FROM checkpoint_meta WHERE name = 'gen'")  # an older file
+    assert store.put_checkpoints([row, ("L1", "s2", *row[2:])]) == 3
+    assert store.put_checkpoints([]) == 4
+    assert store.published_gen() == 3
+    store.set_published()
+    assert store.published_gen() == 4
+    store.close()
+
+
+@pytest.mark.parametrize("own_process", [False, True])
+def test_the_service_freezes_what_survives_only_in_its_own_process(own_process, tmp_path):
+    """The worker moves what survived into the GC's permanent generation every FREEZE_S
+    (no full collection walks the logs and states again), only with ``freeze_gc``."""
+    import gc
+
+    from services.filtering.service import FilteringAdapter
+
+    node = node_on(tmp_path / "f.sqlite")
+    adapter = FilteringAdapter(None, node, "**", freeze_gc=own_process)  # type: ignore[arg-type]
+    before = gc.get_freeze_count()
+    try:
+        adapter._freeze()
+        assert (gc.get_freeze_count() > before) == own_process
+        frozen = gc.get_freeze_count()
+        adapter._freeze()  # within FREEZE_S of the last: nothing more
+        assert gc.get_freeze_count() == frozen
+    finally:
+        gc.unfreeze()  # this is pytest's process
+        node.store.close()
