@@ -14,7 +14,8 @@ Workloads (DESIGN "Performance targets"):
    (``bench/simulator.py``), against its target of 200.
 5. ingestion and extraction: raw samples per second per core through each core, per-chunk
    latency (``bench/ingestion.py``, ``bench/extraction.py``); target >= 12 M through both.
-6. the filtering service over Zenoh: events per second and index-to-state latency
+6. the filtering service over Zenoh: events per second and index-to-state latency, the
+   service as its own process as deployed, then in a thread of the bench's process
    (``bench/filtering.py``).
 7. at-least-once delivery: messages per second through cached advanced publishers against
    plain puts, and a returning subscriber's history fetch (``bench/delivery.py``).
@@ -205,7 +206,8 @@ def main() -> None:
     bench_raw_generation()
     bench_ingestion()
     bench_extraction()
-    bench_filtering_service()
+    bench_filtering_service(own_process=True)
+    bench_filtering_service(own_process=False)
     bench_delivery()
     bench_calibration_versions([])
     bench_restart()

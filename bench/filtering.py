@@ -25,13 +25,16 @@ the same backlog in-process, batches of ``service.BATCH`` through ``step_events`
 (summaries included), so the ratio is what Zenoh, decoding, SQLite commits, encoding and
 the publication rule change.
 
-Run: ``.venv/bin/python -m bench.filtering``.
+Run: ``.venv/bin/python -m bench.filtering [--process]``; ``--process``: the service as its
+own process (``trackfusion filtering``, as deployed), the rest in this one.
 """
 
 from __future__ import annotations
 
 import socket
 import sqlite3
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -112,7 +115,19 @@ def _percentiles_ms(latencies: list[float]) -> tuple[float, float]:
     return float(p50), float(p99)
 
 
-def bench_filtering_service() -> None:
+def _spawn(endpoint: str, ns: str, tmp: Path) -> subprocess.Popen:
+    """The filtering service as its own process (``trackfusion filtering``), as deployed."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "filtering", "--connect", endpoint, "--ns", ns]
+        + ["--instance", "bench", "--db", str(tmp / "bench.sqlite"), "--log-level", "warning"],
+        stdout=subprocess.DEVNULL,
+        stderr=open(tmp / "filtering.log", "wb"),  # noqa: SIM115 (closed with the process)
+    )
+
+
+def bench_filtering_service(own_process: bool = False) -> None:
+    """``own_process``: the service runs as its own process (as deployed; the router, the
+    publisher and the subscriber stay in this one); else in a thread of this process."""
     rng = np.random.default_rng(0)
     models, trcs = _models(rng), _trcs()
     loaded = _indices(rng, N_EVENTS, 1)
@@ -188,7 +203,9 @@ def bench_filtering_service() -> None:
         models_q = pub.declare_queryable(keys.model_all(ns), on_model_query)
         adapters: list[service.FilteringAdapter] = []
         thread = threading.Thread(target=_serve, args=(conf, Path(tmp), stop, adapters))
-        thread.start()
+        process = _spawn(endpoint, ns, Path(tmp)) if own_process else None
+        if process is None:
+            thread.start()
         try:
             # Until the TRC states come back, the service may not be subscribed yet: resend.
             while True:
@@ -224,7 +241,7 @@ def bench_filtering_service() -> None:
             with lock:
                 last = max(received[(m.segment, m.t)] for m in newest)
             service_rate = len(loaded) / (last - started)
-            inbox = adapters[0].inbox.stats()
+            inbox = adapters[0].inbox.stats() if adapters else None
 
             for msg in unloaded:
                 put(pub, msg)
@@ -246,14 +263,25 @@ def bench_filtering_service() -> None:
                 lat_live = [received[(m.segment, m.t)] - sent[(m.segment, m.t)] for m in got]
         finally:
             stop.set()
-            thread.join(10)
+            if process is None:
+                thread.join(10)
+            else:
+                process.terminate()
+                process.wait(10)
             models_q.undeclare()
             subscriber.undeclare()
 
     u50, u99 = _percentiles_ms(lat_unloaded)
     v50, v99 = _percentiles_ms(lat_live)
+    callbacks = (
+        "the service's own process"
+        if inbox is None
+        else f"longest Zenoh callback {inbox.max_put_s * 1e3:.2f} ms, "
+        f"{inbox.spilled} spilled to disk"
+    )
     print(
-        f"filtering service over Zenoh, Ns = {NS_SAMPLES}, {SEGMENTS:,} segments, "
+        f"filtering service over Zenoh ({'its own process' if own_process else 'a thread'}), "
+        f"Ns = {NS_SAMPLES}, {SEGMENTS:,} segments, "
         f"a backlog of {N_EVENTS:,} OnboardIndex (put in {put_s:.1f} s):"
     )
     print(
@@ -261,8 +289,7 @@ def bench_filtering_service() -> None:
         f"{last - started:.1f} s ({service_rate:,.0f} events/s); pure tracker in-process "
         f"(step_events, batches of {service.BATCH}, summaries included) {core_rate:,.0f} "
         f"events/s: ratio {fold_rate / core_rate:.2f} (folded), {service_rate / core_rate:.2f} "
-        f"(published); longest Zenoh callback {inbox.max_put_s * 1e3:.2f} ms, "
-        f"{inbox.spilled} spilled to disk"
+        f"(published); {callbacks}"
     )
     print(
         f"  live, {LIVE_RATE:,.0f} indices/s for {live_put_s:.1f} s: latency index put -> its "
@@ -274,4 +301,4 @@ def bench_filtering_service() -> None:
 
 
 if __name__ == "__main__":
-    bench_filtering_service()
+    bench_filtering_service(own_process="--process" in sys.argv)
