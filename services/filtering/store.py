@@ -69,6 +69,7 @@ _dumps = json.JSONEncoder().encode  # json.dumps with its defaults, without the 
 
 CHECKPOINT_S = 10.0  # worker time between two checkpoints of the changed segments
 CHECKPOINT_SLICE = 64  # segments checkpointed per batch once due (~5 ms of writing)
+CACHE_KIB = 65_536  # SQLite page cache: the indexes of a large store stay in memory
 MAX_LOADED = 4096  # segment logs kept in memory (~1 KB an event; least recently used dropped)
 
 _SCHEMA = """
@@ -206,6 +207,7 @@ class Store:
         self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
+        self._db.execute(f"PRAGMA cache_size={-CACHE_KIB}")
         self._db.executescript(_SCHEMA)
 
     def close(self) -> None:
