@@ -5,7 +5,9 @@ line's TRC schedule); both subscriptions feed ONE bounded queue drained by ONE w
 the core sees one ordered stream and needs no lock of its own (the queryables take the
 adapter's lock to read it). Alerts go out with ``session.put`` on ``{ns}/alert/{line}/{segment}``;
 ``{ns}/q/alerts`` and ``{ns}/q/plan`` answer from the core with a RaisedAlerts and an
-InspectionPlan (schemas/README.md).
+InspectionPlan (schemas/README.md). At start it also asks ``{ns}/q/state/**`` for every
+segment's newest state and queues the replies like publications (states past filtering's
+cached publishers have no history to recover; a repeated state changes nothing).
 The raised set, the segments' last states and the TRC runs persist in SQLite
 (``./var/alerting-{instance}.sqlite`` by default).
 """
@@ -48,6 +50,7 @@ log = logging.getLogger(__name__)
 
 SERVICE = "alerting"
 DEFAULT_ALERTING_FILE = default_file("alerting.json5")
+STATE_QUERY_TIMEOUT_S = 10.0  # the start-up q/state query (ends sooner when all reply)
 
 
 def load_alerting_config(path: str | Path = DEFAULT_ALERTING_FILE) -> AlertingConfig:
@@ -83,9 +86,26 @@ class AlertingAdapter:
             "trc": keys.segment_keys(ns, "trc"),
             "maintenance": keys.segment_keys(ns, "maintenance"),
         }
-        self.rt.subscribe_in_order(subscriptions, self.handle, reliable=True)
+        inbox = self.rt.subscribe_in_order(subscriptions, self.handle, reliable=True)
         self.rt.declare_queryable(keys.q_alerts(ns), self.on_query_alerts)
         self.rt.declare_queryable(keys.q_plan(ns), self.on_query_plan)
+        # After subscribing (nothing newer is missed): the newest state of every segment
+        # from filtering's q/state, queued like publications. A segment whose key is past
+        # a filtering process's cached publishers (services.delivery.max_publishers) has
+        # no history to recover, and would otherwise be judged only at its next change.
+        asked = 0
+        for reply in self.rt.session.get(keys.q_state_all(ns), timeout=STATE_QUERY_TIMEOUT_S):
+            if reply.ok is None:
+                log.warning("q/state: error reply %r", reply.err.payload.to_bytes()[:200])
+                continue
+            try:
+                line, segment = keys.parse_q_state(str(reply.ok.key_expr))
+            except ValueError as exc:
+                log.warning("q/state: %s", exc)
+                continue
+            inbox.put("state", keys.state(ns, line, segment), reply.ok.payload.to_bytes())
+            asked += 1
+        log.info("alerting: %d segment states from q/state at start", asked)
 
     def handle(self, kind: str, key: str, payload: bytes) -> list[Alert]:
         """One message through the core; publishes and persists what it changes."""

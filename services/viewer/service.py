@@ -207,6 +207,7 @@ _SUBSCRIPTIONS: dict[str, type[Message]] = {
     "select": ViewerSelect,
 }
 SELECT_TIMEOUT_S = 5.0  # `viewer select`: how long to wait for a running viewer to listen
+STATE_QUERY_TIMEOUT_S = 10.0  # the start-up q/state query (ends sooner when all reply)
 
 
 class ViewerAdapter:
@@ -259,20 +260,46 @@ class ViewerAdapter:
             )
         )
         self._worker = self.rt.spawn(self._work, name=f"{SERVICE}:rerun")
+        self.rt.spawn(self._ask_states, name=f"{SERVICE}:q-state")
+
+    def _ask_states(self) -> None:
+        """Once at start, after subscribing: the newest state of every segment from
+        filtering's ``q/state``, taken like publications, so that the map is coloured at
+        once rather than segment by segment as states change (a segment changing rarely,
+        or past filtering's cached publishers, would stay grey until then). A reply that
+        does not decode or disagrees with its key is a dead letter."""
+        ns = self.rt.ns
+        for reply in self.rt.session.get(keys.q_state_all(ns), timeout=STATE_QUERY_TIMEOUT_S):
+            if self.rt.stopping:
+                return
+            if reply.ok is None:
+                log.warning("q/state: error reply %r", reply.err.payload.to_bytes()[:200])
+                continue
+            key, payload = str(reply.ok.key_expr), reply.ok.payload.to_bytes()
+            try:
+                line, segment = keys.parse_q_state(key)
+                self._accept("state", SegmentState, keys.state(ns, line, segment), payload)
+            except SchemaError as exc:
+                self.rt.deadletters.reject(key, str(exc), payload)
+
+    def _accept(self, kind: str, message_type: type[Message], key: str, payload: bytes) -> None:
+        """Decode and check one message and queue it for the recording; SchemaError says
+        why not."""
+        message = decode(payload, message_type)
+        keys.check_key(key, message)
+        segment = (getattr(message, "line", None), getattr(message, "segment", None))
+        on_map = kind not in ("gps", "health")
+        if self._known is not None and on_map and segment not in self._known:
+            raise SchemaError(
+                f"{type(message).__name__}: segment {segment[0]}/{segment[1]} is not in "
+                "the viewer's network"
+            )
+        self.inbox.put(message)
 
     def _decoder(self, kind: str, message_type: type[Message]) -> Callable[[zenoh.Sample], None]:
         def on_sample(sample: zenoh.Sample) -> None:
             # runs in the runtime's worker for this subscription; SchemaError -> dead letter
-            message = decode(sample.payload.to_bytes(), message_type)
-            keys.check_key(str(sample.key_expr), message)
-            segment = (getattr(message, "line", None), getattr(message, "segment", None))
-            on_map = kind not in ("gps", "health")
-            if self._known is not None and on_map and segment not in self._known:
-                raise SchemaError(
-                    f"{type(message).__name__}: segment {segment[0]}/{segment[1]} is not in "
-                    "the viewer's network"
-                )
-            self.inbox.put(message)
+            self._accept(kind, message_type, str(sample.key_expr), sample.payload.to_bytes())
 
         return on_sample
 

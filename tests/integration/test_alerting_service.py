@@ -143,3 +143,36 @@ def test_malformed_payload_goes_to_dead_letter(
         assert reasons[2] == "SegmentState: key says L1/other, message says L1/s1"
         assert alerts.get().kind == "sudden_change"
     pub.undeclare()
+
+
+def test_at_start_it_asks_q_state_for_the_states_it_cannot_recover(
+    open_session, service_config, running, collector, tmp_path
+):
+    """A segment's state with no publisher cache behind it (a key past filtering's cached
+    publishers, or published before alerting ever ran) comes from q/state at start; a
+    reply on a malformed key is skipped."""
+    ns = service_config.ns
+    client = open_session()
+    alerts = collector(lambda s: decode(s.payload.to_bytes(), Alert))
+    client.declare_subscriber(keys.segment_keys(ns, "alert"), alerts)
+    state = make_state(T0 + DAY_S, p_exceed=p_top6(1, 0.72))
+
+    def answer(query: zenoh.Query) -> None:
+        query.reply(keys.q_state(ns, "L1", "s0") + "/extra", encode(state))  # skipped
+        query.reply(keys.q_state(ns, "L1", "s1"), encode(state))
+
+    queryable = client.declare_queryable(keys.q_state_all(ns), answer)
+    try:
+        with running(tmp_path / "alerting.sqlite"):
+            alert = alerts.get()
+            assert (alert.line, alert.segment, alert.kind, alert.status, alert.level) == (
+                "L1",
+                "s1",
+                "exceedance",
+                "raised",
+                "intervention",
+            )
+            (body,) = query(client, keys.q_alerts(ns))
+            assert decode(body, RaisedAlerts).alerts == [alert]
+    finally:
+        queryable.undeclare()

@@ -191,3 +191,57 @@ def test_viewer_records_published_messages(
 def test_viewer_select_without_a_viewer_says_so(service_config, capsys):
     assert viewer.main_select(service_config, "L1/s00001", timeout_s=0.5) == 1
     assert "no viewer listens" in capsys.readouterr().err
+
+
+def test_viewer_takes_every_segments_newest_state_from_q_state_at_start(
+    open_session, service_config, collector, tmp_path: Path
+):
+    """The map is coloured at once: at start the viewer asks filtering's q/state for every
+    segment's newest state (a segment that seldom changes would stay grey until its next
+    state); a reply on a segment the network lacks is a dead letter."""
+    ns = service_config.ns
+    seg = demo_network().lines["L2"].segments[3].id
+    client = open_session()
+    dead = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
+    client.declare_subscriber(keys.deadletter(ns, viewer.SERVICE), dead)
+
+    def answer(query: zenoh.Query) -> None:
+        state = make_state(T0, line="L2", segment=seg, p_exceed=p_top6(1, 0.9))
+        query.reply(keys.q_state(ns, "L2", seg), encode(state))
+        nowhere = make_state(T0, line="L9", segment="s1", p_exceed=p_top6(1, 0.9))
+        query.reply(keys.q_state(ns, "L9", "s1"), encode(nowhere))
+
+    queryable = client.declare_queryable(keys.q_state_all(ns), answer)
+    logged, stop, result = Logged(), threading.Event(), []
+    rrd = tmp_path / "viewer.rrd"
+    thread = threading.Thread(
+        target=lambda: result.append(
+            viewer.main(
+                service_config,
+                DEMO_NETWORK,
+                viewer.Sink("rrd", path=rrd),
+                stop=stop,
+                handle_signals=False,
+                on_logged=logged,
+            )
+        ),
+        name="viewer-under-test",
+    )
+    thread.start()
+    try:
+        logged.wait_for(1)
+        letter = dead.get()
+        assert letter.key == keys.q_state(ns, "L9", "s1") and "not in" in letter.reason
+    finally:
+        stop.set()
+        thread.join(TIMEOUT_S)
+        queryable.undeclare()
+    assert not thread.is_alive() and result == [0]
+    assert (
+        sum(
+            columns.get("Scalars:scalars", 0)
+            for entity, columns in rrd_contents(rrd).items()
+            if re.fullmatch(r"worst/\d/top6/g\d+/state", entity)
+        )
+        == 1
+    )
