@@ -13,8 +13,9 @@ once), then the events in arrival order, all accepted inputs committed to SQLite
 transaction → ``put`` the newest SegmentState of the changed segments on
 ``{ns}/state/{line}/{segment}``.
 
-Publication rule (a SegmentState summary costs ~0.3 ms a segment in batches, ~0.6 ms alone, at Ns = 200; far more
-than folding an event, so a backlog cannot summarise every changed segment per batch):
+Publication rule (a SegmentState summary costs ~0.3 ms a segment in batches, ~0.6 ms alone,
+at Ns = 200: far more than folding an event, so a backlog cannot summarise every changed
+segment per batch):
 
 - a batch's events are committed before any state that depends on them is summarised or
   published (the summary is taken after the transaction, from the tracker);
