@@ -191,6 +191,7 @@ class FilteringAdapter:
             self._handle_batch,
             max_batch=BATCH,
             reliable=True,
+            on_idle=self._idle,
             on_end=self._at_end,
         )
         self.rt.declare_queryable(keys.q_state_keys(ns, self.selector), self.latest.on_query)
@@ -273,6 +274,15 @@ class FilteringAdapter:
             gc.collect(1)
             gc.freeze()
             self._frozen_at = now
+
+    def _idle(self) -> None:
+        """Nothing arrived for a second: write the due checkpoint's slices while nothing is
+        queued, so that an instance whose traffic stopped has its checkpoints current (a
+        kill then replays nothing); a slice per batch otherwise waits for the next batch."""
+        if self.node.broken:
+            return
+        while self.node.checkpoint_if_due() and not (self.inbox is not None and len(self.inbox)):
+            pass
 
     def _publish_dirty(self, budget_s: float | None) -> None:
         """Summarise and publish the oldest dirty segments, ``SUMMARY_CHUNK`` at a time, for

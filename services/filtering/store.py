@@ -741,9 +741,17 @@ class PersistentTracker:
         self.note_states(states)
         if models:
             self.checkpoint()
-        elif self._due is not None or time.monotonic() - self._checkpointed >= self.checkpoint_s:
-            # a slice per batch, so that the live worker never stalls on one big write
-            self.checkpoint(limit=CHECKPOINT_SLICE)
+        else:  # a slice per batch, so that the live worker never stalls on one big write
+            self.checkpoint_if_due()
+
+    def checkpoint_if_due(self) -> int:
+        """Between batches: the next slice (``CHECKPOINT_SLICE`` segments) of the checkpoint
+        when one is due (every ``checkpoint_s`` of worker time) or being written; how many
+        segments it wrote (0: none due). An idle owner calls it until 0, so that what an
+        instance holds when traffic stops is checkpointed without waiting for a batch."""
+        if self._due is not None or time.monotonic() - self._checkpointed >= self.checkpoint_s:
+            return self.checkpoint(limit=CHECKPOINT_SLICE)
+        return 0
 
     def note_states(self, states: Iterable[SegmentState]) -> None:
         """The newest SegmentStates summarised for segments changed since the checkpoint:

@@ -311,3 +311,27 @@ def test_the_service_freezes_what_survives_only_in_its_own_process(own_process, 
     finally:
         gc.unfreeze()  # this is pytest's process
         node.store.close()
+
+
+def test_an_idle_instance_writes_its_due_checkpoint_without_waiting_for_a_batch(
+    tmp_path, monkeypatch
+):
+    """Live, a due checkpoint goes a slice per batch; when traffic stops the worker's idle
+    hook writes the rest, so a kill of an idle instance replays nothing."""
+    from services.filtering import store as store_module
+    from services.filtering.service import FilteringAdapter
+
+    monkeypatch.setattr(store_module, "CHECKPOINT_SLICE", 1)
+
+    events = in_time_order(history(np.random.default_rng(6), SEGMENTS))
+    db = tmp_path / "f.sqlite"
+    node = node_on(db, checkpoint_s=0.0)
+    node.handle_batch([keyed(m) for m in [*MODELS, *events[:40]]])
+    node.handle_batch([keyed(m) for m in events[40:80]])  # wrote its first slice
+    assert node.tracker.histories.dirty  # the rest waits for a batch
+    adapter = FilteringAdapter(None, node, "**")  # type: ignore[arg-type]
+    adapter._idle()
+    assert not node.tracker.histories.dirty
+    node.store.close()  # killed: no checkpoint at the stop
+    _restored, _states, loader = restarted(db)
+    assert loader.read == []  # every segment from its checkpoint
