@@ -21,6 +21,7 @@ import logging
 import math
 import sqlite3
 import struct
+import threading
 import time
 from collections.abc import Collection, Iterable, Iterator
 from contextlib import contextmanager
@@ -70,6 +71,7 @@ _dumps = json.JSONEncoder().encode  # json.dumps with its defaults, without the 
 CHECKPOINT_S = 10.0  # worker time between two checkpoints of the changed segments
 CHECKPOINT_SLICE = 64  # segments checkpointed per batch once due (~5 ms of writing)
 CACHE_KIB = 65_536  # SQLite page cache: the indexes of a large store stay in memory
+WAL_CHECKPOINT_S = 1.0  # the background thread copies the WAL into the database this often
 MAX_LOADED = 4096  # segment logs kept in memory (~1 KB an event; least recently used dropped)
 
 _SCHEMA = """
@@ -189,6 +191,48 @@ def _order_of(text: str | None) -> tuple[float, int, tuple[Any, ...]] | None:
     return (float(t), int(kind), tuple(identity))
 
 
+class _WalCheckpointer:
+    """Copies the write-ahead log into the database file every ``period_s`` from a thread of
+    its own, on its own connection (``PRAGMA wal_checkpoint(PASSIVE)``: never waits for the
+    writer, which goes on appending meanwhile).
+
+    SQLite's automatic checkpoint runs inside the COMMIT that crosses 1,000 pages, in the
+    writer's thread, and with ``synchronous=NORMAL`` it is the only write that syncs the
+    file: a backlog's COMMITs paid it every few batches (the worker's slowest commits, up to
+    64 ms; the backlog ran 10–40 % faster without it). ``runs`` counts the checkpoints done
+    (``ran`` is set after each), for tests."""
+
+    def __init__(self, path: Path, period_s: float | None) -> None:
+        self.path, self.period_s = path, period_s
+        self.runs = 0
+        self.ran = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="store-wal", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        db = sqlite3.connect(self.path, isolation_level=None)
+        try:
+            while not self._stop.wait(self.period_s):
+                try:
+                    db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+                except sqlite3.Error as exc:  # the writer's COMMIT fails too if the disk does
+                    log.warning("store %s: WAL checkpoint failed: %s", self.path, exc)
+                    continue
+                self.runs += 1
+                self.ran.set()
+        finally:
+            db.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+
 class Store:
     """One SQLite file (created with its directory if missing); close it, or leave it to the OS.
 
@@ -200,7 +244,13 @@ class Store:
         SQLite ``PRAGMA synchronous`` (``NORMAL``: durable against a process crash).
     """
 
-    def __init__(self, path: str | Path, *, synchronous: str = "NORMAL") -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        synchronous: str = "NORMAL",
+        wal_checkpoint_s: float | None = WAL_CHECKPOINT_S,
+    ) -> None:
         if synchronous.upper() not in {"OFF", "NORMAL", "FULL", "EXTRA"}:
             raise ValueError(f"synchronous: {synchronous!r} not OFF, NORMAL, FULL or EXTRA")
         self.path = Path(path)
@@ -212,8 +262,13 @@ class Store:
         self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
         self._db.execute(f"PRAGMA cache_size={-CACHE_KIB}")
         self._db.executescript(_SCHEMA)
+        self.wal_checkpoints = _WalCheckpointer(self.path, wal_checkpoint_s)
+        if wal_checkpoint_s is not None:  # not in the committing thread: see _WalCheckpointer
+            self._db.execute("PRAGMA wal_autocheckpoint=0")
+            self.wal_checkpoints.start()
 
     def close(self) -> None:
+        self.wal_checkpoints.close()  # first: the last connection to close checkpoints all
         self._db.close()
 
     def __enter__(self) -> Store:

@@ -335,3 +335,25 @@ def test_an_idle_instance_writes_its_due_checkpoint_without_waiting_for_a_batch(
     node.store.close()  # killed: no checkpoint at the stop
     _restored, _states, loader = restarted(db)
     assert loader.read == []  # every segment from its checkpoint
+
+
+def test_the_write_ahead_log_is_copied_back_by_a_thread_not_by_the_commits(tmp_path):
+    """The committing connection never checkpoints (no sync inside a COMMIT); the store's
+    own thread does, so the log does not grow past what was written since its last run."""
+    store = Store(tmp_path / "f.sqlite", wal_checkpoint_s=0.01)
+    wal = tmp_path / "f.sqlite-wal"
+    try:
+        assert store._db.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 0
+        rows = [("L1", f"s{k}", "index", "k", ("index", k), 0.0, bytes(2000)) for k in range(100)]
+        sizes = []
+        for batch in range(20):  # ~4 MB in all, 200 KB a batch
+            with store.transaction():
+                store.add_events([(*r[:4], (*r[4], batch), *r[5:]) for r in rows])
+            store.wal_checkpoints.ran.clear()
+            assert store.wal_checkpoints.ran.wait(10), "no WAL checkpoint ran"
+            sizes.append(wal.stat().st_size)
+        assert max(sizes[5:]) < 1_500_000  # reused from its start, not grown to ~4 MB
+        assert store.count_events() == 2000
+    finally:
+        store.close()
+    assert not store.wal_checkpoints._thread.is_alive()
