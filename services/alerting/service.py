@@ -94,16 +94,13 @@ class AlertingAdapter:
         # a filtering process's cached publishers (services.delivery.max_publishers) has
         # no history to recover, and would otherwise be judged only at its next change.
         asked = 0
-        for reply in self.rt.session.get(keys.q_state_all(ns), timeout=STATE_QUERY_TIMEOUT_S):
-            if reply.ok is None:
-                log.warning("q/state: error reply %r", reply.err.payload.to_bytes()[:200])
-                continue
+        for key, payload in self.rt.ask(keys.q_state_all(ns), STATE_QUERY_TIMEOUT_S):
             try:
-                line, segment = keys.parse_q_state(str(reply.ok.key_expr))
+                line, segment = keys.parse_q_state(key)
             except ValueError as exc:
                 log.warning("q/state: %s", exc)
                 continue
-            inbox.put("state", keys.state(ns, line, segment), reply.ok.payload.to_bytes())
+            inbox.put("state", keys.state(ns, line, segment), payload)
             asked += 1
         log.info("alerting: %d segment states from q/state at start", asked)
 

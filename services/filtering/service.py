@@ -198,11 +198,8 @@ class FilteringAdapter:
         # After subscribing, so a model published meanwhile is not missed either; and
         # before the liveliness token (ready), so the latest models are queued ahead of
         # any event a producer sends once it sees this instance ready.
-        for reply in self.rt.session.get(keys.model_all(ns), timeout=MODEL_QUERY_TIMEOUT_S):
-            if reply.ok is not None:
-                self.inbox.put("model", str(reply.ok.key_expr), reply.ok.payload.to_bytes())
-            else:
-                log.warning("model query: error reply %r", reply.err.payload.to_bytes()[:200])
+        for key, payload in self.rt.ask(keys.model_all(ns), MODEL_QUERY_TIMEOUT_S):
+            self.inbox.put("model", key, payload)
 
     # --- the worker ---------------------------------------------------------------------
 

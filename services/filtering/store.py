@@ -406,8 +406,8 @@ class Store:
 
     def _latest_gen(self) -> int:
         """The newest checkpoint generation: kept in ``checkpoint_meta`` (a scan of the
-        checkpoints for MAX(gen) reads every row's pages: ~0.2 s at 100,000 segments, per
-        slice); a file written before that row existed is scanned once."""
+        checkpoints for MAX(gen) reads every row's pages: an estimated ~0.2 s a slice at
+        100,000 segments); a file written before that row existed is scanned once."""
         row = self._db.execute("SELECT value FROM checkpoint_meta WHERE name = 'gen'").fetchone()
         if row is not None:
             return row[0]

@@ -20,7 +20,7 @@ import logging
 import signal
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from types import FrameType
 from typing import Any, Protocol, Self, TypeVar
 
@@ -382,6 +382,15 @@ class ServiceRuntime:
             subscriber = self.session.declare_subscriber(key, handler, **kwargs)
         self._subscribers.append(subscriber)
         return subscriber
+
+    def ask(self, selector: str, timeout: float) -> Iterator[tuple[str, bytes]]:
+        """``(key, payload)`` of every reply to a start-up query (ends when all replied or at
+        ``timeout``); an error reply is logged and skipped: it must not stop the service."""
+        for reply in self.session.get(selector, timeout=timeout):
+            if reply.ok is None:
+                log.warning("%s: error reply %r", selector, reply.err.payload.to_bytes()[:200])
+                continue
+            yield str(reply.ok.key_expr), reply.ok.payload.to_bytes()
 
     def declare_queryable(self, key: str, handler: Any = None, **kwargs: Any) -> zenoh.Queryable:
         """A queryable; a callback handler may reply directly (keep it short)."""

@@ -269,13 +269,9 @@ class ViewerAdapter:
         or past filtering's cached publishers, would stay grey until then). A reply that
         does not decode or disagrees with its key is a dead letter."""
         ns = self.rt.ns
-        for reply in self.rt.session.get(keys.q_state_all(ns), timeout=STATE_QUERY_TIMEOUT_S):
+        for key, payload in self.rt.ask(keys.q_state_all(ns), STATE_QUERY_TIMEOUT_S):
             if self.rt.stopping:
                 return
-            if reply.ok is None:
-                log.warning("q/state: error reply %r", reply.err.payload.to_bytes()[:200])
-                continue
-            key, payload = str(reply.ok.key_expr), reply.ok.payload.to_bytes()
             try:
                 line, segment = keys.parse_q_state(key)
                 self._accept("state", SegmentState, keys.state(ns, line, segment), payload)

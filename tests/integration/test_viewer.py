@@ -51,19 +51,11 @@ class Logged:
         assert ok, f"viewer logged {self.total} messages, expected {n}"
 
 
-def test_viewer_records_published_messages(
-    open_session, service_config, liveliness_events, collector, until_matched, tmp_path: Path
-):
-    ns = service_config.ns
-    rrd = tmp_path / "viewer.rrd"
-    line = demo_network().lines["L2"]
-    seg, hot, picked = line.segments[1].id, line.segments[7].id, line.segments[20].id
-    lon, lat = map(float, line.lonlat_at(line.segments[1].mid_m))
-    client = open_session()
-    dead = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
-    client.declare_subscriber(keys.deadletter(ns, viewer.SERVICE), dead)
-    alive = liveliness_events(client, keys.alive(ns, viewer.SERVICE, "test"))
-
+def start_viewer(
+    service_config, rrd: Path
+) -> tuple[threading.Thread, threading.Event, list, Logged]:
+    """``viewer.main`` on the demo network in a thread, recording to ``rrd``: the thread,
+    its stop event, the list its exit code lands in, and its ``on_logged`` counter."""
     logged, stop, result = Logged(), threading.Event(), []
     thread = threading.Thread(
         target=lambda: result.append(
@@ -79,6 +71,32 @@ def test_viewer_records_published_messages(
         name="viewer-under-test",
     )
     thread.start()
+    return thread, stop, result, logged
+
+
+def rows(contents: dict, pattern: str, column: str = "Scalars:scalars") -> int:
+    """How many values of ``column`` the recording's entities matching ``pattern`` hold."""
+    return sum(
+        columns.get(column, 0)
+        for entity, columns in contents.items()
+        if re.fullmatch(pattern, entity)
+    )
+
+
+def test_viewer_records_published_messages(
+    open_session, service_config, liveliness_events, collector, until_matched, tmp_path: Path
+):
+    ns = service_config.ns
+    rrd = tmp_path / "viewer.rrd"
+    line = demo_network().lines["L2"]
+    seg, hot, picked = line.segments[1].id, line.segments[7].id, line.segments[20].id
+    lon, lat = map(float, line.lonlat_at(line.segments[1].mid_m))
+    client = open_session()
+    dead = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
+    client.declare_subscriber(keys.deadletter(ns, viewer.SERVICE), dead)
+    alive = liveliness_events(client, keys.alive(ns, viewer.SERVICE, "test"))
+
+    thread, stop, result, logged = start_viewer(service_config, rrd)
     try:
         assert alive.get() == (PUT, keys.alive(ns, viewer.SERVICE, "test"))
         messages = {
@@ -157,19 +175,14 @@ def test_viewer_records_published_messages(
     verify_rrd(rrd)
     contents = rrd_contents(rrd)
 
-    def rows(pattern: str, column: str = "Scalars:scalars") -> int:
-        return sum(
-            columns.get(column, 0)
-            for entity, columns in contents.items()
-            if re.fullmatch(pattern, entity)
-        )
-
     for indicator in ("top6", "align10"):
         # three segments, three worst rows: seg's 3 days, hot's one, picked's 2
-        assert rows(rf"worst/\d/{indicator}/g\d+/state") == 3 + 1 + 2
-        assert rows(rf"worst/\d/{indicator}/g\d+/onboard") == 1
-        assert rows(rf"worst/\d/{indicator}/g\d+/trc") == 1
-        assert rows(rf"selected/{indicator}/g\d+/state") == 2  # the selected segment's history
+        assert rows(contents, rf"worst/\d/{indicator}/g\d+/state") == 3 + 1 + 2
+        assert rows(contents, rf"worst/\d/{indicator}/g\d+/onboard") == 1
+        assert rows(contents, rf"worst/\d/{indicator}/g\d+/trc") == 1
+        assert (
+            rows(contents, rf"selected/{indicator}/g\d+/state") == 2
+        )  # the selected segment's history
     assert contents["map/segments"]["LineStrips2D:strips"] == 1  # the network, static
     assert contents["map/segments"]["LineStrips2D:colors"] >= 2  # grey, then coloured
     assert contents["map/trains"]["Points2D:positions"] == 1
@@ -212,22 +225,8 @@ def test_viewer_takes_every_segments_newest_state_from_q_state_at_start(
         query.reply(keys.q_state(ns, "L9", "s1"), encode(nowhere))
 
     queryable = client.declare_queryable(keys.q_state_all(ns), answer)
-    logged, stop, result = Logged(), threading.Event(), []
     rrd = tmp_path / "viewer.rrd"
-    thread = threading.Thread(
-        target=lambda: result.append(
-            viewer.main(
-                service_config,
-                DEMO_NETWORK,
-                viewer.Sink("rrd", path=rrd),
-                stop=stop,
-                handle_signals=False,
-                on_logged=logged,
-            )
-        ),
-        name="viewer-under-test",
-    )
-    thread.start()
+    thread, stop, result, logged = start_viewer(service_config, rrd)
     try:
         logged.wait_for(1)
         letter = dead.get()
@@ -237,11 +236,4 @@ def test_viewer_takes_every_segments_newest_state_from_q_state_at_start(
         thread.join(TIMEOUT_S)
         queryable.undeclare()
     assert not thread.is_alive() and result == [0]
-    assert (
-        sum(
-            columns.get("Scalars:scalars", 0)
-            for entity, columns in rrd_contents(rrd).items()
-            if re.fullmatch(r"worst/\d/top6/g\d+/state", entity)
-        )
-        == 1
-    )
+    assert rows(rrd_contents(rrd), r"worst/\d/top6/g\d+/state") == 1

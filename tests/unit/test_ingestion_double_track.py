@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from schemas import GpsFix, PositionedChunk, RawChunk
+from schemas import GpsFix, RawChunk
 from services.ingestion.config import IngestionConfig
-from services.ingestion.core import IngestionCore, Rejection
+from services.ingestion.core import IngestionCore
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
-from tests.unit.test_ingestion_core import T0, chunk
+from tests.unit.test_ingestion_core import T0, chunk, positioned, rejections
 from track.network import Network
 from track.osm import import_osm
 
@@ -45,14 +45,6 @@ def train_on(network: Network, line_id: str, seconds: int, *, at_m: float, direc
         events.append(chunk(k))
         events += sim.gps_fixes(T0 + k, T0 + k + 1)
     return sim, events
-
-
-def positioned(outputs) -> list[PositionedChunk]:
-    return [o for o in outputs if isinstance(o, PositionedChunk)]
-
-
-def rejections(outputs) -> list[Rejection]:
-    return [o for o in outputs if isinstance(o, Rejection)]
 
 
 def test_the_fixture_tracks_are_closer_than_gps_can_tell_apart():
