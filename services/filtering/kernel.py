@@ -5,8 +5,12 @@ evaluation instead of numpy temporaries.
 
 The tracker's fold spends nearly all its time in the index step (predict, the CUSUM score,
 update, log-likelihood, NIS) over ``rows x Ns`` filters. Written with numpy that step is
-~25 array passes over temporaries per block; here it is one loop that keeps each filter's
-numbers in registers, so a segment's ``Ns`` filters cost what their arithmetic costs.
+~25 array passes over temporaries per block; here a row's samples are copied into
+contiguous scratch rows and stepped by one loop without calls or sums, which the compiler
+turns into vector instructions (8 samples at a time with AVX-512; ``exp`` and ``log`` are
+:mod:`.vecmath`'s, written out for that), then the weighted sums run in one sequential
+pass. 14 ns a sample-update on one core here, 28 ns as one scalar loop with the C
+library's ``exp``/``log`` (``error_model="numpy"``: no zero-division checks in the loop).
 
 Per segment row ``r`` (time step :math:`\Delta t` days since its last event, observation
 :math:`y`, model :math:`H, b, R`, weights :math:`w_j \propto e^{\log w_j}` before the update)
@@ -48,13 +52,26 @@ import threading
 import numba
 import numpy as np
 
+from services.filtering.vecmath import exp_nonpositive, log_normal
+
 DAY_S = 86_400.0
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"contract"}, inline="always")
-def _step_row(r, z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score):
-    """One row of :func:`index_step` (inlined into both compiled loops: the same code)."""
+_SCRATCH = 10  # per-sample temporaries of a row (see _step_row)
+_ROWS_PER_TASK = 16  # rows a parallel task steps with one scratch allocation
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", inline="always")
+def _step_row(
+    r, z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score, tmp
+):
+    """One row of :func:`index_step` (inlined into both compiled loops: the same code).
+
+    The samples are copied into the contiguous rows of ``tmp`` (10, Ns) first, so that the
+    filter loop, ``exp`` and ``log`` (:mod:`.vecmath`) run over Ns lanes at a time; the
+    weighted sums stay sequential in ``j``, in a fixed order.
+    """
     ns = z.shape[1]
     h00, h01, h10, h11 = H[0, 0], H[0, 1], H[1, 0], H[1, 1]
     r00, r01, r11 = R[0, 0], R[0, 1], R[1, 1]
@@ -62,34 +79,29 @@ def _step_row(r, z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, ni
     hs0, hs1 = h00 + h10, h01 + h11  # h = H^T 1
     r_sum = r00 + r01 + R[1, 0] + r11  # 1^T R 1
     b_sum = b0 + b1
-    w = np.empty(ns)
     row = rows[r]
     g = group[r]
     dt = (t_new[r] - t_s[row]) / DAY_S
     y0, y1 = y[r, 0], y[r, 1]
     y_sum = y0 + y1
+    a0, a1, b00, b01, b11 = tmp[0], tmp[1], tmp[2], tmp[3], tmp[4]  # z, P of the samples
+    w, us, vs, nis_s, log_det = tmp[5], tmp[6], tmp[7], tmp[8], tmp[9]
+    for j in range(ns):  # predict: z + mu dt, P + Sigma dt
+        a0[j] = z[row, j, 0] + mu[g, j, 0] * dt
+        a1[j] = z[row, j, 1] + mu[g, j, 1] * dt
+        b00[j] = P[row, j, 0, 0] + sigma[g, j, 0, 0] * dt
+        b01[j] = P[row, j, 0, 1] + sigma[g, j, 0, 1] * dt
+        b11[j] = P[row, j, 1, 1] + sigma[g, j, 1, 1] * dt
     top = -np.inf
     for j in range(ns):
         top = max(top, log_w[row, j])
-    total = 0.0
     for j in range(ns):
-        w[j] = math.exp(log_w[row, j] - top)
-        total += w[j]
-    mean_u = 0.0
-    second = 0.0
-    nis_mean = 0.0
+        w[j] = exp_nonpositive(log_w[row, j] - top)
     for j in range(ns):
-        wj = w[j] / total
-        z0 = z[row, j, 0] + mu[g, j, 0] * dt
-        z1 = z[row, j, 1] + mu[g, j, 1] * dt
-        p00 = P[row, j, 0, 0] + sigma[g, j, 0, 0] * dt
-        p01 = P[row, j, 0, 1] + sigma[g, j, 0, 1] * dt
-        p11 = P[row, j, 1, 1] + sigma[g, j, 1, 1] * dt
+        z0, z1, p00, p01, p11 = a0[j], a1[j], b00[j], b01[j], b11[j]
         # the CUSUM score's moments on the prediction
-        u = y_sum - (z0 * hs0 + z1 * hs1 + b_sum)
-        v = (p00 * hs0 + p01 * hs1) * hs0 + (p01 * hs0 + p11 * hs1) * hs1 + r_sum
-        mean_u += wj * u
-        second += wj * (v + u * u)
+        us[j] = y_sum - (z0 * hs0 + z1 * hs1 + b_sum)
+        vs[j] = (p00 * hs0 + p01 * hs1) * hs0 + (p01 * hs0 + p11 * hs1) * hs1 + r_sum
         # M = P H^T, S = H M + R
         m00 = p00 * h00 + p01 * h01
         m01 = p00 * h10 + p01 * h11
@@ -106,9 +118,10 @@ def _step_row(r, z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, ni
         k11 = (m11 * s00 - m10 * s01) / det
         v0 = y0 - (h00 * z0 + h01 * z1 + b0)
         v1 = y1 - (h10 * z0 + h11 * z1 + b1)
-        nis_j = (s11 * v0 * v0 - 2.0 * s01 * v0 * v1 + s00 * v1 * v1) / det
-        z[row, j, 0] = z0 + k00 * v0 + k01 * v1
-        z[row, j, 1] = z1 + k10 * v0 + k11 * v1
+        nis_s[j] = (s11 * v0 * v0 - 2.0 * s01 * v0 * v1 + s00 * v1 * v1) / det
+        log_det[j] = log_normal(det)
+        a0[j] = z0 + k00 * v0 + k01 * v1
+        a1[j] = z1 + k10 * v0 + k11 * v1
         # Joseph form with A = I - K H, C = K R
         a00 = 1.0 - (k00 * h00 + k01 * h10)
         a01 = -(k00 * h01 + k01 * h11)
@@ -122,15 +135,33 @@ def _step_row(r, z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, ni
         ap01 = a00 * p01 + a01 * p11
         ap10 = a10 * p00 + a11 * p01
         ap11 = a10 * p01 + a11 * p11
-        q00 = ap00 * a00 + ap01 * a01 + c00 * k00 + c01 * k01
-        q01 = ap00 * a10 + ap01 * a11 + c00 * k10 + c01 * k11
-        q11 = ap10 * a10 + ap11 * a11 + c10 * k10 + c11 * k11
-        P[row, j, 0, 0] = q00
-        P[row, j, 0, 1] = q01
-        P[row, j, 1, 0] = q01
-        P[row, j, 1, 1] = q11
-        log_w[row, j] += -0.5 * (nis_j + math.log(det) + 2.0 * _LOG_2PI)
-        nis_mean += wj * nis_j
+        b00[j] = ap00 * a00 + ap01 * a01 + c00 * k00 + c01 * k01
+        b01[j] = ap00 * a10 + ap01 * a11 + c00 * k10 + c01 * k11
+        b11[j] = ap10 * a10 + ap11 * a11 + c10 * k10 + c11 * k11
+    for j in range(ns):
+        log_w[row, j] += -0.5 * (nis_s[j] + log_det[j] + 2.0 * _LOG_2PI)
+    # the weighted sums: four independent chains in one pass, normalised after
+    total = 0.0
+    mean_u = 0.0
+    second = 0.0
+    nis_mean = 0.0
+    for j in range(ns):
+        wj = w[j]
+        u = us[j]
+        total += wj
+        mean_u += wj * u
+        second += wj * (vs[j] + u * u)
+        nis_mean += wj * nis_s[j]
+    mean_u /= total
+    second /= total
+    nis_mean /= total
+    for j in range(ns):  # P is kept exactly symmetric
+        z[row, j, 0] = a0[j]
+        z[row, j, 1] = a1[j]
+        P[row, j, 0, 0] = b00[j]
+        P[row, j, 0, 1] = b01[j]
+        P[row, j, 1, 0] = b01[j]
+        P[row, j, 1, 1] = b11[j]
     var = second - mean_u * mean_u
     score[r] = mean_u / math.sqrt(max(var, 1e-300))
     if nis_rows[r]:
@@ -138,16 +169,22 @@ def _step_row(r, z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, ni
     t_s[row] = t_new[r]
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"contract"})
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def _index_step_serial(z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s):
+    tmp = np.empty((_SCRATCH, z.shape[1]))
     for r in range(rows.shape[0]):
-        _step_row(r, z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s)
+        _step_row(r, z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s, tmp)
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"contract"}, parallel=True)
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", parallel=True)
 def _index_step_parallel(z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s):
-    for r in numba.prange(rows.shape[0]):
-        _step_row(r, z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s)
+    k = rows.shape[0]
+    for task in numba.prange((k + _ROWS_PER_TASK - 1) // _ROWS_PER_TASK):
+        tmp = np.empty((_SCRATCH, z.shape[1]))
+        for r in range(task * _ROWS_PER_TASK, min(k, (task + 1) * _ROWS_PER_TASK)):
+            _step_row(
+                r, z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s, tmp
+            )
 
 
 PARALLEL_ROWS = 256  # from this many rows a step is spread over the cores
