@@ -1,7 +1,7 @@
 r"""The compiled (numba) loops of the filter: the on-board index step of the filter bank,
 one pass over each filter, and the mixture summary's quantiles and exceedances
-(:func:`mixture_quantile`, :func:`mixture_survival`), one pass over the components per
-evaluation instead of numpy temporaries.
+(:func:`mixture_quantile`, :func:`mixture_survival`), one vectorised pass over the
+components per evaluation (:func:`.vecmath.ndtr`) instead of numpy temporaries.
 
 The tracker's fold spends nearly all its time in the index step (predict, the CUSUM score,
 update, log-likelihood, NIS) over ``rows x Ns`` filters. Written with numpy that step is
@@ -52,7 +52,7 @@ import threading
 import numba
 import numpy as np
 
-from services.filtering.vecmath import exp_nonpositive, log_normal
+from services.filtering.vecmath import exp_nonpositive, log_normal, ndtr
 
 DAY_S = 86_400.0
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -215,17 +215,10 @@ def index_step(z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_
 
 # --- the mixture quantile (services.filtering.mixture._mixture_quantile) -----------------
 
-_SQRT1_2 = math.sqrt(0.5)
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _ndtr(u):
-    r""":math:`\Phi(u) = \tfrac12 \operatorname{erfc}(-u / \sqrt 2)`."""
-    return 0.5 * math.erfc(-u * _SQRT1_2)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, inline="always", error_model="numpy")
 def _quantile_row(i, q, z_q, m, s, w, weighted, tail, tol, max_iter, out):
     """One row of :func:`mixture_quantile` (inlined into both compiled loops)."""
     ns = m.shape[1]
@@ -263,27 +256,26 @@ def _quantile_row(i, q, z_q, m, s, w, weighted, tail, tol, max_iter, out):
             rank = max(int(math.ceil(q[i] * ns - 1e-12)) - 1, 0)
         out[i] = m[i, order[rank]]
         return
+    cs, ps, dps = np.empty(ns), np.empty(ns), np.empty(ns)
     for _ in range(max_iter):
+        for j in range(ns):  # no calls, no sums: vectorised
+            sj = s[i, j]
+            u = (x - m[i, j]) / sj
+            p = exp_nonpositive(-0.5 * u * u) / (_SQRT_2PI * sj)
+            point = sj == 0.0  # a point mass: an exact step
+            cs[j] = (1.0 if x >= m[i, j] else 0.0) if point else ndtr(u)
+            ps[j] = 0.0 if point else p
+            dps[j] = 0.0 if point else -p * u / sj  # d pdf / dx
         cdf, pdf, slope = 0.0, 0.0, 0.0
         for j in range(ns):
-            sj = s[i, j]
-            if sj == 0.0:  # a point mass: an exact step
-                c = 1.0 if x >= m[i, j] else 0.0
-                p = 0.0
-                dp = 0.0
-            else:
-                u = (x - m[i, j]) / sj
-                c = _ndtr(u)
-                p = math.exp(-0.5 * u * u) / (_SQRT_2PI * sj)
-                dp = -p * u / sj  # d pdf / dx
             if weighted:
-                cdf += w[i, j] * c
-                pdf += w[i, j] * p
-                slope += w[i, j] * dp
+                cdf += w[i, j] * cs[j]
+                pdf += w[i, j] * ps[j]
+                slope += w[i, j] * dps[j]
             else:
-                cdf += c
-                pdf += p
-                slope += dp
+                cdf += cs[j]
+                pdf += ps[j]
+                slope += dps[j]
         if not weighted:
             cdf /= ns
             pdf /= ns
@@ -306,13 +298,13 @@ def _quantile_row(i, q, z_q, m, s, w, weighted, tail, tol, max_iter, out):
     out[i] = x
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def _quantile_serial(q, z_q, m, s, w, weighted, tail, tol, max_iter, out):
     for i in range(m.shape[0]):
         _quantile_row(i, q, z_q, m, s, w, weighted, tail, tol, max_iter, out)
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", parallel=True)
 def _quantile_parallel(q, z_q, m, s, w, weighted, tail, tol, max_iter, out):
     for i in numba.prange(m.shape[0]):
         _quantile_row(i, q, z_q, m, s, w, weighted, tail, tol, max_iter, out)
@@ -348,17 +340,19 @@ def mixture_quantile(q, z_q, m, s, w, tail: float, tol: float, max_iter: int) ->
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def _survival(x, rows, m, s, w, weighted, out):
     ns = m.shape[1]
+    cs = np.empty(ns)
     for k in range(x.shape[0]):
         i = rows[k]
+        for j in range(ns):  # vectorised; a point mass (sj = 0) is an exact step
+            sj = s[i, j]
+            c = ndtr((m[i, j] - x[k]) / sj)
+            cs[j] = c if sj != 0.0 else (1.0 if x[k] < m[i, j] else 0.0)
         total = 0.0
         for j in range(ns):
-            sj = s[i, j]
-            # a point mass (sj = 0) is an exact step
-            c = _ndtr((m[i, j] - x[k]) / sj) if sj != 0.0 else (1.0 if x[k] < m[i, j] else 0.0)
-            total += w[i, j] * c if weighted else c
+            total += w[i, j] * cs[j] if weighted else cs[j]
         if not weighted:
             total /= ns
         out[k] = min(max(total, 0.0), 1.0)  # weights sum to 1 only up to round-off

@@ -1,5 +1,5 @@
-"""The filter's vectorisable exp and log (services/filtering/vecmath.py) against the C
-library's, over the ranges the filter uses them on."""
+"""The filter's vectorisable exp, log and normal CDF (services/filtering/vecmath.py) against
+the C library's and scipy's, over the ranges the filter uses them on."""
 
 from __future__ import annotations
 
@@ -7,8 +7,9 @@ import math
 
 import numba
 import numpy as np
+import scipy.special
 
-from services.filtering.vecmath import exp_nonpositive, log_normal
+from services.filtering.vecmath import exp_nonpositive, log_normal, ndtr
 
 
 @numba.njit(fastmath={"contract"}, error_model="numpy")
@@ -55,3 +56,23 @@ def test_log_within_one_ulp_of_libm_on_normal_numbers():
     want = np.array([math.log(v) for v in x])
     assert _ulps(got, want).max() <= 1.0
     assert got[-9] == 0.0  # log 1 exactly
+
+
+@numba.njit(fastmath={"contract"}, error_model="numpy")
+def _ndtr_all(x, out):
+    for i in range(x.shape[0]):
+        out[i] = ndtr(x[i])
+
+
+def test_normal_cdf_close_to_scipy_everywhere_and_in_the_lower_tail():
+    rng = np.random.default_rng(5)
+    x = np.concatenate([rng.normal(size=300_000) * 4, np.linspace(-38.0, 38.0, 76_001)])
+    got = np.empty_like(x)
+    _ndtr_all(x, got)
+    want = scipy.special.ndtr(x)
+    assert np.abs(got - want).max() <= 4e-16
+    tail = (x < 0) & (want > 0)  # relative, down to 1e-300 and below
+    assert (np.abs(got[tail] - want[tail]) / want[tail]).max() <= 2e-13
+    edges = np.array([-np.inf, 0.0, np.inf])
+    _ndtr_all(edges, out := np.empty(3))
+    assert out.tolist() == [0.0, 0.5, 1.0]
