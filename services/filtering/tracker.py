@@ -85,6 +85,7 @@ from __future__ import annotations
 
 import bisect
 import json
+import math
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Mapping, MutableMapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -162,14 +163,20 @@ def event_of(msg: EventMessage) -> Event:
     """The core's event for a decoded message."""
     match msg:
         case OnboardIndex():
-            y = np.log([msg.top6_mm, msg.align10_mm])
-            return Event(INDEX, msg.t, ("index", msg.train, msg.unit, msg.t), y, msg)
+            return index_event(msg)
         case TrcRecord():
             z = np.log([msg.top6_mm, msg.align10_mm])
             return Event(RESTART, msg.t, ("trc", msg.run_id, msg.t), z, msg)
         case MaintenanceEvent():
             return Event(TAMPING, tamping_time(msg), ("maintenance", msg.event_id), None, msg)
     raise TypeError(f"not a segment event: {type(msg).__name__}")
+
+
+def index_event(msg: Any) -> Event:
+    """The core's event of an OnboardIndex, or of a stored one decoded without its checks
+    (:func:`services.filtering.store._stored_events`): anything with its fields."""
+    y = np.array((math.log(msg.top6_mm), math.log(msg.align10_mm)))
+    return Event(INDEX, msg.t, ("index", msg.train, msg.unit, msg.t), y, msg)
 
 
 @dataclass(frozen=True)

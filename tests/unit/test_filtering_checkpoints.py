@@ -5,12 +5,19 @@ from __future__ import annotations
 
 import logging
 
+import msgspec
 import numpy as np
 import pytest
 
-from schemas import TrcRecord, encode
+from schemas import OnboardIndex, TrcRecord, encode
 from services.filtering import tracker as tracker_module
-from services.filtering.store import PersistentTracker, Store, pack_state, unpack_state
+from services.filtering.store import (
+    PersistentTracker,
+    Store,
+    StoredIndex,
+    pack_state,
+    unpack_state,
+)
 from services.filtering.tracker import Filtered
 from tests.unit.test_filtering_tracker import (
     MODELS,
@@ -357,3 +364,33 @@ def test_the_write_ahead_log_is_copied_back_by_a_thread_not_by_the_commits(tmp_p
     finally:
         store.close()
     assert not store.wal_checkpoints._thread.is_alive()
+
+
+def test_stored_indices_decode_without_the_message_checks_but_not_into_the_fold(tmp_path, caplog):
+    """A stored index decodes into the unchecked twin (same fields as the message); a row the
+    fold cannot use (index not positive, unknown schema version) is skipped with a warning,
+    never folded, and the segment's other events replay as before."""
+    assert msgspec.structs.fields(StoredIndex) == msgspec.structs.fields(OnboardIndex)
+    db = tmp_path / "f.sqlite"
+    first = node_on(db, max_loaded=0)
+    kept = [trc(0.0), index(3.0, 2.2, 2.0), index(6.0, 2.3, 2.1)]
+    first.handle_batch([keyed(m) for m in [*MODELS, *kept]])
+    first.close()
+    bad = {9.0: {"top6_mm": -1.0}, 12.0: {"v": 99}}
+    for day, change in bad.items():
+        msg = index(day, 2.0, 2.0)
+        first.store.add_event(
+            line="L1",
+            segment="s1",
+            kind="index",
+            key=keyed(msg)[0],
+            identity=("index", msg.train, msg.unit, msg.t),
+            t=msg.t,
+            payload=msgspec.msgpack.encode(msgspec.to_builtins(msg) | change),
+        )
+    first.store.delete_checkpoint("L1", "s1")
+
+    with caplog.at_level(logging.WARNING):
+        node, states, _loader = restarted(db)
+    assert caplog.text.count("no longer decodes") == 2
+    assert_restored(node, states, run([*MODELS, *kept])[0])
