@@ -617,7 +617,9 @@ def _fold_many(starts, logs, params, obs, halt_cusum: float | None = None, copy=
     row is a sum over its own samples. ``copy``: each state owns its arrays
     (:meth:`_Banks.state`).
     """
-    obs_for = obs.observation_for_event if isinstance(obs, Models) else (lambda _e: obs)
+    # one model for every index (no unit has its own): no per-event look-up
+    per_unit = isinstance(obs, Models) and bool(obs.unit_observations)
+    shared = obs.observation if isinstance(obs, Models) else obs
     size = len(logs)
     if size == 0:
         return [], []
@@ -630,20 +632,26 @@ def _fold_many(starts, logs, params, obs, halt_cusum: float | None = None, copy=
     obs_ids = np.full((size, depth), -1, dtype=np.int32)  # an index's model in ``observations``
     observations: list[ObservationModel] = []
     known: dict[int, int] = {}
+    zero = np.zeros(n)
     for row, i in enumerate(order):
         log = logs[i]
         kinds[row, : len(log)] = [e.kind for e in log]
         times[row, : len(log)] = [e.t_s for e in log]
+        if log:
+            values[row, : len(log)] = [zero if e.value is None else e.value for e in log]
+        if not per_unit:
+            continue
         for k, e in enumerate(log):
-            if e.value is not None:
-                values[row, k] = e.value
             if e.kind == INDEX:
-                model = obs_for(e)
+                model = obs.observation_for_event(e)
                 if model is not None:
                     if id(model) not in known:
                         known[id(model)] = len(observations)
                         observations.append(model)
                     obs_ids[row, k] = known[id(model)]
+    if not per_unit and shared is not None:
+        observations.append(shared)
+        obs_ids[kinds == INDEX] = 0
     banks = _Banks([starts[i] for i in order], ns, n)
     rows_params = _RowParams([params[i] for i in order])
     lengths = np.array([len(logs[i]) for i in order])
