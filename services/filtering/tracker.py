@@ -89,7 +89,7 @@ import math
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Mapping, MutableMapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -132,9 +132,11 @@ EventMessage = OnboardIndex | TrcRecord | MaintenanceEvent
 ModelMessage = Calibration | DegradationPosterior
 
 
-@dataclass(frozen=True)
-class Event:
-    """One segment event in the core's terms; ``order`` is its canonical sort key."""
+class Event(NamedTuple):
+    """One segment event in the core's terms; ``order`` is its canonical sort key.
+
+    A named tuple (immutable, compared field by field like a frozen dataclass): a re-run
+    makes one per stored event, and a tuple is made in a third of a dataclass's time."""
 
     kind: int  # RESTART, TAMPING or INDEX
     t_s: float  # epoch s of the event (a tamping's assumed time)
