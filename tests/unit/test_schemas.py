@@ -599,3 +599,20 @@ def test_an_id_refused_stays_refused_after_valid_ones_were_seen():
         assert decode(_gps(train="T1"), GpsFix).train == "T1"
         with pytest.raises(SchemaError, match="whitespace or control"):
             decode(_gps(train="T 1"), GpsFix)
+
+
+@pytest.mark.parametrize("dtype", ["f4", "f8"])
+@pytest.mark.parametrize("size", [1, 8, 127, 128, 129, 5000])  # around the small-array sum
+def test_an_array_with_nan_or_inf_anywhere_is_refused_and_huge_finite_ones_are_not(dtype, size):
+    rng = np.random.default_rng(size)
+    huge = np.finfo(np.float32 if dtype == "f4" else np.float64).max
+    assert NDArray.of(np.full(size, huge), dtype).shape == [size]  # the sum overflows: finite
+    for bad in (np.nan, np.inf, -np.inf):
+        values = rng.random(size)
+        values[rng.integers(size)] = bad
+        with pytest.raises(SchemaError, match="NaN or inf"):
+            NDArray.of(values, dtype)
+    mixed = np.full(size, huge)
+    mixed[-1] = -np.inf if size > 1 else np.nan
+    with pytest.raises(SchemaError, match="NaN or inf"):
+        NDArray.of(mixed, dtype)
