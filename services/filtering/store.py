@@ -907,7 +907,7 @@ class PersistentTracker:
             _order_json(rest.last_order),
             rest.trc_t,
             rest.group,
-            models_key(self.tracker.models, *sid),
+            models_key(self.tracker.models, *sid, rest.units),
             None if state is None else pack_state(state),
             None if summary is None else encode(summary),
         )

@@ -745,23 +745,49 @@ class Checkpoint:
     group: str | None
     last_order: tuple[float, int, tuple[Any, ...]] | None
     models_key: str = ""
+    # the (train, unit) of every index in the log ``state`` folds (or more); None: unknown
+    units: frozenset[tuple[str, str]] | None = None
 
 
-def models_key(models: Models, line: str, segment: str) -> str:
-    """The versions of the models a segment's fold uses: the fleet calibration, every unit
-    calibration (conservatively: a segment's units are not known without its log), its
-    posterior group and that group's version. Two folds of one log with equal keys are
-    the same bits."""
+def log_units(log: Iterable[Event]) -> frozenset[tuple[str, str]]:
+    """The ``(train, unit)`` of the indices of a log: whose calibrations its fold reads."""
+    return frozenset((e.message.train, e.message.unit) for e in log if e.kind == INDEX)
+
+
+def models_key(
+    models: Models, line: str, segment: str, units: Iterable[tuple[str, str]] | None = None
+) -> str:
+    """The versions of the models a segment's fold uses: the fleet calibration, the
+    calibration of each of the log's ``units`` (0: the unit has none of its own; None:
+    every unit calibration held, when the log's units are not known), its posterior group
+    and that group's version. Two folds of one log with equal keys are the same bits."""
     group = models.group_for(line, segment)
-    units = sorted([*unit, cal.version] for unit, cal in models.unit_calibrations.items())
+    if units is None:
+        versions = sorted([*unit, cal.version] for unit, cal in models.unit_calibrations.items())
+    else:
+        held = models.unit_calibrations
+        versions = sorted([*unit, held[unit].version if unit in held else 0] for unit in units)
     return json.dumps(
-        [
-            models.calibration.version if models.calibration else 0,
-            units,
-            group,
-            models.posteriors[group].version if group is not None else 0,
-        ]
+        {
+            "calibration": models.calibration.version if models.calibration else 0,
+            "units": versions,
+            "known_units": units is not None,
+            "group": group,
+            "posterior": models.posteriors[group].version if group is not None else 0,
+        }
     )
+
+
+def key_units(key: str) -> frozenset[tuple[str, str]] | None:
+    """The log's units a :func:`models_key` was written for (None: not known, or a key
+    written before they were kept: it matches no current key, so its segment replays)."""
+    try:
+        parsed = json.loads(key)
+    except ValueError:
+        return None
+    if not isinstance(parsed, dict) or parsed.get("known_units") is not True:
+        return None
+    return frozenset((train, unit) for train, unit, _version in parsed["units"])
 
 
 LogLoader = Callable[[str, str], tuple[tuple[Event, ...], float | None]]
@@ -848,7 +874,17 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
             hist.state,
             hist.group,
             hist.log[-1].order if hist.log else None,
+            units=log_units(hist.log),
         )
+
+    def units(self, sid: SegmentId) -> frozenset[tuple[str, str]]:
+        """The ``(train, unit)`` whose indices the segment's log holds (or a superset),
+        reading the log only when a resting segment does not know them."""
+        hist = self._loaded.get(sid)
+        if hist is not None:
+            return log_units(hist.log)
+        units = self._resting[sid].units
+        return log_units(self.load(sid).log) if units is None else units
 
     def is_loaded(self, sid: SegmentId) -> bool:
         return sid in self._loaded
@@ -889,7 +925,10 @@ def _rested(ckpt: Checkpoint, state, group, tail: Sequence[Event]) -> Checkpoint
     if ckpt.trc_t is not None:
         restarts.append(ckpt.trc_t)
     trc_t = max(restarts, default=None)
-    return replace(ckpt, trc_t=trc_t, state=state, group=group, last_order=tail[-1].order)
+    units = None if ckpt.units is None else ckpt.units | log_units(tail)  # a superset is safe
+    return replace(
+        ckpt, trc_t=trc_t, state=state, group=group, last_order=tail[-1].order, units=units
+    )
 
 
 def _evolve(hist: SegmentHistory, **changes: Any) -> SegmentHistory:
@@ -901,10 +940,6 @@ def _evolve(hist: SegmentHistory, **changes: Any) -> SegmentHistory:
     new.__dict__.update(hist.__dict__)
     new.__dict__.update(changes)
     return new
-
-
-def _has_index_of(log: Sequence[Event], units: set[tuple[str, str]]) -> bool:
-    return any(e.kind == INDEX and (e.message.train, e.message.unit) in units for e in log)
 
 
 def _publishable(log: Sequence[Event], models: Models, started=False) -> bool:
@@ -1295,7 +1330,7 @@ class Tracker:
             for sid in self.histories
             if calibrated
             or models.group_for(*sid) in groups
-            or (units and _has_index_of(self.histories.load(sid).log, units))
+            or (units and not units.isdisjoint(self.histories.units(sid)))
         ]
         accepted = [msg for msg in msgs if newest.get(model_name(msg)) is msg]
         try:
@@ -1374,7 +1409,9 @@ class Tracker:
         ``checkpoints``: each segment's last checkpoint; ``tails``: per segment, the stored
         events its checkpoint does not cover; ``replay``: segments without a usable
         checkpoint (replayed from the log start, read through the loader). A checkpoint
-        folded with other models than the current ones (:func:`models_key`), or followed
+        folded with other models than the current ones (:func:`models_key` over the units
+        its key names: a calibration of a unit its log does not read leaves it valid), or
+        one written without its log's units, or followed
         by an event that sorts before its last one (a late event), is replayed from the
         log start too; one followed by newer events only is folded on over them (one
         :func:`fold_many` for all), which is the fold of the whole log, bit for bit.
@@ -1388,10 +1425,14 @@ class Tracker:
         on: list[tuple[SegmentId, Checkpoint, tuple[Event, ...]]] = []
         for ckpt in checkpoints:
             sid = (ckpt.line, ckpt.segment)
+            units = key_units(ckpt.models_key)  # the units of its log, as written
+            ckpt = replace(ckpt, units=units)
             self.histories.rest(sid, ckpt)
             tail = sorted(tails.get(sid, ()), key=lambda e: e.order)
-            if ckpt.models_key != models_key(self.models, *sid) or (
-                tail and ckpt.last_order is not None and tail[0].order <= ckpt.last_order
+            if (
+                units is None
+                or ckpt.models_key != models_key(self.models, *sid, units)
+                or (tail and ckpt.last_order is not None and tail[0].order <= ckpt.last_order)
             ):
                 full.add(sid)
             elif tail:
@@ -1469,7 +1510,9 @@ class Tracker:
                     out[sid] = hist
                 else:
                     last = hist.log[-1].order if hist.log else None
-                    out[sid] = Checkpoint(*sid, hist.trc_t, hist.state, hist.group, last)
+                    out[sid] = Checkpoint(
+                        *sid, hist.trc_t, hist.state, hist.group, last, units=log_units(hist.log)
+                    )
         return out, tuple(states)
 
     def segment_states(

@@ -31,6 +31,7 @@ from tests.unit.test_filtering_tracker import (
     run,
     tamping,
     trc,
+    unit_calibration,
 )
 
 SEGMENTS = ("s1", "s2", "s3", "s4")
@@ -394,3 +395,36 @@ def test_stored_indices_decode_without_the_message_checks_but_not_into_the_fold(
         node, states, _loader = restarted(db)
     assert caplog.text.count("no longer decodes") == 2
     assert_restored(node, states, run([*MODELS, *kept])[0])
+
+
+def test_a_unit_calibration_reruns_and_invalidates_only_the_segments_with_its_indices(tmp_path):
+    """A unit's own calibration concerns the segments whose logs hold its indices: only
+    their logs are read and re-run, and every other segment's checkpoint stays valid, so a
+    restart after it does not replay them (at national scale: seconds instead of minutes)."""
+    events = []
+    for k, seg in enumerate(SEGMENTS):
+        train = "T1" if k < 2 else "T2"  # s1, s2 read by T1's unit; s3, s4 by T2's
+        events.append(trc(0.0, segment=seg))
+        for week in range(1, 6):
+            events.append(index(7.0 * week + 0.1 * k, 2.0, 1.8, segment=seg, train=train))
+    db = tmp_path / "f.sqlite"
+    first = node_on(db, max_loaded=0)
+    first.handle_batch([keyed(m) for m in [*MODELS, *events]])
+    first.checkpoint()
+    loader = CountingLoader(first)
+    first.tracker.histories.loader = loader
+    done = first.handle_batch([keyed(unit_calibration("T1", "u1"))])
+    assert sorted((s.line, s.segment) for s in done.states) == [("L1", "s1"), ("L1", "s2")]
+    assert sorted(loader.read) == [("L1", "s1"), ("L1", "s2")]
+    first.close()
+
+    node, states, loader = restarted(db)
+    assert loader.read == []  # every checkpoint still valid
+    assert_restored(node, states, run([*MODELS, unit_calibration("T1", "u1"), *events])[0])
+    node.close()
+
+    again, _states, loader = restarted(db)  # the units come from the checkpoints
+    again.handle_batch([keyed(unit_calibration("T2", "u1"))])
+    assert sorted(loader.read) == [("L1", "s3"), ("L1", "s4")]
+    reference = [*MODELS, unit_calibration("T1", "u1"), unit_calibration("T2", "u1"), *events]
+    assert_same_states(run(reference)[0], again.tracker)

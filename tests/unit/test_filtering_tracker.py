@@ -453,7 +453,8 @@ def keyed(msg) -> tuple[str, bytes]:
     """The key a message is published on (namespace "tf") and its payload."""
     match msg:
         case Calibration():
-            key = keys.calibration("tf")
+            own = msg.train and keys.unit_calibration("tf", msg.train, msg.unit)
+            key = own or keys.calibration("tf")
         case DegradationPosterior():
             key = keys.degradation("tf", msg.group)
         case _:
