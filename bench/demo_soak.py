@@ -248,7 +248,9 @@ def read_json(path: Path) -> dict | None:
 
 def ask_states(session: zenoh.Session, ns: str, minute: float, health: dict | None) -> dict:
     t0 = time.monotonic()
-    replies = session.get(keys.q_state_all(ns), timeout=20)
+    replies = session.get(
+        keys.q_state_all(ns), timeout=20, congestion_control=zenoh.CongestionControl.BLOCK
+    )
     n = sum(1 for r in replies if r.ok is not None)
     tracked = (health or {}).get("segments", 0)
     return {"minute": round(minute, 2), "answered": n, "tracked": tracked,

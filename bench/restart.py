@@ -191,7 +191,11 @@ class Watcher:
             )
 
     def answered(self) -> int:
-        replies = self.session.get(keys.q_state_all(self.ns), timeout=READY_S)
+        replies = self.session.get(
+            keys.q_state_all(self.ns),
+            timeout=READY_S,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
         return sum(r.ok is not None for r in replies)
 
     def close(self) -> None:

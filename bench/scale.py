@@ -176,6 +176,7 @@ def count_states(session: zenoh.Session, region: str) -> tuple[int, int]:
         keys.q_state_keys(NS, f"{region}$*/**"),
         timeout=30.0,
         consolidation=zenoh.ConsolidationMode.NONE,
+        congestion_control=zenoh.CongestionControl.BLOCK,  # replies take the query's QoS
     )
     lines = [keys.parse_q_state(str(r.ok.key_expr))[0] for r in replies if r.ok is not None]
     own = sum(line.startswith(region) for line in lines)

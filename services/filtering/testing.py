@@ -91,7 +91,10 @@ def states_by_instance(session: zenoh.Session, ns: str) -> dict[str, dict[str, b
     out: dict[str, dict[str, bytes]] = {}
     # No consolidation: by default Zenoh keeps one reply per key, and several instances answer.
     none = zenoh.ConsolidationMode.NONE
-    for reply in session.get(keys.q_state_all(ns), timeout=10.0, consolidation=none):
+    block = zenoh.CongestionControl.BLOCK
+    for reply in session.get(
+        keys.q_state_all(ns), timeout=10.0, consolidation=none, congestion_control=block
+    ):
         if reply.ok is not None:
             out.setdefault(str(reply.replier_id.zid), {})[str(reply.ok.key_expr)] = (
                 reply.ok.payload.to_bytes()

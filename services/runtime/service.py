@@ -386,7 +386,9 @@ class ServiceRuntime:
     def ask(self, selector: str, timeout: float) -> Iterator[tuple[str, bytes]]:
         """``(key, payload)`` of every reply to a start-up query (ends when all replied or at
         ``timeout``); an error reply is logged and skipped: it must not stop the service."""
-        for reply in self.session.get(selector, timeout=timeout):
+        # replies take the query's QoS: BLOCK, so that none is dropped under congestion
+        block = zenoh.CongestionControl.BLOCK
+        for reply in self.session.get(selector, timeout=timeout, congestion_control=block):
             if reply.ok is None:
                 log.warning("%s: error reply %r", selector, reply.err.payload.to_bytes()[:200])
                 continue

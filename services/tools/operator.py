@@ -44,7 +44,9 @@ TRC_COLUMNS = ("line", "segment", "t", "top6_mm", "align10_mm", "run_id")
 
 def ask(session: zenoh.Session, selector: str, timeout: float = QUERY_TIMEOUT_S):
     """(key, payload bytes) of every reply to a query; errors from the queryable raise."""
-    for reply in session.get(selector, timeout=timeout):
+    # replies take the query's QoS: BLOCK, so that none is dropped under congestion
+    block = zenoh.CongestionControl.BLOCK
+    for reply in session.get(selector, timeout=timeout, congestion_control=block):
         if reply.ok is None:
             reason = reply.err.payload.to_string()
             if reason == "Timeout":  # Zenoh's own error when the answer is incomplete
