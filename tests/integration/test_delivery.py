@@ -62,6 +62,22 @@ def put_all(publisher: ReliablePublisher, items: list[tuple[str, bytes]]) -> Non
         publisher.put(key, payload)
 
 
+def routed(session: zenoh.Session, listener: zenoh.Session, ns: str) -> None:
+    """Returns once everything ``session`` put so far has passed the router: a marker put
+    after it reaches ``listener`` (a session's puts of one priority leave, and are routed,
+    in order). Without it a put may still be in flight when a subscriber is declared."""
+    arrived = threading.Event()
+    subscriber = listener.declare_subscriber(f"{ns}/marker", lambda _sample: arrived.set())
+    try:
+        for _ in range(int(TIMEOUT_S / 0.2)):  # until the subscription has reached the router
+            session.put(f"{ns}/marker", b"")
+            if arrived.wait(0.2):
+                return
+        raise AssertionError("the marker never arrived")
+    finally:
+        subscriber.undeclare()
+
+
 def test_a_returning_subscriber_gets_what_it_missed_and_a_late_one_the_history(
     publisher: ReliablePublisher, router: str, namespace: str
 ) -> None:
@@ -165,11 +181,11 @@ def test_a_publisher_bounded_below_its_keys_delivers_every_key_live(
 def test_a_returning_subscriber_recovers_the_keys_within_the_bound(
     open_session, router: str, namespace: str
 ) -> None:
-    publisher = ReliablePublisher(
-        open_session(), DeliverySettings(cache_samples=8, max_publishers=10)
-    )
+    session, listener = open_session(), open_session()
+    publisher = ReliablePublisher(session, DeliverySettings(cache_samples=8, max_publishers=10))
     first, second = batch(namespace, 1), batch(namespace, 2)
     put_all(publisher, first)  # nobody listens: only the first 10 keys have caches
+    routed(session, listener, namespace)
     cached = {(key, payload) for key, payload in first if publisher.cached(key)}
     assert len(cached) == 10
     got = Received()
@@ -177,6 +193,7 @@ def test_a_returning_subscriber_recovers_the_keys_within_the_bound(
         rt.declare_subscriber(f"{namespace}/index/**", got, reliable=True)
         got.wait_for(cached)
     put_all(publisher, second)  # published while the subscriber is down
+    routed(session, listener, namespace)
     again = Received()
     with ServiceRuntime("filtering", client_conf(namespace, router, "a")) as rt:
         rt.declare_subscriber(f"{namespace}/index/**", again, reliable=True)
