@@ -29,6 +29,8 @@ Workloads (DESIGN "Performance targets"):
 11. filtering restart and model change on a store of 2,000 segments x 60 days (first start
     without checkpoints, restart from them, after SIGKILL; a new calibration), against
     ``fold_many`` alone (``bench/restart.py``; ``--segments 100000`` for issue 16's size).
+12. the compiled index step alone, ns per sample-update on one core and on all, against the
+    numpy filter bank on the same shapes (``bench/kernel.py``).
 
 Not run here (minutes each, real processes): ``make scale`` (``bench/scale.py``, a national
 deployment: two routers, four filtering shards, 10,000 to 100,000 segments) and
@@ -193,6 +195,7 @@ def main() -> None:
     from bench.extraction import bench_extraction
     from bench.filtering import bench_filtering_service
     from bench.ingestion import bench_ingestion
+    from bench.kernel import bench_kernel
     from bench.rerun import bench_rerun
     from bench.restart import bench_restart
     from bench.simulator import bench_raw_generation
@@ -200,6 +203,7 @@ def main() -> None:
     rng = np.random.default_rng(1)
     bench_replay(rng)
     bench_single_event(rng)
+    bench_kernel()
     bench_rerun()
     bench_backlog()
     bench_study()
