@@ -13,6 +13,8 @@ import msgspec
 
 from schemas.wire import (
     INT_MAX,
+    T_MAX,
+    T_MIN,
     NDArray,
     check,
     check_array,
@@ -171,7 +173,16 @@ class OnboardIndex(Message, frozen=True, kw_only=True):
             check_id(name, getattr(self, name))
         if self.run_id:
             check_id("run_id", self.run_id)
-        check_time("t", self.t)
+        if (  # every number in range (so finite: NaN fails every comparison): done
+            T_MIN <= self.t < T_MAX
+            and 0.0 < self.top6_mm <= INDEX_MAX_MM
+            and 0.0 < self.align10_mm <= INDEX_MAX_MM
+            and 0.0 <= self.speed_mps <= SPEED_MAX_MPS
+            and 0.0 <= self.coverage <= 1.0
+            and 0.0 <= self.quality <= 1.0
+        ):
+            return
+        check_time("t", self.t)  # which one is not, and why
         _check_index("top6_mm", self.top6_mm)
         _check_index("align10_mm", self.align10_mm)
         check_range("speed_mps", self.speed_mps, 0.0, SPEED_MAX_MPS)
