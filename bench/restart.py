@@ -60,6 +60,7 @@ from services.runtime.config import zenoh_config
 
 NS_SAMPLES = 200
 T0 = 1_767_225_600.0
+BLOCK = zenoh.CongestionControl.BLOCK  # the bench's puts: Zenoh's default drops under congestion
 READY_S = 1800.0  # upper bound of a start at the largest size
 CHUNK = 2000  # segments written per executemany
 
@@ -275,9 +276,11 @@ def bench_restart(
                 proc.wait(READY_S)
                 stop_s = time.perf_counter() - t
                 rows.append(("first start (no checkpoint: full replay)", *first))
+                _progress(rows[-1])
 
                 proc, *again = start(args, watcher, segments, log)
                 rows.append(("restart from checkpoints", *again))
+                _progress(rows[-1])
                 if restart_only:
                     proc.send_signal(signal.SIGTERM)
                     proc.wait(READY_S)
@@ -288,13 +291,15 @@ def bench_restart(
                 if not watcher.all_at(1, segments, READY_S):
                     raise RuntimeError(f"the restored states did not all arrive; see {log}")
                 republish_s = time.perf_counter() - t
+                _progress(("republish_s", republish_s))
 
                 calibration = msgspec.structs.replace(models[0], version=2)
                 t = time.perf_counter()
-                session.put(keys.calibration(ns), encode(calibration))
+                session.put(keys.calibration(ns), encode(calibration), congestion_control=BLOCK)
                 if not watcher.all_at(2, segments, READY_S):
                     raise RuntimeError(f"model change incomplete; see {log}")
                 change_s = time.perf_counter() - t
+                _progress(("change_s", change_s))
                 change_rss = rss_mb(proc.pid)
 
                 # one unit's own calibration: the segments its train ran over, nothing else
@@ -305,18 +310,23 @@ def bench_restart(
                 with watcher.cond:
                     watcher.arrived.clear()
                 t = time.perf_counter()
-                session.put(keys.unit_calibration(ns, "R0-0", "u1"), encode(unit))
+                session.put(
+                    keys.unit_calibration(ns, "R0-0", "u1"), encode(unit), congestion_control=BLOCK
+                )
                 with watcher.cond:
                     if not watcher.cond.wait_for(lambda: mine <= watcher.arrived, READY_S):
                         raise RuntimeError(f"unit calibration incomplete; see {log}")
                 unit_s = time.perf_counter() - t
+                _progress(("unit_s", unit_s))
                 with watcher.cond:  # the re-run publishes the unit's segments, no other
                     if watcher.cond.wait_for(lambda: watcher.arrived - mine, 1.0):
                         raise RuntimeError(f"states of other segments: {log}")
 
                 tail = _tail(segments, days)
                 for msg in tail:
-                    session.put(keys.index(ns, msg.line, msg.segment), encode(msg))
+                    session.put(
+                        keys.index(ns, msg.line, msg.segment), encode(msg), congestion_control=BLOCK
+                    )
                 with watcher.cond:  # published after their commit: stored
                     done = watcher.cond.wait_for(
                         lambda: all(watcher.times.get(m.segment) == m.t for m in tail), READY_S
@@ -367,6 +377,11 @@ def bench_restart(
         f" over re-run and published, no other): {unit_s:.1f} s; the restart after SIGKILL"
         f" above came after it (the other segments' checkpoints stayed valid)"
     )
+
+
+def _progress(row: tuple) -> None:
+    """A phase's raw figures as soon as measured (stderr), so a later hang loses none."""
+    print("  measured:", *row, file=sys.stderr, flush=True)
 
 
 def _tail(segments: int, days: int) -> list[OnboardIndex]:
