@@ -37,6 +37,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 import msgspec
@@ -158,15 +159,22 @@ def fold_rate(db: Path, models, sample: int) -> float:
 
 
 class Watcher:
-    """This process's view of the service: its token, its states, q/state."""
+    """This process's view of the service: its token, its states, q/state.
+
+    Each wait's condition is kept by the state callback (counts, a set of what is still
+    awaited), so that a wake costs O(1): a predicate over every segment re-evaluated at
+    each of 100,000 arrivals made this bench quadratic, and its slow callback held the
+    service's BLOCK publications back."""
 
     def __init__(self, session: zenoh.Session, ns: str) -> None:
         self.session, self.ns = session, ns
         self.alive = threading.Event()
         self.cond = threading.Condition()
         self.versions: dict[str, int] = {}  # segment -> calibration version of its newest state
-        self.times: dict[str, float] = {}  # segment -> t of its newest state
-        self.arrived: set[str] = set()  # segments with a state since the last clear
+        self.at_version: Counter[int] = Counter()  # version -> segments whose newest has it
+        self.awaited: dict[str, float | None] = {}  # segment -> the t awaited (None: any)
+        self.expected: set[str] = set()  # every segment of the last expect()
+        self.others = 0  # states of other segments since the last expect()
         alive_key = keys.alive(ns, "filtering", "bench")
         self._tokens = session.liveliness().declare_subscriber(alive_key, self._on_token)
         self._states = session.declare_subscriber(keys.segment_keys(ns, "state"), self._on_state)
@@ -180,16 +188,34 @@ class Watcher:
     def _on_state(self, sample: zenoh.Sample) -> None:
         state = decode(sample.payload.to_bytes(), SegmentState)
         with self.cond:
+            old = self.versions.get(state.segment)
+            if old is not None:
+                self.at_version[old] -= 1
             self.versions[state.segment] = state.calibration_version
-            self.times[state.segment] = state.t
-            self.arrived.add(state.segment)
+            self.at_version[state.calibration_version] += 1
+            self.others += state.segment not in self.expected
+            if state.segment in self.awaited and self.awaited[state.segment] in (None, state.t):
+                del self.awaited[state.segment]
             self.cond.notify_all()
+
+    def reset(self) -> None:
+        """Forget what arrived (a new process publishes everything again)."""
+        with self.cond:
+            self.versions.clear()
+            self.at_version.clear()
 
     def all_at(self, version: int, segments: int, timeout: float) -> bool:
         with self.cond:
-            return self.cond.wait_for(
-                lambda: sum(v == version for v in self.versions.values()) >= segments, timeout
-            )
+            return self.cond.wait_for(lambda: self.at_version[version] >= segments, timeout)
+
+    def expect(self, awaited: dict[str, float | None]) -> None:
+        """Before a put: the segments whose state to wait for (with that t, or any)."""
+        with self.cond:
+            self.awaited, self.expected, self.others = dict(awaited), set(awaited), 0
+
+    def wait_expected(self, timeout: float) -> bool:
+        with self.cond:
+            return self.cond.wait_for(lambda: not self.awaited, timeout)
 
     def answered(self) -> int:
         replies = self.session.get(
@@ -216,9 +242,7 @@ def rss_mb(pid: int) -> tuple[float, float]:
 def start(args: list[str], watcher: Watcher, segments: int, log: Path):
     """Start the service; ``(process, ready_s, answering_s, rss, peak)``."""
     watcher.alive.clear()
-    with watcher.cond:  # what this process publishes
-        watcher.versions.clear()
-        watcher.times.clear()
+    watcher.reset()  # what this process publishes
     started = time.perf_counter()
     proc = subprocess.Popen(
         [sys.executable, "-m", "services.cli", *args],
@@ -307,19 +331,17 @@ def bench_restart(
                     **msgspec.structs.asdict(models[0]) | {"train": "R0-0", "unit": "u1"}
                 )
                 mine = {f"s{k:06d}" for k in range(segments) if _train(k, segments, 0) == "R0-0"}
-                with watcher.cond:
-                    watcher.arrived.clear()
+                watcher.expect(dict.fromkeys(mine))
                 t = time.perf_counter()
                 session.put(
                     keys.unit_calibration(ns, "R0-0", "u1"), encode(unit), congestion_control=BLOCK
                 )
-                with watcher.cond:
-                    if not watcher.cond.wait_for(lambda: mine <= watcher.arrived, READY_S):
-                        raise RuntimeError(f"unit calibration incomplete; see {log}")
+                if not watcher.wait_expected(READY_S):
+                    raise RuntimeError(f"unit calibration incomplete; see {log}")
                 unit_s = time.perf_counter() - t
                 _progress(("unit_s", unit_s))
                 with watcher.cond:  # the re-run publishes the unit's segments, no other
-                    if watcher.cond.wait_for(lambda: watcher.arrived - mine, 1.0):
+                    if watcher.cond.wait_for(lambda: watcher.others > 0, 1.0):
                         raise RuntimeError(f"states of other segments: {log}")
 
                 tail = _tail(segments, days)
@@ -327,10 +349,11 @@ def bench_restart(
                     session.put(
                         keys.index(ns, msg.line, msg.segment), encode(msg), congestion_control=BLOCK
                     )
-                with watcher.cond:  # published after their commit: stored
-                    done = watcher.cond.wait_for(
-                        lambda: all(watcher.times.get(m.segment) == m.t for m in tail), READY_S
-                    )
+                watcher.expect({m.segment: m.t for m in tail})  # published after commit
+                for msg in tail:
+                    key = keys.index(ns, msg.line, msg.segment)
+                    session.put(key, encode(msg), congestion_control=BLOCK)
+                done = watcher.wait_expected(READY_S)
                 if not done:
                     raise RuntimeError(f"the tail's states did not all arrive; see {log}")
                 proc.send_signal(signal.SIGKILL)
