@@ -31,6 +31,8 @@ Workloads (DESIGN "Performance targets"):
     ``fold_many`` alone (``bench/restart.py``; ``--segments 100000`` for issue 16's size).
 12. the compiled index step alone, ns per sample-update on one core and on all, against the
     numpy filter bank on the same shapes (``bench/kernel.py``).
+13. a plain put beside 2,000 cached publishers of the same line and of other lines, against
+    the same puts with none declared (``bench/siblings.py``: a cost of Zenoh's router).
 
 Not run here (minutes each, real processes): ``make scale`` (``bench/scale.py``, a national
 deployment: two routers, four filtering shards, 10,000 to 100,000 segments) and
@@ -198,12 +200,14 @@ def main() -> None:
     from bench.kernel import bench_kernel
     from bench.rerun import bench_rerun
     from bench.restart import bench_restart
+    from bench.siblings import bench_siblings
     from bench.simulator import bench_raw_generation
 
     rng = np.random.default_rng(1)
     bench_replay(rng)
     bench_single_event(rng)
     bench_kernel()
+    bench_siblings()
     bench_rerun()
     bench_backlog()
     bench_study()
