@@ -345,10 +345,6 @@ def bench_restart(
                         raise RuntimeError(f"states of other segments: {log}")
 
                 tail = _tail(segments, days)
-                for msg in tail:
-                    session.put(
-                        keys.index(ns, msg.line, msg.segment), encode(msg), congestion_control=BLOCK
-                    )
                 watcher.expect({m.segment: m.t for m in tail})  # published after commit
                 for msg in tail:
                     key = keys.index(ns, msg.line, msg.segment)

@@ -19,25 +19,19 @@ Run: ``.venv/bin/python -m bench.siblings [siblings]``.
 
 from __future__ import annotations
 
-import socket
 import sys
 import threading
 import time
 
 import zenoh
 
+from bench.soak import free_port
 from services.runtime.config import zenoh_config
 from services.runtime.delivery import DeliverySettings, ReliablePublisher
 
 SIBLINGS, PUTS, PAYLOAD = 2000, 5000, b"x" * 2000
 NS = "tfsiblings"
 BLOCK = zenoh.CongestionControl.BLOCK
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _put_us(session: zenoh.Session, keys: list[str]) -> float:
@@ -48,7 +42,7 @@ def _put_us(session: zenoh.Session, keys: list[str]) -> float:
 
 
 def bench_siblings(siblings: int = SIBLINGS) -> None:
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(zenoh_config({"mode": "router", "listen": {"endpoints": [endpoint]}}))
     client = {"mode": "client", "connect": {"endpoints": [endpoint]}}
     sessions = [zenoh.open(zenoh_config(client)) for _ in range(3)]

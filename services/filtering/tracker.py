@@ -763,6 +763,20 @@ def log_units(log: Iterable[Event]) -> frozenset[tuple[str, str]]:
     return frozenset((e.message.train, e.message.unit) for e in log if e.kind == INDEX)
 
 
+def checkpoint_of(hist: SegmentHistory) -> Checkpoint:
+    """``hist`` without its log: its state, where its log ends and whose indices it read."""
+    last_order = hist.log[-1].order if hist.log else None
+    return Checkpoint(
+        hist.line,
+        hist.segment,
+        hist.trc_t,
+        hist.state,
+        hist.group,
+        last_order,
+        units=log_units(hist.log),
+    )
+
+
 def models_key(
     models: Models, line: str, segment: str, units: Iterable[tuple[str, str]] | None = None
 ) -> str:
@@ -875,16 +889,7 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
         rest = self._resting.get(sid)
         if rest is not None:
             return rest
-        hist = self._loaded[sid]
-        return Checkpoint(
-            hist.line,
-            hist.segment,
-            hist.trc_t,
-            hist.state,
-            hist.group,
-            hist.log[-1].order if hist.log else None,
-            units=log_units(hist.log),
-        )
+        return checkpoint_of(self._loaded[sid])
 
     def units(self, sid: SegmentId) -> frozenset[tuple[str, str]]:
         """The ``(train, unit)`` whose indices the segment's log holds (or a superset),
@@ -1518,10 +1523,7 @@ class Tracker:
                 if self.histories.is_loaded(sid):
                     out[sid] = hist
                 else:
-                    last = hist.log[-1].order if hist.log else None
-                    out[sid] = Checkpoint(
-                        *sid, hist.trc_t, hist.state, hist.group, last, units=log_units(hist.log)
-                    )
+                    out[sid] = checkpoint_of(hist)
         return out, tuple(states)
 
     def segment_states(
