@@ -23,7 +23,7 @@ import sqlite3
 import struct
 import threading
 import time
-from collections.abc import Collection, Iterable, Iterator
+from collections.abc import Collection, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,6 +48,7 @@ from schemas import (
 )
 from schemas.keys import SegmentId
 from services.filtering.tracker import (
+    INDEX,
     KIND_NAMES,
     RESTART,
     SUPERSEDE_DAYS,
@@ -56,6 +57,7 @@ from services.filtering.tracker import (
     Event,
     EventMessage,
     Filtered,
+    LogColumns,
     ModelMessage,
     SegmentHistory,
     Step,
@@ -363,12 +365,24 @@ class Store:
     def count_events(self) -> int:
         return self._db.execute("SELECT COUNT(*) FROM events").fetchone()[0]
 
-    def segment_events(self, line: str, segment: str) -> Iterator[tuple[str, str, bytes]]:
-        """``(kind, key, payload)`` of one segment's stored events (its log, any order)."""
+    def segment_events(
+        self, line: str, segment: str, *, indices: bool = True
+    ) -> Iterator[tuple[str, str, bytes]]:
+        """``(kind, key, payload)`` of one segment's stored events (its log, any order);
+        without its indices if not ``indices``."""
         yield from self._db.execute(
-            "SELECT kind, key, payload FROM events WHERE line = ? AND segment = ?",
+            "SELECT kind, key, payload FROM events WHERE line = ? AND segment = ?"
+            + ("" if indices else " AND kind != 'index'"),
             (line, segment),
         )
+
+    def segment_index_payloads(self, line: str, segment: str) -> list[bytes]:
+        """The payloads of one segment's stored OnboardIndex rows, any order."""
+        rows = self._db.execute(
+            "SELECT payload FROM events WHERE line = ? AND segment = ? AND kind = 'index'",
+            (line, segment),
+        ).fetchall()
+        return [payload for (payload,) in rows]
 
     def last_seq(self) -> int:
         """The newest event's ``seq`` (0 if none): what a checkpoint written now covers."""
@@ -506,6 +520,79 @@ _STORED = {kind: msgspec.msgpack.Decoder(t) for kind, t in _EVENT_TYPES.items()}
 _STORED_INDEX = msgspec.msgpack.Decoder(StoredIndex)
 
 
+_STORED_INDICES = msgspec.msgpack.Decoder(list[StoredIndex])
+_ARRAY32 = struct.Struct(">BI")  # a MessagePack array header: 0xdd, then the count
+
+
+def log_columns(
+    index_payloads: Sequence[bytes], others: Iterable[Event]
+) -> tuple[LogColumns, float | None] | None:
+    """``(log, trc_t)`` of :func:`canonical_log`, as :class:`LogColumns`, from a segment's
+    stored index payloads and its other events (TRC records, tampings); None when an index
+    does not pass :func:`_stored_events`' checks (that path then skips it with a warning)
+    or two events tie on (time, kind) (their canonical order then compares identities).
+
+    The payloads are decoded in one call, as one MessagePack array of them, and the
+    columns built without an Event per index: the same times and values (``math.log``, as
+    :func:`~services.filtering.tracker.index_event`), so the fold gives the same bits.
+    """
+    try:
+        msgs = _STORED_INDICES.decode(
+            _ARRAY32.pack(0xDD, len(index_payloads)) + b"".join(index_payloads)
+        )
+    except (msgspec.DecodeError, msgspec.ValidationError):
+        return None
+    tops = [m.top6_mm for m in msgs]
+    aligns = [m.align10_mm for m in msgs]
+    if any(m.v != SCHEMA_VERSION for m in msgs) or not all(
+        0.0 < a < math.inf and 0.0 < b < math.inf for a, b in zip(tops, aligns, strict=True)
+    ):
+        return None
+    others = list(others)
+    restarts = [e.t_s for e in others if e.kind == RESTART]
+    trc_t = max(restarts) if restarts else None
+    times = np.array([m.t for m in msgs], dtype=np.float64)
+    if trc_t is not None:  # canonical_log keeps the events at or after the latest TRC record
+        others = [e for e in others if e.t_s >= trc_t]
+        kept = times >= trc_t
+        if not kept.all():
+            msgs, tops, aligns = (
+                [x for x, keep in zip(column, kept.tolist(), strict=True) if keep]
+                for column in (msgs, tops, aligns)
+            )
+            times = times[kept]
+    n_index = len(msgs)
+    names: dict[tuple[str, str], int] = {}
+    codes = [names.setdefault((m.train, m.unit), len(names)) for m in msgs]
+    kinds = np.full(n_index + len(others), INDEX, dtype=np.int8)
+    kinds[n_index:] = [e.kind for e in others]
+    all_times = np.concatenate([times, [e.t_s for e in others]])
+    values = np.zeros((len(kinds), 2))  # (Top6, Align10)
+    values[:n_index, 0] = list(map(math.log, tops))
+    values[:n_index, 1] = list(map(math.log, aligns))
+    for k, e in enumerate(others, start=n_index):
+        if e.value is not None:
+            values[k] = e.value
+    unit_codes = np.full(len(kinds), -1, dtype=np.int32)
+    unit_codes[:n_index] = codes
+    order = np.lexsort((kinds, all_times))  # by time, then kind
+    kinds, all_times = kinds[order], all_times[order]
+    if len(order) > 1 and ((all_times[1:] == all_times[:-1]) & (kinds[1:] == kinds[:-1])).any():
+        return None
+    last_order = None
+    if len(order):
+        last = int(order[-1])
+        if last < n_index:
+            m = msgs[last]
+            last_order = (m.t, INDEX, ("index", m.train, m.unit, m.t))
+        else:
+            last_order = others[last - n_index].order
+    columns = LogColumns(
+        kinds, all_times, values[order], unit_codes[order], tuple(names), last_order
+    )
+    return columns, trc_t
+
+
 def _stored_events(rows: Iterable[tuple[str, str, bytes]]) -> Iterator[Event]:
     """The core's events of stored ``(kind, key, payload)`` rows.
 
@@ -571,6 +658,8 @@ class PersistentTracker:
         self._network_name = network_name
         if tracker.histories.loader is None:
             tracker.histories.loader = self.segment_log
+        if tracker.histories.columns is None:
+            tracker.histories.columns = self.segment_columns
         self.checkpoint_s = checkpoint_s
         self.max_loaded = max_loaded
         self.broken = False  # set by the owner when a batch failed: no checkpoint then
@@ -825,6 +914,16 @@ class PersistentTracker:
     def segment_log(self, line: str, segment: str) -> tuple[tuple[Event, ...], float | None]:
         """The segment's log from the store (:func:`canonical_log`): the tracker's loader."""
         return canonical_log(_stored_events(self.store.segment_events(line, segment)))
+
+    def segment_columns(self, line: str, segment: str) -> tuple[LogColumns, float | None] | None:
+        """The segment's log from the store as :class:`LogColumns` (what :meth:`segment_log`
+        gives, as columns): the tracker's column loader, for re-runs. None when a stored
+        index does not pass :func:`_stored_events`' checks or two events tie on time and
+        kind (their order then needs the identities): the re-run reads the log as events."""
+        return log_columns(
+            self.store.segment_index_payloads(line, segment),
+            _stored_events(self.store.segment_events(line, segment, indices=False)),
+        )
 
     def _after_batch(self, states: Iterable[SegmentState], *, models: bool) -> None:
         """After a committed batch: note its states; checkpoint when due (every

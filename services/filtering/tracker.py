@@ -181,6 +181,32 @@ def index_event(msg: Any) -> Event:
     return Event(INDEX, msg.t, ("index", msg.train, msg.unit, msg.t), y, msg)
 
 
+@dataclass(frozen=True, eq=False)
+class LogColumns:
+    """A segment's canonical log as columns, without an object per event: what a re-run of
+    a resting segment folds (a model change reads every segment's log; an Event each was
+    half of its time). :func:`fold_many` takes it where it takes a tuple of Events, with
+    the same bits: the same times and values, in the same order.
+
+    ``values[k]``: the z of a restart, the y of an index, zeros for a tamping;
+    ``unit_codes[k]``: the position in ``unit_names`` of an index's ``(train, unit)``,
+    -1 for the other kinds; ``last_order``: the :attr:`Event.order` of the last event.
+    """
+
+    kinds: np.ndarray  # (L,) int8: RESTART, TAMPING or INDEX
+    times: np.ndarray  # (L,) epoch s
+    values: np.ndarray  # (L, n)
+    unit_codes: np.ndarray  # (L,) int32
+    unit_names: tuple[tuple[str, str], ...]
+    last_order: tuple[float, int, tuple[Any, ...]] | None
+
+    def __len__(self) -> int:
+        return len(self.kinds)
+
+
+Log = tuple[Event, ...] | LogColumns
+
+
 @dataclass(frozen=True)
 class Models:
     """The latest calibration and degradation posteriors (by group), as the core uses them."""
@@ -644,8 +670,26 @@ def _fold_many(starts, logs, params, obs, halt_cusum: float | None = None, copy=
     observations: list[ObservationModel] = []
     known: dict[int, int] = {}
     zero = np.zeros(n)
+
+    def model_id(model: ObservationModel | None) -> int:
+        if model is None:
+            return -1
+        if id(model) not in known:
+            known[id(model)] = len(observations)
+            observations.append(model)
+        return known[id(model)]
+
     for row, i in enumerate(order):
         log = logs[i]
+        if isinstance(log, LogColumns):
+            kinds[row, : len(log)] = log.kinds
+            times[row, : len(log)] = log.times
+            values[row, : len(log)] = log.values
+            if per_unit and log.unit_names:
+                ids = np.array([model_id(obs.observation_for(*u)) for u in log.unit_names])
+                at = np.flatnonzero(log.unit_codes >= 0)
+                obs_ids[row, at] = ids[log.unit_codes[at]]
+            continue
         kinds[row, : len(log)] = [e.kind for e in log]
         times[row, : len(log)] = [e.t_s for e in log]
         if log:
@@ -654,12 +698,7 @@ def _fold_many(starts, logs, params, obs, halt_cusum: float | None = None, copy=
             continue
         for k, e in enumerate(log):
             if e.kind == INDEX:
-                model = obs.observation_for_event(e)
-                if model is not None:
-                    if id(model) not in known:
-                        known[id(model)] = len(observations)
-                        observations.append(model)
-                    obs_ids[row, k] = known[id(model)]
+                obs_ids[row, k] = model_id(obs.observation_for_event(e))
     if not per_unit and shared is not None:
         observations.append(shared)
         obs_ids[kinds == INDEX] = 0
@@ -731,7 +770,7 @@ class SegmentHistory:
 
     line: str
     segment: str
-    log: tuple[Event, ...] = ()
+    log: Log = ()  # columns only inside a re-run of a resting segment (Histories.load_columns)
     trc_t: float | None = None  # epoch s of the latest TRC record: the log's lower bound
     state: Filtered | None = None
     group: str | None = None  # posterior group of ``state``
@@ -758,14 +797,19 @@ class Checkpoint:
     units: frozenset[tuple[str, str]] | None = None
 
 
-def log_units(log: Iterable[Event]) -> frozenset[tuple[str, str]]:
+def log_units(log: Iterable[Event] | LogColumns) -> frozenset[tuple[str, str]]:
     """The ``(train, unit)`` of the indices of a log: whose calibrations its fold reads."""
+    if isinstance(log, LogColumns):
+        return frozenset(log.unit_names)
     return frozenset((e.message.train, e.message.unit) for e in log if e.kind == INDEX)
 
 
 def checkpoint_of(hist: SegmentHistory) -> Checkpoint:
     """``hist`` without its log: its state, where its log ends and whose indices it read."""
-    last_order = hist.log[-1].order if hist.log else None
+    if isinstance(hist.log, LogColumns):
+        last_order = hist.log.last_order
+    else:
+        last_order = hist.log[-1].order if hist.log else None
     return Checkpoint(
         hist.line,
         hist.segment,
@@ -814,6 +858,7 @@ def key_units(key: str) -> frozenset[tuple[str, str]] | None:
 
 
 LogLoader = Callable[[str, str], tuple[tuple[Event, ...], float | None]]
+ColumnLoader = Callable[[str, str], tuple[LogColumns, float | None] | None]
 
 
 class Histories(MutableMapping[SegmentId, SegmentHistory]):
@@ -827,10 +872,13 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
     every known segment; ``items()``/``values()`` load every log, so the core iterates the
     keys and uses :meth:`resting` where the state alone is enough. Every assignment marks
     the segment ``dirty`` (its checkpoint is out of date) until the owner clears it.
+    ``columns(line, segment) -> (LogColumns, trc_t) | None``, when given, reads a resting
+    log as columns for a re-run (:meth:`load_columns`; None: read it as events).
     """
 
     def __init__(self, loader: LogLoader | None = None) -> None:
         self.loader = loader
+        self.columns: ColumnLoader | None = None
         self._loaded: OrderedDict[SegmentId, SegmentHistory] = OrderedDict()
         self._resting: dict[SegmentId, Checkpoint] = {}
         self.dirty: set[SegmentId] = set()
@@ -854,6 +902,18 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
         if self.loader is None:
             raise LookupError(f"segment {sid}: log not loaded and no loader")
         log, trc_t = self.loader(rest.line, rest.segment)
+        return SegmentHistory(rest.line, rest.segment, log, trc_t, rest.state, rest.group)
+
+    def load_columns(self, sid: SegmentId) -> SegmentHistory:
+        """:meth:`load`, with a resting segment's log as :class:`LogColumns` when the
+        column loader gives it (a re-run's read, not kept: never assign the result)."""
+        rest = self._resting.get(sid)
+        if rest is None or self.columns is None:
+            return self.load(sid)
+        read = self.columns(rest.line, rest.segment)
+        if read is None:
+            return self.load(sid)
+        log, trc_t = read
         return SegmentHistory(rest.line, rest.segment, log, trc_t, rest.state, rest.group)
 
     def __setitem__(self, sid: SegmentId, hist: SegmentHistory) -> None:
@@ -956,10 +1016,18 @@ def _evolve(hist: SegmentHistory, **changes: Any) -> SegmentHistory:
     return new
 
 
-def _publishable(log: Sequence[Event], models: Models, started=False) -> bool:
+def _publishable(log: Sequence[Event] | LogColumns, models: Models, started=False) -> bool:
     """False if the fold of ``log`` (from a started state if ``started``) needs an update
     without a calibration (neither the index's unit's nor the fleet's)."""
     if models.observation is not None:
+        return True
+    if isinstance(log, LogColumns):
+        units = [models.observation_for(*u) is not None for u in log.unit_names]
+        for kind, code in zip(log.kinds.tolist(), log.unit_codes.tolist(), strict=True):
+            if kind != INDEX:
+                started = True
+            elif started and not units[code]:
+                return False
         return True
     for event in log:
         if event.kind != INDEX:
@@ -1509,15 +1577,16 @@ class Tracker:
         """Re-run ``sids`` with ``models``; nothing is changed in place.
 
         In chunks of ``RERUN_CHUNK`` segments (one batched :func:`replay_many` and
-        summary each): a segment whose log was not loaded is read through the loader for
-        its chunk only and comes back resting (a :class:`Checkpoint`), so a re-run of every
-        segment holds one chunk of logs at a time.
+        summary each): a segment whose log was not loaded is read for its chunk only (as
+        columns when the store gives them: :meth:`Histories.load_columns`) and comes back
+        resting (a :class:`Checkpoint`), so a re-run of every segment holds one chunk of
+        logs at a time.
         """
         out: dict[SegmentId, SegmentHistory | Checkpoint] = {}
         states: list[SegmentState] = []
         for first in range(0, len(sids), RERUN_CHUNK):
             chunk = sids[first : first + RERUN_CHUNK]
-            hists = replay_many([self.histories.load(sid) for sid in chunk], models)
+            hists = replay_many([self.histories.load_columns(sid) for sid in chunk], models)
             states.extend(s for s in self.segment_states(hists, models) if s is not None)
             for sid, hist in zip(chunk, hists, strict=True):
                 if self.histories.is_loaded(sid):

@@ -4,6 +4,7 @@ whose log was dropped from memory, gives the bits of a full replay of the same e
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import msgspec
 import numpy as np
@@ -15,10 +16,18 @@ from services.filtering.store import (
     PersistentTracker,
     Store,
     StoredIndex,
+    log_columns,
     pack_state,
     unpack_state,
 )
-from services.filtering.tracker import Filtered
+from services.filtering.tracker import (
+    Filtered,
+    _publishable,
+    canonical_log,
+    event_of,
+    fold_many,
+    log_units,
+)
 from tests.unit.test_filtering_tracker import (
     MODELS,
     assert_same_states,
@@ -38,7 +47,7 @@ SEGMENTS = ("s1", "s2", "s3", "s4")
 
 
 class CountingLoader:
-    """The store's loader, counting which segments' logs were read."""
+    """The store's loaders (events, columns), counting which segments' logs were read."""
 
     def __init__(self, node: PersistentTracker) -> None:
         self.node = node
@@ -47,6 +56,10 @@ class CountingLoader:
     def __call__(self, line: str, segment: str):
         self.read.append((line, segment))
         return self.node.segment_log(line, segment)
+
+    def columns(self, line: str, segment: str):
+        self.read.append((line, segment))
+        return self.node.segment_columns(line, segment)
 
 
 def node_on(db, **kw) -> PersistentTracker:
@@ -57,6 +70,7 @@ def restarted(db) -> tuple[PersistentTracker, dict, CountingLoader]:
     node = node_on(db)
     loader = CountingLoader(node)
     node.tracker.histories.loader = loader
+    node.tracker.histories.columns = loader.columns
     states = {sid: payload for sid, payload, _new in node.restore()}
     return node, states, loader
 
@@ -413,6 +427,7 @@ def test_a_unit_calibration_reruns_and_invalidates_only_the_segments_with_its_in
     first.checkpoint()
     loader = CountingLoader(first)
     first.tracker.histories.loader = loader
+    first.tracker.histories.columns = loader.columns
     done = first.handle_batch([keyed(unit_calibration("T1", "u1"))])
     assert sorted((s.line, s.segment) for s in done.states) == [("L1", "s1"), ("L1", "s2")]
     assert sorted(loader.read) == [("L1", "s1"), ("L1", "s2")]
@@ -428,3 +443,58 @@ def test_a_unit_calibration_reruns_and_invalidates_only_the_segments_with_its_in
     assert sorted(loader.read) == [("L1", "s3"), ("L1", "s4")]
     reference = [*MODELS, unit_calibration("T1", "u1"), unit_calibration("T2", "u1"), *events]
     assert_same_states(run(reference)[0], again.tracker)
+
+
+def test_a_log_read_as_columns_folds_to_the_bits_of_its_events(tmp_path):
+    """A re-run reads a resting log as columns (no Event per index): the same fold, bit for
+    bit, the same end and units; a log whose order needs the identities is read as events."""
+    rng = np.random.default_rng(5)
+    events = []
+    for k, seg in enumerate(SEGMENTS):
+        if seg != "s4":  # s4: no TRC record, started by its tamping
+            events.append(trc(0.0, 3.0 + k, 2.5, segment=seg))
+        for week in range(1, 12):
+            top6, align10 = np.exp(rng.normal([0.8, 0.5], 0.1)).tolist()
+            train = "T2" if week % 3 == 0 else "T1"
+            events.append(index(7.0 * week + 0.5 * k, top6, align10, segment=seg, train=train))
+        events.append(tamping(30.0, segment=seg) if k % 2 else tamping(29.0, 33.0, segment=seg))
+    events.append(index(14.0, 2.0, 2.0, segment="s1", train="T2"))  # ties s1's T1 index
+    node = node_on(tmp_path / "f.sqlite", max_loaded=0)
+    own = unit_calibration("T2", "u1")  # its indices are read with their own model
+    node.handle_batch([keyed(m) for m in [*MODELS, own, *in_time_order(events)]])
+    models = node.tracker.models
+    params = models.params[models.group_for("L1", "s2")]
+    uncalibrated = replace(models, calibration=None, observation=None)  # T1 has no model then
+    for seg in SEGMENTS:
+        read = node.segment_columns("L1", seg)
+        log, trc_t = node.segment_log("L1", seg)
+        if seg == "s1":
+            assert read is None
+            continue
+        columns, columns_trc_t = read
+        assert columns_trc_t == trc_t and len(columns) == len(log) == 12 + (seg != "s4")
+        assert columns.last_order == log[-1].order
+        assert log_units(columns) == log_units(log) == {("T1", "u1"), ("T2", "u1")}
+        assert _publishable(columns, models) and _publishable(log, models)
+        assert _publishable(columns, uncalibrated) == _publishable(log, uncalibrated) is False
+        a, b = fold_many([None, None], [columns, log], [params, params], models)
+        for name in ("z", "P", "log_w"):
+            assert getattr(a, name).tobytes() == getattr(b, name).tobytes()
+        assert (a.t_s, a.n_updates, a.nis, a.cusum, a.last_trc_t) == (
+            b.t_s,
+            b.n_updates,
+            b.nis,
+            b.cusum,
+            b.last_trc_t,
+        )
+        fleet_only = fold_many([None], [columns], [params], models.observation)[0]
+        assert not np.array_equal(fleet_only.z, a.z)  # the unit's own model was used
+
+    # an index older than the latest TRC record is left out, as canonical_log does
+    old, new = index(3.0, 2.0, 2.0, segment="s9"), index(9.0, 2.1, 1.9, segment="s9")
+    record = trc(5.0, segment="s9")
+    columns, trc_t = log_columns([encode(old), encode(new)], [event_of(record)])
+    log, log_trc_t = canonical_log([event_of(m) for m in (old, new, record)])
+    assert trc_t == log_trc_t == record.t and len(columns) == len(log) == 2
+    assert columns.times.tolist() == [e.t_s for e in log]
+    assert columns.last_order == log[-1].order and columns.unit_names == (("T1", "u1"),)
