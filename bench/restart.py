@@ -1,8 +1,9 @@
 """Restart and model change of one filtering instance holding many segments (issue 16).
 
-A store of ``--segments`` segments, each with a TRC record and ``2 × --days`` OnboardIndex
-since (Ns = 200 posterior samples), is written directly with SQL (the rows the service
-itself writes: re-encoded payloads, identities, times) together with the models. Then the
+A store of ``--segments`` segments (lines of ``LINE_SEGMENTS``), each with a TRC record and
+``2 × --days`` OnboardIndex since (Ns = 200 posterior samples), is written directly with
+SQL (the rows the service itself writes: re-encoded payloads, identities, times) together
+with the models. Then the
 real service (``trackfusion filtering`` in its own process, a router in this one on
 loopback) is started on it, four times:
 
@@ -83,25 +84,25 @@ def build_store(db: Path, segments: int, days: int, ns: str, models) -> int:
     for first in range(0, segments, CHUNK):
         rows = []
         for k in range(first, min(segments, first + CHUNK)):
-            seg = f"s{k:06d}"
-            trc = TrcRecord(line="L1", segment=seg, t=T0, top6_mm=3.0, align10_mm=2.4, run_id="r0")
+            seg, line = f"s{k:06d}", line_of(k)
+            trc = TrcRecord(line=line, segment=seg, t=T0, top6_mm=3.0, align10_mm=2.4, run_id="r0")
             rows.append(
                 (
-                    "L1",
+                    line,
                     seg,
                     "trc",
-                    keys.trc(ns, "L1", seg),
+                    keys.trc(ns, line, seg),
                     json.dumps(["trc", "r0", T0]),
                     T0,
                     encode(trc),
                 )
             )
             y = np.exp(rng.normal([0.8, 0.5], 0.1, (len(times), 2))).tolist()
-            key = keys.index(ns, "L1", seg)
+            key = keys.index(ns, line, seg)
             for i, t in enumerate(times.tolist()):
                 train = _train(k, segments, i)
                 msg = OnboardIndex(
-                    line="L1",
+                    line=line,
                     segment=seg,
                     train=train,
                     unit="u1",
@@ -112,7 +113,7 @@ def build_store(db: Path, segments: int, days: int, ns: str, models) -> int:
                     coverage=1.0,
                 )
                 identity = json.dumps(["index", train, "u1", t])
-                rows.append(("L1", seg, "index", key, identity, t, encode(msg)))
+                rows.append((line, seg, "index", key, identity, t, encode(msg)))
         db_.execute("BEGIN")
         db_.executemany(
             "INSERT INTO events (line, segment, kind, key, identity, t, payload)"
@@ -126,6 +127,14 @@ def build_store(db: Path, segments: int, days: int, ns: str, models) -> int:
 
 
 REGIONS = 10  # each pair of trains runs over a tenth of the segments
+LINE_SEGMENTS = 1000  # segments a line (200 km of 200 m segments)
+
+
+def line_of(segment: int) -> str:
+    """The line of segment number ``segment``: consecutive numbers, ``LINE_SEGMENTS`` a line
+    (a network's layout; one line of 100,000 would make Zenoh's routing of the states the
+    figure, see bench.siblings)."""
+    return f"L{segment // LINE_SEGMENTS + 1:03d}"
 
 
 def _train(segment: int, segments: int, i: int) -> str:
@@ -407,7 +416,7 @@ def _tail(segments: int, days: int) -> list[OnboardIndex]:
     t = T0 + (days + 0.5) * DAY_S
     return [
         OnboardIndex(
-            line="L1",
+            line=line_of(k),
             segment=f"s{k:06d}",
             train="T9",
             unit="u1",

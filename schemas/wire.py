@@ -134,7 +134,7 @@ class NDArray(msgspec.Struct, frozen=True):
             raise SchemaError(f"dtype: {self.dtype!r} not one of {sorted(DTYPES)}")
         if len(self.shape) > 8:
             raise SchemaError(f"shape: {len(self.shape)} dimensions > 8")
-        if any(s < 0 for s in self.shape):
+        if self.shape and min(self.shape) < 0:
             raise SchemaError(f"shape: negative extent in {self.shape}")
         size = math.prod(self.shape)
         if size > MAX_ARRAY_ELEMENTS:

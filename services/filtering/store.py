@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import operator
 import sqlite3
 import struct
 import threading
@@ -521,6 +522,12 @@ _STORED_INDEX = msgspec.msgpack.Decoder(StoredIndex)
 
 
 _STORED_INDICES = msgspec.msgpack.Decoder(list[StoredIndex])
+_TOP6, _ALIGN10 = operator.attrgetter("top6_mm"), operator.attrgetter("align10_mm")
+_TIME, _VERSION, _UNIT = (
+    operator.attrgetter("t"),
+    operator.attrgetter("v"),
+    operator.attrgetter("train", "unit"),
+)
 _ARRAY32 = struct.Struct(">BI")  # a MessagePack array header: 0xdd, then the count
 
 
@@ -542,16 +549,16 @@ def log_columns(
         )
     except (msgspec.DecodeError, msgspec.ValidationError):
         return None
-    tops = [m.top6_mm for m in msgs]
-    aligns = [m.align10_mm for m in msgs]
-    if any(m.v != SCHEMA_VERSION for m in msgs) or not all(
-        0.0 < a < math.inf and 0.0 < b < math.inf for a, b in zip(tops, aligns, strict=True)
+    tops, aligns = list(map(_TOP6, msgs)), list(map(_ALIGN10, msgs))
+    indices = np.array((tops, aligns))
+    if set(map(_VERSION, msgs)) - {SCHEMA_VERSION} or not (
+        (indices > 0.0).all() and (indices < math.inf).all()  # NaN fails both
     ):
         return None
     others = list(others)
     restarts = [e.t_s for e in others if e.kind == RESTART]
     trc_t = max(restarts) if restarts else None
-    times = np.array([m.t for m in msgs], dtype=np.float64)
+    times = np.array(list(map(_TIME, msgs)), dtype=np.float64)
     if trc_t is not None:  # canonical_log keeps the events at or after the latest TRC record
         others = [e for e in others if e.t_s >= trc_t]
         kept = times >= trc_t
@@ -562,8 +569,9 @@ def log_columns(
             )
             times = times[kept]
     n_index = len(msgs)
-    names: dict[tuple[str, str], int] = {}
-    codes = [names.setdefault((m.train, m.unit), len(names)) for m in msgs]
+    units = list(map(_UNIT, msgs))
+    names = {name: code for code, name in enumerate(dict.fromkeys(units))}
+    codes = list(map(names.__getitem__, units))
     kinds = np.full(n_index + len(others), INDEX, dtype=np.int8)
     kinds[n_index:] = [e.kind for e in others]
     all_times = np.concatenate([times, [e.t_s for e in others]])
