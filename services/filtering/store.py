@@ -521,7 +521,18 @@ _STORED = {kind: msgspec.msgpack.Decoder(t) for kind, t in _EVENT_TYPES.items()}
 _STORED_INDEX = msgspec.msgpack.Decoder(StoredIndex)
 
 
-_STORED_INDICES = msgspec.msgpack.Decoder(list[StoredIndex])
+class _FoldedIndex(msgspec.Struct, frozen=True, kw_only=True, gc=False):
+    """What the fold reads of a stored OnboardIndex (its other fields are skipped)."""
+
+    v: int = SCHEMA_VERSION
+    train: str
+    unit: str
+    t: float
+    top6_mm: float
+    align10_mm: float
+
+
+_STORED_INDICES = msgspec.msgpack.Decoder(list[_FoldedIndex])
 _TOP6, _ALIGN10 = operator.attrgetter("top6_mm"), operator.attrgetter("align10_mm")
 _TIME, _VERSION, _UNIT = (
     operator.attrgetter("t"),
