@@ -22,7 +22,12 @@ RSS is the service process's (``VmHWM``: peak; ``VmRSS`` once ready). Baseline i
 process: :func:`services.filtering.tracker.fold_many` of the same events, alone, on a
 sample of segments, extrapolated per event.
 
-Run: ``python -m bench.restart [--segments 100000 --days 60]``.
+``--shards S`` runs S instances instead of one, each on its own store and ``--selector``
+(``A$*/**``, ``B$*/**``, …: the segments split into S runs of lines), the times then to the
+last instance's token and every segment's state; on 2 cores this is how the Python half of
+a re-run (one thread an instance) gets the second core.
+
+Run: ``python -m bench.restart [--segments 100000 --days 60 --shards 2]``.
 """
 
 from __future__ import annotations
@@ -67,8 +72,11 @@ READY_S = 1800.0  # upper bound of a start at the largest size
 CHUNK = 2000  # segments written per executemany
 
 
-def build_store(db: Path, segments: int, days: int, ns: str, models) -> int:
-    """The store the service would have written for these events; returns the event count."""
+def build_store(
+    db: Path, segments: int, days: int, ns: str, models, shard: int = 0, shards: int = 1
+) -> int:
+    """The store the service would have written for these events (the segments of ``shard``
+    of ``shards``: :func:`shard_of`); returns the event count."""
     rng = np.random.default_rng(1)
     with Store(db) as store:
         for msg in models:
@@ -81,10 +89,11 @@ def build_store(db: Path, segments: int, days: int, ns: str, models) -> int:
     db_.execute("PRAGMA synchronous=OFF")
     n = 0
     times = T0 + (np.arange(2 * days) // 2 + 0.25 + 0.5 * (np.arange(2 * days) % 2)) * DAY_S
-    for first in range(0, segments, CHUNK):
+    mine = [k for k in range(segments) if shard_of(k, segments, shards) == shard]
+    for first in range(0, len(mine), CHUNK):
         rows = []
-        for k in range(first, min(segments, first + CHUNK)):
-            seg, line = f"s{k:06d}", line_of(k)
+        for k in mine[first : first + CHUNK]:
+            seg, line = f"s{k:06d}", line_of(k, segments, shards)
             trc = TrcRecord(line=line, segment=seg, t=T0, top6_mm=3.0, align10_mm=2.4, run_id="r0")
             rows.append(
                 (
@@ -130,11 +139,17 @@ REGIONS = 10  # each pair of trains runs over a tenth of the segments
 LINE_SEGMENTS = 1000  # segments a line (200 km of 200 m segments)
 
 
-def line_of(segment: int) -> str:
+def shard_of(segment: int, segments: int, shards: int) -> int:
+    """The shard of segment number ``segment``: ``shards`` equal runs of numbers."""
+    return segment * shards // segments
+
+
+def line_of(segment: int, segments: int, shards: int = 1) -> str:
     """The line of segment number ``segment``: consecutive numbers, ``LINE_SEGMENTS`` a line
     (a network's layout; one line of 100,000 would make Zenoh's routing of the states the
-    figure, see bench.siblings)."""
-    return f"L{segment // LINE_SEGMENTS + 1:03d}"
+    figure, see bench.siblings), named after its shard's letter (its selector ``X$*/**``)."""
+    letter = chr(ord("A") + shard_of(segment, segments, shards))
+    return f"{letter}{segment // LINE_SEGMENTS + 1:03d}"
 
 
 def _train(segment: int, segments: int, i: int) -> str:
@@ -177,22 +192,28 @@ class Watcher:
 
     def __init__(self, session: zenoh.Session, ns: str) -> None:
         self.session, self.ns = session, ns
-        self.alive = threading.Event()
+        self.tokens: set[str] = set()  # the instances alive
         self.cond = threading.Condition()
         self.versions: dict[str, int] = {}  # segment -> calibration version of its newest state
         self.at_version: Counter[int] = Counter()  # version -> segments whose newest has it
         self.awaited: dict[str, float | None] = {}  # segment -> the t awaited (None: any)
         self.expected: set[str] = set()  # every segment of the last expect()
         self.others = 0  # states of other segments since the last expect()
-        alive_key = keys.alive(ns, "filtering", "bench")
+        alive_key = keys.alive(ns, "filtering", "bench") + "$*"  # benchA, benchB, …
         self._tokens = session.liveliness().declare_subscriber(alive_key, self._on_token)
         self._states = session.declare_subscriber(keys.segment_keys(ns, "state"), self._on_state)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
-        if sample.kind == zenoh.SampleKind.PUT:
-            self.alive.set()
-        else:
-            self.alive.clear()
+        with self.cond:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.tokens.add(str(sample.key_expr))
+            else:
+                self.tokens.discard(str(sample.key_expr))
+            self.cond.notify_all()
+
+    def wait_alive(self, instances: int, timeout: float) -> bool:
+        with self.cond:
+            return self.cond.wait_for(lambda: len(self.tokens) >= instances, timeout)
 
     def _on_state(self, sample: zenoh.Sample) -> None:
         state = decode(sample.payload.to_bytes(), SegmentState)
@@ -248,27 +269,56 @@ def rss_mb(pid: int) -> tuple[float, float]:
     return tuple(float(fields[k].split()[0]) / 1024 for k in ("VmRSS", "VmHWM"))  # type: ignore[return-value]
 
 
-def start(args: list[str], watcher: Watcher, segments: int, log: Path):
-    """Start the service; ``(process, ready_s, answering_s, rss, peak)``."""
-    watcher.alive.clear()
-    watcher.reset()  # what this process publishes
-    started = time.perf_counter()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", *args],
-        stdout=log.open("ab"),
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-    )
-    while not watcher.alive.wait(1.0):  # or the process ended
-        if proc.poll() is not None or time.perf_counter() - started > READY_S:
-            proc.kill()
-            raise RuntimeError(f"not ready ({proc.poll()}):\n{log.read_text()[-2000:]}")
-    ready = time.perf_counter() - started
-    got = watcher.answered()
-    answering = time.perf_counter() - started
-    if got != segments:
-        raise RuntimeError(f"q/state answered {got} of {segments} segments; see {log}")
-    return (proc, ready, answering, *rss_mb(proc.pid))
+class Instances:
+    """The service's processes: one, or one per shard, each on its own store and selector."""
+
+    def __init__(self, argsets: list[list[str]], log: Path) -> None:
+        self.argsets, self.log = argsets, log
+        self.procs: list[subprocess.Popen] = []
+
+    def start(self, watcher: Watcher, segments: int) -> tuple[float, float, float, float]:
+        """Start every instance: ``(ready_s, answering_s, rss, peak)``, ready when the last
+        token came, RSS summed over the instances."""
+        with watcher.cond:
+            watcher.tokens.clear()
+        watcher.reset()  # what these processes publish
+        started = time.perf_counter()
+        self.procs = [
+            subprocess.Popen(
+                [sys.executable, "-m", "services.cli", *args],
+                stdout=self.log.open("ab"),
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
+            for args in self.argsets
+        ]
+        while not watcher.wait_alive(len(self.procs), 1.0):  # or a process ended
+            ended = [p.poll() for p in self.procs if p.poll() is not None]
+            if ended or time.perf_counter() - started > READY_S:
+                self.kill()
+                raise RuntimeError(f"not ready ({ended}):\n{self.log.read_text()[-2000:]}")
+        ready = time.perf_counter() - started
+        got = watcher.answered()
+        answering = time.perf_counter() - started
+        if got != segments:
+            raise RuntimeError(f"q/state answered {got} of {segments} segments; see {self.log}")
+        return (ready, answering, *self.rss())
+
+    def rss(self) -> tuple[float, float]:
+        """(VmRSS, VmHWM) summed over the instances, MB."""
+        both = [rss_mb(p.pid) for p in self.procs]
+        return sum(r for r, _ in both), sum(h for _, h in both)
+
+    def stop(self, sig: int, timeout: float) -> None:
+        for p in self.procs:
+            p.send_signal(sig)
+        for p in self.procs:
+            p.wait(timeout)
+
+    def kill(self) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.kill()
 
 
 class _Done(Exception):
@@ -281,6 +331,7 @@ def bench_restart(
     sample: int = 500,
     service_log: Path | None = None,
     restart_only: bool = False,
+    shards: int = 1,
 ) -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -290,33 +341,39 @@ def bench_restart(
     router_conf = {"mode": "router", "listen": {"endpoints": [endpoint]}, "scouting": {"delay": 0}}
     client = {"mode": "client", "connect": {"endpoints": [endpoint]}}
     with tempfile.TemporaryDirectory() as tmp, zenoh.open(zenoh_config(router_conf)) as _router:
-        db, log = Path(tmp) / "filtering.sqlite", Path(tmp) / "service.log"
+        log = Path(tmp) / "service.log"
+        dbs = [Path(tmp) / f"filtering-{chr(ord('A') + k)}.sqlite" for k in range(shards)]
         started = time.perf_counter()
-        n_events = build_store(db, segments, days, ns, models)
+        n_events = sum(
+            build_store(db, segments, days, ns, models, k, shards) for k, db in enumerate(dbs)
+        )
         built = time.perf_counter() - started
-        rate = fold_rate(db, models, min(sample, segments))
-        args = [
-            *("filtering", "--connect", endpoint, "--ns", ns, "--instance", "bench"),
-            *("--db", str(db), "--log-level", "info"),
+        rate = fold_rate(dbs[0], models, min(sample, segments // shards))
+        argsets = [
+            [
+                *("filtering", "--connect", endpoint, "--ns", ns),
+                *("--instance", f"bench{chr(ord('A') + k)}", "--db", str(db)),
+                *("--selector", f"{chr(ord('A') + k)}$*/**", "--log-level", "info"),
+            ]
+            for k, db in enumerate(dbs)
         ]
+        service = Instances(argsets, log)
         rows = []
         with zenoh.open(zenoh_config(client)) as session:
             watcher = Watcher(session, ns)
             try:
-                proc, *first = start(args, watcher, segments, log)
+                first = service.start(watcher, segments)
                 t = time.perf_counter()
-                proc.send_signal(signal.SIGTERM)
-                proc.wait(READY_S)
+                service.stop(signal.SIGTERM, READY_S)
                 stop_s = time.perf_counter() - t
                 rows.append(("first start (no checkpoint: full replay)", *first))
                 _progress(rows[-1])
 
-                proc, *again = start(args, watcher, segments, log)
+                again = service.start(watcher, segments)
                 rows.append(("restart from checkpoints", *again))
                 _progress(rows[-1])
                 if restart_only:
-                    proc.send_signal(signal.SIGTERM)
-                    proc.wait(READY_S)
+                    service.stop(signal.SIGTERM, READY_S)
                     raise _Done
                 # the restored states are published again in the background (a first put
                 # per key declares its publisher); the worker waits for it
@@ -333,7 +390,7 @@ def bench_restart(
                     raise RuntimeError(f"model change incomplete; see {log}")
                 change_s = time.perf_counter() - t
                 _progress(("change_s", change_s))
-                change_rss = rss_mb(proc.pid)
+                change_rss = service.rss()
 
                 # one unit's own calibration: the segments its train ran over, nothing else
                 unit = Calibration(
@@ -353,7 +410,7 @@ def bench_restart(
                     if watcher.cond.wait_for(lambda: watcher.others > 0, 1.0):
                         raise RuntimeError(f"states of other segments: {log}")
 
-                tail = _tail(segments, days)
+                tail = _tail(segments, days, shards)
                 watcher.expect({m.segment: m.t for m in tail})  # published after commit
                 for msg in tail:
                     key = keys.index(ns, msg.line, msg.segment)
@@ -361,21 +418,18 @@ def bench_restart(
                 done = watcher.wait_expected(READY_S)
                 if not done:
                     raise RuntimeError(f"the tail's states did not all arrive; see {log}")
-                proc.send_signal(signal.SIGKILL)
-                proc.wait(60)
-                proc, *killed = start(args, watcher, segments, log)
+                service.stop(signal.SIGKILL, 60)
+                killed = service.start(watcher, segments)
                 rows.append(
                     (f"restart after SIGKILL ({len(tail)} events after checkpoint)", *killed)
                 )
-                proc.send_signal(signal.SIGTERM)
-                proc.wait(READY_S)
+                service.stop(signal.SIGTERM, READY_S)
             except _Done:
                 pass
             finally:
-                if proc.poll() is None:
-                    proc.kill()
+                service.kill()
                 watcher.close()
-        size_mb = db.stat().st_size / 1e6
+        size_mb = sum(db.stat().st_size for db in dbs) / 1e6
         if service_log is not None:
             service_log.write_bytes(log.read_bytes())
 
@@ -383,7 +437,7 @@ def bench_restart(
     print(
         f"filtering restart, Ns = {NS_SAMPLES}, {segments:,} segments × {days} days × 2 passes"
         f" = {n_events:,} events since the TRC records (store {size_mb:,.0f} MB, built in"
-        f" {built:.0f} s):"
+        f" {built:.0f} s), {shards} instance(s) (RSS summed over them):"
     )
     print(f"  fold_many alone: {rate:,.0f} events/s, i.e. {fold_all:.1f} s for every event")
     for name, ready, answering, rss, peak in rows:
@@ -412,11 +466,11 @@ def _progress(row: tuple) -> None:
     print("  measured:", *row, file=sys.stderr, flush=True)
 
 
-def _tail(segments: int, days: int) -> list[OnboardIndex]:
+def _tail(segments: int, days: int, shards: int) -> list[OnboardIndex]:
     t = T0 + (days + 0.5) * DAY_S
     return [
         OnboardIndex(
-            line=line_of(k),
+            line=line_of(k, segments, shards),
             segment=f"s{k:06d}",
             train="T9",
             unit="u1",
@@ -436,9 +490,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--days", type=int, default=60)
     parser.add_argument("--service-log", type=Path, help="keep the service's log there")
     parser.add_argument("--restart-only", action="store_true", help="no model change")
+    parser.add_argument(
+        "--shards", type=int, default=1, help="filtering instances, each on its own lines"
+    )
     args = parser.parse_args(argv)
     bench_restart(
-        args.segments, args.days, service_log=args.service_log, restart_only=args.restart_only
+        args.segments,
+        args.days,
+        service_log=args.service_log,
+        restart_only=args.restart_only,
+        shards=args.shards,
     )
 
 
