@@ -23,7 +23,9 @@ import zenoh
 from linkproxy import LinkProxy
 from support import TIMEOUT_S, Process, ServiceThread, cli
 
-from services.runtime.config import RuntimeConfig, zenoh_config
+from services.runtime.config import RuntimeConfig, reserve_rx_threads, zenoh_config
+
+reserve_rx_threads()  # the router and its clients share this process
 
 
 @pytest.fixture

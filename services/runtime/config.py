@@ -221,6 +221,22 @@ def read_config_file(path: Path) -> dict[str, Any]:
     return data
 
 
+# Zenoh's runtime threads that read the links (rx) are shared by every session of a process,
+# 2 on 2 cores. A process that holds a router *and* client sessions of it (a test, a bench)
+# can deadlock: when every rx thread is blocked forwarding BLOCK messages (replies, states)
+# to an in-process client, none is left to read for that client; after 5 s the router closes
+# the transports (tests/integration/test_latest.py reproduces it with 2 threads: two
+# queryables of 5,000 replies). More rx threads than producers avoid it. A process holding
+# only a router (`trackfusion router`, `trackfusion up`'s supervisor) needs none.
+ROUTER_AND_CLIENTS_RUNTIME = "(rx: (worker_threads: 8))"
+
+
+def reserve_rx_threads() -> None:
+    """For a process that will hold a router and its clients: enough rx threads (above);
+    call before its first session (the runtime is made then); a value already set wins."""
+    os.environ.setdefault("ZENOH_RUNTIME", ROUTER_AND_CLIENTS_RUNTIME)
+
+
 def zenoh_config(conf: RuntimeConfig | Mapping[str, Any] | None = None) -> zenoh.Config:
     """A ``zenoh.Config`` from ``conf``: client mode connecting to the local router unless told
     otherwise, a router listening on it, multicast scouting always off."""
