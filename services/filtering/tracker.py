@@ -119,7 +119,7 @@ from services.filtering.mixture import summarize_unchecked, weights_from_log
 HORIZONS_DAYS = (30.0, 90.0, 180.0)
 TAMPING, RESTART, INDEX = 0, 1, 2  # kind priority at equal times: a TRC record after a tamping
 KIND_NAMES = {RESTART: "trc", TAMPING: "maintenance", INDEX: "index"}
-SUMMARY_SEGMENTS = 8  # segments per batched summary: temporaries below the mmap threshold
+SUMMARY_SEGMENTS = 32  # segments per batched summary: 512 quantile searches, spread over the cores
 RERUN_CHUNK = 2048  # segments re-run together: one chunk of logs in memory at a time
 # Detected maintenance (see :func:`detect`): a one-sided CUSUM of how far below their
 # prediction the indices read, in predictive standard deviations.
