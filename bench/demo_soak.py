@@ -53,7 +53,7 @@ import zenoh
 from bench.hostile import DeadLetters, Hostile, answered, hostile_messages, unanswered
 from schemas import DAY_S, keys
 from services.defaults import default_file
-from services.runtime.config import zenoh_config
+from services.runtime.config import users_env, zenoh_config
 from simulators.run import DEFAULT_START
 
 REPO = Path(__file__).resolve().parents[1]
@@ -145,6 +145,7 @@ def run(args: argparse.Namespace) -> dict:
             stdout=log,
             stderr=subprocess.STDOUT,
             start_new_session=True,
+            env=users_env(),  # not this bench process's reserved rx threads
         )
     print(f"demo soak: {args.minutes:g} min, ns {ns}, router {endpoint}, files in {out}")
     flows = Flows()

@@ -1,11 +1,10 @@
-"""Restart and model change of one filtering instance holding many segments (issue 16).
+"""Restart and model change of a filtering instance holding many segments (issue 16).
 
 A store of ``--segments`` segments (lines of ``LINE_SEGMENTS``), each with a TRC record and
 ``2 × --days`` OnboardIndex since (Ns = 200 posterior samples), is written directly with
 SQL (the rows the service itself writes: re-encoded payloads, identities, times) together
-with the models. Then the
-real service (``trackfusion filtering`` in its own process, a router in this one on
-loopback) is started on it, four times:
+with the models. Then the real service (``trackfusion filtering`` in its own process, a
+router in this one on loopback) is started on it, four times:
 
 1. *first start*: no checkpoint, every segment replayed from its log (what every restart
    cost before checkpoints), then a clean stop (SIGTERM: checkpoints written);
@@ -18,9 +17,9 @@ loopback) is started on it, four times:
 
 Ready is the service's liveliness token; *answering* is a ``q/state`` query here returning
 every segment. The time is from the process start (interpreter and imports included).
-RSS is the service process's (``VmHWM``: peak; ``VmRSS`` once ready). Baseline in this
-process: :func:`services.filtering.tracker.fold_many` of the same events, alone, on a
-sample of segments, extrapolated per event.
+RSS is the service process's, summed over the instances (``VmHWM``: peak; ``VmRSS`` once
+ready). Baseline in this process: :func:`services.filtering.tracker.fold_many` of the same
+events, alone, on a sample of segments, extrapolated per event.
 
 ``--shards S`` runs S instances instead of one, each on its own store and ``--selector``
 (``A$*/**``, ``B$*/**``, …: the segments split into S runs of lines), the times then to the
@@ -229,8 +228,9 @@ class Watcher:
             self.cond.notify_all()
 
     def reset(self) -> None:
-        """Forget what arrived (a new process publishes everything again)."""
+        """Forget the tokens and states seen (new processes declare and publish again)."""
         with self.cond:
+            self.tokens.clear()
             self.versions.clear()
             self.at_version.clear()
 
@@ -279,9 +279,7 @@ class Instances:
     def start(self, watcher: Watcher, segments: int) -> tuple[float, float, float, float]:
         """Start every instance: ``(ready_s, answering_s, rss, peak)``, ready when the last
         token came, RSS summed over the instances."""
-        with watcher.cond:
-            watcher.tokens.clear()
-        watcher.reset()  # what these processes publish
+        watcher.reset()
         started = time.perf_counter()
         self.procs = [
             subprocess.Popen(

@@ -92,7 +92,7 @@ import zenoh
 from schemas import DAY_S, NDArray, OnboardIndex, keys
 from schemas.keys import SegmentId
 from services.extraction.pipeline import ExtractionConfig
-from services.runtime.config import zenoh_config
+from services.runtime.config import users_env, zenoh_config
 from track.network import demo_network
 from track.versine import END_GUARD_M
 
@@ -295,7 +295,7 @@ class Child:
                 stderr=subprocess.STDOUT,
                 stdin=subprocess.DEVNULL,
                 start_new_session=True,
-                env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                env={**users_env(), "PYTHONUNBUFFERED": "1"},
             )
         self.cpu0 = cpu_seconds(self.popen.pid)
 

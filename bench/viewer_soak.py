@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 from bench.demo_soak import free_port, rss_mb, stack_copy
+from services.runtime.config import users_env
 from tests.browser import first_picture, hue_pixels
 
 REPO = Path(__file__).resolve().parents[1]
@@ -70,6 +71,7 @@ def main(argv: list[str] | None = None) -> int:
             stdout=log,
             stderr=subprocess.STDOUT,
             start_new_session=True,
+            env=users_env(),  # not this bench process's reserved rx threads
         )
     t0 = time.monotonic()
     samples: list[tuple[float, float | None]] = []

@@ -237,6 +237,15 @@ def reserve_rx_threads() -> None:
     os.environ.setdefault("ZENOH_RUNTIME", ROUTER_AND_CLIENTS_RUNTIME)
 
 
+def users_env() -> dict[str, str]:
+    """This process's environment without what :func:`reserve_rx_threads` set: for a child
+    that must run as users run it (`trackfusion up`, a router) with Zenoh's own runtime."""
+    env = dict(os.environ)
+    if env.get("ZENOH_RUNTIME") == ROUTER_AND_CLIENTS_RUNTIME:
+        del env["ZENOH_RUNTIME"]
+    return env
+
+
 def zenoh_config(conf: RuntimeConfig | Mapping[str, Any] | None = None) -> zenoh.Config:
     """A ``zenoh.Config`` from ``conf``: client mode connecting to the local router unless told
     otherwise, a router listening on it, multicast scouting always off."""
