@@ -20,6 +20,7 @@ import numpy as np
 from services.filtering import kernel
 from services.filtering.bank import FilterBank, ObservationModel
 from services.filtering.degradation import DegradationParams
+from services.filtering.tracker import _state_views, state_layout
 
 NS, SEGMENTS, STEPS, REPEATS = 200, 2000, 20, 5
 DAY_S = 86_400.0
@@ -47,14 +48,15 @@ def bench_kernel() -> None:
     def compiled(step) -> tuple[float, np.ndarray]:
         best = np.inf
         for _ in range(REPEATS):
-            z = np.repeat(z0[:, None, :], NS, axis=1)
-            P = np.zeros((SEGMENTS, NS, 2, 2))
-            log_w, t_s = np.zeros((SEGMENTS, NS)), np.zeros(SEGMENTS)
+            F = np.zeros((SEGMENTS, state_layout(NS, 2)[2]))  # z, P, log_w of each row
+            z = _state_views(F, NS, 2)[0]
+            z[:] = z0[:, None, :]
+            t_s = np.zeros(SEGMENTS)
             nis, score = np.zeros(SEGMENTS), np.zeros(SEGMENTS)
             started = time.perf_counter()
             for k in range(STEPS):
                 t = np.full(SEGMENTS, 7.0 * (k + 1) * DAY_S)
-                step(z, P, log_w, t_s, rows, t, y[:, k], mu[None], sigma[None], group,
+                step(F, t_s, rows, t, y[:, k], mu[None], sigma[None], group,
                      H, b, R, everyone_nis, nis, score)  # fmt: skip
             best = min(best, time.perf_counter() - started)
         return best / (SEGMENTS * STEPS * NS) * 1e9, z

@@ -63,16 +63,15 @@ _ROWS_PER_TASK = 16  # rows a parallel task steps with one scratch allocation
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", inline="always")
-def _step_row(
-    r, z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score, tmp
-):
+def _step_row(r, F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score, tmp):
     """One row of :func:`index_step` (inlined into both compiled loops: the same code).
 
     The samples are copied into the contiguous rows of ``tmp`` (10, Ns) first, so that the
     filter loop, ``exp`` and ``log`` (:mod:`.vecmath`) run over Ns lanes at a time; the
     weighted sums stay sequential in ``j``, in a fixed order.
     """
-    ns = z.shape[1]
+    ns = F.shape[1] // 7  # a row: z (Ns, 2), P (Ns, 2, 2), log_w (Ns), each row-major
+    op, ow = 2 * ns, 6 * ns  # where P and log_w start
     h00, h01, h10, h11 = H[0, 0], H[0, 1], H[1, 0], H[1, 1]
     r00, r01, r11 = R[0, 0], R[0, 1], R[1, 1]
     b0, b1 = b[0], b[1]
@@ -87,16 +86,16 @@ def _step_row(
     a0, a1, b00, b01, b11 = tmp[0], tmp[1], tmp[2], tmp[3], tmp[4]  # z, P of the samples
     w, us, vs, nis_s, log_det = tmp[5], tmp[6], tmp[7], tmp[8], tmp[9]
     for j in range(ns):  # predict: z + mu dt, P + Sigma dt
-        a0[j] = z[row, j, 0] + mu[g, j, 0] * dt
-        a1[j] = z[row, j, 1] + mu[g, j, 1] * dt
-        b00[j] = P[row, j, 0, 0] + sigma[g, j, 0, 0] * dt
-        b01[j] = P[row, j, 0, 1] + sigma[g, j, 0, 1] * dt
-        b11[j] = P[row, j, 1, 1] + sigma[g, j, 1, 1] * dt
+        a0[j] = F[row, 2 * j] + mu[g, j, 0] * dt
+        a1[j] = F[row, 2 * j + 1] + mu[g, j, 1] * dt
+        b00[j] = F[row, op + 4 * j] + sigma[g, j, 0, 0] * dt
+        b01[j] = F[row, op + 4 * j + 1] + sigma[g, j, 0, 1] * dt
+        b11[j] = F[row, op + 4 * j + 3] + sigma[g, j, 1, 1] * dt
     top = -np.inf
     for j in range(ns):
-        top = max(top, log_w[row, j])
+        top = max(top, F[row, ow + j])
     for j in range(ns):
-        w[j] = exp_nonpositive(log_w[row, j] - top)
+        w[j] = exp_nonpositive(F[row, ow + j] - top)
     for j in range(ns):
         z0, z1, p00, p01, p11 = a0[j], a1[j], b00[j], b01[j], b11[j]
         # the CUSUM score's moments on the prediction
@@ -139,7 +138,7 @@ def _step_row(
         b01[j] = ap00 * a10 + ap01 * a11 + c00 * k10 + c01 * k11
         b11[j] = ap10 * a10 + ap11 * a11 + c10 * k10 + c11 * k11
     for j in range(ns):
-        log_w[row, j] += -0.5 * (nis_s[j] + log_det[j] + 2.0 * _LOG_2PI)
+        F[row, ow + j] += -0.5 * (nis_s[j] + log_det[j] + 2.0 * _LOG_2PI)
     # the weighted sums: four independent chains in one pass, normalised after
     total = 0.0
     mean_u = 0.0
@@ -156,12 +155,12 @@ def _step_row(
     second /= total
     nis_mean /= total
     for j in range(ns):  # P is kept exactly symmetric
-        z[row, j, 0] = a0[j]
-        z[row, j, 1] = a1[j]
-        P[row, j, 0, 0] = b00[j]
-        P[row, j, 0, 1] = b01[j]
-        P[row, j, 1, 0] = b01[j]
-        P[row, j, 1, 1] = b11[j]
+        F[row, 2 * j] = a0[j]
+        F[row, 2 * j + 1] = a1[j]
+        F[row, op + 4 * j] = b00[j]
+        F[row, op + 4 * j + 1] = b01[j]
+        F[row, op + 4 * j + 2] = b01[j]
+        F[row, op + 4 * j + 3] = b11[j]
     var = second - mean_u * mean_u
     score[r] = mean_u / math.sqrt(max(var, 1e-300))
     if nis_rows[r]:
@@ -170,32 +169,32 @@ def _step_row(
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def _index_step_serial(z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s):
-    tmp = np.empty((_SCRATCH, z.shape[1]))
+def _index_step_serial(F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s):
+    tmp = np.empty((_SCRATCH, F.shape[1] // 7))
     for r in range(rows.shape[0]):
-        _step_row(r, z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s, tmp)
+        _step_row(r, F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s, tmp)
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", parallel=True)
-def _index_step_parallel(z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s):
+def _index_step_parallel(F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s):
     k = rows.shape[0]
     for task in numba.prange((k + _ROWS_PER_TASK - 1) // _ROWS_PER_TASK):
-        tmp = np.empty((_SCRATCH, z.shape[1]))
+        tmp = np.empty((_SCRATCH, F.shape[1] // 7))
         for r in range(task * _ROWS_PER_TASK, min(k, (task + 1) * _ROWS_PER_TASK)):
-            _step_row(
-                r, z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s, tmp
-            )
+            _step_row(r, F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, wn, nis, s, tmp)
 
 
 PARALLEL_ROWS = 256  # from this many rows a step is spread over the cores
 _PARALLEL_LOCK = threading.Lock()  # numba's default thread pool takes one caller at a time
 
 
-def index_step(z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score):
+def index_step(F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score):
     """Apply one on-board index to each listed row, in place (see the module docstring).
 
-    ``z`` (S, Ns, 2), ``P`` (S, Ns, 2, 2), ``log_w`` (S, Ns), ``t_s`` (S,): the bank;
-    ``rows`` (k,) the rows to step, ``t_new`` (k,) epoch s, ``y`` (k, 2) log indices;
+    ``F`` (S, 7 Ns) C-contiguous, ``t_s`` (S,): the bank, a row of ``F`` being a
+    segment's ``z`` (Ns, 2), ``P`` (Ns, 2, 2) and ``log_w`` (Ns), each row-major, one after
+    the other (:func:`services.filtering.tracker.state_layout`); ``rows`` (k,) the rows to
+    step, ``t_new`` (k,) epoch s, ``y`` (k, 2) log indices;
     ``mu`` (G, Ns, 2), ``sigma`` (G, Ns, 2, 2) and ``group`` (k,) the degradation
     parameters of each row; ``H``, ``b``, ``R`` the observation model (2 x 2);
     ``nis_rows`` (k,) bool: write row ``r``'s NIS into ``nis[rows[r]]``; ``score`` (k,)
@@ -205,7 +204,7 @@ def index_step(z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_
     calling thread (the live step). The rows are independent and each is computed by the
     same inlined code either way, so the bits do not depend on which.
     """
-    args = (z, P, log_w, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score)
+    args = (F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score)
     if len(rows) < PARALLEL_ROWS:
         _index_step_serial(*args)
         return

@@ -153,8 +153,7 @@ def pack_state(state: Filtered) -> bytes:
         state.cusum_t1,
         0.0,
     )
-    arrays = (state.z, state.P, state.log_w)
-    return head + b"".join(np.ascontiguousarray(a, dtype="<f8").tobytes() for a in arrays)
+    return head + np.ascontiguousarray(state.buffer(), dtype="<f8").tobytes()
 
 
 def unpack_state(blob: bytes) -> Filtered:
@@ -167,19 +166,9 @@ def unpack_state(blob: bytes) -> Filtered:
     if len(blob) != _STATE_HEAD.size + 8 * sum(sizes) or ns < 1 or n < 1:
         raise ValueError(f"state: {len(blob)} bytes for Ns={ns}, n={n}")
     flat = np.frombuffer(blob, dtype="<f8", offset=_STATE_HEAD.size).astype(np.float64)
-    z, P, log_w = np.split(flat, np.cumsum(sizes)[:2])
-    return Filtered(
-        z.reshape(ns, n),
-        P.reshape(ns, n, n),
-        t_s,
-        None if math.isnan(trc) else trc,
-        int(n_updates),
-        None if math.isnan(nis) else nis,
-        log_w,
-        cusum,
-        t0,
-        t1,
-    )
+    trc_t = None if math.isnan(trc) else trc
+    nis_or_none = None if math.isnan(nis) else nis
+    return Filtered.of_buffer(flat, ns, n, t_s, trc_t, int(n_updates), nis_or_none, cusum, t0, t1)
 
 
 _KIND_CODES = {name: code for code, name in KIND_NAMES.items()}

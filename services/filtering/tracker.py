@@ -339,9 +339,31 @@ def with_model(models: Models, msg: ModelMessage) -> Models | None:
     return _with_parsed(models, msg, parse_model(msg))
 
 
+def state_layout(ns: int, n: int) -> tuple[int, int, int]:
+    """Where a segment's ``z`` (Ns, n), ``P`` (Ns, n, n) and ``log_w`` (Ns) lie in its one
+    float64 buffer (:attr:`Filtered.flat`, a row of :attr:`_Banks.F`, the arrays of a
+    stored checkpoint): ``(start of P, start of log_w, width)``, each array row-major."""
+    return ns * n, ns * n + ns * n * n, ns * (n + n * n + 1)
+
+
+def _state_views(flat: np.ndarray, ns: int, n: int):
+    """``(z, P, log_w)`` as views of ``flat`` ((W,) one segment, or (S, W) stacked rows)."""
+    at_p, at_w, width = state_layout(ns, n)
+    if flat.shape[-1] != width:
+        raise ValueError(f"state buffer of width {flat.shape[-1]}, not {width} (Ns={ns}, n={n})")
+    lead = flat.shape[:-1]
+    z = np.reshape(flat[..., :at_p], (*lead, ns, n), copy=False)
+    P = np.reshape(flat[..., at_p:at_w], (*lead, ns, n, n), copy=False)
+    return z, P, flat[..., at_w:]
+
+
 @dataclass(frozen=True)
 class Filtered:
-    """The filter bank of one segment after the last event of its log."""
+    """The filter bank of one segment after the last event of its log.
+
+    ``flat``, when set, is the one buffer whose views ``z``, ``P`` and ``log_w`` are
+    (:func:`state_layout`): a fold then copies each state in and out as one array
+    (three small copies a segment were a third of a backlog's time)."""
 
     z: np.ndarray  # (Ns, n)
     P: np.ndarray  # (Ns, n, n)
@@ -353,15 +375,68 @@ class Filtered:
     cusum: float = 0.0  # one-sided CUSUM of the indices reading lower than predicted
     cusum_t0: float = float("nan")  # the last index (or start) at which the CUSUM was 0
     cusum_t1: float = float("nan")  # the first index after it (NaN while the CUSUM is 0)
+    flat: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    def buffer(self) -> np.ndarray:
+        """``z``, ``P`` and ``log_w`` in one (W,) float64 array (``flat`` or a new one)."""
+        if self.flat is not None:
+            return self.flat
+        return np.concatenate([self.z.ravel(), self.P.ravel(), self.log_w.ravel()])
+
+    @staticmethod
+    def of_buffer(flat: np.ndarray, ns: int, n: int, *scalars: Any) -> Filtered:
+        """A state on ``flat`` (W,) contiguous (:func:`state_layout`); ``scalars``: ``t_s``
+        to ``cusum_t1`` in field order. Made without the frozen dataclass's ``__init__``
+        (a fold makes one per segment: its eleven guarded assignments were a tenth of a
+        backlog's fold); the same object."""
+        at_p, at_w, width = state_layout(ns, n)
+        if flat.shape != (width,):
+            raise ValueError(f"state buffer of shape {flat.shape}, not ({width},) (Ns={ns})")
+        t_s, last_trc_t, n_updates, nis, cusum, cusum_t0, cusum_t1 = scalars
+        new = object.__new__(Filtered)
+        new.__dict__.update(
+            z=flat[:at_p].reshape(ns, n),  # views: flat is one contiguous row
+            P=flat[at_p:at_w].reshape(ns, n, n),
+            t_s=t_s,
+            last_trc_t=last_trc_t,
+            n_updates=n_updates,
+            nis=nis,
+            log_w=flat[at_w:],
+            cusum=cusum,
+            cusum_t0=cusum_t0,
+            cusum_t1=cusum_t1,
+            flat=flat,
+        )
+        return new
 
 
-def _stack(arrays: Sequence[np.ndarray]) -> np.ndarray:
+def _stack(arrays: Sequence[np.ndarray], out: np.ndarray | None = None) -> np.ndarray:
     """``np.stack(arrays)`` of equal-shaped arrays, as one concatenation (``np.stack``
-    expands each array in Python first: 5x slower on a backlog's 1,000 small states)."""
+    expands each array in Python first: 5x slower on a backlog's 1,000 small states),
+    into ``out`` if given (its first ``len(arrays)`` rows)."""
     shape = arrays[0].shape
     if not all(a.shape == shape for a in arrays):
         raise ValueError(f"cannot stack arrays of shapes {sorted({a.shape for a in arrays})}")
-    return np.concatenate(arrays).reshape(len(arrays), *shape)
+    if out is None:
+        return np.concatenate(arrays).reshape(len(arrays), *shape)
+    rows = out[: len(arrays)]
+    np.concatenate(arrays, out=rows.reshape(-1))
+    return rows
+
+
+class Scratch:
+    """A buffer that a fold copying its states out (``copy=True``) reuses for its stacked
+    states, batch after batch: a fresh one is new memory each time, and its page faults
+    (~3 µs a 4 KiB page on this machine) were a quarter of a backlog's time."""
+
+    def __init__(self) -> None:
+        self._buffer = np.empty(0)
+
+    def rows(self, size: int, width: int) -> np.ndarray:
+        """A (size, width) float64 array (contents undefined), valid until the next call."""
+        if self._buffer.size < size * width:
+            self._buffer = np.empty(size * width)
+        return self._buffer[: size * width].reshape(size, width)
 
 
 class _Banks:
@@ -373,20 +448,31 @@ class _Banks:
     a sum over the samples of one segment, so a segment's numbers do not depend on the
     other rows of the call: a batch of one is the live, one-event step, and a re-run of
     thousands of segments gives the same bits (``update_unchecked`` is written so).
+
+    ``F`` (S, W) holds each row's ``z``, ``P`` and ``log_w`` in one buffer
+    (:func:`state_layout`); ``z``, ``P``, ``log_w`` are views of it. With ``scratch`` it is
+    the scratch's buffer: take the states out with ``copy=True`` before its next use.
     """
 
-    def __init__(self, starts: Sequence[Filtered | None], ns: int, n: int) -> None:
+    def __init__(
+        self, starts: Sequence[Filtered | None], ns: int, n: int, scratch: Scratch | None = None
+    ) -> None:
         size = len(starts)
         rows = [row for row, state in enumerate(starts) if state is not None]
         have = [starts[row] for row in rows]
+        width = state_layout(ns, n)[2]
+        out = None if scratch is None else scratch.rows(size, width)
         if have and len(have) == size:  # every row started (a backlog): one copy, no zeros
-            self.z = _stack([state.z for state in have])
-            self.P = _stack([state.P for state in have])
-            self.log_w = _stack([state.log_w for state in have])
+            self.F = _stack([state.buffer() for state in have], out)
+        elif out is None:
+            self.F = np.zeros((size, width))
         else:
-            self.z = np.zeros((size, ns, n))
-            self.P = np.zeros((size, ns, n, n))
-            self.log_w = np.zeros((size, ns))
+            self.F = out
+            self.F[:] = 0.0
+        if self.F.shape != (size, width):
+            raise ValueError(f"states of shape {self.F.shape[1:]}, not ({width},) (Ns={ns})")
+        self.z, self.P, self.log_w = _state_views(self.F, ns, n)
+        self.ns, self.n = ns, n
         self.t_s = np.zeros(size)
         self.last_trc_t = np.full(size, np.nan)  # NaN: None
         self.n_updates = np.zeros(size, dtype=np.int64)
@@ -398,9 +484,7 @@ class _Banks:
         if have:  # one copy per field for all started rows (a backlog starts ~1,000)
             nan = float("nan")
             if len(have) < size:
-                self.z[rows] = _stack([state.z for state in have])
-                self.P[rows] = _stack([state.P for state in have])
-                self.log_w[rows] = _stack([state.log_w for state in have])
+                self.F[rows] = _stack([state.buffer() for state in have])
             self.cusum[rows] = [state.cusum for state in have]
             self.cusum_t0[rows] = [state.cusum_t0 for state in have]
             self.cusum_t1[rows] = [state.cusum_t1 for state in have]
@@ -416,24 +500,34 @@ class _Banks:
     def state(self, row: int, *, copy: bool = False) -> Filtered | None:
         """Row ``row`` as a :class:`Filtered`, None if unstarted: views of the stacked arrays,
         or copies (``copy``: a state kept alone does not hold the whole stack's memory)."""
-        if not self.started[row]:
-            return None
-        last_trc_t, nis = float(self.last_trc_t[row]), float(self.nis[row])
-        z, P, log_w = self.z[row], self.P[row], self.log_w[row]
-        if copy:
-            z, P, log_w = z.copy(), P.copy(), log_w.copy()
-        return Filtered(
-            z,
-            P,
-            float(self.t_s[row]),
-            None if np.isnan(last_trc_t) else last_trc_t,
-            int(self.n_updates[row]),
-            None if np.isnan(nis) else nis,
-            log_w,
-            float(self.cusum[row]),
-            float(self.cusum_t0[row]),
-            float(self.cusum_t1[row]),
+        return self.states([row], copy=copy)[0]
+
+    def states(self, rows: Sequence[int], *, copy: bool = False) -> list[Filtered | None]:
+        """:meth:`state` of each of ``rows`` (the scalars read in one pass)."""
+        out: list[Filtered | None] = []
+        fields = zip(
+            self.started[rows].tolist(),
+            self.t_s[rows].tolist(),
+            self.last_trc_t[rows].tolist(),
+            self.n_updates[rows].tolist(),
+            self.nis[rows].tolist(),
+            self.cusum[rows].tolist(),
+            self.cusum_t0[rows].tolist(),
+            self.cusum_t1[rows].tolist(),
+            strict=True,
         )
+        ns, n = self.ns, self.n
+        for row, (started, t_s, last_trc_t, n_updates, nis, *cusums) in zip(
+            rows, fields, strict=True
+        ):
+            if not started:
+                out.append(None)
+                continue
+            flat = self.F[row].copy() if copy else self.F[row]
+            last_trc_t = None if math.isnan(last_trc_t) else last_trc_t
+            nis = None if math.isnan(nis) else nis
+            out.append(Filtered.of_buffer(flat, ns, n, t_s, last_trc_t, n_updates, nis, *cusums))
+        return out
 
     def _blocks(self, rows: np.ndarray):
         """``(part, rows)`` in blocks; ``part`` indexes ``rows``; consecutive rows as a slice."""
@@ -527,9 +621,7 @@ class _Banks:
         """:meth:`index` for n = m = 2 through :func:`kernel.index_step` (the same maths)."""
         score = np.empty(len(rows))
         index_step(
-            self.z,
-            self.P,
-            self.log_w,
+            self.F,
             self.t_s,
             np.ascontiguousarray(rows, dtype=np.int64),
             np.ascontiguousarray(t_s, dtype=np.float64),
@@ -630,6 +722,7 @@ def fold_many(
     logs: Sequence[Sequence[Event]],
     params: Sequence[DegradationParams],
     obs: ObservationModel | Models | None,
+    scratch: Scratch | None = None,
 ) -> list[Filtered | None]:
     """Fold each ``logs[i]`` from ``starts[i]`` with ``params[i]``, all segments at once.
 
@@ -640,11 +733,15 @@ def fold_many(
     ``(Ns, n)``; ``obs`` is one observation model for every index, or the :class:`Models`
     whose :meth:`~Models.observation_for` gives each index its unit's; there must be one
     for an index that follows a start (the caller checks it, see :func:`_publishable`).
+    Without ``scratch`` the states are views of the call's stacked arrays; with it they are
+    copies, the fold having run in the scratch's reused buffer.
     """
-    return _fold_many(starts, logs, params, obs)[0]
+    return _fold_many(starts, logs, params, obs, scratch=scratch)[0]
 
 
-def _fold_many(starts, logs, params, obs, halt_cusum: float | None = None, copy=False):
+def _fold_many(
+    starts, logs, params, obs, halt_cusum: float | None = None, copy=False, scratch=None
+):
     """:func:`fold_many`, and how many events of each log were folded: ``(states, folded)``.
 
     ``halt_cusum``: a segment stops after the first index that leaves its CUSUM at or above
@@ -652,7 +749,8 @@ def _fold_many(starts, logs, params, obs, halt_cusum: float | None = None, copy=
     says how many of its events that was. Every index's NIS is then computed (a halted
     row's last update is not known in advance); the bits do not change, since the NIS of a
     row is a sum over its own samples. ``copy``: each state owns its arrays
-    (:meth:`_Banks.state`).
+    (:meth:`_Banks.state`); ``scratch`` (a :class:`Scratch`): the fold runs in its buffer
+    and the states are copied out.
     """
     # one model for every index (no unit has its own): no per-event look-up
     per_unit = isinstance(obs, Models) and bool(obs.unit_observations)
@@ -702,7 +800,8 @@ def _fold_many(starts, logs, params, obs, halt_cusum: float | None = None, copy=
     if not per_unit and shared is not None:
         observations.append(shared)
         obs_ids[kinds == INDEX] = 0
-    banks = _Banks([starts[i] for i in order], ns, n)
+    banks = _Banks([starts[i] for i in order], ns, n, scratch)
+    copy = copy or scratch is not None
     rows_params = _RowParams([params[i] for i in order])
     lengths = np.array([len(logs[i]) for i in order])
     folded = lengths.copy()  # events folded per row (fewer if halted)
@@ -736,9 +835,11 @@ def _fold_many(starts, logs, params, obs, halt_cusum: float | None = None, copy=
                         folded[halted] = k + 1
     out: list[Filtered | None] = [None] * size
     counts = [0] * size
-    for row, i in enumerate(order):
-        out[i] = banks.state(row, copy=copy)
-        counts[i] = int(folded[row])
+    for i, state, count in zip(
+        order, banks.states(range(size), copy=copy), folded.tolist(), strict=True
+    ):
+        out[i] = state
+        counts[i] = count
     return out, counts
 
 
@@ -1223,6 +1324,7 @@ class Tracker:
         self.detect_maintenance = detect_maintenance  # :func:`detect` after each index
         self.histories = Histories(loader)
         self.models = Models()
+        self._scratch = Scratch()  # the stacked states of the live and backlog folds
         self._limits_mm = limits_mm
         self.limit_levels = list(limit_levels)
         self.horizons_days = np.asarray(tuple(horizons_days), dtype=np.float64)
@@ -1334,7 +1436,7 @@ class Tracker:
                     [models.params[groups[k]] for k in job],
                     models,
                     halt,
-                    copy=True,  # a segment's state must not keep the batch's arrays alive
+                    scratch=self._scratch,  # each state copied out: keeps no batch's arrays
                 )
                 for k, own, count in zip(job, states, folded, strict=True):
                     hist = hists[k]

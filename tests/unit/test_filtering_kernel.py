@@ -8,12 +8,27 @@ the calling thread (bit for bit).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from test_filter_core import random_params
 
 from services.filtering.bank import ObservationModel
+from services.filtering.degradation import DegradationParams
 from services.filtering.kernel import PARALLEL_ROWS
-from services.filtering.tracker import Filtered, _Banks, _RowParams
+from services.filtering.store import pack_state, unpack_state
+from services.filtering.tracker import (
+    INDEX,
+    Event,
+    Filtered,
+    Scratch,
+    _Banks,
+    _RowParams,
+    fold_many,
+    state_layout,
+)
+
+FIELDS = ("mu", "sigma", "z_plus", "sigma_z_plus")
 
 NS, SEGMENTS = 20, PARALLEL_ROWS + 4  # a batch this size runs on every core
 
@@ -67,3 +82,41 @@ def test_a_segment_gets_the_same_bits_alone_or_in_a_batch():
             assert np.array_equal(
                 getattr(alone, name)[row], getattr(together, name)[row], equal_nan=True
             ), name
+
+
+def _index_log(t_s: float, y) -> list[Event]:
+    return [Event(INDEX, t_s, ("index", "T1", "u1", t_s), np.asarray(y, dtype=float), None)]
+
+
+def test_a_folded_state_is_one_buffer_that_packs_to_the_same_bytes():
+    starts, params, obs, rows, t_s, y, _last = banks_and_inputs(3)
+    ps = [DegradationParams(*(getattr(params.stack, f)[k % 2] for f in FIELDS)) for k in range(4)]
+    logs = [_index_log(t_s[k], y[k]) for k in range(4)]
+    folded = fold_many(starts[:4], logs, ps, obs)
+    for before, state in zip(starts[:4], folded, strict=True):
+        assert before.flat is None and state.flat is not None
+        width = state_layout(NS, 2)[2]
+        assert state.flat.shape == (width,)
+        for name in ("z", "P", "log_w"):
+            assert np.shares_memory(getattr(state, name), state.flat), name
+        assert np.array_equal(state.buffer(), replace(state, flat=None).buffer())
+        again = unpack_state(pack_state(state))
+        assert pack_state(again) == pack_state(state)
+        assert pack_state(replace(state, flat=None)) == pack_state(state)
+        assert np.shares_memory(again.z, again.flat) and np.array_equal(again.P, state.P)
+
+
+def test_a_fold_in_a_scratch_copies_its_states_out():
+    starts, params, obs, rows, t_s, y, _last = banks_and_inputs(4)
+    ps = [DegradationParams(*(getattr(params.stack, f)[k % 2] for f in FIELDS)) for k in range(8)]
+    logs = [_index_log(t_s[k], y[k]) for k in range(8)]
+    scratch = Scratch()
+    first = fold_many(starts[:8], logs, ps, obs, scratch)
+    kept = [pack_state(state) for state in first]
+    # a second fold in the same scratch (other rows, other data) leaves the first's alone
+    later = [_index_log(t_s[k] + 86_400.0, y[k] + 0.5) for k in range(8)]
+    second = fold_many(first, later, ps, obs, scratch)
+    assert [pack_state(state) for state in first] == kept
+    without = fold_many(starts[:8], logs, ps, obs)  # views of its own stacked arrays
+    assert [pack_state(state) for state in without] == kept
+    assert not any(np.shares_memory(a.flat, b.flat) for a in first for b in second)
