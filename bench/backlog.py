@@ -18,22 +18,28 @@ copied in and out of a reused :class:`Scratch` as the service's fold does), i.e.
 filter bank's maths without messages or SQLite. Interleaved per batch so that both see the
 same load on a shared machine.
 
-Run: ``.venv/bin/python -m bench.backlog [segments events] [--profile]``.
+``--history DAYS``: the segments instead come from a store of ``DAYS`` × 2 indices each
+(bench.restart's), and the instance is restarted from its checkpoints before the backlog,
+so that every segment rests (its state in memory, its log in the store): a consumer
+catching up after a restart, on logs of a national network's length.
+
+Run: ``.venv/bin/python -m bench.backlog [segments events] [--history DAYS] [--profile]``.
 """
 
 from __future__ import annotations
 
+import argparse
 import cProfile
 import gc
 import pstats
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from schemas import OnboardIndex, TrcRecord, encode, keys
+from bench.restart import build_store
+from schemas import DAY_S, OnboardIndex, TrcRecord, encode, keys
 from services.filtering.service import BATCH, FREEZE_S
 from services.filtering.store import PersistentTracker, Store
 from services.filtering.testing import example_models
@@ -49,17 +55,20 @@ def _segment(k: int) -> str:
     return f"s{k:05d}"
 
 
-def _indices(rng: np.random.Generator, segments: int, n: int) -> list[OnboardIndex]:
-    """``n`` indices in time order (one every 10 s of event time) on random segments."""
-    where = rng.integers(segments, size=n).tolist()
+def _indices(
+    rng: np.random.Generator, sids: list[tuple[str, str]], n: int, t0: float
+) -> list[OnboardIndex]:
+    """``n`` indices in time order (one every 10 s of event time from ``t0``) on random
+    segments of ``sids``."""
+    where = rng.integers(len(sids), size=n).tolist()
     y = np.exp(rng.normal([0.8, 0.5], 0.1, (n, 2))).tolist()
     return [
         OnboardIndex(
-            line="L1",
-            segment=_segment(where[i]),
+            line=sids[where[i]][0],
+            segment=sids[where[i]][1],
             train="T1",
             unit="u1",
-            t=T0 + 3600.0 + 10.0 * i,
+            t=t0 + 10.0 * i,
             top6_mm=y[i][0],
             align10_mm=y[i][1],
             speed_mps=30.0,
@@ -69,27 +78,58 @@ def _indices(rng: np.random.Generator, segments: int, n: int) -> list[OnboardInd
     ]
 
 
-def bench_backlog(segments: int = SEGMENTS, events: int = EVENTS, profile: bool = False) -> None:
-    rng = np.random.default_rng(16)
-    models = example_models(NS_SAMPLES, seed=3)
-    limits = load_limits()
+def _fresh_segments(node: PersistentTracker, models, segments: int) -> list[tuple[str, str]]:
+    """Every segment with a TRC record and nothing else, in memory (the default case)."""
+    node.handle_batch([(keys.key_of(NS, m), encode(m)) for m in models])
     trcs = [
         TrcRecord(line="L1", segment=_segment(k), t=T0, top6_mm=3.0, align10_mm=2.4, run_id="r0")
         for k in range(segments)
     ]
-    indices = _indices(rng, segments, events)
-    items = [(keys.key_of(NS, m), encode(m)) for m in indices]
-    batches = [items[i : i + BATCH] for i in range(0, len(items), BATCH)]
-    prepared = [[event_of(m) for m in indices[i : i + BATCH]] for i in range(0, events, BATCH)]
+    for i in range(0, segments, BATCH):
+        node.handle_batch([(keys.key_of(NS, m), encode(m)) for m in trcs[i : i + BATCH]])
+    return [("L1", _segment(k)) for k in range(segments)]
+
+
+def _restarted_on_history(db: Path, models, segments: int, days: int) -> PersistentTracker:
+    """A store of ``segments`` × (a TRC record, ``2 days`` indices) (bench.restart's), a
+    first start (full replay) and a clean stop, then the instance restarted from its
+    checkpoints: every segment resting (its state in memory, its log in the store)."""
+    build_store(db, segments, days, NS, models)
+    limits = load_limits()
+    first = PersistentTracker(Tracker(limits.for_line, limits.levels), Store(db))
+    first.restore()
+    first.close()
+    first.store.close()
+    node = PersistentTracker(Tracker(limits.for_line, limits.levels), Store(db))
+    node.restore()
+    return node
+
+
+def bench_backlog(
+    segments: int = SEGMENTS, events: int = EVENTS, profile: bool = False, history: int = 0
+) -> None:
+    rng = np.random.default_rng(16)
+    models = example_models(NS_SAMPLES, seed=3)
+    limits = load_limits()
 
     with tempfile.TemporaryDirectory() as tmp:
-        node = PersistentTracker(Tracker(limits.for_line, limits.levels), Store(Path(tmp) / "b.db"))
-        node.handle_batch([(keys.key_of(NS, m), encode(m)) for m in models])
-        for i in range(0, segments, BATCH):
-            node.handle_batch([(keys.key_of(NS, m), encode(m)) for m in trcs[i : i + BATCH]])
+        db = Path(tmp) / "b.db"
+        if history:
+            node = _restarted_on_history(db, models, segments, history)
+            sids = list(node.tracker.histories)
+            t0 = T0 + (history + 1) * DAY_S
+        else:
+            node = PersistentTracker(Tracker(limits.for_line, limits.levels), Store(db))
+            sids = _fresh_segments(node, models, segments)
+            t0 = T0 + 3600.0
+        indices = _indices(rng, sids, events, t0)
+        items = [(keys.key_of(NS, m), encode(m)) for m in indices]
+        batches = [items[i : i + BATCH] for i in range(0, len(items), BATCH)]
+        prepared = [[event_of(m) for m in indices[i : i + BATCH]] for i in range(0, events, BATCH)]
         tracker = node.tracker
         params, obs = tracker.models.params["net"], tracker.models.observation
-        bank_states = {sid: hist.state for sid, hist in tracker.histories.items()}
+        bank_states = {sid: tracker.histories.resting(sid).state for sid in tracker.histories}
+        resting = len(sids) - tracker.histories.n_loaded
         # warm-up (numba's compiled kernels load on first use), results discarded
         for rows in (8, 512):
             warm = [[event_of(m)] for m in indices[:rows]]
@@ -147,6 +187,11 @@ def bench_backlog(segments: int = SEGMENTS, events: int = EVENTS, profile: bool 
         gc.unfreeze()
 
     rate, bank_rate = events / service_s, events / bank_s
+    if history:
+        print(
+            f"backlog on a restarted instance: {segments:,} segments each with a log of "
+            f"{2 * history + 1} events in the store, {resting:,} of them resting at the start"
+        )
     print(
         f"backlog  Ns={NS_SAMPLES}, {segments:,} segments, {events:,} OnboardIndex in time order, "
         f"batches of {BATCH}: handle_batch (decode, fold, SQLite commit) {rate:,.0f} events/s "
@@ -163,7 +208,22 @@ def bench_backlog(segments: int = SEGMENTS, events: int = EVENTS, profile: bool 
         pstats.Stats(profiler).sort_stats("tottime").print_stats(20)
 
 
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("segments", type=int, nargs="?", default=SEGMENTS)
+    parser.add_argument("events", type=int, nargs="?", default=EVENTS)
+    parser.add_argument("--profile", action="store_true", help="cProfile the service's part")
+    parser.add_argument(
+        "--history",
+        type=int,
+        default=0,
+        metavar="DAYS",
+        help="segments with DAYS x 2 stored indices each, the instance restarted from its "
+        "checkpoints (every segment resting) before the backlog",
+    )
+    args = parser.parse_args(argv)
+    bench_backlog(args.segments, args.events, args.profile, args.history)
+
+
 if __name__ == "__main__":
-    args = [a for a in sys.argv[1:] if not a.startswith("--")]
-    sizes = [int(a) for a in args] or [SEGMENTS, EVENTS]
-    bench_backlog(*sizes, profile="--profile" in sys.argv)
+    main()

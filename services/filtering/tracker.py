@@ -1106,6 +1106,13 @@ def _rested(ckpt: Checkpoint, state, group, tail: Sequence[Event]) -> Checkpoint
     )
 
 
+def _summarised(hist: SegmentHistory | Checkpoint) -> SegmentHistory:
+    """What a summary reads of a segment (its log is not): a resting one without its log."""
+    if isinstance(hist, SegmentHistory):
+        return hist
+    return SegmentHistory(hist.line, hist.segment, (), hist.trc_t, hist.state, hist.group)
+
+
 def _evolve(hist: SegmentHistory, **changes: Any) -> SegmentHistory:
     """``dataclasses.replace(hist, **changes)`` without its per-call field introspection
     (a tenth of a backlog's time): every field, whatever they are, copied, then changed."""
@@ -1367,20 +1374,25 @@ class Tracker:
         states of a segment are not summarised. If anything raises, nothing is changed.
         """
         reasons, changed, detected = self._fold_events(msgs)
-        states = self.segment_states(list(changed.values()))  # before the swap
-        self.histories.update(changed)
+        states = self.segment_states([_summarised(h) for h in changed.values()])  # before the swap
+        self._swap(changed)
         return reasons, tuple(state for state in states if state is not None), detected
 
     def fold_events(self, msgs: Sequence[EventMessage]) -> tuple[list[str], list, list]:
         """:meth:`step_events` without the summaries: ``(reasons, changed, detected)``, with
         the ids of the segments whose history changed (their states: :meth:`states_of`)."""
         reasons, changed, detected = self._fold_events(msgs)
-        self.histories.update(changed)
+        self._swap(changed)
         return reasons, list(changed), detected
 
     def states_of(self, sids: Iterable[SegmentId]) -> list[SegmentState]:
-        """The publishable SegmentStates of the segments ``sids`` (in batches)."""
-        hists = [h for h in (self.histories.get(sid) for sid in sids) if h is not None]
+        """The publishable SegmentStates of the segments ``sids`` (in batches; a resting
+        segment's log is not read)."""
+        hists = [
+            _summarised(self.histories.load(sid) if loaded else self.histories.resting(sid))
+            for sid in sids
+            if (loaded := self.histories.is_loaded(sid)) or sid in self.histories
+        ]
         return [state for state in self.segment_states(hists) if state is not None]
 
     def _fold_events(self, msgs: Sequence[EventMessage]):
@@ -1400,15 +1412,38 @@ class Tracker:
         on the other segments of a call, see :class:`_Banks`).
         """
         models = self.models
-        changed: dict[SegmentId, SegmentHistory] = {}
+        # a segment's history after this batch's events so far; a resting one's (its log
+        # not read) as a Checkpoint, its indices of this batch in ``tails``
+        changed: dict[SegmentId, SegmentHistory | Checkpoint] = {}
+        tails: dict[SegmentId, list[Event]] = {}
         pending: dict[SegmentId, list[tuple[int, Event]]] = {}  # appended, not yet folded
         reasons = [""] * len(msgs)
         detected: list[tuple[int, MaintenanceEvent]] = []  # (message position, tamping)
 
+        def base(sid: SegmentId) -> SegmentHistory | Checkpoint | None:
+            """The segment as of this batch so far, a resting one without reading its log."""
+            got = changed.get(sid)
+            if got is not None:
+                return got
+            if self.histories.is_loaded(sid):
+                return self.histories[sid]
+            return self.histories.resting(sid) if sid in self.histories else None
+
         def current(sid: SegmentId, msg: EventMessage) -> SegmentHistory:
-            return (
-                changed.get(sid) or self.histories.get(sid) or SegmentHistory(msg.line, msg.segment)
-            )
+            """The segment with its log: a resting one's read from the store (where this
+            batch's events are not yet) and this batch's indices appended."""
+            got = base(sid)
+            if got is None:
+                return SegmentHistory(msg.line, msg.segment)
+            if isinstance(got, Checkpoint):
+                stored = self.histories.load(sid)
+                log = stored.log + tuple(tails.get(sid, ()))
+                got = _evolve(stored, log=log, trc_t=got.trc_t, state=got.state, group=got.group)
+            return got
+
+        def change(sid: SegmentId, hist: SegmentHistory) -> None:
+            changed[sid] = hist
+            tails.pop(sid, None)  # in its log now
 
         def exact(i: int, sid: SegmentId, hist: SegmentHistory, event: Event) -> None:
             hist, reason = step_segment(hist, event, models)
@@ -1417,12 +1452,12 @@ class Tracker:
                 hist, found = self._detect(hist)
                 if found is not None:
                     detected.append((i, found))
-                changed[sid] = hist
+                change(sid, hist)
 
         def flush(sids: Sequence[SegmentId]) -> None:
             if not sids:
                 return
-            hists = [changed.get(sid) or self.histories[sid] for sid in sids]
+            hists = [base(sid) for sid in sids]  # each has a state: its indices are pending
             groups = [group_of[sid] for sid in sids]
             logs = [[event for _, event in pending.pop(sid)] for sid in sids]
             jobs: dict[int, list[int]] = {}  # by Ns
@@ -1439,17 +1474,19 @@ class Tracker:
                     scratch=self._scratch,  # each state copied out: keeps no batch's arrays
                 )
                 for k, own, count in zip(job, states, folded, strict=True):
-                    hist = hists[k]
-                    hist = _evolve(
-                        hist, log=hist.log + tuple(logs[k][:count]), state=own, group=groups[k]
-                    )
-                    sid = sids[k]
-                    changed[sid] = hist
+                    was, sid, tail = hists[k], sids[k], logs[k][:count]
+                    if isinstance(was, Checkpoint):  # it stays resting: the log is not read
+                        changed[sid] = _rested(was, own, groups[k], tail)
+                        tails.setdefault(sid, []).extend(tail)
+                    else:
+                        changed[sid] = _evolve(
+                            was, log=was.log + tuple(tail), state=own, group=groups[k]
+                        )
                     if count < len(logs[k]) or halt is not None and own.cusum >= halt:
-                        hist, found = self._detect(hist)
+                        hist, found = self._detect(current(sid, msgs[positions[sid][0]]))
                         if found is not None:
                             detected.append((positions[sid][count - 1], found))
-                        changed[sid] = hist
+                        change(sid, hist)
                         for i in positions[sid][count:]:
                             exact(i, sid, changed[sid], events_at[i])
 
@@ -1462,15 +1499,20 @@ class Tracker:
             queued = pending.get(sid)
             if event.kind == INDEX:
                 if queued:
-                    last = queued[-1][1]
+                    last = queued[-1][1].order
                 else:
-                    hist = current(sid, msg)
-                    last = hist.log[-1] if hist.state is not None and hist.log else None
+                    hist = base(sid)
+                    if hist is None or hist.state is None:
+                        last = None
+                    elif isinstance(hist, Checkpoint):
+                        last = hist.last_order
+                    else:
+                        last = hist.log[-1].order if hist.log else None
                 if sid not in group_of:
                     group_of[sid] = models.group_for(msg.line, msg.segment)
                 if (
                     last is not None
-                    and event.order > last.order
+                    and event.order > last
                     and group_of[sid] is not None
                     and models.observation_for_event(event) is not None
                 ):
@@ -1659,10 +1701,7 @@ class Tracker:
     def _swap_states(self, rested: Mapping[SegmentId, Checkpoint]) -> list[SegmentState]:
         for sid, ckpt in rested.items():
             self.histories.rest(sid, ckpt, dirty=True)
-        hists = [
-            SegmentHistory(c.line, c.segment, (), c.trc_t, c.state, c.group)
-            for c in rested.values()
-        ]
+        hists = [_summarised(c) for c in rested.values()]
         return [s for s in self.segment_states(hists) if s is not None]
 
     def _swap(self, hists: Mapping[SegmentId, SegmentHistory | Checkpoint]) -> None:

@@ -30,12 +30,16 @@ from services.filtering.tracker import (
 )
 from tests.unit.test_filtering_tracker import (
     MODELS,
+    MU,
+    Z_PLUS,
+    Z_WORN,
     assert_same_states,
     calibration,
     history,
     index,
     keyed,
     new_tracker,
+    onboard_days,
     posterior,
     run,
     tamping,
@@ -73,6 +77,10 @@ def restarted(db) -> tuple[PersistentTracker, dict, CountingLoader]:
     node.tracker.histories.columns = loader.columns
     states = {sid: payload for sid, payload, _new in node.restore()}
     return node, states, loader
+
+
+def on(msg, segment: str, **changes):
+    return msgspec.structs.replace(msg, segment=segment, **changes)
 
 
 def in_time_order(events):
@@ -498,3 +506,37 @@ def test_a_log_read_as_columns_folds_to_the_bits_of_its_events(tmp_path):
     assert trc_t == log_trc_t == record.t and len(columns) == len(log) == 2
     assert columns.times.tolist() == [e.t_s for e in log]
     assert columns.last_order == log[-1].order and columns.unit_names == (("T1", "u1"),)
+
+
+def test_in_order_indices_on_resting_segments_fold_without_reading_their_logs(tmp_path):
+    """After a restart every segment rests (state, no log). A batch of indices after each
+    log's end folds them onto the resting states and leaves the logs unread; one whose
+    CUSUM reaches the threshold inside the batch reads its log there and detects the
+    tamping; a late index and a duplicate read theirs. Bits of one message at a time."""
+    rng = np.random.default_rng(8)
+    tamped = onboard_days(rng, np.arange(1, 90), Z_WORN, MU, t_tamp=50.3, z_plus=Z_PLUS)
+    calm = [on(m, "s2") for m in onboard_days(rng, np.arange(1, 90), Z_WORN, MU)]
+    first_part = [trc(0.0, *np.exp(Z_WORN).tolist()), trc(0.0, 4.0, 3.0, segment="s2")]
+    first_part += [*tamped[:40], *calm[:40]]
+    db = tmp_path / "f.sqlite"
+    first = node_on(db)
+    first.handle_batch([keyed(m) for m in [*MODELS, *first_part]])
+    first.close()
+
+    node, _, loader = restarted(db)
+    done = node.handle_batch([keyed(m) for m in calm[40:60]])  # in order: no log read
+    assert done.accepted == 20 and not done.rejected and len(done.states) == 1
+    assert loader.read == [] and node.tracker.histories.n_loaded == 0
+
+    done = node.handle_batch([keyed(m) for m in [*tamped[40:], *calm[60:]]])
+    assert done.accepted == len(tamped[40:]) + len(calm[60:]) and len(done.detected) == 1
+    assert loader.read == [("L1", "s1")]  # the detection's, once
+    late, duplicate = on(calm[30], "s2", t=calm[30].t + 3600.0), calm[50]
+    done = node.handle_batch([keyed(m) for m in [late, duplicate]])
+    assert done.accepted == 1 and len(done.rejected) == 0  # a duplicate is no error
+    assert ("L1", "s2") in loader.read
+
+    one, _ = run([*MODELS, *first_part, *calm[40:60], *tamped[40:], *calm[60:], late])
+    assert_same_states(one, node.tracker)
+    detected = [m for sid in one.histories for m in one.histories[sid].log if m.kind == 0]
+    assert len(detected) == 1
