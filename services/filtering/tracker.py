@@ -113,7 +113,7 @@ from services.filtering.bank import (
     update_unchecked,
 )
 from services.filtering.degradation import DegradationParams, transition_unchecked
-from services.filtering.kernel import index_step
+from services.filtering.kernel import index_runs, index_step
 from services.filtering.mixture import summarize_unchecked, weights_from_log
 
 HORIZONS_DAYS = (30.0, 90.0, 180.0)
@@ -805,6 +805,29 @@ def _fold_many(
     rows_params = _RowParams([params[i] for i in order])
     lengths = np.array([len(logs[i]) for i in order])
     folded = lengths.copy()  # events folded per row (fewer if halted)
+    if n == 2 and all(model.H.shape == (2, 2) for model in observations):
+        _fold_runs(banks, kinds, times, values, obs_ids, observations, rows_params, lengths,
+                   folded, halt_cusum)  # fmt: skip
+    else:
+        _fold_steps(banks, kinds, times, values, obs_ids, observations, rows_params, lengths,
+                    folded, halt_cusum)  # fmt: skip
+    out: list[Filtered | None] = [None] * size
+    counts = [0] * size
+    for i, state, count in zip(
+        order, banks.states(range(size), copy=copy), folded.tolist(), strict=True
+    ):
+        out[i] = state
+        counts[i] = count
+    return out, counts
+
+
+def _fold_steps(
+    banks, kinds, times, values, obs_ids, observations, rows_params, lengths, folded, halt_cusum
+):
+    """:func:`_fold_many`'s fold one event position at a time over every row (any ``n``, any
+    observation model: :meth:`_Banks.index`); ``folded`` gets a halted row's count. The
+    rows are ordered by decreasing log length."""
+    depth = kinds.shape[1]
     # position of each row's last index: the NIS of a state is that of its last update
     last_index = depth - 1 - np.argmax(kinds[:, ::-1] == INDEX, axis=1)
     for k in range(depth):
@@ -833,14 +856,49 @@ def _fold_many(
                         halted = sub[banks.cusum[sub] >= halt_cusum]
                         kinds[halted, k + 1 :] = -1  # nothing more is folded on these rows
                         folded[halted] = k + 1
-    out: list[Filtered | None] = [None] * size
-    counts = [0] * size
-    for i, state, count in zip(
-        order, banks.states(range(size), copy=copy), folded.tolist(), strict=True
-    ):
-        out[i] = state
-        counts[i] = count
-    return out, counts
+
+
+def _fold_runs(banks, kinds, times, values, obs_ids, observations, params, lengths, folded, halt):
+    """:func:`_fold_many`'s fold for ``n = m = 2`` (the system's case) as runs: the restarts
+    and tampings at each row's position, vectorised over the rows (:meth:`_Banks.restart`,
+    :meth:`_Banks.tamping`), then each row's indices up to its next other event, a row at
+    a time (:func:`kernel.index_runs`), until every log is folded. The rows are independent,
+    so the order across rows does not change a bit (:func:`_fold_steps` gives the same)."""
+    if observations:
+        Hs, bs, Rs = (np.stack([getattr(o, name) for o in observations]) for name in "HbR")
+    else:  # no model: an index on a started row is then an error (reported below)
+        Hs, bs, Rs = np.zeros((1, 2, 2)), np.zeros((1, 2)), np.zeros((1, 2, 2))
+    pos = np.zeros(len(lengths), dtype=np.int64)  # each row's next event
+    stop = lengths.astype(np.int64)  # a halted row's stops after the halting index
+    missing = np.zeros(len(lengths), dtype=bool)
+    while True:
+        moved = True
+        while moved:  # the restarts and tampings at the rows' positions
+            live = np.flatnonzero(pos < stop)
+            kind = kinds[live, pos[live]]
+            moved = False
+            for code in (RESTART, TAMPING):
+                rows = live[kind == code]
+                if len(rows):
+                    at = pos[rows]
+                    if code == RESTART:
+                        banks.restart(rows, times[rows, at], values[rows, at])
+                    else:
+                        banks.tamping(rows, times[rows, at], params)
+                    pos[rows] += 1
+                    moved = True
+        rows = np.flatnonzero(pos < stop)  # each at an index
+        if len(rows) == 0:
+            return
+        index_runs(
+            rows, banks.F, banks.t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs, Rs,
+            params.stack.mu, params.stack.sigma, params.row_group, banks.started, banks.nis,
+            banks.n_updates, banks.cusum, banks.cusum_t0, banks.cusum_t1,
+            (INDEX, CUSUM_DRIFT, CUSUM_CLIP, math.inf if halt is None else float(halt)),
+            folded, missing,
+        )  # fmt: skip
+        if missing.any():
+            raise AssertionError("an index on a started state without an observation model")
 
 
 def apply_event(

@@ -9,20 +9,28 @@ the calling thread (bit for bit).
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
+import pytest
 from test_filter_core import random_params
 
+from services.filtering import tracker as tracker_module
 from services.filtering.bank import ObservationModel
 from services.filtering.degradation import DegradationParams
 from services.filtering.kernel import PARALLEL_ROWS
 from services.filtering.store import pack_state, unpack_state
 from services.filtering.tracker import (
+    CUSUM_THRESHOLD,
     INDEX,
+    RESTART,
+    TAMPING,
     Event,
     Filtered,
+    Models,
     Scratch,
     _Banks,
+    _fold_many,
     _RowParams,
     fold_many,
     state_layout,
@@ -120,3 +128,48 @@ def test_a_fold_in_a_scratch_copies_its_states_out():
     without = fold_many(starts[:8], logs, ps, obs)  # views of its own stacked arrays
     assert [pack_state(state) for state in without] == kept
     assert not any(np.shares_memory(a.flat, b.flat) for a in first for b in second)
+
+
+def _mixed_logs(rng: np.random.Generator, segments: int) -> list[list[Event]]:
+    """Logs of every shape a fold meets: an index before any start, TRC restarts, tampings,
+    indices of two units, runs of low readings (the CUSUM climbs), equal times."""
+    logs = []
+    for s in range(segments):
+        log, t = [], 1e9 + s
+        if s % 5 == 0:
+            log.append(Event(INDEX, t, ("index",), np.array([1.0, 0.8]), SimpleNamespace(
+                train="T1", unit="u1")))  # fmt: skip
+        for _ in range(rng.integers(1, 4)):
+            t += 86_400.0
+            if rng.uniform() < 0.6 or not log:
+                log.append(Event(RESTART, t, ("trc",), rng.normal([1.2, 0.9], 0.1), None))
+            else:
+                log.append(Event(TAMPING, t, ("maintenance",), None, None))
+            low = rng.uniform() < 0.3
+            for _ in range(rng.integers(0, 30)):
+                t += float(rng.choice([0.0, 86_400.0 * rng.uniform(0.5, 9.0)]))
+                y = rng.normal([0.2, 0.1] if low else [1.2, 0.9], 0.1)
+                unit = SimpleNamespace(train="T1", unit=str(rng.choice(["u1", "u2"])))
+                log.append(Event(INDEX, t, ("index",), y, unit))
+        logs.append(log)
+    return logs
+
+
+@pytest.mark.parametrize("halt", [None, CUSUM_THRESHOLD])
+def test_the_fold_as_runs_is_the_fold_by_steps_bit_for_bit(monkeypatch, halt):
+    starts, params, obs, *_ = banks_and_inputs(5)
+    other = ObservationModel(obs.H * 1.1, obs.b + 0.02, obs.R * 0.9)
+    models = Models(observation=obs, unit_observations={("T1", "u2"): other})
+    logs = _mixed_logs(np.random.default_rng(6), 80)
+    ps = [DegradationParams(*(getattr(params.stack, f)[k % 2] for f in FIELDS)) for k in range(80)]
+    firsts = [None if k % 3 else starts[k] for k in range(80)]  # some started, some not
+    runs = _fold_many(firsts, logs, ps, models, halt)
+    monkeypatch.setattr(tracker_module, "_fold_runs", tracker_module._fold_steps)
+    steps = _fold_many(firsts, logs, ps, models, halt)
+    assert runs[1] == steps[1]  # events folded per segment (fewer where halted)
+    if halt is not None:
+        assert any(count < len(log) for count, log in zip(runs[1], logs, strict=True))
+    for a, b in zip(runs[0], steps[0], strict=True):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert pack_state(a) == pack_state(b)
