@@ -24,8 +24,9 @@ Workloads (DESIGN "Performance targets"):
 9. model versions calibration publishes per simulated month of the demo world, with the
    publication rule against without it (``bench/calibration_versions.py``).
 10. one filtering instance with a backlog, in process: ``handle_batch`` on SQLite against the
-    fold alone on the same batches, then the publication of the dirty states
-    (``bench/backlog.py``).
+    fold alone on the same batches, then the publication of the dirty states; once on fresh
+    segments, once on 5,000 segments of 121 stored events after a restart (every segment
+    resting: ``--history 60``) (``bench/backlog.py``).
 11. filtering restart and model change on a store of 2,000 segments x 60 days (first start
     without checkpoints, restart from them, after SIGKILL; a new calibration), against
     ``fold_many`` alone (``bench/restart.py``; ``--segments 100000`` for issue 16's size).
@@ -210,6 +211,7 @@ def main() -> None:
     bench_siblings()
     bench_rerun()
     bench_backlog()
+    bench_backlog(5_000, 20_000, history=60)
     bench_study()
     bench_raw_generation()
     bench_ingestion()
