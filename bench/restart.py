@@ -427,9 +427,9 @@ def bench_restart(
             finally:
                 service.kill()
                 watcher.close()
+                if service_log is not None:  # kept when a step fails too: what to read then
+                    service_log.write_bytes(log.read_bytes())
         size_mb = sum(db.stat().st_size for db in dbs) / 1e6
-        if service_log is not None:
-            service_log.write_bytes(log.read_bytes())
 
     fold_all = n_events / rate
     print(
