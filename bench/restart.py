@@ -26,12 +26,16 @@ events, alone, on a sample of segments, extrapolated per event.
 last instance's token and every segment's state; on 2 cores this is how the Python half of
 a re-run (one thread an instance) gets the second core.
 
-Run: ``python -m bench.restart [--segments 100000 --days 60 --shards 2]``.
+``--router-process``: the router runs as its own process (``trackfusion router``, as
+deployed) instead of a session of this one (which then holds only the receiving client).
+
+Run: ``python -m bench.restart [--segments 100000 --days 60 --shards 2 --router-process]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -62,7 +66,7 @@ from schemas import (
 from services.filtering.store import Store
 from services.filtering.testing import example_models
 from services.filtering.tracker import Models, event_of, fold_many, parse_model
-from services.runtime.config import zenoh_config
+from services.runtime.config import users_env, zenoh_config
 
 NS_SAMPLES = 200
 T0 = 1_767_225_600.0
@@ -330,6 +334,7 @@ def bench_restart(
     service_log: Path | None = None,
     restart_only: bool = False,
     shards: int = 1,
+    router_process: bool = False,
 ) -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -338,8 +343,20 @@ def bench_restart(
     models = example_models(NS_SAMPLES, seed=3)
     router_conf = {"mode": "router", "listen": {"endpoints": [endpoint]}, "scouting": {"delay": 0}}
     client = {"mode": "client", "connect": {"endpoints": [endpoint]}}
-    with tempfile.TemporaryDirectory() as tmp, zenoh.open(zenoh_config(router_conf)) as _router:
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
         log = Path(tmp) / "service.log"
+        if router_process:  # as deployed: `trackfusion router`, not a session of this process
+            router = subprocess.Popen(
+                [sys.executable, "-m", "services.cli", "router", "--listen", endpoint, "--ns", ns],
+                stdout=log.open("ab"),
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+                env=users_env(),
+            )
+            stack.callback(router.wait, 30)
+            stack.callback(router.terminate)
+        else:
+            stack.enter_context(zenoh.open(zenoh_config(router_conf)))
         dbs = [Path(tmp) / f"filtering-{chr(ord('A') + k)}.sqlite" for k in range(shards)]
         started = time.perf_counter()
         n_events = sum(
@@ -357,7 +374,7 @@ def bench_restart(
         ]
         service = Instances(argsets, log)
         rows = []
-        with zenoh.open(zenoh_config(client)) as session:
+        with _client(zenoh_config(client)) as session:
             watcher = Watcher(session, ns)
             try:
                 first = service.start(watcher, segments)
@@ -482,6 +499,16 @@ def _tail(segments: int, days: int, shards: int) -> list[OnboardIndex]:
     ]
 
 
+def _client(conf) -> zenoh.Session:
+    """A client session of the router (a router process takes a moment to listen)."""
+    for _ in range(60):
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError:
+            time.sleep(0.5)
+    raise RuntimeError("no router to connect to")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--segments", type=int, default=2000)
@@ -491,6 +518,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--shards", type=int, default=1, help="filtering instances, each on its own lines"
     )
+    parser.add_argument(
+        "--router-process",
+        action="store_true",
+        help="the router as its own process (`trackfusion router`), not a session of the bench",
+    )
     args = parser.parse_args(argv)
     bench_restart(
         args.segments,
@@ -498,6 +530,7 @@ def main(argv: list[str] | None = None) -> None:
         service_log=args.service_log,
         restart_only=args.restart_only,
         shards=args.shards,
+        router_process=args.router_process,
     )
 
 
