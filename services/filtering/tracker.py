@@ -497,13 +497,10 @@ class _Banks:
             self.started[rows] = True
         self._block = max(1, BLOCK_FILTERS // max(ns, 1))
 
-    def state(self, row: int, *, copy: bool = False) -> Filtered | None:
-        """Row ``row`` as a :class:`Filtered`, None if unstarted: views of the stacked arrays,
-        or copies (``copy``: a state kept alone does not hold the whole stack's memory)."""
-        return self.states([row], copy=copy)[0]
-
     def states(self, rows: Sequence[int], *, copy: bool = False) -> list[Filtered | None]:
-        """:meth:`state` of each of ``rows`` (the scalars read in one pass)."""
+        """Each of ``rows`` as a :class:`Filtered`, None if unstarted: views of the stacked
+        arrays, or copies (``copy``: a state kept alone does not hold the whole stack's
+        memory); the scalars read in one pass."""
         out: list[Filtered | None] = []
         fields = zip(
             self.started[rows].tolist(),
@@ -610,7 +607,10 @@ class _Banks:
 
         With a 2 x 2 observation model (Top6 and Align10 read by two indices, the system's
         case) the whole step is one compiled pass (:func:`kernel.index_step`); the numpy
-        form below serves any other shape.
+        form below serves any other shape. The fold of the system's case goes through
+        :func:`kernel.index_runs` instead (:func:`_fold_runs`, the same inlined step), so
+        this per-step compiled path is the runs' per-event reference (the kernel tests,
+        ``bench.kernel``) rather than the service's.
         """
         if obs.H.shape == (2, 2) and self.z.shape[-1] == 2:
             self.index_compiled(rows, t_s, y, params, obs, last)
@@ -749,7 +749,7 @@ def _fold_many(
     says how many of its events that was. Every index's NIS is then computed (a halted
     row's last update is not known in advance); the bits do not change, since the NIS of a
     row is a sum over its own samples. ``copy``: each state owns its arrays
-    (:meth:`_Banks.state`); ``scratch`` (a :class:`Scratch`): the fold runs in its buffer
+    (:meth:`_Banks.states`); ``scratch`` (a :class:`Scratch`): the fold runs in its buffer
     and the states are copied out.
     """
     # one model for every index (no unit has its own): no per-event look-up
