@@ -132,6 +132,23 @@ END;
 CREATE TRIGGER IF NOT EXISTS events_updated AFTER UPDATE ON events BEGIN
     DELETE FROM checkpoints WHERE line = OLD.line AND segment = OLD.segment;
 END;
+-- a segment's log as the columns a re-run folds (tracker.LogColumns, _ColumnsRow), as of
+-- the newest events.seq it covers: a model change reads one row and the events after it
+-- instead of decoding every stored payload. A cache: any event deleted or rewritten drops
+-- it, and a segment without one is read from its events (and cached again)
+CREATE TABLE IF NOT EXISTS log_columns (
+    line     TEXT NOT NULL,
+    segment  TEXT NOT NULL,
+    seq      INTEGER NOT NULL,
+    columns  BLOB NOT NULL,
+    PRIMARY KEY (line, segment)
+);
+CREATE TRIGGER IF NOT EXISTS events_deleted_columns AFTER DELETE ON events BEGIN
+    DELETE FROM log_columns WHERE line = OLD.line AND segment = OLD.segment;
+END;
+CREATE TRIGGER IF NOT EXISTS events_updated_columns AFTER UPDATE ON events BEGIN
+    DELETE FROM log_columns WHERE line = OLD.line AND segment = OLD.segment;
+END;
 """
 
 _STATE_HEAD = struct.Struct("<2I 4d q 3d")  # ns, n; t_s, last_trc_t, nis, cusum; n_updates; ...
@@ -374,6 +391,35 @@ class Store:
         ).fetchall()
         return [payload for (payload,) in rows]
 
+    def segment_last_seq(self, line: str, segment: str) -> int:
+        """The newest ``seq`` of one segment's stored events (0 if none)."""
+        return self._db.execute(
+            "SELECT COALESCE(MAX(seq), 0) FROM events WHERE line = ? AND segment = ?",
+            (line, segment),
+        ).fetchone()[0]
+
+    def segment_events_after(self, line: str, segment: str, seq: int) -> list[tuple[Any, ...]]:
+        """``(seq, kind, key, payload)`` of one segment's events newer than ``seq``."""
+        return self._db.execute(
+            "SELECT seq, kind, key, payload FROM events INDEXED BY events_segment_seq"
+            " WHERE line = ? AND segment = ? AND seq > ?",
+            (line, segment, seq),
+        ).fetchall()
+
+    def cached_columns(self, line: str, segment: str) -> tuple[int, bytes] | None:
+        """``(seq, columns)`` of the segment's cached log columns, None if none."""
+        return self._db.execute(
+            "SELECT seq, columns FROM log_columns WHERE line = ? AND segment = ?",
+            (line, segment),
+        ).fetchone()
+
+    def put_cached_columns(self, line: str, segment: str, seq: int, columns: bytes) -> None:
+        """Cache the segment's log columns as of its event ``seq`` (what it covers)."""
+        self._db.execute(
+            "INSERT OR REPLACE INTO log_columns (line, segment, seq, columns) VALUES (?, ?, ?, ?)",
+            (line, segment, seq, columns),
+        )
+
     def last_seq(self) -> int:
         """The newest event's ``seq`` (0 if none): what a checkpoint written now covers."""
         return self._db.execute("SELECT COALESCE(MAX(seq), 0) FROM events").fetchone()[0]
@@ -599,6 +645,93 @@ def log_columns(
         kinds, all_times, values[order], unit_codes[order], tuple(names), last_order
     )
     return columns, trc_t
+
+
+class _ColumnsRow(msgspec.Struct, array_like=True, frozen=True, gc=False):
+    """A :class:`LogColumns` and its ``trc_t`` as stored in ``log_columns``: the arrays as
+    their exact little-endian bytes; ``layout`` names this layout (another is not read)."""
+
+    layout: int
+    trc_t: float | None
+    last_order: tuple[float, int, tuple] | None
+    unit_names: tuple[tuple[str, str], ...]
+    kinds: bytes  # int8
+    times: bytes  # <f8
+    values: bytes  # <f8 (L, 2)
+    unit_codes: bytes  # <i4
+
+
+_COLUMNS_LAYOUT = 1
+_COLUMNS_ROW = msgspec.msgpack.Decoder(_ColumnsRow)
+
+
+def pack_columns(columns: LogColumns, trc_t: float | None) -> bytes:
+    """A segment's log columns as the bytes the ``log_columns`` cache holds."""
+    return encode(
+        _ColumnsRow(
+            _COLUMNS_LAYOUT,
+            trc_t,
+            columns.last_order,
+            columns.unit_names,
+            columns.kinds.astype(np.int8).tobytes(),
+            columns.times.astype("<f8").tobytes(),
+            columns.values.astype("<f8").tobytes(),
+            columns.unit_codes.astype("<i4").tobytes(),
+        )
+    )
+
+
+def unpack_columns(blob: bytes) -> tuple[LogColumns, float | None] | None:
+    """:func:`pack_columns` back (read-only arrays over the bytes); None if the bytes are
+    not one of this layout (the log is then read from its events)."""
+    try:
+        row = _COLUMNS_ROW.decode(blob)
+        kinds = np.frombuffer(row.kinds, dtype=np.int8)
+        times = np.frombuffer(row.times, dtype="<f8")
+        values = np.frombuffer(row.values, dtype="<f8").reshape(-1, 2)
+        codes = np.frombuffer(row.unit_codes, dtype="<i4")
+    except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
+        return None
+    if row.layout != _COLUMNS_LAYOUT or not (
+        len(kinds) == len(times) == len(values) == len(codes)
+        and (row.last_order is None) == (len(kinds) == 0)
+        and (codes < len(row.unit_names)).all()
+    ):
+        return None
+    last = row.last_order
+    order = None if last is None else (last[0], last[1], tuple(last[2]))
+    return LogColumns(kinds, times, values, codes, row.unit_names, order), row.trc_t
+
+
+def columns_after(columns: LogColumns, tail: Sequence[Event]) -> LogColumns | None:
+    """``columns`` with the segment's newer events ``tail`` (any order) appended: the
+    columns :func:`log_columns` gives for the whole log, when every event of the tail is an
+    index or a tamping that sorts after the log's last event (time, then kind; no two tied).
+    None otherwise (a TRC record, which starts the log again, or a late event: the log is
+    then read from its events)."""
+    if not tail:
+        return columns
+    tail = sorted(tail, key=lambda e: e.order)
+    keys = [(e.t_s, e.kind) for e in tail]
+    if columns.last_order is not None:
+        keys.insert(0, columns.last_order[:2])
+    if any(e.kind == RESTART for e in tail) or any(map(operator.ge, keys, keys[1:])):
+        return None
+    names = {name: code for code, name in enumerate(columns.unit_names)}
+    values = np.zeros((len(tail), 2))  # a tamping's: zeros
+    unit_codes = np.full(len(tail), -1, dtype=np.int32)
+    for k, e in enumerate(tail):
+        if e.kind == INDEX:
+            values[k] = e.value
+            unit_codes[k] = names.setdefault((e.message.train, e.message.unit), len(names))
+    return LogColumns(
+        np.concatenate([columns.kinds, np.array([e.kind for e in tail], dtype=np.int8)]),
+        np.concatenate([columns.times, [e.t_s for e in tail]]),
+        np.concatenate([columns.values, values]),
+        np.concatenate([columns.unit_codes, unit_codes]),
+        tuple(names),
+        tail[-1].order,
+    )
 
 
 def _stored_events(rows: Iterable[tuple[str, str, bytes]]) -> Iterator[Event]:
@@ -898,7 +1031,8 @@ class PersistentTracker:
             for event in _stored_events([(kind, key, payload)]):
                 tails.setdefault((line, segment), []).append(event)
         replay = [*broken, *self.store.unchecked_segments()]  # their logs: by the loader
-        kept, states = self.tracker.restore(models, checkpoints, tails, replay)  # type: ignore[arg-type]
+        with self.store.transaction():  # the logs it caches as columns, in one commit
+            kept, states = self.tracker.restore(models, checkpoints, tails, replay)  # type: ignore[arg-type]
         out: list[tuple[SegmentId, bytes, bool]] = []
         unsummarised = []
         for sid in kept:
@@ -927,11 +1061,31 @@ class PersistentTracker:
         """The segment's log from the store as :class:`LogColumns` (what :meth:`segment_log`
         gives, as columns): the tracker's column loader, for re-runs. None when a stored
         index does not pass :func:`_stored_events`' checks or two events tie on time and
-        kind (their order then needs the identities): the re-run reads the log as events."""
-        return log_columns(
-            self.store.segment_index_payloads(line, segment),
-            _stored_events(self.store.segment_events(line, segment, indices=False)),
+        kind (their order then needs the identities): the re-run reads the log as events.
+
+        From the ``log_columns`` cache when it holds the segment: its row, with the events
+        stored after it appended (:func:`columns_after`); otherwise, or when they cannot
+        be appended, from the stored events, and the result is cached (with the newer
+        events, so the next re-run reads one row again)."""
+        store = self.store
+        cached = store.cached_columns(line, segment)
+        if cached is not None and (read := unpack_columns(cached[1])) is not None:
+            newer = store.segment_events_after(line, segment, cached[0])
+            tail = list(_stored_events(row[1:] for row in newer))
+            columns = columns_after(read[0], tail) if len(tail) == len(newer) else None
+            if columns is not None:
+                if newer:
+                    seq = max(row[0] for row in newer)
+                    store.put_cached_columns(line, segment, seq, pack_columns(columns, read[1]))
+                return columns, read[1]
+        seq = store.segment_last_seq(line, segment)
+        read = log_columns(
+            store.segment_index_payloads(line, segment),
+            _stored_events(store.segment_events(line, segment, indices=False)),
         )
+        if read is not None:
+            store.put_cached_columns(line, segment, seq, pack_columns(*read))
+        return read
 
     def _after_batch(self, states: Iterable[SegmentState], *, models: bool) -> None:
         """After a committed batch: note its states; checkpoint when due (every

@@ -508,6 +508,68 @@ def test_a_log_read_as_columns_folds_to_the_bits_of_its_events(tmp_path):
     assert columns.last_order == log[-1].order and columns.unit_names == (("T1", "u1"),)
 
 
+def test_a_model_change_reads_each_log_from_its_cached_columns(tmp_path, monkeypatch):
+    """A re-run caches each log it reads as columns (``log_columns``); the next one reads
+    that row and the events stored after it (in-order indices, a new unit, a tamping),
+    which gives the bits of a replay of every event. A late index, a pruning TRC record
+    and a row that no longer decodes send their segment back to its stored events."""
+    rng = np.random.default_rng(10)
+    segments = ("s1", "s2", "s3", "s4", "s5")
+    events = []
+    for seg in segments:
+        events.append(trc(0.0, segment=seg))
+        for day in range(1, 40, 3):
+            top6, align10 = np.exp(rng.normal([0.8, 0.5], 0.1)).tolist()
+            events.append(index(day + 0.1, top6, align10, segment=seg))
+    own = unit_calibration("T2", "u1")  # T2's indices are read with their own model
+    node = node_on(tmp_path / "f.sqlite", max_loaded=0)
+    node.handle_batch([keyed(m) for m in [*MODELS, own, *in_time_order(events)]])
+    node.checkpoint()
+    full_reads: list[str] = []
+    payloads = node.store.segment_index_payloads
+
+    def counted(line, segment):
+        full_reads.append(segment)
+        return payloads(line, segment)
+
+    monkeypatch.setattr(node.store, "segment_index_payloads", counted)
+    cached = "SELECT segment, seq FROM log_columns ORDER BY segment"
+
+    def cached_seqs():
+        return dict(node.store._db.execute(cached).fetchall())
+
+    node.handle_batch([keyed(calibration(2, 1.1))])
+    assert sorted(full_reads) == list(segments)
+    assert cached_seqs() == {seg: node.store.segment_last_seq("L1", seg) for seg in segments}
+
+    newer = [
+        index(41.0, 2.4, 1.7, segment="s1", train="T2"),  # in order, a unit new to s1
+        index(42.0, 2.5, 1.8, segment="s1"),
+        tamping(43.0, segment="s2"),  # in order
+        index(44.0, 2.2, 1.9, segment="s2", train="T2"),
+        index(20.5, 2.2, 1.9, segment="s3"),  # late
+        trc(45.0, 2.0, 1.8, segment="s4"),  # prunes s4's log: its row goes
+    ]
+    node.handle_batch([keyed(m) for m in newer])
+    assert "s4" not in cached_seqs()
+    node.store._db.execute("UPDATE log_columns SET columns = x'00ff' WHERE segment = 's5'")
+    node.checkpoint()
+    full_reads.clear()
+    done = node.handle_batch([keyed(calibration(3, 0.95))])
+    assert sorted(full_reads) == ["s3", "s4", "s5"]
+    reference = run([*MODELS, own, *in_time_order(events), *newer, calibration(3, 0.95)])[0]
+    assert {(s.line, s.segment): encode(s) for s in done.states} == {
+        sid: encode(reference.state_of(*sid)) for sid in reference.histories
+    }
+    assert_same_states(reference, node.tracker)
+    assert cached_seqs() == {seg: node.store.segment_last_seq("L1", seg) for seg in segments}
+
+    full_reads.clear()  # every row current: the next change reads no stored event
+    node.handle_batch([keyed(calibration(4, 1.02))])
+    assert full_reads == []
+    node.close()
+
+
 def test_in_order_indices_on_resting_segments_fold_without_reading_their_logs(tmp_path):
     """After a restart every segment rests (state, no log). A batch of indices after each
     log's end folds them onto the resting states and leaves the logs unread; one whose
