@@ -58,43 +58,84 @@ DAY_S = 86_400.0
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
-_SCRATCH = 10  # per-sample temporaries of a row (see _step_row)
+_SCRATCH = 11  # a row's samples and their temporaries (see _load, _update)
 _ROWS_PER_TASK = 16  # rows a parallel task steps with one scratch allocation
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", inline="always")
+def _load(F, row, tmp):
+    """Row ``row`` of the bank into the contiguous rows of ``tmp``: z in 0-1, P's three
+    distinct entries in 2-4, log_w in 10 (what :func:`_update` steps)."""
+    ns = F.shape[1] // 7  # a row: z (Ns, 2), P (Ns, 2, 2), log_w (Ns), each row-major
+    op, ow = 2 * ns, 6 * ns  # where P and log_w start
+    for j in range(ns):
+        tmp[0, j] = F[row, 2 * j]
+        tmp[1, j] = F[row, 2 * j + 1]
+        tmp[2, j] = F[row, op + 4 * j]
+        tmp[3, j] = F[row, op + 4 * j + 1]
+        tmp[4, j] = F[row, op + 4 * j + 3]
+        tmp[10, j] = F[row, ow + j]
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", inline="always")
+def _store(F, row, tmp):
+    """:func:`_load` back, after at least one :func:`_update` (P kept exactly symmetric)."""
+    ns = F.shape[1] // 7
+    op, ow = 2 * ns, 6 * ns
+    for j in range(ns):
+        F[row, 2 * j] = tmp[0, j]
+        F[row, 2 * j + 1] = tmp[1, j]
+        F[row, op + 4 * j] = tmp[2, j]
+        F[row, op + 4 * j + 1] = tmp[3, j]
+        F[row, op + 4 * j + 2] = tmp[3, j]
+        F[row, op + 4 * j + 3] = tmp[4, j]
+        F[row, ow + j] = tmp[10, j]
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", inline="always")
 def _step(F, t_s, row, t_new, y0, y1, mu, sigma, g, H, b, R, tmp):
     """One index ``(y0, y1)`` at ``t_new`` on row ``row`` of the bank with parameter set
-    ``g``, in place; returns the row's ``(nis, score)`` (inlined into every compiled loop:
-    the same code).
+    ``g``, in place; returns the row's ``(nis, score)``: :func:`_load`, :func:`_update`,
+    :func:`_store` (inlined into every compiled loop: the same code)."""
+    _load(F, row, tmp)
+    out = _update(tmp, (t_new - t_s[row]) / DAY_S, y0, y1, mu, sigma, g, H, b, R)
+    _store(F, row, tmp)
+    t_s[row] = t_new
+    return out
 
-    The samples are copied into the contiguous rows of ``tmp`` (10, Ns) first, so that the
-    filter loop, ``exp`` and ``log`` (:mod:`.vecmath`) run over Ns lanes at a time; the
-    weighted sums stay sequential in ``j``, in a fixed order.
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", inline="always")
+def _update(tmp, dt, y0, y1, mu, sigma, g, H, b, R):
+    """One index ``(y0, y1)``, ``dt`` days after the last event, on the samples held in
+    ``tmp`` (11, Ns) (:func:`_load`) with parameter set ``g``, in place; returns
+    ``(nis, score)``.
+
+    The samples sit in the contiguous rows of ``tmp``, so that the filter loop, ``exp``
+    and ``log`` (:mod:`.vecmath`) run over Ns lanes at a time; the weighted sums stay
+    sequential in ``j``, in a fixed order. A run of indices on one row
+    (:func:`_run_row`) keeps them there from one index to the next.
     """
-    ns = F.shape[1] // 7  # a row: z (Ns, 2), P (Ns, 2, 2), log_w (Ns), each row-major
-    op, ow = 2 * ns, 6 * ns  # where P and log_w start
+    ns = tmp.shape[1]
     h00, h01, h10, h11 = H[0, 0], H[0, 1], H[1, 0], H[1, 1]
     r00, r01, r11 = R[0, 0], R[0, 1], R[1, 1]
     b0, b1 = b[0], b[1]
     hs0, hs1 = h00 + h10, h01 + h11  # h = H^T 1
     r_sum = r00 + r01 + R[1, 0] + r11  # 1^T R 1
     b_sum = b0 + b1
-    dt = (t_new - t_s[row]) / DAY_S
     y_sum = y0 + y1
     a0, a1, b00, b01, b11 = tmp[0], tmp[1], tmp[2], tmp[3], tmp[4]  # z, P of the samples
-    w, us, vs, nis_s, log_det = tmp[5], tmp[6], tmp[7], tmp[8], tmp[9]
+    w, us, vs, nis_s, log_det, log_w = tmp[5], tmp[6], tmp[7], tmp[8], tmp[9], tmp[10]
     for j in range(ns):  # predict: z + mu dt, P + Sigma dt
-        a0[j] = F[row, 2 * j] + mu[g, j, 0] * dt
-        a1[j] = F[row, 2 * j + 1] + mu[g, j, 1] * dt
-        b00[j] = F[row, op + 4 * j] + sigma[g, j, 0, 0] * dt
-        b01[j] = F[row, op + 4 * j + 1] + sigma[g, j, 0, 1] * dt
-        b11[j] = F[row, op + 4 * j + 3] + sigma[g, j, 1, 1] * dt
+        a0[j] = a0[j] + mu[g, j, 0] * dt
+        a1[j] = a1[j] + mu[g, j, 1] * dt
+        b00[j] = b00[j] + sigma[g, j, 0, 0] * dt
+        b01[j] = b01[j] + sigma[g, j, 0, 1] * dt
+        b11[j] = b11[j] + sigma[g, j, 1, 1] * dt
     top = -np.inf
     for j in range(ns):
-        top = max(top, F[row, ow + j])
+        top = max(top, log_w[j])
     for j in range(ns):
-        w[j] = exp_nonpositive(F[row, ow + j] - top)
+        w[j] = exp_nonpositive(log_w[j] - top)
     for j in range(ns):
         z0, z1, p00, p01, p11 = a0[j], a1[j], b00[j], b01[j], b11[j]
         # the CUSUM score's moments on the prediction
@@ -137,7 +178,7 @@ def _step(F, t_s, row, t_new, y0, y1, mu, sigma, g, H, b, R, tmp):
         b01[j] = ap00 * a10 + ap01 * a11 + c00 * k10 + c01 * k11
         b11[j] = ap10 * a10 + ap11 * a11 + c10 * k10 + c11 * k11
     for j in range(ns):
-        F[row, ow + j] += -0.5 * (nis_s[j] + log_det[j] + 2.0 * _LOG_2PI)
+        log_w[j] += -0.5 * (nis_s[j] + log_det[j] + 2.0 * _LOG_2PI)
     # the weighted sums: four independent chains in one pass, normalised after
     total = 0.0
     mean_u = 0.0
@@ -153,15 +194,7 @@ def _step(F, t_s, row, t_new, y0, y1, mu, sigma, g, H, b, R, tmp):
     mean_u /= total
     second /= total
     nis_mean /= total
-    for j in range(ns):  # P is kept exactly symmetric
-        F[row, 2 * j] = a0[j]
-        F[row, 2 * j + 1] = a1[j]
-        F[row, op + 4 * j] = b00[j]
-        F[row, op + 4 * j + 1] = b01[j]
-        F[row, op + 4 * j + 2] = b01[j]
-        F[row, op + 4 * j + 3] = b11[j]
     var = second - mean_u * mean_u
-    t_s[row] = t_new
     return nis_mean, mean_u / math.sqrt(max(var, 1e-300))
 
 
@@ -235,19 +268,26 @@ def _run_row(
     started, nis, n_updates, cusum, cusum_t0, cusum_t1, cusum_law, folded, missing, tmp,
 ):  # fmt: skip
     """Row ``row``'s indices from ``pos[row]`` to its next other event (or ``stop[row]``):
-    :func:`_step` and the CUSUM step (``_Banks._cusum_step``) of each, in place."""
+    :func:`_update` and the CUSUM step (``_Banks._cusum_step``) of each, in place, the
+    samples loaded into ``tmp`` at the first and stored back after the last."""
     index, drift, clip, halt = cusum_law
     k = pos[row]
     end = stop[row]
+    loaded = False  # the row's samples in tmp, from its first update to the run's end
     while k < end and kinds[row, k] == index:
         if started[row]:  # an index before any start is skipped
             o = obs_ids[row, k]
             if o < 0:
                 missing[row] = True
                 break
+            if not loaded:
+                _load(F, row, tmp)
+                loaded = True
             t = times[row, k]
-            nis[row], score = _step(F, t_s, row, t, values[row, k, 0], values[row, k, 1], mu,
-                                    sigma, group[row], Hs[o], bs[o], Rs[o], tmp)  # fmt: skip
+            nis[row], score = _update(tmp, (t - t_s[row]) / DAY_S, values[row, k, 0],
+                                      values[row, k, 1], mu, sigma, group[row], Hs[o], bs[o],
+                                      Rs[o])  # fmt: skip
+            t_s[row] = t
             g_prev = cusum[row]
             g = _maximum(0.0, g_prev - _maximum(score, -clip) - drift)
             cusum[row] = g
@@ -263,6 +303,8 @@ def _run_row(
                 stop[row] = k
                 break
         k += 1
+    if loaded:
+        _store(F, row, tmp)
     pos[row] = k
 
 
