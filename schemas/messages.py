@@ -349,18 +349,7 @@ class SegmentState(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_id("line", self.line)
-        check_id("segment", self.segment)
-        if self.posterior_group:
-            check_id("posterior_group", self.posterior_group)
-        check_time("t", self.t)
-        check_finite("width", self.width)
-        check(self.width >= 0, f"width: must be >= 0, got {self.width!r}")
-        check_time("last_trc_t", self.last_trc_t)
-        check_finite("nis", self.nis)
-        check_int("n_updates", self.n_updates)
-        check_int("calibration_version", self.calibration_version)
-        check_int("posterior_version", self.posterior_version)
+        self.check_scalars()
         n, levels = len(self.indicators), len(self.limit_levels)
         check(n > 0, "indicators: must not be empty")
         for name in ("mean", "ci_low_mm", "ci_high_mm"):
@@ -376,6 +365,23 @@ class SegmentState(Message, frozen=True, kw_only=True):
         for name in ("p_exceed", "forecast_p_exceed"):
             p = getattr(self, name).array()
             check(bool(((p >= 0) & (p <= 1)).all()), f"{name}: probabilities outside [0, 1]")
+
+    def check_scalars(self) -> None:
+        """The checks of the fields that are not arrays (the ids, times, numbers): what a
+        producer runs on a state copied from a checked one whose arrays it checked at once
+        for a whole batch (``schemas.wire.unchecked_copy``)."""
+        check_id("line", self.line)
+        check_id("segment", self.segment)
+        if self.posterior_group:
+            check_id("posterior_group", self.posterior_group)
+        check_time("t", self.t)
+        check_finite("width", self.width)
+        check(self.width >= 0, f"width: must be >= 0, got {self.width!r}")
+        check_time("last_trc_t", self.last_trc_t)
+        check_finite("nis", self.nis)
+        check_int("n_updates", self.n_updates)
+        check_int("calibration_version", self.calibration_version)
+        check_int("posterior_version", self.posterior_version)
 
 
 class Alert(Message, frozen=True, kw_only=True):

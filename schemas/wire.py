@@ -169,6 +169,21 @@ def check_array(name: str, value: NDArray, shape: tuple[int | None, ...], kinds:
         raise SchemaError(f"{name}: shape {value.shape} does not match {list(shape)}")
 
 
+def unchecked_copy(message: T, **changes: Any) -> T:
+    """A copy of ``message`` with ``changes``, without running its checks (``__post_init__``).
+
+    Only for a producer of many messages of one shape that checks them otherwise: a copy of
+    a message that was checked, whose array fields keep their dtype and shape and whose new
+    values the producer checked as the message would (the filter's summaries:
+    :func:`services.filtering.tracker.summarize_states`). Anything else builds its
+    messages the checked way.
+    """
+    out = message.__copy__()  # type: ignore[attr-defined]
+    for name, value in changes.items():
+        msgspec.structs.force_setattr(out, name, value)
+    return out
+
+
 _encoder = msgspec.msgpack.Encoder()
 _decoders: dict[type, msgspec.msgpack.Decoder] = {}
 T = TypeVar("T")

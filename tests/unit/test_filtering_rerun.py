@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import msgspec
 import numpy as np
 import pytest
@@ -16,7 +18,7 @@ from test_filtering_tracker import (  # tests/unit is on sys.path (rootdir conft
     trc,
 )
 
-from schemas import NDArray, encode
+from schemas import NDArray, SchemaError, encode
 from services.filtering import tracker as tracker_module
 from services.filtering.tracker import SegmentHistory, Tracker, replay, replay_many
 
@@ -220,6 +222,25 @@ def test_update_models_equals_stepping_them_one_by_one():
         sid for sid, t in batched.histories.items() if batched.segment_state(t) is not None
     }
     assert batched.state_of("L3", "s2") is not None
+
+
+def test_a_batch_of_summaries_is_each_summary_alone_and_refuses_one_not_finite():
+    """The summaries of a batch (the first built checked, the others copied from it with
+    their arrays checked at once) are the messages of each segment summarised alone; a
+    state whose numbers are not finite, anywhere in a batch, is refused with the reason."""
+    tracker = new_tracker()
+    tracker.load(MODELS, mixed_events(np.random.default_rng(22)))
+    hists = [h for h in tracker.histories.values() if h.state is not None and h.line == "L1"]
+    assert len(hists) >= 3
+    batch = tracker.segment_states(hists)
+    assert [encode(s) for s in batch] == [encode(tracker.segment_state(h)) for h in hists]
+    state = hists[2].state
+    huge = replace(hists[2], state=replace(state, z=state.z + 800.0))  # exp(800) mm: inf
+    with np.errstate(over="ignore"), pytest.raises(SchemaError, match="NaN or inf"):
+        tracker.segment_states([*hists[:2], huge])
+    no_nis = replace(hists[2], state=replace(state, nis=float("inf")))
+    with pytest.raises(SchemaError, match="nis: must be finite"):
+        tracker.segment_states([*hists[:2], no_nis])
 
 
 def test_limits_of_each_line_in_one_batch():
