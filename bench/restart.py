@@ -276,8 +276,8 @@ def rss_mb(pid: int) -> tuple[float, float]:
 class Instances:
     """The service's processes: one, or one per shard, each on its own store and selector."""
 
-    def __init__(self, argsets: list[list[str]], log: Path) -> None:
-        self.argsets, self.log = argsets, log
+    def __init__(self, argsets: list[list[str]], log: Path, env: dict[str, str]) -> None:
+        self.argsets, self.log, self.env = argsets, log, env
         self.procs: list[subprocess.Popen] = []
 
     def start(self, watcher: Watcher, segments: int) -> tuple[float, float, float, float]:
@@ -291,6 +291,7 @@ class Instances:
                 stdout=self.log.open("ab"),
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
+                env=self.env,
             )
             for args in self.argsets
         ]
@@ -335,7 +336,12 @@ def bench_restart(
     restart_only: bool = False,
     shards: int = 1,
     router_process: bool = False,
+    threads: int | None = None,
 ) -> None:
+    # each instance's compiled threads (numba's pool): the cores shared out, as deployed;
+    # more threads than cores over the instances made the model change 20 % slower
+    threads = threads or max(1, (os.cpu_count() or 1) // shards)
+    env = {**os.environ, "NUMBA_NUM_THREADS": str(threads)}
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
@@ -372,7 +378,7 @@ def bench_restart(
             ]
             for k, db in enumerate(dbs)
         ]
-        service = Instances(argsets, log)
+        service = Instances(argsets, log, env)
         rows = []
         with _client(zenoh_config(client)) as session:
             watcher = Watcher(session, ns)
@@ -452,7 +458,8 @@ def bench_restart(
     print(
         f"filtering restart, Ns = {NS_SAMPLES}, {segments:,} segments × {days} days × 2 passes"
         f" = {n_events:,} events since the TRC records (store {size_mb:,.0f} MB, built in"
-        f" {built:.0f} s), {shards} instance(s) (RSS summed over them):"
+        f" {built:.0f} s), {shards} instance(s) of {threads} compiled thread(s) each"
+        " (NUMBA_NUM_THREADS; RSS summed over them):"
     )
     print(f"  fold_many alone: {rate:,.0f} events/s, i.e. {fold_all:.1f} s for every event")
     for name, ready, answering, rss, peak in rows:
@@ -523,6 +530,11 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="the router as its own process (`trackfusion router`), not a session of the bench",
     )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        help="compiled threads of each instance (NUMBA_NUM_THREADS; default: the cores / shards)",
+    )
     args = parser.parse_args(argv)
     bench_restart(
         args.segments,
@@ -531,6 +543,7 @@ def main(argv: list[str] | None = None) -> None:
         restart_only=args.restart_only,
         shards=args.shards,
         router_process=args.router_process,
+        threads=args.threads,
     )
 
 
