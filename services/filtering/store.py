@@ -79,8 +79,7 @@ CACHE_KIB = 65_536  # SQLite page cache: the indexes of a large store stay in me
 WAL_CHECKPOINT_S = 1.0  # the background thread copies the WAL into the database this often
 MAX_LOADED = 4096  # segment logs kept in memory (~1 KB an event; least recently used dropped)
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS events (
+_EVENTS_COLUMNS = """(
     seq      INTEGER PRIMARY KEY AUTOINCREMENT,
     line     TEXT NOT NULL,
     segment  TEXT NOT NULL,
@@ -88,14 +87,29 @@ CREATE TABLE IF NOT EXISTS events (
     key      TEXT NOT NULL,     -- key expression it arrived on
     identity TEXT NOT NULL,     -- JSON of the tracker's identity tuple
     t        REAL NOT NULL,     -- epoch s of the event (a tamping's assumed time)
-    payload  BLOB NOT NULL,     -- the decoded message, re-encoded (unknown fields dropped)
-    UNIQUE (line, segment, identity)
-);
--- a segment's rows are found by the (line, segment) prefix of the UNIQUE index (its
--- pruning and tamping lookups scan its ~100 rows); an index on (line, segment, t) cost
--- every insert a fourth B-tree (10-18 % of the backlog's time) and is dropped from older files
+    payload  BLOB NOT NULL      -- the decoded message, re-encoded (unknown fields dropped)
+)"""
+_EVENT_TRIGGERS = (
+    "events_deleted",
+    "events_updated",
+    "events_deleted_columns",
+    "events_updated_columns",
+)
+
+_SCHEMA = (
+    "CREATE TABLE IF NOT EXISTS events "
+    + _EVENTS_COLUMNS
+    + """;
+-- One row per (line, segment, identity): the tracker refuses an event whose identity its
+-- log holds (a duplicate), and the one it takes in place of a stored one (a tamping's
+-- correction, same event_id) replaces that row (Store.add_events). A UNIQUE index on them
+-- (older files: migrated at open, Store._migrate_events) cost each insert a random page
+-- of wide keys: 4x the writing of a backlog's row on a 30,000-segment store.
+-- An index on (line, segment, t) cost every insert another B-tree (10-18 % of a backlog's
+-- time) and is dropped from older files.
 DROP INDEX IF EXISTS events_segment_t;
--- a restart reads each segment's events after its checkpoint's seq, and no others
+-- a segment's rows: a restart reads its events after its checkpoint's seq, a pruning or a
+-- tamping's lookup scans its ~100 rows
 CREATE INDEX IF NOT EXISTS events_segment_seq ON events (line, segment, seq);
 CREATE TABLE IF NOT EXISTS models (
     name     TEXT PRIMARY KEY,  -- "calibration" or "degradation/{group}"
@@ -150,6 +164,7 @@ CREATE TRIGGER IF NOT EXISTS events_updated_columns AFTER UPDATE ON events BEGIN
     DELETE FROM log_columns WHERE line = OLD.line AND segment = OLD.segment;
 END;
 """
+)
 
 _STATE_HEAD = struct.Struct("<2I 4d q 3d")  # ns, n; t_s, last_trc_t, nis, cusum; n_updates; ...
 
@@ -275,10 +290,44 @@ class Store:
         self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
         self._db.execute(f"PRAGMA cache_size={-CACHE_KIB}")
         self._db.executescript(_SCHEMA)
+        self._migrate_events()
         self.wal_checkpoints = _WalCheckpointer(self.path, wal_checkpoint_s)
         if wal_checkpoint_s is not None:  # not in the committing thread: see _WalCheckpointer
             self._db.execute("PRAGMA wal_autocheckpoint=0")
             self.wal_checkpoints.start()
+
+    def _migrate_events(self) -> None:
+        """A file written before the events lost their UNIQUE (line, segment, identity)
+        constraint: its ``events`` table is copied into one without it (one transaction;
+        every row and ``seq`` kept, and the sequence, so that no ``seq`` a checkpoint
+        names is given again), then its index and triggers made again."""
+        names = [row[1] for row in self._db.execute("PRAGMA index_list(events)")]
+        if not any(name.startswith("sqlite_autoindex_events") for name in names):
+            return
+        rows = self.count_events()
+        log.info("store %s: migrating %d events to the table without UNIQUE", self.path, rows)
+        columns = "seq, line, segment, kind, key, identity, t, payload"
+        with self.transaction():
+            (sequence,) = self._db.execute(
+                "SELECT COALESCE(MAX(seq), 0) FROM sqlite_sequence WHERE name = 'events'"
+            ).fetchone()
+            self._db.execute(f"CREATE TABLE events_migrated {_EVENTS_COLUMNS}")
+            self._db.execute(
+                f"INSERT INTO events_migrated ({columns}) SELECT {columns} FROM events ORDER BY seq"
+            )
+            for trigger in _EVENT_TRIGGERS:  # not fired by DROP TABLE; made again below
+                self._db.execute(f"DROP TRIGGER IF EXISTS {trigger}")
+            self._db.execute("DROP TABLE events")
+            self._db.execute("ALTER TABLE events_migrated RENAME TO events")
+            (copied,) = self._db.execute(
+                "SELECT COALESCE(MAX(seq), 0) FROM sqlite_sequence WHERE name = 'events'"
+            ).fetchone()
+            self._db.execute("DELETE FROM sqlite_sequence WHERE name = 'events'")
+            self._db.execute(
+                "INSERT INTO sqlite_sequence (name, seq) VALUES ('events', ?)",
+                (max(sequence, copied),),
+            )
+        self._db.executescript(_SCHEMA)
 
     def close(self) -> None:
         self.wal_checkpoints.close()  # first: the last connection to close checkpoints all
@@ -320,17 +369,31 @@ class Store:
         self, rows: Iterable[tuple[str, str, str, str, tuple[Any, ...], float, bytes]]
     ) -> None:
         """:meth:`add_event` of several ``(line, segment, kind, key, identity, t, payload)``
-        rows, in order, in one ``executemany``."""
-        self._db.executemany(
+        rows, in order, in one ``executemany``.
+
+        A tamping (``kind`` maintenance) first deletes the segment's stored row of its
+        identity (a correction replaces the report); the other kinds are inserted as they
+        are: the tracker refuses an event whose identity its log already holds, and the
+        store holds that log (see ``_SCHEMA``)."""
+        insert = (
             "INSERT INTO events (line, segment, kind, key, identity, t, payload)"
             " VALUES (?, ?, ?, ?, ?, ?, ?)"
-            " ON CONFLICT (line, segment, identity) DO UPDATE SET"
-            " kind = excluded.kind, key = excluded.key, t = excluded.t, payload = excluded.payload",
-            [
-                (line, segment, kind, key, _dumps(list(identity)), t, bytes(payload))
-                for line, segment, kind, key, identity, t, payload in rows
-            ],
         )
+        run: list[tuple[str, str, str, str, str, float, bytes]] = []
+        for line, segment, kind, key, identity, t, payload in rows:
+            text = _dumps(list(identity))
+            if kind == "maintenance":
+                if run:
+                    self._db.executemany(insert, run)
+                    run = []
+                self._db.execute(
+                    "DELETE FROM events WHERE line = ? AND segment = ? AND kind = 'maintenance'"
+                    " AND identity = ?",
+                    (line, segment, text),
+                )
+            run.append((line, segment, kind, key, text, t, bytes(payload)))
+        if run:
+            self._db.executemany(insert, run)
 
     def delete_detected(self, line: str, segment: str, t: float, within_s: float) -> int:
         """Delete the segment's detected tampings within ``within_s`` of ``t`` (a reported

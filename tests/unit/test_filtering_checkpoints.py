@@ -4,6 +4,7 @@ whose log was dropped from memory, gives the bits of a full replay of the same e
 from __future__ import annotations
 
 import logging
+import sqlite3
 from dataclasses import replace
 
 import msgspec
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 
 from schemas import OnboardIndex, TrcRecord, encode
+from services.filtering import store as store_module
 from services.filtering import tracker as tracker_module
 from services.filtering.store import (
     PersistentTracker,
@@ -602,3 +604,63 @@ def test_in_order_indices_on_resting_segments_fold_without_reading_their_logs(tm
     assert_same_states(one, node.tracker)
     detected = [m for sid in one.histories for m in one.histories[sid].log if m.kind == 0]
     assert len(detected) == 1
+
+
+OLD_EVENTS = """CREATE TABLE events_old (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, line TEXT NOT NULL, segment TEXT NOT NULL,
+    kind TEXT NOT NULL, key TEXT NOT NULL, identity TEXT NOT NULL, t REAL NOT NULL,
+    payload BLOB NOT NULL, UNIQUE (line, segment, identity))"""
+
+
+def test_a_file_with_unique_identities_is_migrated_keeping_every_row_seq_and_checkpoint(tmp_path):
+    """A store written before the events lost their UNIQUE constraint: opened, its events
+    are the same rows with the same seq, the sequence goes on after the largest seq ever
+    given (not the largest left), its checkpoints still restore without a replay, and the
+    triggers that invalidate them are there again."""
+    events = in_time_order(history(np.random.default_rng(5), SEGMENTS))
+    db = tmp_path / "f.sqlite"
+    first = node_on(db)
+    first.handle_batch([keyed(m) for m in [*MODELS, *events[:60]]])
+    first.close()
+    first.store.close()
+    raw = sqlite3.connect(db, isolation_level=None)  # rewritten as an older file
+    raw.executescript(
+        f"BEGIN; {OLD_EVENTS}; INSERT INTO events_old SELECT * FROM events ORDER BY seq;"
+        " DROP TABLE events; ALTER TABLE events_old RENAME TO events;"
+        " UPDATE sqlite_sequence SET seq = seq + 7 WHERE name = 'events'; COMMIT;"
+    )
+    raw.executescript(store_module._SCHEMA)  # the index and triggers an older file had
+    assert any(
+        r[1].startswith("sqlite_autoindex") for r in raw.execute("PRAGMA index_list(events)")
+    )
+    rows = raw.execute("SELECT * FROM events ORDER BY seq").fetchall()
+    checkpoints = raw.execute("SELECT * FROM checkpoints ORDER BY line, segment").fetchall()
+    (sequence,) = raw.execute("SELECT seq FROM sqlite_sequence WHERE name = 'events'").fetchone()
+    raw.close()
+    assert sequence == rows[-1][0] + 7 and checkpoints
+
+    node, states, loader = restarted(db)  # opening migrates
+    store = node.store._db
+    assert not any(
+        r[1].startswith("sqlite_autoindex") for r in store.execute("PRAGMA index_list(events)")
+    )
+    assert store.execute("SELECT * FROM events ORDER BY seq").fetchall() == rows
+    assert (
+        store.execute("SELECT * FROM checkpoints ORDER BY line, segment").fetchall() == checkpoints
+    )
+    triggers = {
+        r[0] for r in store.execute("SELECT name FROM sqlite_master WHERE type = 'trigger'")
+    }
+    assert triggers == set(store_module._EVENT_TRIGGERS)
+    assert loader.read == []  # every segment from its checkpoint
+    assert_restored(node, states, run([*MODELS, *events[:60]])[0])
+
+    assert store.execute("SELECT seq FROM sqlite_sequence WHERE name = 'events'").fetchall() == [
+        (sequence,)
+    ]
+    node.handle_batch([keyed(m) for m in events[60:]])
+    given = "SELECT COUNT(*) FROM events WHERE seq > ? AND seq <= ?"
+    assert store.execute(given, (rows[-1][0], sequence)).fetchone() == (0,)  # none twice
+    assert store.execute(given, (sequence, sequence + len(events))).fetchone()[0] > 0
+    assert_same_states(run([*MODELS, *events])[0], node.tracker)
+    node.store.close()

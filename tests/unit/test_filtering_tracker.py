@@ -588,6 +588,9 @@ def test_a_tamping_correction_replaces_the_report_whatever_the_order(corrected):
         node = PersistentTracker(new_tracker(), Store(":memory:"))
         for msg in [*base, *order]:
             node.handle(*keyed(msg))
+        node.handle(*keyed(base[-1]))  # a duplicate index: refused, not stored again
+        kinds = node.store._db.execute("SELECT kind, COUNT(*) FROM events GROUP BY kind")
+        assert dict(kinds.fetchall()) == {"trc": 1, "index": 2, "maintenance": 1}
         rebuilt = PersistentTracker(new_tracker(), node.store)
         rebuilt.rebuild()
         assert_same_states(rebuilt.tracker, truth)
