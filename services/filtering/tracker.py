@@ -89,7 +89,7 @@ import math
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Mapping, MutableMapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -1155,12 +1155,16 @@ def canonical_log(events: Iterable[Event]) -> tuple[tuple[Event, ...], float | N
 
 def _rested(ckpt: Checkpoint, state, group, tail: Sequence[Event]) -> Checkpoint:
     """``ckpt`` folded on over ``tail`` (in canonical order, after its last event)."""
-    restarts = [e.t_s for e in tail if e.kind == RESTART]
-    if ckpt.trc_t is not None:
-        restarts.append(ckpt.trc_t)
-    trc_t = max(restarts, default=None)
-    units = None if ckpt.units is None else ckpt.units | log_units(tail)  # a superset is safe
-    return replace(
+    trc_t = ckpt.trc_t
+    for event in tail:
+        if event.kind == RESTART and (trc_t is None or event.t_s > trc_t):
+            trc_t = event.t_s
+    units = ckpt.units
+    if units is not None:  # a superset is safe
+        read = {(e.message.train, e.message.unit) for e in tail if e.kind == INDEX}
+        if not read <= units:
+            units = units | read
+    return _evolve(
         ckpt, trc_t=trc_t, state=state, group=group, last_order=tail[-1].order, units=units
     )
 
@@ -1172,12 +1176,17 @@ def _summarised(hist: SegmentHistory | Checkpoint) -> SegmentHistory:
     return SegmentHistory(hist.line, hist.segment, (), hist.trc_t, hist.state, hist.group)
 
 
-def _evolve(hist: SegmentHistory, **changes: Any) -> SegmentHistory:
-    """``dataclasses.replace(hist, **changes)`` without its per-call field introspection
-    (a tenth of a backlog's time): every field, whatever they are, copied, then changed."""
-    if not changes.keys() <= SegmentHistory.__dataclass_fields__.keys():
-        raise TypeError(f"SegmentHistory has no field {set(changes) - set(vars(hist))}")
-    new = object.__new__(SegmentHistory)
+_Frozen = TypeVar("_Frozen", "SegmentHistory", "Checkpoint")
+
+
+def _evolve(hist: _Frozen, **changes: Any) -> _Frozen:
+    """``dataclasses.replace(hist, **changes)`` of a SegmentHistory or a Checkpoint, without
+    its per-call field introspection (a tenth of a backlog's time): every field, whatever
+    they are, copied, then changed."""
+    cls = type(hist)
+    if not changes.keys() <= cls.__dataclass_fields__.keys():
+        raise TypeError(f"{cls.__name__} has no field {set(changes) - set(vars(hist))}")
+    new = object.__new__(cls)
     new.__dict__.update(hist.__dict__)
     new.__dict__.update(changes)
     return new
