@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import signal
 import sys
 import tempfile
@@ -126,8 +127,8 @@ class Deployment:
         self._stop = threading.Event()
         self._sampler = threading.Thread(target=self._sample, name="rss", daemon=True)
 
-    def start(self, name: str, *args: str) -> Child:
-        child = Child(name, self.logdir, list(args))
+    def start(self, name: str, *args: str, env: dict[str, str] | None = None) -> Child:
+        child = Child(name, self.logdir, list(args), env)
         self.children[name] = child
         if not self._sampler.is_alive():
             self._sampler.start()
@@ -248,6 +249,7 @@ def _run(segments, net, net_path, args, deployment, session, r1, r2, workdir) ->
             "--instance",
             f"f{region}",
             *wiring(router),
+            env={"NUMBA_NUM_THREADS": str(args.threads)},  # the cores shared out, see --threads
         )
 
     started = time.monotonic()
@@ -380,6 +382,7 @@ def main(args: argparse.Namespace) -> int:
         for segments in args.segments:
             rows.append(run_size(segments, args, Path(tmp)))
             print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
+    print(f"{len(REGIONS)} filtering shards, {args.threads} compiled thread(s) each")
     print(table(rows))
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -402,6 +405,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--timeout", type=float, default=1800.0, help="per phase (s)")
     parser.add_argument("--json", default="var/scale.json")
     parser.add_argument("--quick", action="store_true", help="2,000 segments, 2 days")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=max(1, (os.cpu_count() or 1) // len(REGIONS)),
+        help="compiled threads of each filtering shard (NUMBA_NUM_THREADS; default: the "
+        "cores shared out over the shards, at least one)",
+    )
     args = parser.parse_args(argv)
     if args.quick:
         args.segments, args.days = [2_000], 2.0

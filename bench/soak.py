@@ -284,7 +284,9 @@ def arrival_of(spans: list[tuple[float, float, float]], t: float | None) -> floa
 class Child:
     """One ``trackfusion`` process in its own process group, output to a log file."""
 
-    def __init__(self, name: str, logdir: Path, args: list[str]) -> None:
+    def __init__(
+        self, name: str, logdir: Path, args: list[str], env: dict[str, str] | None = None
+    ) -> None:
         self.name = name
         self.log_path = logdir / f"{name}.log"
         with self.log_path.open("wb") as log:
@@ -295,7 +297,7 @@ class Child:
                 stderr=subprocess.STDOUT,
                 stdin=subprocess.DEVNULL,
                 start_new_session=True,
-                env={**users_env(), "PYTHONUNBUFFERED": "1"},
+                env={**users_env(), "PYTHONUNBUFFERED": "1", **(env or {})},
             )
         self.cpu0 = cpu_seconds(self.popen.pid)
 
