@@ -69,6 +69,7 @@ from schemas.keys import SegmentId
 from services.filtering.store import PersistentTracker, Store
 from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_limits
+from services.runtime import systemd
 from services.runtime.config import (
     RuntimeConfig,
     add_db_argument,
@@ -98,6 +99,7 @@ SUMMARY_CHUNK = 8  # dirty segments summarised together (Tracker.segment_states'
 FREEZE_S = 5.0  # worker time between two moves of what survived into the GC's permanent generation
 STOP_PUBLISH_S = 0.4  # at a stop: dirty segments published for at most this long (the
 # worker drains for up to DRAIN_S = 1.5 s first and is joined within JOIN_TIMEOUT_S = 2 s)
+MIGRATE_S_PER_EVENT = 25e-6  # a store's migration at open: 7.2 µs an event measured, 3x margin
 
 
 def main(
@@ -120,7 +122,7 @@ def main(
     limits_table = load_limits(limits or options.get("limits") or DEFAULT_LIMITS_FILE)
     db = db or options.get("db") or default_db(SERVICE, conf.instance)
     with ExitStack() as stack:
-        store = Store(db)
+        store = Store(db, migrating=extend_start_timeout)
         stack.callback(store.close)  # after the runtime has joined the worker
         tracker = Tracker(limits_table.for_line, limits_table.levels)
         node = PersistentTracker(tracker, store, ns=conf.ns, **known_segments(network))
@@ -338,6 +340,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--limits", metavar="FILE", help=f"limits file (default: {DEFAULT_LIMITS_FILE})"
     )
     add_zenoh_arguments(parser)
+
+
+def extend_start_timeout(events: int) -> None:
+    """The store is migrated at open (:meth:`Store._migrate_events`), before the instance
+    can be ready: ask systemd (``TimeoutStartSec``) for that long, with margin
+    (``MIGRATE_S_PER_EVENT``), from now."""
+    usec = int((60.0 + events * MIGRATE_S_PER_EVENT) * 1e6)
+    systemd.notify(f"EXTEND_TIMEOUT_USEC={usec}")
 
 
 def run(args: argparse.Namespace) -> int:

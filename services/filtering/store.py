@@ -24,7 +24,7 @@ import sqlite3
 import struct
 import threading
 import time
-from collections.abc import Collection, Iterable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -278,6 +278,7 @@ class Store:
         *,
         synchronous: str = "NORMAL",
         wal_checkpoint_s: float | None = WAL_CHECKPOINT_S,
+        migrating: Callable[[int], object] | None = None,
     ) -> None:
         if synchronous.upper() not in {"OFF", "NORMAL", "FULL", "EXTRA"}:
             raise ValueError(f"synchronous: {synchronous!r} not OFF, NORMAL, FULL or EXTRA")
@@ -290,22 +291,25 @@ class Store:
         self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
         self._db.execute(f"PRAGMA cache_size={-CACHE_KIB}")
         self._db.executescript(_SCHEMA)
-        self._migrate_events()
+        self._migrate_events(migrating)
         self.wal_checkpoints = _WalCheckpointer(self.path, wal_checkpoint_s)
         if wal_checkpoint_s is not None:  # not in the committing thread: see _WalCheckpointer
             self._db.execute("PRAGMA wal_autocheckpoint=0")
             self.wal_checkpoints.start()
 
-    def _migrate_events(self) -> None:
+    def _migrate_events(self, migrating: Callable[[int], object] | None) -> None:
         """A file written before the events lost their UNIQUE (line, segment, identity)
         constraint: its ``events`` table is copied into one without it (one transaction;
         every row and ``seq`` kept, and the sequence, so that no ``seq`` a checkpoint
-        names is given again), then its index and triggers made again."""
+        names is given again), then its index and triggers made again; ``migrating`` is
+        told how many events first (87 s for 12.1 M on the reference machine)."""
         names = [row[1] for row in self._db.execute("PRAGMA index_list(events)")]
         if not any(name.startswith("sqlite_autoindex_events") for name in names):
             return
         rows = self.count_events()
         log.info("store %s: migrating %d events to the table without UNIQUE", self.path, rows)
+        if migrating is not None:
+            migrating(rows)
         columns = "seq, line, segment, kind, key, identity, t, payload"
         with self.transaction():
             (sequence,) = self._db.execute(

@@ -4,6 +4,7 @@ whose log was dropped from memory, gives the bits of a full replay of the same e
 from __future__ import annotations
 
 import logging
+import socket
 import sqlite3
 from dataclasses import replace
 
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 
 from schemas import OnboardIndex, TrcRecord, encode
+from services.filtering import service as filtering_service
 from services.filtering import store as store_module
 from services.filtering import tracker as tracker_module
 from services.filtering.store import (
@@ -639,7 +641,10 @@ def test_a_file_with_unique_identities_is_migrated_keeping_every_row_seq_and_che
     raw.close()
     assert sequence == rows[-1][0] + 7 and checkpoints
 
-    node, states, loader = restarted(db)  # opening migrates
+    told: list[int] = []
+    Store(db, migrating=told.append).close()  # opening migrates, and says how much first
+    assert told == [len(rows)]
+    node, states, loader = restarted(db)
     store = node.store._db
     assert not any(
         r[1].startswith("sqlite_autoindex") for r in store.execute("PRAGMA index_list(events)")
@@ -664,3 +669,18 @@ def test_a_file_with_unique_identities_is_migrated_keeping_every_row_seq_and_che
     assert store.execute(given, (sequence, sequence + len(events))).fetchone()[0] > 0
     assert_same_states(run([*MODELS, *events])[0], node.tracker)
     node.store.close()
+
+
+def test_a_migration_asks_systemd_for_the_start_time_it_needs(tmp_path, monkeypatch):
+    """Run by systemd (``NOTIFY_SOCKET``), the service extends its start timeout by the
+    time a migration of that many events may take, before it starts."""
+    path = tmp_path / "notify"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        sock.bind(str(path))
+        sock.settimeout(10)
+        monkeypatch.setenv("NOTIFY_SOCKET", str(path))
+        filtering_service.extend_start_timeout(12_100_000)
+        message = sock.recv(256).decode()
+    seconds = 60.0 + 12_100_000 * filtering_service.MIGRATE_S_PER_EVENT
+    assert message == f"EXTEND_TIMEOUT_USEC={int(seconds * 1e6)}"
+    assert seconds > 3 * 87.4  # the migration of 12.1 M events measured, with margin
