@@ -328,7 +328,8 @@ def test_the_generation_goes_on_from_a_file_written_before_it_was_kept(tmp_path)
 @pytest.mark.parametrize("own_process", [False, True])
 def test_the_service_freezes_what_survives_only_in_its_own_process(own_process, tmp_path):
     """The worker moves what survived into the GC's permanent generation every FREEZE_S
-    (no full collection walks the logs and states again), only with ``freeze_gc``."""
+    (no full collection walks the logs and states again) and collects the young objects
+    itself (no automatic collection in between), only with ``freeze_gc``."""
     import gc
 
     from services.filtering.service import FilteringAdapter
@@ -339,11 +340,13 @@ def test_the_service_freezes_what_survives_only_in_its_own_process(own_process, 
     try:
         adapter._freeze()
         assert (gc.get_freeze_count() > before) == own_process
+        assert gc.isenabled() != own_process
         frozen = gc.get_freeze_count()
         adapter._freeze()  # within FREEZE_S of the last: nothing more
         assert gc.get_freeze_count() == frozen
     finally:
         gc.unfreeze()  # this is pytest's process
+        gc.enable()
         node.store.close()
 
 
