@@ -84,7 +84,8 @@ from services.runtime.service import ServiceRuntime, configure_logging
 log = logging.getLogger(__name__)
 
 SERVICE = "filtering"
-BATCH = 1024  # queued messages handled in one store transaction (when there is a backlog)
+BATCH = 4096  # queued messages handled in one store transaction (when there is a backlog;
+# 1,024 made a backlog 10-20 % slower: more per-batch work, fewer segments with two events)
 EXIT_STORE_FAILED = 74  # EX_IOERR
 EXIT_SOFTWARE = 70  # EX_SOFTWARE: a bug escaped a batch
 STATE_CACHE = 16  # states kept per segment for a returning consumer (alerting, viewer)
