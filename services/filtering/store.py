@@ -89,13 +89,6 @@ _EVENTS_COLUMNS = """(
     t        REAL NOT NULL,     -- epoch s of the event (a tamping's assumed time)
     payload  BLOB NOT NULL      -- the decoded message, re-encoded (unknown fields dropped)
 )"""
-_EVENT_TRIGGERS = (
-    "events_deleted",
-    "events_updated",
-    "events_deleted_columns",
-    "events_updated_columns",
-)
-
 _SCHEMA = (
     "CREATE TABLE IF NOT EXISTS events "
     + _EVENTS_COLUMNS
@@ -319,9 +312,7 @@ class Store:
             self._db.execute(
                 f"INSERT INTO events_migrated ({columns}) SELECT {columns} FROM events ORDER BY seq"
             )
-            for trigger in _EVENT_TRIGGERS:  # not fired by DROP TABLE; made again below
-                self._db.execute(f"DROP TRIGGER IF EXISTS {trigger}")
-            self._db.execute("DROP TABLE events")
+            self._db.execute("DROP TABLE events")  # and its index and triggers, made again below
             self._db.execute("ALTER TABLE events_migrated RENAME TO events")
             (copied,) = self._db.execute(
                 "SELECT COALESCE(MAX(seq), 0) FROM sqlite_sequence WHERE name = 'events'"
