@@ -53,6 +53,7 @@ import msgspec
 import numpy as np
 import zenoh
 
+from bench.soak import threads_each
 from schemas import (
     DAY_S,
     Calibration,
@@ -338,9 +339,7 @@ def bench_restart(
     router_process: bool = False,
     threads: int | None = None,
 ) -> None:
-    # each instance's compiled threads (numba's pool): the cores shared out, as deployed;
-    # more threads than cores over the instances made the model change 20 % slower
-    threads = threads or max(1, (os.cpu_count() or 1) // shards)
+    threads = threads or threads_each(shards)
     env = {**os.environ, "NUMBA_NUM_THREADS": str(threads)}
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -36,7 +36,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import signal
 import sys
 import tempfile
@@ -46,7 +45,7 @@ from pathlib import Path
 
 import zenoh
 
-from bench.soak import Child, connect, free_port, rss_mb
+from bench.soak import Child, connect, free_port, rss_mb, threads_each
 from schemas import SegmentState, decode, keys
 from services.filtering.testing import EVENT_TYPES, LastEvents
 from simulators.network import generate_network
@@ -408,7 +407,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--threads",
         type=int,
-        default=max(1, (os.cpu_count() or 1) // len(REGIONS)),
+        default=threads_each(len(REGIONS)),
         help="compiled threads of each filtering shard (NUMBA_NUM_THREADS; default: the "
         "cores shared out over the shards, at least one)",
     )

@@ -1177,7 +1177,7 @@ def _rested(ckpt: Checkpoint, state, group, tail: Sequence[Event]) -> Checkpoint
             trc_t = event.t_s
     units = ckpt.units
     if units is not None:  # a superset is safe
-        read = {(e.message.train, e.message.unit) for e in tail if e.kind == INDEX}
+        read = log_units(tail)
         if not read <= units:
             units = units | read
     return _evolve(
