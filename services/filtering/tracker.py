@@ -114,7 +114,7 @@ from services.filtering.bank import (
     update_unchecked,
 )
 from services.filtering.degradation import DegradationParams, transition_unchecked
-from services.filtering.kernel import index_runs, index_step
+from services.filtering.kernel import copy_rows, index_runs, index_step
 from services.filtering.mixture import summarize_unchecked, weights_from_log
 
 HORIZONS_DAYS = (30.0, 90.0, 180.0)
@@ -460,6 +460,8 @@ class _Banks:
     the scratch's buffer: take the states out with ``copy=True`` before its next use.
     """
 
+    resident = False  # a block of :class:`Histories`' resting states (not a fold's stack)
+
     def __init__(
         self, starts: Sequence[Filtered | None], ns: int, n: int, scratch: Scratch | None = None
     ) -> None:
@@ -502,6 +504,60 @@ class _Banks:
             self.nis[rows] = [nan if state.nis is None else state.nis for state in have]
             self.started[rows] = True
         self._block = max(1, BLOCK_FILTERS // max(ns, 1))
+
+    @classmethod
+    def gathered(
+        cls, handles: Sequence[BankRow], ns: int, n: int, scratch: Scratch | None = None
+    ) -> _Banks:
+        """The states ``handles`` name (rows of other stacks, all started), copied in that
+        order into a new stack (in ``scratch``'s buffer if given): per source stack one
+        pass over its rows (:func:`kernel.copy_rows`) and one per field."""
+        width = state_layout(ns, n)[2]
+        size = len(handles)
+        new = cls.__new__(cls)
+        new.F = np.empty((size, width)) if scratch is None else scratch.rows(size, width)
+        new.z, new.P, new.log_w = _state_views(new.F, ns, n)
+        new.ns, new.n = ns, n
+        new._block = max(1, BLOCK_FILTERS // max(ns, 1))
+        sources: dict[int, tuple[_Banks, list[int], list[int]]] = {}
+        for at, (banks, row) in enumerate(handles):
+            got = sources.get(id(banks))
+            if got is None:
+                if banks.F.shape[1] != width:
+                    raise ValueError(f"a state of width {banks.F.shape[1]}, not {width} (Ns={ns})")
+                sources[id(banks)] = got = (banks, [], [])
+            got[1].append(at)
+            got[2].append(row)
+        first = handles[0].banks if handles else _Banks([], ns, n)
+        for name in _Banks.SCALARS:
+            setattr(new, name, np.empty(size, dtype=getattr(first, name).dtype))
+        for banks, at, rows in sources.values():
+            new.put_rows(np.array(at, dtype=np.int64), banks, np.array(rows, dtype=np.int64))
+        return new
+
+    SCALARS = ("t_s", "last_trc_t", "n_updates", "nis", "started", "cusum", "cusum_t0", "cusum_t1")
+
+    def put_rows(self, rows: np.ndarray, src: _Banks, src_rows: np.ndarray) -> None:
+        """Rows ``rows`` become ``src``'s rows ``src_rows`` (state and every field)."""
+        copy_rows(self.F, rows, src.F, src_rows)
+        for name in _Banks.SCALARS:
+            getattr(self, name)[rows] = getattr(src, name)[src_rows]
+
+    def put(self, row: int, state: Filtered | BankRow) -> None:
+        """Row ``row`` becomes ``state`` (a copy)."""
+        if isinstance(state, BankRow):
+            self.put_rows(np.array([row]), state.banks, np.array([state.row]))
+            return
+        nan = float("nan")
+        self.F[row] = state.buffer()
+        self.t_s[row] = state.t_s
+        self.last_trc_t[row] = nan if state.last_trc_t is None else state.last_trc_t
+        self.n_updates[row] = state.n_updates
+        self.nis[row] = nan if state.nis is None else state.nis
+        self.started[row] = True
+        self.cusum[row] = state.cusum
+        self.cusum_t0[row] = state.cusum_t0
+        self.cusum_t1[row] = state.cusum_t1
 
     def states(self, rows: Sequence[int], *, copy: bool = False) -> list[Filtered | None]:
         """Each of ``rows`` as a :class:`Filtered`, None if unstarted: views of the stacked
@@ -703,6 +759,57 @@ def low_score(z, P, y, obs: ObservationModel, w) -> np.ndarray:
     return mean / np.sqrt(np.maximum(var, 1e-300))
 
 
+class BankRow(NamedTuple):
+    """A state held as row ``row`` of stacked arrays (:class:`_Banks`) instead of as a
+    :class:`Filtered` of its own: a resting segment's, in :class:`Histories`' bank, or a
+    backlog fold's, in the fold's buffer until :meth:`Histories.rest_many` copies it into
+    the segment's row. Only the fold and :class:`Histories` hold one; :meth:`state` reads
+    it out (a copy)."""
+
+    banks: _Banks
+    row: int
+
+    def state(self) -> Filtered:
+        state = self.banks.states([self.row], copy=True)[0]
+        assert state is not None  # only started states are held as rows
+        return state
+
+    @property
+    def cusum(self) -> float:
+        return float(self.banks.cusum[self.row])
+
+
+def _state_of(state: Filtered | BankRow | None) -> Filtered | None:
+    """``state`` as a :class:`Filtered` (read out of its row if it is a :class:`BankRow`)."""
+    return state.state() if isinstance(state, BankRow) else state
+
+
+RESTING_BLOCK = 4096  # rows of a block of resting states (46 MB at Ns = 200, n = 2)
+
+
+class _RestingBank:
+    """The states of the resting segments with one ``(Ns, n)``: rows of blocks of
+    ``RESTING_BLOCK`` (:class:`_Banks`), a new block when every row is taken (never a copy
+    of the old ones: no doubling of 1 GB at 100,000 segments), a freed row taken first.
+
+    A backlog folds a resting segment's indices from its row (:meth:`_Banks.gathered`)
+    and copies the result back into it (:meth:`Histories.rest_many`): no state object
+    per event, no copy of it in and out."""
+
+    def __init__(self, ns: int, n: int) -> None:
+        self.ns, self.n = ns, n
+        self.blocks: list[_Banks] = []
+        self.free: list[BankRow] = []
+
+    def take(self) -> BankRow:
+        if not self.free:
+            block = _Banks([None] * RESTING_BLOCK, self.ns, self.n)
+            block.resident = True
+            self.blocks.append(block)
+            self.free.extend(BankRow(block, row) for row in range(RESTING_BLOCK - 1, -1, -1))
+        return self.free.pop()
+
+
 class _RowParams:
     """The degradation parameters of each row of a fold: ``(rows) -> DegradationParams``.
 
@@ -750,7 +857,14 @@ def fold_many(
 
 
 def _fold_many(
-    starts, logs, params, obs, halt_cusum: float | None = None, copy=False, scratch=None
+    starts,
+    logs,
+    params,
+    obs,
+    halt_cusum: float | None = None,
+    copy=False,
+    scratch=None,
+    handles=False,
 ):
     """:func:`fold_many`, and how many events of each log were folded: ``(states, folded)``.
 
@@ -760,7 +874,10 @@ def _fold_many(
     row's last update is not known in advance); the bits do not change, since the NIS of a
     row is a sum over its own samples. ``copy``: each state owns its arrays
     (:meth:`_Banks.states`); ``scratch`` (a :class:`Scratch`): the fold runs in its buffer
-    and the states are copied out.
+    and the states are copied out. ``starts`` may instead all be :class:`BankRow` (resting
+    states in :class:`Histories`' bank: gathered, :meth:`_Banks.gathered`), and
+    ``handles``: the states are returned as :class:`BankRow` of the fold's stack, not
+    copied out (valid until the stack's buffer is used again).
     """
     # one model for every index (no unit has its own): no per-event look-up
     per_unit = isinstance(obs, Models) and bool(obs.unit_observations)
@@ -817,7 +934,10 @@ def _fold_many(
     if not per_unit and shared is not None:
         observations.append(shared)
         obs_ids[kinds == INDEX] = 0
-    banks = _Banks([starts[i] for i in order], ns, n, scratch)
+    if isinstance(starts[0], BankRow):
+        banks = _Banks.gathered([starts[i] for i in order], ns, n, scratch)
+    else:
+        banks = _Banks([starts[i] for i in order], ns, n, scratch)
     copy = copy or scratch is not None
     rows_params = _RowParams([params[i] for i in order])
     lengths = np.array([len(logs[i]) for i in order])
@@ -828,11 +948,17 @@ def _fold_many(
     else:
         _fold_steps(banks, kinds, times, values, obs_ids, observations, rows_params, lengths,
                     folded, halt_cusum)  # fmt: skip
-    out: list[Filtered | None] = [None] * size
+    out: list[Filtered | BankRow | None] = [None] * size
     counts = [0] * size
-    for i, state, count in zip(
-        order, banks.states(range(size), copy=copy), folded.tolist(), strict=True
-    ):
+    states = (
+        [
+            BankRow(banks, row) if started else None
+            for row, started in enumerate(banks.started.tolist())
+        ]
+        if handles
+        else banks.states(range(size), copy=copy)
+    )
+    for i, state, count in zip(order, states, folded.tolist(), strict=True):
         out[i] = state
         counts[i] = count
     return out, counts
@@ -1056,8 +1182,15 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
         self.loader = loader
         self.columns: ColumnLoader | None = None
         self._loaded: OrderedDict[SegmentId, SegmentHistory] = OrderedDict()
+        # a resting segment's Checkpoint, its state (if any) a BankRow of ``_banks``
         self._resting: dict[SegmentId, Checkpoint] = {}
+        self._banks: dict[tuple[int, int], _RestingBank] = {}  # by (Ns, n)
         self.dirty: set[SegmentId] = set()
+
+    def _release(self, rest: Checkpoint | None) -> None:
+        """``rest``'s row (if it has one) back to its bank, once it no longer rests."""
+        if rest is not None and isinstance(rest.state, BankRow):
+            self._banks[(rest.state.banks.ns, rest.state.banks.n)].free.append(rest.state)
 
     def __getitem__(self, sid: SegmentId) -> SegmentHistory:
         hist = self._loaded.get(sid)
@@ -1065,7 +1198,7 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
             self._loaded.move_to_end(sid)
             return hist
         hist = self.load(sid)
-        del self._resting[sid]
+        self._release(self._resting.pop(sid))
         self._loaded[sid] = hist
         return hist
 
@@ -1078,7 +1211,9 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
         if self.loader is None:
             raise LookupError(f"segment {sid}: log not loaded and no loader")
         log, trc_t = self.loader(rest.line, rest.segment)
-        return SegmentHistory(rest.line, rest.segment, log, trc_t, rest.state, rest.group)
+        return SegmentHistory(
+            rest.line, rest.segment, log, trc_t, _state_of(rest.state), rest.group
+        )
 
     def load_columns(self, sid: SegmentId) -> SegmentHistory:
         """:meth:`load`, with a resting segment's log as :class:`LogColumns` when the
@@ -1090,17 +1225,19 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
         if read is None:
             return self.load(sid)
         log, trc_t = read
-        return SegmentHistory(rest.line, rest.segment, log, trc_t, rest.state, rest.group)
+        return SegmentHistory(
+            rest.line, rest.segment, log, trc_t, _state_of(rest.state), rest.group
+        )
 
     def __setitem__(self, sid: SegmentId, hist: SegmentHistory) -> None:
-        self._resting.pop(sid, None)
+        self._release(self._resting.pop(sid, None))
         self._loaded[sid] = hist
         self._loaded.move_to_end(sid)
         self.dirty.add(sid)
 
     def __delitem__(self, sid: SegmentId) -> None:
         if self._loaded.pop(sid, None) is None:
-            del self._resting[sid]
+            self._release(self._resting.pop(sid))
         self.dirty.discard(sid)
 
     def __contains__(self, sid: object) -> bool:
@@ -1114,18 +1251,98 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
         return len(self._loaded) + len(self._resting)
 
     def rest(self, sid: SegmentId, checkpoint: Checkpoint, *, dirty: bool = False) -> None:
-        """Hold ``sid`` as its state alone (its log is then read again when needed)."""
+        """Hold ``sid`` as its state alone (its log is then read again when needed): the
+        state is copied into the segment's row of the bank (its own row again if it has
+        one of that shape)."""
         self._loaded.pop(sid, None)
-        self._resting[sid] = checkpoint
+        old = self._resting.get(sid)
+        state = checkpoint.state
+        if state is None:
+            self._release(old)
+            self._resting[sid] = checkpoint
+        else:
+            row = self._row_for(old, *_shape_of(state))
+            if not (
+                isinstance(state, BankRow) and state.banks is row.banks and state.row == row.row
+            ):
+                row.banks.put(row.row, state)
+            self._resting[sid] = _evolve(checkpoint, state=row)
         if dirty:
             self.dirty.add(sid)
+
+    def _row_for(self, old: Checkpoint | None, ns: int, n: int) -> BankRow:
+        """The row a resting segment's state of ``(ns, n)`` goes in: its own (``old``'s)
+        if of that shape, else a free one."""
+        if old is not None and isinstance(old.state, BankRow):
+            if (old.state.banks.ns, old.state.banks.n) == (ns, n):
+                return old.state
+            self._release(old)
+        bank = self._banks.get((ns, n))
+        if bank is None:
+            self._banks[(ns, n)] = bank = _RestingBank(ns, n)
+        return bank.take()
+
+    def rest_many(self, rested: Iterable[tuple[SegmentId, Checkpoint]], *, dirty: bool) -> None:
+        """:meth:`rest` of each, the states that a backlog's fold left in its stack
+        (:class:`BankRow`, :func:`_fold_many` with ``handles``) copied into their segments'
+        rows in one pass per block."""
+        moves: dict[tuple[int, int], tuple[_Banks, _Banks, list[int], list[int]]] = {}
+        for sid, checkpoint in rested:
+            state, old = checkpoint.state, self._resting.get(sid)
+            if (
+                isinstance(state, BankRow)
+                and not state.banks.resident
+                and old is not None
+                and isinstance(old.state, BankRow)
+                and (old.state.banks.ns, old.state.banks.n) == (state.banks.ns, state.banks.n)
+            ):
+                row = old.state
+                move = moves.get((id(row.banks), id(state.banks)))
+                if move is None:
+                    moves[(id(row.banks), id(state.banks))] = move = (
+                        row.banks,
+                        state.banks,
+                        [],
+                        [],
+                    )
+                move[2].append(row.row)
+                move[3].append(state.row)
+                self._resting[sid] = _evolve(checkpoint, state=row)
+                if dirty:
+                    self.dirty.add(sid)
+            else:
+                self.rest(sid, checkpoint, dirty=dirty)
+        for block, src, rows, src_rows in moves.values():
+            block.put_rows(np.array(rows, dtype=np.int64), src, np.array(src_rows, dtype=np.int64))
 
     def resting(self, sid: SegmentId) -> Checkpoint:
         """The segment's state without loading its log (``models_key`` left empty)."""
         rest = self._resting.get(sid)
         if rest is not None:
+            if isinstance(rest.state, BankRow):
+                return _evolve(rest, state=rest.state.state())
             return rest
         return checkpoint_of(self._loaded[sid])
+
+    def resting_many(self, sids: Sequence[SegmentId]) -> list[Checkpoint]:
+        """:meth:`resting` of each of ``sids``, the states read out of each block in one
+        pass (:meth:`_Banks.states`)."""
+        out = [self.resting_entry(sid) for sid in sids]
+        blocks: dict[int, tuple[_Banks, list[int]]] = {}
+        for k, rest in enumerate(out):
+            if isinstance(rest.state, BankRow):
+                blocks.setdefault(id(rest.state.banks), (rest.state.banks, []))[1].append(k)
+        for banks, ks in blocks.values():
+            states = banks.states([out[k].state.row for k in ks], copy=True)
+            for k, state in zip(ks, states, strict=True):
+                out[k] = _evolve(out[k], state=state)
+        return out
+
+    def resting_entry(self, sid: SegmentId) -> Checkpoint:
+        """:meth:`resting`, a resting segment's state left as its :class:`BankRow` (what
+        the fold gathers from; never kept, nor given out)."""
+        rest = self._resting.get(sid)
+        return rest if rest is not None else checkpoint_of(self._loaded[sid])
 
     def units(self, sid: SegmentId) -> frozenset[tuple[str, str]]:
         """The ``(train, unit)`` whose indices the segment's log holds (or a superset),
@@ -1150,8 +1367,7 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
         dropped = 0
         while len(self._loaded) > max_loaded:
             sid = next(iter(self._loaded))
-            self._resting[sid] = self.resting(sid)
-            del self._loaded[sid]
+            self.rest(sid, checkpoint_of(self._loaded[sid]))
             dropped += 1
         return dropped
 
@@ -1189,7 +1405,16 @@ def _summarised(hist: SegmentHistory | Checkpoint) -> SegmentHistory:
     """What a summary reads of a segment (its log is not): a resting one without its log."""
     if isinstance(hist, SegmentHistory):
         return hist
-    return SegmentHistory(hist.line, hist.segment, (), hist.trc_t, hist.state, hist.group)
+    state = _state_of(hist.state)
+    return SegmentHistory(hist.line, hist.segment, (), hist.trc_t, state, hist.group)
+
+
+def _shape_of(state: Filtered | BankRow) -> tuple[int, int]:
+    """``(Ns, n)`` of a state."""
+    if isinstance(state, BankRow):
+        return state.banks.ns, state.banks.n
+    ns, n = state.z.shape
+    return ns, n
 
 
 _Frozen = TypeVar("_Frozen", "SegmentHistory", "Checkpoint")
@@ -1416,6 +1641,8 @@ class Tracker:
         self.histories = Histories(loader)
         self.models = Models()
         self._scratch = Scratch()  # the stacked states of the live and backlog folds
+        # a batch's resting states from its fold to its swap, by Ns (each fold its own)
+        self._bank_scratch: dict[int, Scratch] = {}
         self._limits_mm = limits_mm
         self.limit_levels = list(limit_levels)
         self.horizons_days = np.asarray(tuple(horizons_days), dtype=np.float64)
@@ -1472,10 +1699,15 @@ class Tracker:
     def states_of(self, sids: Iterable[SegmentId]) -> list[SegmentState]:
         """The publishable SegmentStates of the segments ``sids`` (in batches; a resting
         segment's log is not read)."""
+        known = [sid for sid in sids if sid in self.histories]
+        resting = iter(
+            self.histories.resting_many([s for s in known if not self.histories.is_loaded(s)])
+        )
         hists = [
-            _summarised(self.histories.load(sid) if loaded else self.histories.resting(sid))
-            for sid in sids
-            if (loaded := self.histories.is_loaded(sid)) or sid in self.histories
+            _summarised(
+                self.histories.load(sid) if self.histories.is_loaded(sid) else next(resting)
+            )
+            for sid in known
         ]
         return [state for state in self.segment_states(hists) if state is not None]
 
@@ -1512,7 +1744,7 @@ class Tracker:
                 return got
             if self.histories.is_loaded(sid):
                 return self.histories[sid]
-            return self.histories.resting(sid) if sid in self.histories else None
+            return self.histories.resting_entry(sid) if sid in self.histories else None
 
         def current(sid: SegmentId, msg: EventMessage) -> SegmentHistory:
             """The segment with its log: a resting one's read from the store (where this
@@ -1523,7 +1755,8 @@ class Tracker:
             if isinstance(got, Checkpoint):
                 stored = self.histories.load(sid)
                 log = stored.log + tuple(tails.get(sid, ()))
-                got = _evolve(stored, log=log, trc_t=got.trc_t, state=got.state, group=got.group)
+                state = _state_of(got.state)
+                got = _evolve(stored, log=log, trc_t=got.trc_t, state=state, group=got.group)
             return got
 
         def change(sid: SegmentId, hist: SegmentHistory) -> None:
@@ -1539,24 +1772,35 @@ class Tracker:
                     detected.append((i, found))
                 change(sid, hist)
 
-        def flush(sids: Sequence[SegmentId]) -> None:
+        def flush(sids: Sequence[SegmentId], last: bool = False) -> None:
+            """Fold the pending indices of ``sids``; ``last``: the batch's final flush, whose
+            resting segments fold from their rows in the bank and leave their states in
+            ``self._bank_scratch`` (:class:`BankRow`) until :meth:`_swap` copies them back
+            (one scratch per Ns: one fold each)."""
             if not sids:
                 return
             hists = [folds_from.pop(sid) for sid in sids]  # each has a state
             groups = [group_of[sid] for sid in sids]
             logs = [[event for _, event in pending.pop(sid)] for sid in sids]
-            jobs: dict[int, list[int]] = {}  # by Ns
+            jobs: dict[tuple[int, bool], list[int]] = {}  # by Ns, and whether from the bank
             for k, group in enumerate(groups):
-                jobs.setdefault(models.params[group].ns, []).append(k)
+                ns = models.params[group].ns
+                state = hists[k].state
+                banked = last and isinstance(state, BankRow) and state.banks.ns == ns
+                jobs.setdefault((ns, banked), []).append(k)
             halt = CUSUM_THRESHOLD if self.detect_maintenance else None
-            for job in jobs.values():
+            for (ns, banked), job in jobs.items():
                 states, folded = _fold_many(
-                    [hists[k].state for k in job],
+                    [hists[k].state if banked else _state_of(hists[k].state) for k in job],
                     [logs[k] for k in job],
                     [models.params[groups[k]] for k in job],
                     models,
                     halt,
-                    scratch=self._scratch,  # each state copied out: keeps no batch's arrays
+                    # copied out (keeps no batch's arrays) or left in the bank's buffer
+                    scratch=self._bank_scratch.setdefault(ns, Scratch())
+                    if banked
+                    else self._scratch,
+                    handles=banked,
                 )
                 for k, own, count in zip(job, states, folded, strict=True):
                     was, sid, tail = hists[k], sids[k], logs[k][:count]
@@ -1613,7 +1857,7 @@ class Tracker:
                 flush([sid])
                 del positions[sid]
             exact(i, sid, current(sid, msg), event)
-        flush(list(pending))
+        flush(list(pending), last=True)
         detected.sort(key=lambda found: found[0])
         return reasons, changed, [found for _, found in detected]
 
@@ -1792,11 +2036,13 @@ class Tracker:
 
     def _swap(self, hists: Mapping[SegmentId, SegmentHistory | Checkpoint]) -> None:
         """Put re-run results in place: a history, or a resting state (log not kept)."""
+        rested = []
         for sid, hist in hists.items():
             if isinstance(hist, Checkpoint):
-                self.histories.rest(sid, hist, dirty=True)
+                rested.append((sid, hist))
             else:
                 self.histories[sid] = hist
+        self.histories.rest_many(rested, dirty=True)
 
     def _rerun(
         self, models: Models, sids: Sequence[SegmentId]

@@ -692,3 +692,77 @@ def test_a_migration_asks_systemd_for_the_start_time_it_needs(tmp_path, monkeypa
     seconds = 60.0 + 12_100_000 * filtering_service.MIGRATE_S_PER_EVENT
     assert message == f"EXTEND_TIMEOUT_USEC={int(seconds * 1e6)}"
     assert seconds > 3 * 87.4  # the migration of 12.1 M events measured, with margin
+
+
+def _resting_arrays(tracker) -> dict:
+    return {
+        sid: (state.z.copy(), state.P.copy(), state.log_w.copy(), state.t_s, state.cusum)
+        for sid in tracker.histories
+        if (state := tracker.histories.resting(sid).state) is not None
+    }
+
+
+def test_resting_states_live_in_the_bank_fold_there_and_change_only_when_the_batch_does(
+    tmp_path, monkeypatch
+):
+    """Resting states are rows of the histories' bank: a batch of in-order indices folds
+    them from their rows and copies the results back into the same rows (no new row, and
+    the bits of one message at a time); a state read out (``resting``) is a copy that a
+    later fold does not touch; a batch that fails after the fold leaves every row as it
+    was; a segment that stops resting gives its row back, and the next one takes it."""
+    rng = np.random.default_rng(9)
+    days = {
+        s: [on(m, s) for m in onboard_days(rng, np.arange(1, 40), Z_WORN, MU)] for s in SEGMENTS
+    }
+    first_part = [trc(0.0, 4.0, 3.0, segment=s) for s in SEGMENTS]
+    first_part += in_time_order([m for s in SEGMENTS for m in days[s][:20]])
+    db = tmp_path / "f.sqlite"
+    first = node_on(db)
+    first.handle_batch([keyed(m) for m in [*MODELS, *first_part]])
+    first.close()
+    first.store.close()
+
+    node, _, loader = restarted(db)
+    histories = node.tracker.histories
+    (bank,) = histories._banks.values()
+    rows = {sid: histories.resting_entry(sid).state for sid in histories}
+    assert len({(id(r.banks), r.row) for r in rows.values()}) == len(SEGMENTS)
+    read_out = histories.resting(("L1", "s1")).state
+    kept = read_out.z.copy()
+
+    second = in_time_order([m for s in SEGMENTS for m in days[s][20:30]])
+    done = node.handle_batch([keyed(m) for m in second])
+    assert done.accepted == len(second) and loader.read == []
+    assert {sid: histories.resting_entry(sid).state for sid in histories} == rows  # same rows
+    assert np.array_equal(read_out.z, kept)  # the copy read out did not move
+    one, _ = run([*MODELS, *first_part, *second])
+    assert_same_states(one, node.tracker)  # (reads every log: loaded)
+    histories.trim(0)  # all resting again, their rows given back and taken again
+    rows = {sid: histories.resting_entry(sid).state for sid in histories}
+    assert len(bank.blocks) == 1 and len({r.row for r in rows.values()}) == len(SEGMENTS)
+
+    before = _resting_arrays(node.tracker)
+    third = in_time_order([m for s in SEGMENTS for m in days[s][30:]])
+
+    def broken(*_a, **_k):
+        raise RuntimeError("summaries failed")
+
+    monkeypatch.setattr(node.tracker, "segment_states", broken)
+    with pytest.raises(RuntimeError):
+        node.tracker.step_events(
+            [msgspec.msgpack.decode(encode(m), type=OnboardIndex) for m in third]
+        )
+    after = _resting_arrays(node.tracker)
+    assert after.keys() == before.keys() and histories.n_loaded == 0
+    for sid, (z, P, log_w, t_s, cusum) in before.items():
+        az, aP, alog_w, at_s, acusum = after[sid]
+        assert np.array_equal(z, az) and np.array_equal(P, aP) and np.array_equal(log_w, alog_w)
+        assert (t_s, cusum) == (at_s, acusum)
+    monkeypatch.undo()
+
+    freed = rows[("L1", "s2")]
+    histories[("L1", "s2")]  # loaded: its row is free again
+    assert bank.free[-1] == freed
+    histories.trim(0)  # rests again, in the row it gave back
+    assert histories.resting_entry(("L1", "s2")).state == freed
+    assert len(bank.blocks) == 1
