@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from schemas import DAY_S, encode, keys
-from services.filtering.store import PersistentTracker, Store, decode_keyed
+from services.filtering import store as store_module
+from services.filtering.store import PersistentTracker, Store, decode_keyed, index_identity
 from services.filtering.tracker import (
     CUSUM_THRESHOLD,
     Calibration,
@@ -205,6 +206,20 @@ def test_a_batch_commits_what_one_by_one_commits(tmp_path):
     assert_same_states(one.tracker, rebuilt.tracker)
     for node in (one, batched, rebuilt):
         node.store.close()
+
+
+def test_an_index_identity_is_its_json(monkeypatch):
+    """The events table's identity of an index, made from a prefix kept per unit, is
+    ``json.dumps`` of it, whatever the ids hold (quotes, backslashes, other scripts) and
+    after the kept prefixes are forgotten."""
+    monkeypatch.setattr(store_module, "_INDEX_PREFIXES_MAX", 3)
+    ids = ["T1", 'T"2', "u\\3", "Zug-ü", "列車", "@x"]
+    times = [1_767_225_600.0, 0.1, 1e22, 123.456789012345, 5e-324]
+    for train in ids:
+        for unit in reversed(ids):
+            for t in times:
+                assert index_identity(train, unit, t) == json.dumps(["index", train, unit, t])
+    assert len(store_module._INDEX_PREFIXES) <= 3
 
 
 def test_evolve_is_dataclasses_replace():
