@@ -264,39 +264,40 @@ def _maximum(a, b):
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", inline="always")
 def _run_row(
-    row, F, t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs, Rs, mu, sigma, group,
+    row, src, at, F, t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs, Rs, mu, sigma, group,
     started, nis, n_updates, cusum, cusum_t0, cusum_t1, cusum_law, folded, missing, tmp,
 ):  # fmt: skip
     """Row ``row``'s indices from ``pos[row]`` to its next other event (or ``stop[row]``):
-    :func:`_update` and the CUSUM step (``_Banks._cusum_step``) of each, in place, the
-    samples loaded into ``tmp`` at the first and stored back after the last."""
+    :func:`_update` and the CUSUM step (``_Banks._cusum_step``) of each, the samples
+    loaded from ``F[src]`` into ``tmp`` at the first and stored into ``F[at]`` after the
+    last; the state's fields are those of ``at`` (``src == at == row``: in place)."""
     index, drift, clip, halt = cusum_law
     k = pos[row]
     end = stop[row]
     loaded = False  # the row's samples in tmp, from its first update to the run's end
     while k < end and kinds[row, k] == index:
-        if started[row]:  # an index before any start is skipped
+        if started[at]:  # an index before any start is skipped
             o = obs_ids[row, k]
             if o < 0:
                 missing[row] = True
                 break
             if not loaded:
-                _load(F, row, tmp)
+                _load(F, src, tmp)
                 loaded = True
             t = times[row, k]
-            nis[row], score = _update(tmp, (t - t_s[row]) / DAY_S, values[row, k, 0],
-                                      values[row, k, 1], mu, sigma, group[row], Hs[o], bs[o],
-                                      Rs[o])  # fmt: skip
-            t_s[row] = t
-            g_prev = cusum[row]
+            nis[at], score = _update(tmp, (t - t_s[at]) / DAY_S, values[row, k, 0],
+                                     values[row, k, 1], mu, sigma, group[row], Hs[o], bs[o],
+                                     Rs[o])  # fmt: skip
+            t_s[at] = t
+            g_prev = cusum[at]
             g = _maximum(0.0, g_prev - _maximum(score, -clip) - drift)
-            cusum[row] = g
+            cusum[at] = g
             if g == 0.0:
-                cusum_t0[row] = t
-                cusum_t1[row] = np.nan
+                cusum_t0[at] = t
+                cusum_t1[at] = np.nan
             elif g_prev == 0.0:
-                cusum_t1[row] = t
-            n_updates[row] += 1
+                cusum_t1[at] = t
+            n_updates[at] += 1
             if g >= halt:  # halt = inf: never
                 k += 1
                 folded[row] = k
@@ -304,36 +305,39 @@ def _run_row(
                 break
         k += 1
     if loaded:
-        _store(F, row, tmp)
+        _store(F, at, tmp)
     pos[row] = k
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def _runs_serial(rows, F, t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs, Rs, mu, sigma,
-                 group, started, nis, n_updates, cusum, c0, c1, law, folded, missing):  # fmt: skip
+def _runs_serial(rows, srcs, ats, F, t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs, Rs,
+                 mu, sigma, group, started, nis, n_updates, cusum, c0, c1, law, folded,
+                 missing):  # fmt: skip
     tmp = np.empty((_SCRATCH, F.shape[1] // 7))
     for r in range(rows.shape[0]):
-        _run_row(rows[r], F, t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs, Rs, mu,
-                 sigma, group, started, nis, n_updates, cusum, c0, c1, law, folded, missing,
-                 tmp)  # fmt: skip
+        row = rows[r]
+        _run_row(row, srcs[row], ats[row], F, t_s, pos, stop, kinds, times, values, obs_ids, Hs,
+                 bs, Rs, mu, sigma, group, started, nis, n_updates, cusum, c0, c1, law, folded,
+                 missing, tmp)  # fmt: skip
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", parallel=True)
-def _runs_parallel(rows, F, t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs, Rs, mu,
-                   sigma, group, started, nis, n_updates, cusum, c0, c1, law, folded,
+def _runs_parallel(rows, srcs, ats, F, t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs,
+                   Rs, mu, sigma, group, started, nis, n_updates, cusum, c0, c1, law, folded,
                    missing):  # fmt: skip
     k = rows.shape[0]
     for task in numba.prange((k + _ROWS_PER_TASK - 1) // _ROWS_PER_TASK):
         tmp = np.empty((_SCRATCH, F.shape[1] // 7))
         for r in range(task * _ROWS_PER_TASK, min(k, (task + 1) * _ROWS_PER_TASK)):
-            _run_row(rows[r], F, t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs, Rs, mu,
-                     sigma, group, started, nis, n_updates, cusum, c0, c1, law, folded,
-                     missing, tmp)  # fmt: skip
+            row = rows[r]
+            _run_row(row, srcs[row], ats[row], F, t_s, pos, stop, kinds, times, values, obs_ids,
+                     Hs, bs, Rs, mu, sigma, group, started, nis, n_updates, cusum, c0, c1, law,
+                     folded, missing, tmp)  # fmt: skip
 
 
 def index_runs(rows, F, t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs, Rs, mu, sigma,
                group, started, nis, n_updates, cusum, cusum_t0, cusum_t1, cusum_law, folded,
-               missing):  # fmt: skip
+               missing, homes=None):  # fmt: skip
     """Fold each listed row's run of indices, a row at a time, in place: from ``pos[row]``
     while ``kinds[row, k]`` is an index and ``k < stop[row]``, :func:`_step` (the maths of
     :func:`index_step`) then the CUSUM step; ``pos[row]`` ends at the first other event.
@@ -347,9 +351,17 @@ def index_runs(rows, F, t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs, R
     stopped, at an index of a started row without a model. A row's 121 updates run with its
     state in the cache: 20 % faster than a step of every row per event, and no interpreter
     between the steps. The same bits as :func:`index_step` and ``_cusum_step``.
+
+    ``homes``: ``(srcs, ats)`` (S,) each, the rows of ``F`` and of the state's fields
+    (``t_s`` to ``cusum_t1``) that row ``i`` of the logs folds from and into: its samples
+    read from ``F[srcs[i]]``, stored into ``F[ats[i]]`` (the fields already at ``ats[i]``).
+    A resting segment's state is folded so from its row of the bank into a free one, with
+    no copy of it first. None: each row in place.
     """
-    args = (rows, F, t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs, Rs, mu, sigma,
-            group, started, nis, n_updates, cusum, cusum_t0, cusum_t1, cusum_law, folded,
+    if homes is None:
+        homes = (np.arange(len(pos)),) * 2
+    args = (rows, *homes, F, t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs, Rs, mu,
+            sigma, group, started, nis, n_updates, cusum, cusum_t0, cusum_t1, cusum_law, folded,
             missing)  # fmt: skip
     if len(rows) < RUN_PARALLEL_ROWS:
         _runs_serial(*args)
@@ -512,14 +524,3 @@ def mixture_survival(x, rows, m, s, w) -> np.ndarray:
     weighted = w is not None
     _survival(x, rows, m, s, w if weighted else np.empty((0, 0)), weighted, out)
     return out
-
-
-# --- rows copied between stacked states (the resting segments' bank, a backlog's fold) ----
-
-
-@numba.njit(cache=True, nogil=True)
-def copy_rows(dst, dst_rows, src, src_rows):
-    """``dst[dst_rows[k]] = src[src_rows[k]]`` for every ``k``, in one pass without the
-    temporary of numpy's fancy indexing (fresh pages: ~3 µs a 4 KiB page here)."""
-    for k in range(dst_rows.shape[0]):
-        dst[dst_rows[k], :] = src[src_rows[k], :]

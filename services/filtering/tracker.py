@@ -114,7 +114,7 @@ from services.filtering.bank import (
     update_unchecked,
 )
 from services.filtering.degradation import DegradationParams, transition_unchecked
-from services.filtering.kernel import copy_rows, index_runs, index_step
+from services.filtering.kernel import index_runs, index_step
 from services.filtering.mixture import summarize_unchecked, weights_from_log
 
 HORIZONS_DAYS = (30.0, 90.0, 180.0)
@@ -505,49 +505,19 @@ class _Banks:
             self.started[rows] = True
         self._block = max(1, BLOCK_FILTERS // max(ns, 1))
 
-    @classmethod
-    def gathered(
-        cls, handles: Sequence[BankRow], ns: int, n: int, scratch: Scratch | None = None
-    ) -> _Banks:
-        """The states ``handles`` name (rows of other stacks, all started), copied in that
-        order into a new stack (in ``scratch``'s buffer if given): per source stack one
-        pass over its rows (:func:`kernel.copy_rows`) and one per field."""
-        width = state_layout(ns, n)[2]
-        size = len(handles)
-        new = cls.__new__(cls)
-        new.F = np.empty((size, width)) if scratch is None else scratch.rows(size, width)
-        new.z, new.P, new.log_w = _state_views(new.F, ns, n)
-        new.ns, new.n = ns, n
-        new._block = max(1, BLOCK_FILTERS // max(ns, 1))
-        sources: dict[int, tuple[_Banks, list[int], list[int]]] = {}
-        for at, (banks, row) in enumerate(handles):
-            got = sources.get(id(banks))
-            if got is None:
-                if banks.F.shape[1] != width:
-                    raise ValueError(f"a state of width {banks.F.shape[1]}, not {width} (Ns={ns})")
-                sources[id(banks)] = got = (banks, [], [])
-            got[1].append(at)
-            got[2].append(row)
-        first = handles[0].banks if handles else _Banks([], ns, n)
-        for name in _Banks.SCALARS:
-            setattr(new, name, np.empty(size, dtype=getattr(first, name).dtype))
-        for banks, at, rows in sources.values():
-            new.put_rows(np.array(at, dtype=np.int64), banks, np.array(rows, dtype=np.int64))
-        return new
-
     SCALARS = ("t_s", "last_trc_t", "n_updates", "nis", "started", "cusum", "cusum_t0", "cusum_t1")
 
-    def put_rows(self, rows: np.ndarray, src: _Banks, src_rows: np.ndarray) -> None:
-        """Rows ``rows`` become ``src``'s rows ``src_rows`` (state and every field)."""
-        copy_rows(self.F, rows, src.F, src_rows)
+    def grow(self, size: int) -> None:
+        """``size`` rows, the new ones unstarted; the arrays are reallocated in place
+        (``ndarray.resize``: a large one is remapped, not copied, so a bank of 1 GB does
+        not need 2 GB to grow). Only for a stack no view of which is held (the bank's)."""
+        self.F.resize((size, self.F.shape[1]), refcheck=False)
+        self.z, self.P, self.log_w = _state_views(self.F, self.ns, self.n)
         for name in _Banks.SCALARS:
-            getattr(self, name)[rows] = getattr(src, name)[src_rows]
+            getattr(self, name).resize(size, refcheck=False)
 
-    def put(self, row: int, state: Filtered | BankRow) -> None:
+    def put(self, row: int, state: Filtered) -> None:
         """Row ``row`` becomes ``state`` (a copy)."""
-        if isinstance(state, BankRow):
-            self.put_rows(np.array([row]), state.banks, np.array([state.row]))
-            return
         nan = float("nan")
         self.F[row] = state.buffer()
         self.t_s[row] = state.t_s
@@ -784,30 +754,34 @@ def _state_of(state: Filtered | BankRow | None) -> Filtered | None:
     return state.state() if isinstance(state, BankRow) else state
 
 
-RESTING_BLOCK = 4096  # rows of a block of resting states (46 MB at Ns = 200, n = 2)
-
-
 class _RestingBank:
-    """The states of the resting segments with one ``(Ns, n)``: rows of blocks of
-    ``RESTING_BLOCK`` (:class:`_Banks`), a new block when every row is taken (never a copy
-    of the old ones: no doubling of 1 GB at 100,000 segments), a freed row taken first.
+    """The states of the resting segments with one ``(Ns, n)``: rows of one
+    :class:`_Banks`, grown by half (at least ``RESTING_GROWTH`` rows) when every row is
+    taken, a freed row taken first.
 
-    A backlog folds a resting segment's indices from its row (:meth:`_Banks.gathered`)
-    and copies the result back into it (:meth:`Histories.rest_many`): no state object
-    per event, no copy of it in and out."""
+    A backlog folds a resting segment's indices from its row into a free one
+    (:func:`_fold_many` with ``into``), which becomes the segment's at the swap while its
+    old row is freed (:meth:`Histories.rest_many`, :meth:`Histories.settle`): no state
+    object per event, and no copy of a state in or out."""
 
     def __init__(self, ns: int, n: int) -> None:
-        self.ns, self.n = ns, n
-        self.blocks: list[_Banks] = []
-        self.free: list[BankRow] = []
+        self.banks = _Banks([], ns, n)
+        self.banks.resident = True
+        self.free: list[int] = []
 
-    def take(self) -> BankRow:
-        if not self.free:
-            block = _Banks([None] * RESTING_BLOCK, self.ns, self.n)
-            block.resident = True
-            self.blocks.append(block)
-            self.free.extend(BankRow(block, row) for row in range(RESTING_BLOCK - 1, -1, -1))
-        return self.free.pop()
+    def take(self, count: int) -> list[int]:
+        """``count`` free rows (taken)."""
+        if len(self.free) < count:
+            size = len(self.banks.t_s)
+            grown = size + max(count - len(self.free), size // 2, RESTING_GROWTH)
+            self.banks.grow(grown)
+            self.free.extend(range(grown - 1, size - 1, -1))
+        taken = self.free[-count:] if count else []
+        del self.free[len(self.free) - count :]
+        return taken
+
+
+RESTING_GROWTH = 1024  # rows a bank of resting states grows by at least (11 MB at Ns = 200)
 
 
 class _RowParams:
@@ -864,7 +838,7 @@ def _fold_many(
     halt_cusum: float | None = None,
     copy=False,
     scratch=None,
-    handles=False,
+    into: _RestingBank | None = None,
 ):
     """:func:`fold_many`, and how many events of each log were folded: ``(states, folded)``.
 
@@ -874,10 +848,11 @@ def _fold_many(
     row's last update is not known in advance); the bits do not change, since the NIS of a
     row is a sum over its own samples. ``copy``: each state owns its arrays
     (:meth:`_Banks.states`); ``scratch`` (a :class:`Scratch`): the fold runs in its buffer
-    and the states are copied out. ``starts`` may instead all be :class:`BankRow` (resting
-    states in :class:`Histories`' bank: gathered, :meth:`_Banks.gathered`), and
-    ``handles``: the states are returned as :class:`BankRow` of the fold's stack, not
-    copied out (valid until the stack's buffer is used again).
+    and the states are copied out. ``into``: ``starts`` are all rows of that bank of
+    resting states (:class:`BankRow`) and ``logs`` hold indices only; each is folded from
+    its row into a free row of the bank (:func:`kernel.index_runs`' ``homes``), and the
+    states are returned as those rows (:class:`BankRow`, taken: :meth:`Histories.settle`
+    gives back the ones no segment keeps).
     """
     # one model for every index (no unit has its own): no per-event look-up
     per_unit = isinstance(obs, Models) and bool(obs.unit_observations)
@@ -934,28 +909,37 @@ def _fold_many(
     if not per_unit and shared is not None:
         observations.append(shared)
         obs_ids[kinds == INDEX] = 0
-    if isinstance(starts[0], BankRow):
-        banks = _Banks.gathered([starts[i] for i in order], ns, n, scratch)
+    runs = n == 2 and all(model.H.shape == (2, 2) for model in observations)
+    homes = None
+    if into is not None and not runs:  # (no model of the system's shape) from copies
+        starts = [start.state() for start in starts]
+    elif into is not None:
+        if not (kinds[kinds >= 0] == INDEX).all():
+            raise ValueError("a fold from resting rows takes indices only")
+        banks = into.banks
+        srcs = np.array([starts[i].row for i in order], dtype=np.int64)
+        ats = np.array(into.take(size), dtype=np.int64)
+        for name in _Banks.SCALARS:  # the fields go first; the samples with the fold
+            values_of = getattr(banks, name)
+            values_of[ats] = values_of[srcs]
+        homes = (srcs, ats)
     else:
         banks = _Banks([starts[i] for i in order], ns, n, scratch)
     copy = copy or scratch is not None
     rows_params = _RowParams([params[i] for i in order])
     lengths = np.array([len(logs[i]) for i in order])
     folded = lengths.copy()  # events folded per row (fewer if halted)
-    if n == 2 and all(model.H.shape == (2, 2) for model in observations):
+    if runs:
         _fold_runs(banks, kinds, times, values, obs_ids, observations, rows_params, lengths,
-                   folded, halt_cusum)  # fmt: skip
+                   folded, halt_cusum, homes)  # fmt: skip
     else:
         _fold_steps(banks, kinds, times, values, obs_ids, observations, rows_params, lengths,
-                    folded, halt_cusum)  # fmt: skip
+                    folded, halt_cusum, homes)  # fmt: skip
     out: list[Filtered | BankRow | None] = [None] * size
     counts = [0] * size
     states = (
-        [
-            BankRow(banks, row) if started else None
-            for row, started in enumerate(banks.started.tolist())
-        ]
-        if handles
+        [BankRow(banks, row) for row in homes[1].tolist()]
+        if homes is not None
         else banks.states(range(size), copy=copy)
     )
     for i, state, count in zip(order, states, folded.tolist(), strict=True):
@@ -965,11 +949,23 @@ def _fold_many(
 
 
 def _fold_steps(
-    banks, kinds, times, values, obs_ids, observations, rows_params, lengths, folded, halt_cusum
+    banks,
+    kinds,
+    times,
+    values,
+    obs_ids,
+    observations,
+    rows_params,
+    lengths,
+    folded,
+    halt_cusum,
+    homes=None,
 ):
     """:func:`_fold_many`'s fold one event position at a time over every row (any ``n``, any
     observation model: :meth:`_Banks.index`); ``folded`` gets a halted row's count. The
     rows are ordered by decreasing log length."""
+    if homes is not None:
+        raise ValueError("a fold from resting rows (homes) is _fold_runs' only")
     depth = kinds.shape[1]
     # position of each row's last index: the NIS of a state is that of its last update
     last_index = depth - 1 - np.argmax(kinds[:, ::-1] == INDEX, axis=1)
@@ -1001,12 +997,15 @@ def _fold_steps(
                         folded[halted] = k + 1
 
 
-def _fold_runs(banks, kinds, times, values, obs_ids, observations, params, lengths, folded, halt):
+def _fold_runs(
+    banks, kinds, times, values, obs_ids, observations, params, lengths, folded, halt, homes=None
+):
     """:func:`_fold_many`'s fold for ``n = m = 2`` (the system's case) as runs: the restarts
     and tampings at each row's position, vectorised over the rows (:meth:`_Banks.restart`,
     :meth:`_Banks.tamping`), then each row's indices up to its next other event, a row at
     a time (:func:`kernel.index_runs`), until every log is folded. The rows are independent,
-    so the order across rows does not change a bit (:func:`_fold_steps` gives the same)."""
+    so the order across rows does not change a bit (:func:`_fold_steps` gives the same).
+    ``homes``: index_runs' (indices only)."""
     if observations:
         Hs, bs, Rs = (np.stack([getattr(o, name) for o in observations]) for name in "HbR")
     else:  # no model: an index on a started row is then an error (reported below)
@@ -1038,7 +1037,7 @@ def _fold_runs(banks, kinds, times, values, obs_ids, observations, params, lengt
             params.stack.mu, params.stack.sigma, params.row_group, banks.started, banks.nis,
             banks.n_updates, banks.cusum, banks.cusum_t0, banks.cusum_t1,
             (INDEX, CUSUM_DRIFT, CUSUM_CLIP, math.inf if halt is None else float(halt)),
-            folded, missing,
+            folded, missing, homes,
         )  # fmt: skip
         if missing.any():
             raise AssertionError("an index on a started state without an observation model")
@@ -1190,7 +1189,17 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
     def _release(self, rest: Checkpoint | None) -> None:
         """``rest``'s row (if it has one) back to its bank, once it no longer rests."""
         if rest is not None and isinstance(rest.state, BankRow):
-            self._banks[(rest.state.banks.ns, rest.state.banks.n)].free.append(rest.state)
+            self._free(rest.state)
+
+    def _free(self, row: BankRow) -> None:
+        self._banks[(row.banks.ns, row.banks.n)].free.append(row.row)
+
+    def bank(self, ns: int, n: int) -> _RestingBank:
+        """The bank of the resting states of ``(ns, n)``."""
+        bank = self._banks.get((ns, n))
+        if bank is None:
+            self._banks[(ns, n)] = bank = _RestingBank(ns, n)
+        return bank
 
     def __getitem__(self, sid: SegmentId) -> SegmentHistory:
         hist = self._loaded.get(sid)
@@ -1253,20 +1262,22 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
     def rest(self, sid: SegmentId, checkpoint: Checkpoint, *, dirty: bool = False) -> None:
         """Hold ``sid`` as its state alone (its log is then read again when needed): the
         state is copied into the segment's row of the bank (its own row again if it has
-        one of that shape)."""
+        one of that shape), or, a row of the bank already (a backlog's fold), kept there."""
         self._loaded.pop(sid, None)
         old = self._resting.get(sid)
         state = checkpoint.state
         if state is None:
             self._release(old)
-            self._resting[sid] = checkpoint
+        elif isinstance(state, BankRow):
+            if not state.banks.resident:
+                raise ValueError("a resting state's row must be one of the bank's")
+            if old is not None and old.state != state:
+                self._release(old)
         else:
-            row = self._row_for(old, *_shape_of(state))
-            if not (
-                isinstance(state, BankRow) and state.banks is row.banks and state.row == row.row
-            ):
-                row.banks.put(row.row, state)
-            self._resting[sid] = _evolve(checkpoint, state=row)
+            row = self._row_for(old, *state.z.shape)
+            row.banks.put(row.row, state)
+            checkpoint = _evolve(checkpoint, state=row)
+        self._resting[sid] = checkpoint
         if dirty:
             self.dirty.add(sid)
 
@@ -1277,43 +1288,16 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
             if (old.state.banks.ns, old.state.banks.n) == (ns, n):
                 return old.state
             self._release(old)
-        bank = self._banks.get((ns, n))
-        if bank is None:
-            self._banks[(ns, n)] = bank = _RestingBank(ns, n)
-        return bank.take()
+        bank = self.bank(ns, n)
+        return BankRow(bank.banks, bank.take(1)[0])
 
-    def rest_many(self, rested: Iterable[tuple[SegmentId, Checkpoint]], *, dirty: bool) -> None:
-        """:meth:`rest` of each, the states that a backlog's fold left in its stack
-        (:class:`BankRow`, :func:`_fold_many` with ``handles``) copied into their segments'
-        rows in one pass per block."""
-        moves: dict[tuple[int, int], tuple[_Banks, _Banks, list[int], list[int]]] = {}
-        for sid, checkpoint in rested:
-            state, old = checkpoint.state, self._resting.get(sid)
-            if (
-                isinstance(state, BankRow)
-                and not state.banks.resident
-                and old is not None
-                and isinstance(old.state, BankRow)
-                and (old.state.banks.ns, old.state.banks.n) == (state.banks.ns, state.banks.n)
-            ):
-                row = old.state
-                move = moves.get((id(row.banks), id(state.banks)))
-                if move is None:
-                    moves[(id(row.banks), id(state.banks))] = move = (
-                        row.banks,
-                        state.banks,
-                        [],
-                        [],
-                    )
-                move[2].append(row.row)
-                move[3].append(state.row)
-                self._resting[sid] = _evolve(checkpoint, state=row)
-                if dirty:
-                    self.dirty.add(sid)
-            else:
-                self.rest(sid, checkpoint, dirty=dirty)
-        for block, src, rows, src_rows in moves.values():
-            block.put_rows(np.array(rows, dtype=np.int64), src, np.array(src_rows, dtype=np.int64))
+    def settle(self, taken: Iterable[tuple[SegmentId, BankRow]]) -> None:
+        """Free each row of ``taken`` (``(segment, row)``: rows a fold took for segments)
+        that its segment does not rest in (after the swap, or after a failed batch)."""
+        for sid, row in taken:
+            rest = self._resting.get(sid)
+            if rest is None or rest.state != row:
+                self._free(row)
 
     def resting(self, sid: SegmentId) -> Checkpoint:
         """The segment's state without loading its log (``models_key`` left empty)."""
@@ -1407,14 +1391,6 @@ def _summarised(hist: SegmentHistory | Checkpoint) -> SegmentHistory:
         return hist
     state = _state_of(hist.state)
     return SegmentHistory(hist.line, hist.segment, (), hist.trc_t, state, hist.group)
-
-
-def _shape_of(state: Filtered | BankRow) -> tuple[int, int]:
-    """``(Ns, n)`` of a state."""
-    if isinstance(state, BankRow):
-        return state.banks.ns, state.banks.n
-    ns, n = state.z.shape
-    return ns, n
 
 
 _Frozen = TypeVar("_Frozen", "SegmentHistory", "Checkpoint")
@@ -1641,8 +1617,8 @@ class Tracker:
         self.histories = Histories(loader)
         self.models = Models()
         self._scratch = Scratch()  # the stacked states of the live and backlog folds
-        # a batch's resting states from its fold to its swap, by Ns (each fold its own)
-        self._bank_scratch: dict[int, Scratch] = {}
+        # the rows of the bank a batch's fold took for resting segments, until the swap
+        self._taken: list[tuple[SegmentId, BankRow]] = []
         self._limits_mm = limits_mm
         self.limit_levels = list(limit_levels)
         self.horizons_days = np.asarray(tuple(horizons_days), dtype=np.float64)
@@ -1684,17 +1660,32 @@ class Tracker:
         (:meth:`segment_states` is :meth:`segment_state` in batches); only the intermediate
         states of a segment are not summarised. If anything raises, nothing is changed.
         """
-        reasons, changed, detected = self._fold_events(msgs)
-        states = self.segment_states([_summarised(h) for h in changed.values()])  # before the swap
+        try:
+            reasons, changed, detected = self._fold_events(msgs)
+            states = self.segment_states([_summarised(h) for h in changed.values()])
+        except BaseException:  # before the swap: nothing changed
+            self._settle()
+            raise
         self._swap(changed)
+        self._settle()
         return reasons, tuple(state for state in states if state is not None), detected
 
     def fold_events(self, msgs: Sequence[EventMessage]) -> tuple[list[str], list, list]:
         """:meth:`step_events` without the summaries: ``(reasons, changed, detected)``, with
         the ids of the segments whose history changed (their states: :meth:`states_of`)."""
-        reasons, changed, detected = self._fold_events(msgs)
+        try:
+            reasons, changed, detected = self._fold_events(msgs)
+        except BaseException:  # nothing changed
+            self._settle()
+            raise
         self._swap(changed)
+        self._settle()
         return reasons, list(changed), detected
+
+    def _settle(self) -> None:
+        """Give back the rows the last batch's fold took and no segment rests in."""
+        taken, self._taken = self._taken, []
+        self.histories.settle(taken)
 
     def states_of(self, sids: Iterable[SegmentId]) -> list[SegmentState]:
         """The publishable SegmentStates of the segments ``sids`` (in batches; a resting
@@ -1772,11 +1763,9 @@ class Tracker:
                     detected.append((i, found))
                 change(sid, hist)
 
-        def flush(sids: Sequence[SegmentId], last: bool = False) -> None:
-            """Fold the pending indices of ``sids``; ``last``: the batch's final flush, whose
-            resting segments fold from their rows in the bank and leave their states in
-            ``self._bank_scratch`` (:class:`BankRow`) until :meth:`_swap` copies them back
-            (one scratch per Ns: one fold each)."""
+        def flush(sids: Sequence[SegmentId]) -> None:
+            """Fold the pending indices of ``sids``; a resting segment's from its row of the
+            bank into a free row (``self._taken``), which it rests in after the swap."""
             if not sids:
                 return
             hists = [folds_from.pop(sid) for sid in sids]  # each has a state
@@ -1784,9 +1773,9 @@ class Tracker:
             logs = [[event for _, event in pending.pop(sid)] for sid in sids]
             jobs: dict[tuple[int, bool], list[int]] = {}  # by Ns, and whether from the bank
             for k, group in enumerate(groups):
-                ns = models.params[group].ns
+                ns, n = models.params[group].ns, models.params[group].n
                 state = hists[k].state
-                banked = last and isinstance(state, BankRow) and state.banks.ns == ns
+                banked = isinstance(state, BankRow) and (state.banks.ns, state.banks.n) == (ns, n)
                 jobs.setdefault((ns, banked), []).append(k)
             halt = CUSUM_THRESHOLD if self.detect_maintenance else None
             for (ns, banked), job in jobs.items():
@@ -1796,12 +1785,15 @@ class Tracker:
                     [models.params[groups[k]] for k in job],
                     models,
                     halt,
-                    # copied out (keeps no batch's arrays) or left in the bank's buffer
-                    scratch=self._bank_scratch.setdefault(ns, Scratch())
-                    if banked
-                    else self._scratch,
-                    handles=banked,
+                    scratch=self._scratch,  # each state copied out: keeps no batch's arrays
+                    into=self.histories.bank(ns, hists[job[0]].state.banks.n) if banked else None,
                 )
+                if banked:
+                    self._taken.extend(
+                        (sids[k], own)
+                        for k, own in zip(job, states, strict=True)
+                        if isinstance(own, BankRow)
+                    )
                 for k, own, count in zip(job, states, folded, strict=True):
                     was, sid, tail = hists[k], sids[k], logs[k][:count]
                     if isinstance(was, Checkpoint):  # it stays resting: the log is not read
@@ -1857,7 +1849,7 @@ class Tracker:
                 flush([sid])
                 del positions[sid]
             exact(i, sid, current(sid, msg), event)
-        flush(list(pending), last=True)
+        flush(list(pending))
         detected.sort(key=lambda found: found[0])
         return reasons, changed, [found for _, found in detected]
 
@@ -2036,13 +2028,11 @@ class Tracker:
 
     def _swap(self, hists: Mapping[SegmentId, SegmentHistory | Checkpoint]) -> None:
         """Put re-run results in place: a history, or a resting state (log not kept)."""
-        rested = []
         for sid, hist in hists.items():
             if isinstance(hist, Checkpoint):
-                rested.append((sid, hist))
+                self.histories.rest(sid, hist, dirty=True)
             else:
                 self.histories[sid] = hist
-        self.histories.rest_many(rested, dirty=True)
 
     def _rerun(
         self, models: Models, sids: Sequence[SegmentId]

@@ -706,10 +706,10 @@ def test_resting_states_live_in_the_bank_fold_there_and_change_only_when_the_bat
     tmp_path, monkeypatch
 ):
     """Resting states are rows of the histories' bank: a batch of in-order indices folds
-    them from their rows and copies the results back into the same rows (no new row, and
-    the bits of one message at a time); a state read out (``resting``) is a copy that a
-    later fold does not touch; a batch that fails after the fold leaves every row as it
-    was; a segment that stops resting gives its row back, and the next one takes it."""
+    each from its row into a free one, which the segment then rests in, its old row given
+    back (the bits of one message at a time; no row lost); a state read out
+    (``resting``) is a copy that a later fold does not touch; a batch that fails after the
+    fold leaves every segment in its row with its state, and gives the rows it took back."""
     rng = np.random.default_rng(9)
     days = {
         s: [on(m, s) for m in onboard_days(rng, np.arange(1, 40), Z_WORN, MU)] for s in SEGMENTS
@@ -725,22 +725,27 @@ def test_resting_states_live_in_the_bank_fold_there_and_change_only_when_the_bat
     node, _, loader = restarted(db)
     histories = node.tracker.histories
     (bank,) = histories._banks.values()
-    rows = {sid: histories.resting_entry(sid).state for sid in histories}
-    assert len({(id(r.banks), r.row) for r in rows.values()}) == len(SEGMENTS)
+
+    def rows() -> dict:
+        got = {sid: histories.resting_entry(sid).state for sid in histories}
+        assert len({r.row for r in got.values()}) == len(SEGMENTS)  # one each
+        assert len(bank.free) + len(SEGMENTS) == len(bank.banks.t_s)  # and none lost
+        return got
+
+    before_rows = rows()
     read_out = histories.resting(("L1", "s1")).state
     kept = read_out.z.copy()
 
     second = in_time_order([m for s in SEGMENTS for m in days[s][20:30]])
     done = node.handle_batch([keyed(m) for m in second])
-    assert done.accepted == len(second) and loader.read == []
-    assert {sid: histories.resting_entry(sid).state for sid in histories} == rows  # same rows
+    assert done.accepted == len(second) and loader.read == [] and histories.n_loaded == 0
+    assert rows() != before_rows  # each in the row its fold went to
     assert np.array_equal(read_out.z, kept)  # the copy read out did not move
     one, _ = run([*MODELS, *first_part, *second])
     assert_same_states(one, node.tracker)  # (reads every log: loaded)
-    histories.trim(0)  # all resting again, their rows given back and taken again
-    rows = {sid: histories.resting_entry(sid).state for sid in histories}
-    assert len(bank.blocks) == 1 and len({r.row for r in rows.values()}) == len(SEGMENTS)
+    histories.trim(0)  # all resting again
 
+    before_rows = rows()
     before = _resting_arrays(node.tracker)
     third = in_time_order([m for s in SEGMENTS for m in days[s][30:]])
 
@@ -748,21 +753,13 @@ def test_resting_states_live_in_the_bank_fold_there_and_change_only_when_the_bat
         raise RuntimeError("summaries failed")
 
     monkeypatch.setattr(node.tracker, "segment_states", broken)
+    decoded = [msgspec.msgpack.decode(encode(m), type=OnboardIndex) for m in third]
     with pytest.raises(RuntimeError):
-        node.tracker.step_events(
-            [msgspec.msgpack.decode(encode(m), type=OnboardIndex) for m in third]
-        )
+        node.tracker.step_events(decoded)
+    assert rows() == before_rows and histories.n_loaded == 0
     after = _resting_arrays(node.tracker)
-    assert after.keys() == before.keys() and histories.n_loaded == 0
+    assert after.keys() == before.keys()
     for sid, (z, P, log_w, t_s, cusum) in before.items():
         az, aP, alog_w, at_s, acusum = after[sid]
         assert np.array_equal(z, az) and np.array_equal(P, aP) and np.array_equal(log_w, alog_w)
         assert (t_s, cusum) == (at_s, acusum)
-    monkeypatch.undo()
-
-    freed = rows[("L1", "s2")]
-    histories[("L1", "s2")]  # loaded: its row is free again
-    assert bank.free[-1] == freed
-    histories.trim(0)  # rests again, in the row it gave back
-    assert histories.resting_entry(("L1", "s2")).state == freed
-    assert len(bank.blocks) == 1
