@@ -16,6 +16,7 @@ deleted when that record is stored (:meth:`Store.prune`).
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import math
@@ -1081,32 +1082,39 @@ class PersistentTracker:
         skipped with a warning rather than stopping the service at every start.
         """
         models = [m for m in self._decoded(self.store.models()) if m is not None]
-        checkpoints: list[Checkpoint] = []
         summaries: dict[SegmentId, bytes] = {}
         published: set[SegmentId] = set()
         published_gen = self.store.published_gen()
         broken: list[SegmentId] = []
-        rows = self.store.checkpoints()
-        for line, segment, _seq, order, trc_t, grp, key, blob, summary, gen in rows:
-            try:
-                state = None if blob is None else unpack_state(blob)
-                ckpt = Checkpoint(line, segment, trc_t, state, grp, _order_of(order), key)
-            except (ValueError, TypeError) as e:
-                log.warning("store: checkpoint of %s/%s no longer decodes (%s)", line, segment, e)
-                broken.append((line, segment))
-                continue
-            checkpoints.append(ckpt)
-            if summary is not None:
-                summaries[(line, segment)] = summary
-                if gen <= published_gen:
-                    published.add((line, segment))
+
+        def checkpoints() -> Iterator[Checkpoint]:
+            """The stored checkpoints, one at a time (each state goes into the bank as it
+            comes: a list of them held every state twice, 1.1 GB more at 100,000)."""
+            rows = self.store.checkpoints()
+            for line, segment, _seq, order, trc_t, grp, key, blob, summary, gen in rows:
+                try:
+                    state = None if blob is None else unpack_state(blob)
+                    ckpt = Checkpoint(line, segment, trc_t, state, grp, _order_of(order), key)
+                except (ValueError, TypeError) as e:
+                    log.warning(
+                        "store: checkpoint of %s/%s no longer decodes (%s)", line, segment, e
+                    )
+                    broken.append((line, segment))
+                    continue
+                if summary is not None:
+                    summaries[(line, segment)] = summary
+                    if gen <= published_gen:
+                        published.add((line, segment))
+                yield ckpt
+
         tails: dict[SegmentId, list[Event]] = {}
         for line, segment, kind, key, payload in self.store.tails():
             for event in _stored_events([(kind, key, payload)]):
                 tails.setdefault((line, segment), []).append(event)
-        replay = [*broken, *self.store.unchecked_segments()]  # their logs: by the loader
+        # their logs: by the loader; read after the checkpoints, which add the broken ones
+        replay = itertools.chain(broken, self.store.unchecked_segments())
         with self.store.transaction():  # the logs it caches as columns, in one commit
-            kept, states = self.tracker.restore(models, checkpoints, tails, replay)  # type: ignore[arg-type]
+            kept, states = self.tracker.restore(models, checkpoints(), tails, replay)  # type: ignore[arg-type]
         out: list[tuple[SegmentId, bytes, bool]] = []
         unsummarised = []
         for sid in kept:

@@ -1226,7 +1226,8 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
 
     def load_columns(self, sid: SegmentId) -> SegmentHistory:
         """:meth:`load`, with a resting segment's log as :class:`LogColumns` when the
-        column loader gives it (a re-run's read, not kept: never assign the result)."""
+        column loader gives it, and then without its state, which a re-run recomputes from
+        the log (a re-run's read, not kept: never assign the result)."""
         rest = self._resting.get(sid)
         if rest is None or self.columns is None:
             return self.load(sid)
@@ -1234,9 +1235,7 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
         if read is None:
             return self.load(sid)
         log, trc_t = read
-        return SegmentHistory(
-            rest.line, rest.segment, log, trc_t, _state_of(rest.state), rest.group
-        )
+        return SegmentHistory(rest.line, rest.segment, log, trc_t, None, rest.group)
 
     def __setitem__(self, sid: SegmentId, hist: SegmentHistory) -> None:
         self._release(self._resting.pop(sid, None))
@@ -1954,9 +1953,11 @@ class Tracker:
     ) -> tuple[list[SegmentId], list[SegmentState]]:
         """Restart from checkpoints: ``(kept, states)``.
 
-        ``checkpoints``: each segment's last checkpoint; ``tails``: per segment, the stored
+        ``checkpoints``: each segment's last checkpoint (read once, in order: a stream
+        keeps one state at a time besides the bank); ``tails``: per segment, the stored
         events its checkpoint does not cover; ``replay``: segments without a usable
-        checkpoint (replayed from the log start, read through the loader). A checkpoint
+        checkpoint (replayed from the log start, read through the loader; read after
+        ``checkpoints``). A checkpoint
         folded with other models than the current ones (:func:`models_key` over the units
         its key names: a calibration of a unit its log does not read leaves it valid), or
         one written without its log's units, or followed
@@ -1968,7 +1969,7 @@ class Tracker:
         (their logs load when needed).
         """
         self.models, *_ = self._newest_models(models)
-        full: set[SegmentId] = set(replay)
+        full: set[SegmentId] = set()
         kept: list[SegmentId] = []
         on: list[tuple[SegmentId, Checkpoint, tuple[Event, ...]]] = []
         for ckpt in checkpoints:
@@ -1987,6 +1988,7 @@ class Tracker:
                 on.append((sid, ckpt, tuple(tail)))
             else:
                 kept.append(sid)
+        full.update(replay)  # after the checkpoints: a stream of them may add to it
         for sid in full:
             if sid not in self.histories:  # no (usable) checkpoint: all from its log
                 self.histories.rest(sid, Checkpoint(*sid, None, None, None, None), dirty=True)
