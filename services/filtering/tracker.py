@@ -1176,6 +1176,13 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
     the segment ``dirty`` (its checkpoint is out of date) until the owner clears it.
     ``columns(line, segment) -> (LogColumns, trc_t) | None``, when given, reads a resting
     log as columns for a re-run (:meth:`load_columns`; None: read it as events).
+
+    A resting segment's state is a row of the bank of its sample count
+    (:class:`_RestingBank`), not a :class:`Filtered` of its own: :meth:`resting` reads it
+    out (a copy); only the tracker's fold sees the row (:meth:`resting_entry`), folds from
+    it into a free row, and hands that back with the segment's new Checkpoint at the swap
+    (:meth:`rest` keeps it there and frees the old row; :meth:`settle` frees the rows a
+    failed or superseded fold took).
     """
 
     def __init__(self, loader: LogLoader | None = None) -> None:
