@@ -461,7 +461,7 @@ class _Banks:
     the scratch's buffer: take the states out with ``copy=True`` before its next use.
     """
 
-    resident = False  # a block of :class:`Histories`' resting states (not a fold's stack)
+    resident = False  # the stack of a bank of resting states (not a fold's)
 
     def __init__(
         self, starts: Sequence[Filtered | None], ns: int, n: int, scratch: Scratch | None = None
@@ -509,9 +509,10 @@ class _Banks:
     SCALARS = ("t_s", "last_trc_t", "n_updates", "nis", "started", "cusum", "cusum_t0", "cusum_t1")
 
     def grow(self, size: int) -> None:
-        """``size`` rows, the new ones unstarted; the arrays are reallocated in place
-        (``ndarray.resize``: a large one is remapped, not copied, so a bank of 1 GB does
-        not need 2 GB to grow). Only for a stack no view of which is held (the bank's)."""
+        """``size`` rows, the new ones zeros (unstarted); the arrays are reallocated in
+        place (``ndarray.resize``: a large one is remapped, not copied, so a bank of 1 GB
+        does not need 2 GB to grow). Only for a stack no view of which is held (the
+        bank's: its states go out as copies)."""
         self.F.resize((size, self.F.shape[1]), refcheck=False)
         self.z, self.P, self.log_w = _state_views(self.F, self.ns, self.n)
         for name in _Banks.SCALARS:
@@ -731,11 +732,10 @@ def low_score(z, P, y, obs: ObservationModel, w) -> np.ndarray:
 
 
 class BankRow(NamedTuple):
-    """A state held as row ``row`` of stacked arrays (:class:`_Banks`) instead of as a
-    :class:`Filtered` of its own: a resting segment's, in :class:`Histories`' bank, or a
-    backlog fold's, in the fold's buffer until :meth:`Histories.rest_many` copies it into
-    the segment's row. Only the fold and :class:`Histories` hold one; :meth:`state` reads
-    it out (a copy)."""
+    """A state held as row ``row`` of a bank of resting states (:class:`_RestingBank`)
+    instead of as a :class:`Filtered` of its own: a resting segment's, or a backlog fold's
+    result in a free row until the swap makes it the segment's (:meth:`Histories.rest`).
+    Only the fold and :class:`Histories` hold one; :meth:`state` reads it out (a copy)."""
 
     banks: _Banks
     row: int
@@ -762,7 +762,7 @@ class _RestingBank:
 
     A backlog folds a resting segment's indices from its row into a free one
     (:func:`_fold_many` with ``into``), which becomes the segment's at the swap while its
-    old row is freed (:meth:`Histories.rest_many`, :meth:`Histories.settle`): no state
+    old row is freed (:meth:`Histories.rest`, :meth:`Histories.settle`): no state
     object per event, and no copy of a state in or out."""
 
     def __init__(self, ns: int, n: int) -> None:
@@ -1316,7 +1316,7 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
         return checkpoint_of(self._loaded[sid])
 
     def resting_many(self, sids: Sequence[SegmentId]) -> list[Checkpoint]:
-        """:meth:`resting` of each of ``sids``, the states read out of each block in one
+        """:meth:`resting` of each of ``sids``, the states read out of each bank in one
         pass (:meth:`_Banks.states`)."""
         out = [self.resting_entry(sid) for sid in sids]
         blocks: dict[int, tuple[_Banks, list[int]]] = {}
@@ -1331,7 +1331,7 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
 
     def resting_entry(self, sid: SegmentId) -> Checkpoint:
         """:meth:`resting`, a resting segment's state left as its :class:`BankRow` (what
-        the fold gathers from; never kept, nor given out)."""
+        the fold folds from; never kept, nor given out)."""
         rest = self._resting.get(sid)
         return rest if rest is not None else checkpoint_of(self._loaded[sid])
 
