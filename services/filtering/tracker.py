@@ -461,8 +461,6 @@ class _Banks:
     the scratch's buffer: take the states out with ``copy=True`` before its next use.
     """
 
-    resident = False  # the stack of a bank of resting states (not a fold's)
-
     def __init__(
         self, starts: Sequence[Filtered | None], ns: int, n: int, scratch: Scratch | None = None
     ) -> None:
@@ -767,7 +765,6 @@ class _RestingBank:
 
     def __init__(self, ns: int, n: int) -> None:
         self.banks = _Banks([], ns, n)
-        self.banks.resident = True
         self.free: list[int] = []
 
     def take(self, count: int) -> list[int]:
@@ -1276,8 +1273,6 @@ class Histories(MutableMapping[SegmentId, SegmentHistory]):
         if state is None:
             self._release(old)
         elif isinstance(state, BankRow):
-            if not state.banks.resident:
-                raise ValueError("a resting state's row must be one of the bank's")
             if old is not None and old.state != state:
                 self._release(old)
         else:
