@@ -18,7 +18,9 @@ at Ns = 200: far more than folding an event, so a backlog cannot summarise every
 segment per batch):
 
 - a batch's events are committed before any state that depends on them is summarised or
-  published (the summary is taken after the transaction, from the tracker);
+  published (the summary is taken after the transaction, from the tracker); a batch of
+  ``BACKLOG`` or more messages commits in the background while the next one folds
+  (:meth:`Store.transaction`), and the segments it changed wait until that commit is done;
 - the segments a batch changed are marked *dirty* (kept in the order they first became
   dirty); a segment changed again while dirty keeps its place and is published once, with
   its newest state;
@@ -163,7 +165,9 @@ class FilteringAdapter:
         self.latest = LatestValues()  # q/state key -> the segment's newest state
         self._republished = threading.Event()  # the restored states went out (start())
         self._republished.set()
-        self.dirty: dict[SegmentId, None] = {}  # changed, not yet published; oldest first
+        # changed, not yet published, oldest first: the batch that last changed each
+        self.dirty: dict[SegmentId, int] = {}
+        self._batches = 0  # handed to the store; the last one may be committing still
         self.inbox: Inbox | None = None
         self.freeze_gc = freeze_gc  # only where the process is this service's own
         self._frozen_at = 0.0
@@ -224,24 +228,24 @@ class FilteringAdapter:
         started = time.perf_counter()
         try:
             done = self.node.handle_batch(
-                ((key, payload) for _kind, key, payload in batch), summarize=False
+                ((key, payload) for _kind, key, payload in batch),
+                summarize=False,
+                background=len(batch) >= BACKLOG,  # commits while the next batch folds
             )
+            self._batches += 1
+            backlog = self.inbox is not None and len(self.inbox) >= BACKLOG
+            if done.states or done.detected or not backlog:
+                self.node.store.sync()  # what is published next is committed
         except Exception as e:
-            # the store failed (disk full, file removed), or a bug escaped the transaction
-            # (its writes are rolled back): either way what the tracker holds is no longer
-            # what is persisted; stop so that a restart rebuilds it from the store
-            log.exception("filtering: a batch failed in the store transaction; stopping")
-            self.node.broken = True  # no checkpoint of what the store may not hold
-            self.rt.exit_code = EXIT_STORE_FAILED if isinstance(e, sqlite3.Error) else EXIT_SOFTWARE
-            self.rt.stop()
+            self._store_failed(e)
             return
         for key, reason, payload in done.rejected:
             self.rt.deadletters.reject(key, reason, payload)
         for state in done.states:  # a model update's re-run
             self._publish(state)
         for sid in done.changed:
-            self.dirty[sid] = None  # a dirty one keeps its place: oldest first
-        if self.inbox is not None and len(self.inbox) >= BACKLOG:
+            self.dirty[sid] = self._batches  # a dirty one keeps its place: oldest first
+        if backlog:
             self._publish_dirty(PUBLISH_SHARE * (time.perf_counter() - started))
         else:
             self._publish_dirty(None)
@@ -256,6 +260,16 @@ class FilteringAdapter:
                 found.t_start,
                 found.t_end,
             )
+
+    def _store_failed(self, e: Exception) -> None:
+        """The store failed (disk full, file removed; now or in a batch's commit in the
+        background), or a bug escaped the transaction (its writes are rolled back): either
+        way what the tracker holds is no longer what is persisted; stop so that a restart
+        rebuilds it from the store."""
+        log.exception("filtering: a batch failed in the store transaction; stopping")
+        self.node.broken = True  # no checkpoint of what the store may not hold
+        self.rt.exit_code = EXIT_STORE_FAILED if isinstance(e, sqlite3.Error) else EXIT_SOFTWARE
+        self.rt.stop()
 
     def _freeze(self) -> None:
         """Every ``FREEZE_S``: collect the young generations, then move every surviving
@@ -291,16 +305,34 @@ class FilteringAdapter:
         self._freeze()
         if self.node.broken:
             return
-        while self.node.checkpoint_if_due() and not (self.inbox is not None and len(self.inbox)):
-            pass
+        try:
+            self.node.store.sync()  # the last batch's commit, if it ran in the background
+            self._publish_dirty(None)  # what waited for it
+            while self.node.checkpoint_if_due() and not (
+                self.inbox is not None and len(self.inbox)
+            ):
+                pass
+        except sqlite3.Error as e:
+            self._store_failed(e)
 
     def _publish_dirty(self, budget_s: float | None) -> None:
         """Summarise and publish the oldest dirty segments, ``SUMMARY_CHUNK`` at a time, for
         ``budget_s`` (at least one chunk), or all of them (None). An error in a summary is a
-        bug: logged, the segments stay dirty (their events are committed), the worker goes on."""
+        bug: logged, the segments stay dirty (their events are committed), the worker goes on.
+
+        While the last batch commits in the background, the segments it changed wait (they
+        keep their place); all of them are published by the next call once it is done."""
         started = time.perf_counter()
+        committed = self._batches - 1 if self.node.store.committing else self._batches
         while self.dirty:
-            chunk = list(itertools.islice(self.dirty, SUMMARY_CHUNK))
+            chunk = list(
+                itertools.islice(
+                    (sid for sid, batch in self.dirty.items() if batch <= committed),
+                    SUMMARY_CHUNK,
+                )
+            )
+            if not chunk:
+                return
             try:
                 states = self.node.tracker.states_of(chunk)
             except Exception:
@@ -317,6 +349,11 @@ class FilteringAdapter:
     def _at_end(self) -> None:
         """The inbox is drained at a stop: publish what is dirty, within ``STOP_PUBLISH_S``
         (the rest is republished at the next start)."""
+        try:
+            self.node.store.sync()  # the last batch's commit, if it ran in the background
+        except Exception as e:
+            self._store_failed(e)
+            return
         try:
             self._publish_dirty(STOP_PUBLISH_S)
         except Exception:  # a put after the session went: the rebuild republishes them

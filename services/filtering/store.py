@@ -5,7 +5,8 @@ event (with its kind, key, identity and event time) and the latest Calibration a
 latest DegradationPosterior of each group, each as the *decoded message re-encoded*, never
 the payload as received: fields the schema does not know are dropped, so what a sender
 adds to a message cannot grow the file (the payload size limits bound the rest). Each write is
-its own committed transaction, done *before* the state it leads to is published, so a
+committed *before* the state it leads to is published (a backlog's batch commits in a thread
+while the next one folds, :meth:`Store.transaction`, and its states wait for it), so a
 SIGKILL loses nothing that was published (WAL journal; ``synchronous=NORMAL`` is durable
 against a process crash, which is what the design asks for; power loss may drop the last
 transactions: use ``synchronous="FULL"`` for that).
@@ -16,6 +17,7 @@ deleted when that record is stored (:meth:`Store.prune`).
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import logging
@@ -75,6 +77,10 @@ log = logging.getLogger(__name__)
 _dumps = json.JSONEncoder().encode  # json.dumps with its defaults, without the per-call setup
 _INDEX_PREFIXES: dict[tuple[str, str], str] = {}  # index_identity's, by (train, unit)
 _INDEX_PREFIXES_MAX = 65_536  # forgotten beyond this many (a flood of new ids cannot grow it)
+# an INSERT of rows run at a transaction's end (Store._defer): its head ("INSERT INTO t (a, b)
+# VALUES"), one row's values ("(?, ?)"), its tail (an ON CONFLICT clause or ""), the rows
+_Insert = tuple[str, str, str, Sequence[tuple[Any, ...]]]
+_INSERT_EVENTS = "INSERT INTO events (line, segment, kind, key, identity, t, payload) VALUES"
 
 
 def index_identity(train: str, unit: str, t: float) -> str:
@@ -295,7 +301,15 @@ class Store:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         # One thread at a time: the service opens it, its single worker uses it, and it is
         # closed after the worker has been joined.
-        self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        self._conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        self._deferred: list[_Insert] = []  # the open transaction's writes not yet run
+        self._depth = 0  # transactions open (an inner one's writes are the outer one's)
+        self._committing: threading.Thread | None = None  # a commit in the background
+        self._failed: BaseException | None = None  # what a background commit raised
+        self._gen: int | None = None  # the newest checkpoint generation, once read
+        most = self._conn.getlimit(sqlite3.SQLITE_LIMIT_VARIABLE_NUMBER)
+        # rows of one INSERT, by parameters a row: the largest power of two within the limit
+        self._max_rows = {n: 1 << (most // n).bit_length() - 1 for n in range(1, 17)}
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
         self._db.execute(f"PRAGMA cache_size={-CACHE_KIB}")
@@ -341,8 +355,45 @@ class Store:
         self._db.executescript(_SCHEMA)
 
     def close(self) -> None:
+        """Wait for a commit in the background (its failure is logged: the owner saw it
+        at its last access, or stopped before one), then close."""
+        if self._committing is not None:
+            self._committing.join()
+            self._committing = None
+        if self._failed is not None:
+            log.error("store %s: a commit in the background failed: %s", self.path, self._failed)
         self.wal_checkpoints.close()  # first: the last connection to close checkpoints all
-        self._db.close()
+        self._conn.close()
+
+    @property
+    def _db(self) -> sqlite3.Connection:
+        """The connection, for any statement: once the commit in the background (if one
+        runs) is done and the open transaction's deferred writes have run, in order."""
+        self.sync()
+        if self._deferred:
+            deferred, self._deferred = self._deferred, []
+            self._run(deferred)
+        return self._conn
+
+    def sync(self) -> None:
+        """Wait for the commit in the background, if one runs; raise if it failed (and at
+        every later access: the transaction is lost, the owner must stop)."""
+        if self._committing is not None:
+            self._committing.join()
+            self._committing = None
+        if self._failed is not None:
+            failed = self._failed
+            if isinstance(failed, sqlite3.Error):
+                raise sqlite3.OperationalError(f"a commit in the background failed: {failed}")
+            raise RuntimeError(f"a commit in the background failed: {failed!r}")
+
+    @property
+    def committing(self) -> bool:
+        """The last transaction's commit is not known to have succeeded yet (it runs in
+        the background, or it failed): what it wrote must not be published yet."""
+        return self._failed is not None or (
+            self._committing is not None and self._committing.is_alive()
+        )
 
     def __enter__(self) -> Store:
         return self
@@ -351,15 +402,81 @@ class Store:
         self.close()
 
     @contextmanager
-    def transaction(self) -> Iterator[None]:
-        """Every write inside the block is committed at its end, at once (or none on error)."""
+    def transaction(self, *, background: bool = False) -> Iterator[None]:
+        """Every write inside the block is committed at its end, at once (or none on error);
+        a block inside another one is part of it.
+
+        ``background``: the block's deferred writes (the events' rows, the checkpoint rows:
+        :meth:`_defer`) and the COMMIT run in a thread of their own, while the caller goes
+        on (SQLite runs them without the GIL: a backlog's next batch folds meanwhile). The
+        next access to the store waits for it (:meth:`sync`), and raises if it failed;
+        until then (:attr:`committing`) nothing it wrote may be published."""
+        if self._depth:
+            self._depth += 1
+            try:
+                yield
+            finally:
+                self._depth -= 1
+            return
         self._db.execute("BEGIN")
+        self._depth = 1
         try:
             yield
         except BaseException:
-            self._db.execute("ROLLBACK")
+            self._deferred = []
+            self._conn.execute("ROLLBACK")
             raise
-        self._db.execute("COMMIT")
+        finally:
+            self._depth = 0
+        deferred, self._deferred = self._deferred, []
+        if background and deferred:
+            self._committing = threading.Thread(
+                target=self._commit_in_background, args=(deferred,), name="store-commit"
+            )
+            self._committing.start()
+            return
+        try:
+            self._run(deferred)
+            self._conn.execute("COMMIT")
+        except BaseException:
+            if self._conn.in_transaction:
+                self._conn.execute("ROLLBACK")
+            raise
+
+    def _commit_in_background(self, deferred: list[_Insert]) -> None:
+        try:
+            self._run(deferred)
+            self._conn.execute("COMMIT")
+        except BaseException as exc:  # the owner sees it at its next access
+            self._failed = exc
+            with contextlib.suppress(sqlite3.Error):  # no transaction left open
+                self._conn.execute("ROLLBACK")
+
+    def _defer(self, insert: _Insert) -> None:
+        """Run an INSERT of rows at the end of the open transaction (in the background if
+        the transaction is), or now outside one."""
+        if self._depth:
+            self._deferred.append(insert)
+        else:
+            self.sync()
+            self._run([insert])
+
+    def _run(self, inserts: Sequence[_Insert]) -> None:
+        """Each INSERT of rows as statements of many rows (a power of two each: SQLite's
+        cache of statements keeps them): one statement a batch's events, so that a commit in
+        the background binds and steps without asking for the GIL for every row, as
+        ``executemany`` does (each ask waits up to the switch interval, 5 ms, while the
+        owner's thread runs Python)."""
+        for head, row, tail, rows in inserts:
+            width = row.count("?")
+            most = self._max_rows[width]
+            at = 0
+            while at < len(rows):
+                n = min(most, 1 << (len(rows) - at).bit_length() - 1)
+                chunk = rows[at : at + n]
+                params = list(itertools.chain.from_iterable(chunk))
+                self._conn.execute(f"{head} {', '.join([row] * n)}{tail}", params)
+                at += n
 
     def add_event(
         self,
@@ -386,17 +503,14 @@ class Store:
         A tamping (``kind`` maintenance) first deletes the segment's stored row of its
         identity (a correction replaces the report); the other kinds are inserted as they
         are: the tracker refuses an event whose identity its log already holds, and the
-        store holds that log (see ``_SCHEMA``)."""
-        insert = (
-            "INSERT INTO events (line, segment, kind, key, identity, t, payload)"
-            " VALUES (?, ?, ?, ?, ?, ?, ?)"
-        )
+        store holds that log (see ``_SCHEMA``). Inside a transaction the inserts run at its
+        end (:meth:`_defer`)."""
         run: list[tuple[str, str, str, str, str, float, bytes]] = []
         for line, segment, kind, key, identity, t, payload in rows:
             text = identity if isinstance(identity, str) else _dumps(list(identity))
             if kind == "maintenance":
                 if run:
-                    self._db.executemany(insert, run)
+                    self._defer((_INSERT_EVENTS, "(?, ?, ?, ?, ?, ?, ?)", "", run))
                     run = []
                 self._db.execute(
                     "DELETE FROM events WHERE line = ? AND segment = ? AND kind = 'maintenance'"
@@ -405,7 +519,7 @@ class Store:
                 )
             run.append((line, segment, kind, key, text, t, bytes(payload)))
         if run:
-            self._db.executemany(insert, run)
+            self._defer((_INSERT_EVENTS, "(?, ?, ?, ?, ?, ?, ?)", "", run))
 
     def delete_detected(self, line: str, segment: str, t: float, within_s: float) -> int:
         """Delete the segment's detected tampings within ``within_s`` of ``t`` (a reported
@@ -495,27 +609,33 @@ class Store:
             (line, segment, seq, columns),
         )
 
-    def last_seq(self) -> int:
-        """The newest event's ``seq`` (0 if none): what a checkpoint written now covers."""
-        return self._db.execute("SELECT COALESCE(MAX(seq), 0) FROM events").fetchone()[0]
-
     def put_checkpoints(self, rows: Iterable[tuple[Any, ...]], *, published: bool = True) -> int:
-        """Write checkpoint rows ``(line, segment, seq, last_order, trc_t, grp, models,
-        state, summary)`` (replacing each segment's previous one) as a new generation;
-        unless ``published`` is False the previous generation is then marked published
-        (its states were published before this one was written: see
-        :meth:`PersistentTracker.checkpoint`). Returns the generation."""
+        """Write checkpoint rows ``(line, segment, last_order, trc_t, grp, models, state,
+        summary)`` (replacing each segment's previous one) as a new generation, each
+        covering the events stored before it (its ``seq``: the newest events.seq when the
+        row is written); unless ``published`` is False the previous generation is then
+        marked published (its states were published before this one was written: see
+        :meth:`PersistentTracker.checkpoint`). Returns the generation. Inside a transaction
+        the rows are written at its end (:meth:`_defer`), after its events."""
         gen = self._latest_gen() + 1
-        self._db.execute(
-            "INSERT INTO checkpoint_meta (name, value) VALUES ('gen', ?)"
-            " ON CONFLICT (name) DO UPDATE SET value = excluded.value",
-            (gen,),
+        self._defer(
+            (
+                "INSERT INTO checkpoint_meta (name, value) VALUES",
+                "('gen', ?)",
+                " ON CONFLICT (name) DO UPDATE SET value = excluded.value",
+                [(gen,)],
+            )
         )
-        self._db.executemany(
-            "INSERT OR REPLACE INTO checkpoints"
-            " (line, segment, seq, last_order, trc_t, grp, models, state, summary, gen)"
-            f" VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, {int(gen)})",
-            rows,
+        self._gen = gen
+        self._defer(
+            (
+                "INSERT OR REPLACE INTO checkpoints"
+                " (line, segment, seq, last_order, trc_t, grp, models, state, summary, gen)"
+                " VALUES",
+                f"(?, ?, (SELECT COALESCE(MAX(seq), 0) FROM events), ?, ?, ?, ?, ?, ?, {gen})",
+                "",
+                list(rows),
+            )
         )
         if published:
             self.set_published(gen - 1)
@@ -525,20 +645,27 @@ class Store:
         """Every checkpoint up to ``gen`` (default: the latest) holds published states."""
         if gen is None:
             gen = self._latest_gen()
-        self._db.execute(
-            "INSERT INTO checkpoint_meta (name, value) VALUES ('published_gen', ?)"
-            " ON CONFLICT (name) DO UPDATE SET value = MAX(value, excluded.value)",
-            (gen,),
+        self._defer(
+            (
+                "INSERT INTO checkpoint_meta (name, value) VALUES",
+                "('published_gen', ?)",
+                " ON CONFLICT (name) DO UPDATE SET value = MAX(value, excluded.value)",
+                [(gen,)],
+            )
         )
 
     def _latest_gen(self) -> int:
         """The newest checkpoint generation: kept in ``checkpoint_meta`` (a scan of the
         checkpoints for MAX(gen) reads every row's pages: an estimated ~0.2 s a slice at
-        100,000 segments); a file written before that row existed is scanned once."""
+        100,000 segments); a file written before that row existed is scanned once. Read
+        once, then counted here (a read would wait for the commit in the background)."""
+        if self._gen is not None:
+            return self._gen
         row = self._db.execute("SELECT value FROM checkpoint_meta WHERE name = 'gen'").fetchone()
-        if row is not None:
-            return row[0]
-        return self._db.execute("SELECT COALESCE(MAX(gen), 0) FROM checkpoints").fetchone()[0]
+        if row is None:
+            row = self._db.execute("SELECT COALESCE(MAX(gen), 0) FROM checkpoints").fetchone()
+        self._gen = row[0]
+        return self._gen
 
     def published_gen(self) -> int:
         row = self._db.execute(
@@ -909,7 +1036,11 @@ class PersistentTracker:
             self._commit(msg, keys.maintenance(self.ns, msg.line, msg.segment))
 
     def handle_batch(
-        self, items: Iterable[tuple[str, bytes]], *, summarize: bool = True
+        self,
+        items: Iterable[tuple[str, bytes]],
+        *,
+        summarize: bool = True,
+        background: bool = False,
     ) -> BatchResult:
         """Several ``(key, payload)`` in one store transaction.
 
@@ -927,6 +1058,13 @@ class PersistentTracker:
         segments they changed, whose states :meth:`Tracker.states_of` gives when the
         caller publishes them (a model update's re-run states are in ``states`` still).
         The accepted rows go to the store grouped (:meth:`Store.add_events`), in order.
+
+        ``background``: the transaction commits in the background
+        (:meth:`Store.transaction`), with the checkpoint slice due after it: the call
+        returns before its events are stored, and nothing of the batch may be published
+        until :attr:`Store.committing` is False (or :meth:`Store.sync` returned). A commit
+        that fails raises at the store's next access (the next batch): stop then, as after
+        a store error here.
         """
         rejected: list[tuple[str, str, bytes]] = []
         models: list[tuple[ModelMessage, str, bytes]] = []
@@ -958,7 +1096,7 @@ class PersistentTracker:
         accepted = 0
         detected: list[MaintenanceEvent] = []
         changed: list[SegmentId] = []
-        with self.store.transaction():
+        with self.store.transaction(background=background):
             if models:
                 origin = {id(msg): (key, payload) for msg, key, payload in models}
                 update = self.tracker.update_models([msg for msg, _, _ in models])
@@ -1009,7 +1147,7 @@ class PersistentTracker:
                 accepted += len(taken)
                 self._commit_many(taken)
                 keep(event_states)
-        self._after_batch(states.values(), models=bool(models))
+            self._after_batch(states.values(), models=bool(models))  # after the events
         return BatchResult(
             tuple(states.values()), tuple(rejected), accepted, tuple(detected), tuple(changed)
         )
@@ -1170,9 +1308,10 @@ class PersistentTracker:
         return read
 
     def _after_batch(self, states: Iterable[SegmentState], *, models: bool) -> None:
-        """After a committed batch: note its states; checkpoint when due (every
-        ``checkpoint_s`` of worker time, or after a model change), then bound the loaded
-        logs to ``max_loaded`` (they are all stored by now)."""
+        """At the end of a batch's transaction, after its events: note its states;
+        checkpoint when due (every ``checkpoint_s`` of worker time, or after a model
+        change), in the same transaction, then bound the loaded logs to ``max_loaded``
+        (they are all stored once it commits, before any read of the store)."""
         self.note_states(states)
         if models:
             self.checkpoint()
@@ -1216,8 +1355,7 @@ class PersistentTracker:
         self._due = self._due[len(write) :]
         if write:
             with self.store.transaction():
-                seq = self.store.last_seq()
-                rows = (self._checkpoint_row(sid, seq) for sid in write)
+                rows = (self._checkpoint_row(sid) for sid in write)
                 self.store.put_checkpoints(rows, published=published)
         for sid in write:
             histories.dirty.discard(sid)
@@ -1230,7 +1368,7 @@ class PersistentTracker:
             histories.trim(self.max_loaded)
         return len(write)
 
-    def _checkpoint_row(self, sid: SegmentId, seq: int) -> tuple[Any, ...]:
+    def _checkpoint_row(self, sid: SegmentId) -> tuple[Any, ...]:
         rest = self.tracker.histories.resting(sid)
         state, summary = rest.state, self._summaries.get(sid)
         if (
@@ -1246,7 +1384,6 @@ class PersistentTracker:
             summary = None  # not known for this state: summarised again at restart
         return (
             *sid,
-            seq,
             _order_json(rest.last_order),
             rest.trc_t,
             rest.group,

@@ -314,7 +314,7 @@ def test_the_generation_goes_on_from_a_file_written_before_it_was_kept(tmp_path)
     db = tmp_path / "f.sqlite"
     store = Store(db)
     assert store.put_checkpoints([]) == 1
-    row = ("L1", "s1", 0, None, None, "", "", None, None)
+    row = ("L1", "s1", None, None, "", "", None, None)
     assert store.put_checkpoints([row]) == 2
     store._db.execute("DELETE FROM checkpoint_meta WHERE name = 'gen'")  # an older file
     assert store.put_checkpoints([row, ("L1", "s2", *row[2:])]) == 3

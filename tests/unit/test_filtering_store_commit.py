@@ -1,0 +1,65 @@
+"""The store's commit in the background (issue 16: a backlog's batch commits while the
+next one folds): its rows land in order, with the checkpoint after them, and a failed
+commit stops everything that follows instead of being lost."""
+
+from __future__ import annotations
+
+import sqlite3
+
+import pytest
+
+from services.filtering.store import Store
+
+
+def rows(n: int, first: int = 0) -> list[tuple]:
+    return [
+        ("L1", f"s{k % 7}", "index", "ns/index/L1", f'["index", "T1", "u1", {k}.0]', float(k),
+         bytes([k % 251]) * 40)
+        for k in range(first, first + n)
+    ]  # fmt: skip
+
+
+def test_a_commit_in_the_background_stores_every_row_in_order_then_its_checkpoint(tmp_path):
+    store = Store(tmp_path / "f.sqlite")
+    try:
+        with store.transaction(background=True):
+            store.add_events(rows(3001))  # 2048 + 512 + 256 + ... + 1: one INSERT each
+            store.add_events(rows(5, first=3001))
+            gen = store.put_checkpoints([("L1", "s1", None, None, "", "", None, None)])
+        store.sync()
+        assert not store.committing
+        stored = store._db.execute(
+            "SELECT seq, line, segment, kind, key, identity, t, payload FROM events ORDER BY seq"
+        ).fetchall()
+        assert [row[1:] for row in stored] == rows(3006)
+        assert [row[0] for row in stored] == list(range(1, 3007))
+        (checkpoint,) = store.checkpoints()
+        assert checkpoint[:3] == ("L1", "s1", 3006)  # covers the events written before it
+        assert checkpoint[-1] == gen
+    finally:
+        store.close()
+
+
+def test_a_failed_commit_in_the_background_raises_at_every_later_access(tmp_path):
+    """A full disk (SQLite's own limit on the file's pages) fails the commit in the
+    background: the next access raises, and every one after it (the owner must stop), and
+    none of the transaction's rows is stored; what was committed before stays."""
+    path = tmp_path / "f.sqlite"
+    store = Store(path)
+    with store.transaction(background=True):
+        store.add_events(rows(10))
+    store.sync()
+    (pages,) = store._db.execute("PRAGMA page_count").fetchone()
+    store._db.execute(f"PRAGMA max_page_count = {pages}")
+    with store.transaction(background=True):
+        store.add_events(rows(2000, first=10))
+    for _ in range(2):
+        with pytest.raises(sqlite3.OperationalError, match="in the background failed.*full"):
+            store.count_events()
+    with pytest.raises(sqlite3.OperationalError), store.transaction(background=True):
+        pass
+    assert store.committing  # nothing of it may be published
+    store.close()
+    db = sqlite3.connect(path)
+    assert db.execute("SELECT COUNT(*) FROM events").fetchone() == (10,)
+    db.close()
