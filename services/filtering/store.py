@@ -304,6 +304,7 @@ class Store:
         self._conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
         self._deferred: list[_Insert] = []  # the open transaction's writes not yet run
         self._depth = 0  # transactions open (an inner one's writes are the outer one's)
+        self._begun = False  # the open transaction's BEGIN ran (at its first statement)
         self._committing: threading.Thread | None = None  # a commit in the background
         self._failed: BaseException | None = None  # what a background commit raised
         self._gen: int | None = None  # the newest checkpoint generation, once read
@@ -370,6 +371,9 @@ class Store:
         """The connection, for any statement: once the commit in the background (if one
         runs) is done and the open transaction's deferred writes have run, in order."""
         self.sync()
+        if self._depth and not self._begun:
+            self._conn.execute("BEGIN")
+            self._begun = True
         if self._deferred:
             deferred, self._deferred = self._deferred, []
             self._run(deferred)
@@ -410,7 +414,11 @@ class Store:
         :meth:`_defer`) and the COMMIT run in a thread of their own, while the caller goes
         on (SQLite runs them without the GIL: a backlog's next batch folds meanwhile). The
         next access to the store waits for it (:meth:`sync`), and raises if it failed;
-        until then (:attr:`committing`) nothing it wrote may be published."""
+        until then (:attr:`committing`) nothing it wrote may be published.
+
+        The BEGIN runs at the block's first statement (a block of deferred writes only, a
+        backlog's usual batch, does not wait for the previous commit in the background
+        until its end)."""
         if self._depth:
             self._depth += 1
             try:
@@ -418,24 +426,32 @@ class Store:
             finally:
                 self._depth -= 1
             return
-        self._db.execute("BEGIN")
-        self._depth = 1
+        self._depth, self._begun = 1, False
         try:
             yield
         except BaseException:
             self._deferred = []
-            self._conn.execute("ROLLBACK")
+            if self._begun:
+                self._conn.execute("ROLLBACK")
             raise
         finally:
             self._depth = 0
         deferred, self._deferred = self._deferred, []
+        begun, self._begun = self._begun, False
+        self.sync()  # the previous commit's failure fails this one, written or not
+        if not begun and not deferred:
+            return
         if background and deferred:
             self._committing = threading.Thread(
-                target=self._commit_in_background, args=(deferred,), name="store-commit"
+                target=self._commit_in_background,
+                args=(deferred, begun),
+                name="store-commit",
             )
             self._committing.start()
             return
         try:
+            if not begun:
+                self._conn.execute("BEGIN")
             self._run(deferred)
             self._conn.execute("COMMIT")
         except BaseException:
@@ -443,8 +459,10 @@ class Store:
                 self._conn.execute("ROLLBACK")
             raise
 
-    def _commit_in_background(self, deferred: list[_Insert]) -> None:
+    def _commit_in_background(self, deferred: list[_Insert], begun: bool) -> None:
         try:
+            if not begun:
+                self._conn.execute("BEGIN")
             self._run(deferred)
             self._conn.execute("COMMIT")
         except BaseException as exc:  # the owner sees it at its next access

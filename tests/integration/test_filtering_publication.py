@@ -78,9 +78,9 @@ def test_dirty_segments_wait_under_a_backlog_and_all_go_out_after_it(
         committing = threading.Event()  # the batch's commit in the background, held
         commit = store._commit_in_background
 
-        def held(deferred):
+        def held(*args):
             committing.wait(30)
-            commit(deferred)
+            commit(*args)
 
         monkeypatch.setattr(store, "_commit_in_background", held)
         adapter._handle_batch(batch[:-1])  # everything but s19's last pass

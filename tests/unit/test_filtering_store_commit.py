@@ -57,7 +57,7 @@ def test_a_failed_commit_in_the_background_raises_at_every_later_access(tmp_path
         with pytest.raises(sqlite3.OperationalError, match="in the background failed.*full"):
             store.count_events()
     with pytest.raises(sqlite3.OperationalError), store.transaction(background=True):
-        pass
+        pass  # the next batch's, even one that writes nothing, stops there
     assert store.committing  # nothing of it may be published
     store.close()
     db = sqlite3.connect(path)
