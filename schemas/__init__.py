@@ -28,7 +28,7 @@ from schemas.messages import (
     TrcRecord,
     ViewerSelect,
 )
-from schemas.wire import NDArray, SchemaError, decode, encode
+from schemas.wire import NDArray, SchemaError, decode, decode_many, encode
 
 __all__ = [
     "ACCEL_CHANNELS",
@@ -59,6 +59,7 @@ __all__ = [
     "TrcRecord",
     "ViewerSelect",
     "decode",
+    "decode_many",
     "encode",
     "keys",
 ]

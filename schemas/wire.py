@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Sequence
 from typing import Any, TypeVar
 
 import msgspec
@@ -220,6 +221,26 @@ def decode(payload: bytes | bytearray | memoryview, message_type: type[T]) -> T:
         ) from None
     except RecursionError:  # deep nesting beyond the items scanned
         raise SchemaError(f"{name}: nested too deep to decode") from None
+
+
+def decode_many(payloads: Sequence[bytes], message_type: type[T]) -> list[T] | None:
+    """:func:`decode` of every payload, each as ``message_type``, with the same checks,
+    in one call (a backlog decodes thousands: the per-payload calls were a tenth of its
+    time); None if any of them would raise (:func:`decode` of each then says which and
+    why). Plain ``bytes`` only."""
+    limit = getattr(message_type, "MAX_BYTES", None)
+    decoder = _decoders.get(message_type)
+    if decoder is None:
+        decoder = _decoders[message_type] = msgspec.msgpack.Decoder(message_type)
+    for payload in payloads:  # what decode refuses before it parses, C calls only
+        if type(payload) is not bytes or (limit is not None and len(payload) > limit):
+            return None
+        if len(payload) - len(payload.translate(None, _CONTAINER_BYTES)) > MAX_NESTING:
+            return None  # perhaps too deep: too_deep looks further
+    try:
+        return [decoder.decode(payload) for payload in payloads]
+    except Exception:  # any decode error, or a check in __post_init__: decode says which
+        return None
 
 
 _FIXED = {  # MessagePack scalar type byte -> bytes that follow it

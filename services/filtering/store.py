@@ -47,6 +47,7 @@ from schemas import (
     SegmentState,
     TrcRecord,
     decode,
+    decode_many,
     encode,
     keys,
 )
@@ -751,6 +752,23 @@ def decode_keyed(key: str, payload: bytes) -> EventMessage | ModelMessage | None
     return message
 
 
+def _indices_of(items: Sequence[tuple[str, bytes]]) -> list[OnboardIndex | None]:
+    """Each item's OnboardIndex as :func:`decode_keyed` gives it, for the items on index
+    keys, decoded in one call (:func:`schemas.decode_many`); None for the others, and for
+    all of them when one does not decode or disagrees with its key (:func:`decode_keyed`
+    then says why, one by one)."""
+    out: list[OnboardIndex | None] = [None] * len(items)
+    at = [i for i, (key, _payload) in enumerate(items) if key.split("/", 2)[1:2] == ["index"]]
+    msgs = decode_many([items[i][1] for i in at], OnboardIndex)
+    if msgs is None:
+        return out
+    for i, msg in zip(at, msgs, strict=True):
+        if items[i][0].partition("/")[2] != f"index/{msg.line}/{msg.segment}":
+            return [None] * len(items)  # keys.check_key's form: {ns}/index/{line}/{segment}
+        out[i] = msg
+    return out
+
+
 def _unchecked(message_type: type) -> type:
     """A Struct with the fields (names, types, defaults) of ``message_type`` and none of its
     checks (``__post_init__``): what a stored row of it decodes into."""
@@ -1087,12 +1105,17 @@ class PersistentTracker:
         rejected: list[tuple[str, str, bytes]] = []
         models: list[tuple[ModelMessage, str, bytes]] = []
         events: list[tuple[EventMessage, str, bytes]] = []
-        for key, payload in items:
-            try:
-                msg = decode_keyed(key, payload)
-            except SchemaError as e:
-                rejected.append((key, str(e), payload))
-                continue
+        items = list(items)
+        indices = _indices_of(items)
+        for (key, payload), index in zip(items, indices, strict=True):
+            if index is not None:
+                msg: EventMessage | ModelMessage | None = index
+            else:
+                try:
+                    msg = decode_keyed(key, payload)
+                except SchemaError as e:
+                    rejected.append((key, str(e), payload))
+                    continue
             if msg is None:
                 continue
             if isinstance(msg, Calibration | DegradationPosterior):

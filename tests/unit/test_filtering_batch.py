@@ -13,7 +13,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from schemas import DAY_S, encode, keys
+from schemas import DAY_S, SchemaError, encode, keys
 from services.filtering import store as store_module
 from services.filtering.store import PersistentTracker, Store, decode_keyed, index_identity
 from services.filtering.tracker import (
@@ -236,3 +236,38 @@ def test_evolve_is_dataclasses_replace():
     assert core._evolve(hist, **changes) == replace(hist, **changes)
     with pytest.raises(TypeError):
         core._evolve(hist, stat=None)
+
+
+def test_a_batch_refuses_its_bad_indices_with_the_reasons_of_one_at_a_time(tmp_path):
+    """The indices of a batch decode in one call; a batch with a bad one among them (on
+    another segment's key, truncated, out of range) refuses exactly those, each with the
+    reason decode_keyed gives, and folds the others as one at a time does."""
+    messages = mixed_stream(5)
+    good = [keyed(m) for m in messages]
+    first_index = next(i for i, m in enumerate(messages) if m.__class__.__name__ == "OnboardIndex")
+    key, payload = good[first_index]
+    wrong_key = (key.rsplit("/", 1)[0] + "/s99", payload)
+    truncated = (key, payload[:-4])
+    raw = msgspec.msgpack.decode(payload)
+    out_of_range = (key, msgspec.msgpack.encode({**raw, "align10_mm": float("nan")}))
+    bad = [wrong_key, truncated, out_of_range]
+    items = good[: first_index + 40] + bad + good[first_index + 40 :]
+    one = PersistentTracker(new_tracker(), Store(tmp_path / "one.sqlite"))
+    reasons = {}
+    for k, p in items:
+        try:
+            decode_keyed(k, p)
+        except SchemaError as e:
+            reasons[(k, p)] = str(e)
+            continue
+        one.handle(k, p)
+    assert len(reasons) == 3
+    batched = PersistentTracker(new_tracker(), Store(tmp_path / "batch.sqlite"))
+    rejected = []
+    for batch in chunks(items, np.random.default_rng(1), 400):
+        rejected += batched.handle_batch(batch).rejected
+    assert [(k, p) for k, _r, p in rejected] == bad
+    assert {(k, p): r for k, r, p in rejected} == reasons
+    assert_same_states(one.tracker, batched.tracker)
+    for node in (one, batched):
+        node.store.close()

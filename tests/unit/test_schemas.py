@@ -619,3 +619,31 @@ def test_an_array_with_nan_or_inf_anywhere_is_refused_and_huge_finite_ones_are_n
     mixed[-1] = -np.inf if size > 1 else np.nan
     with pytest.raises(SchemaError, match="NaN or inf"):
         NDArray.of(mixed, dtype)
+
+
+def test_decode_many_gives_what_decode_gives_or_none_where_decode_refuses_one():
+    """A backlog's indices are decoded in one call: the same messages as one at a time,
+    and None (decode then says which and why) as soon as one payload would be refused."""
+    good = [
+        OnboardIndex(line="L1", segment=f"s{k}", train="T1", unit="u1", t=T0 + k, top6_mm=1.0 + k,
+                     align10_mm=0.5, speed_mps=30.0, coverage=1.0)
+        for k in range(5)
+    ]  # fmt: skip
+    payloads = [encode(m) for m in good]
+    assert schemas.decode_many(payloads, OnboardIndex) == [
+        decode(p, OnboardIndex) for p in payloads
+    ]
+    assert schemas.decode_many([], OnboardIndex) == []
+    out_of_range = msgpack.packb({**msgpack.unpackb(payloads[0]), "top6_mm": -1.0})
+    bad = [
+        payloads[1][:-3],  # truncated
+        out_of_range,  # a check of the message's own
+        msgpack.packb({**msgpack.unpackb(payloads[0]), "extra": 1}),  # unknown field
+        b"\x91" * 40 + b"\x90",  # nested deeper than the limit
+        bytes(OnboardIndex.MAX_BYTES + 1),  # too long
+        bytearray(payloads[0]),  # not bytes: decode takes it, the batch leaves it to it
+    ]
+    for payload in bad:
+        assert schemas.decode_many([*payloads, payload], OnboardIndex) is None
+    with pytest.raises(SchemaError, match="top6_mm"):
+        decode(out_of_range, OnboardIndex)
