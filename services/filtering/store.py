@@ -98,6 +98,7 @@ def index_identity(train: str, unit: str, t: float) -> str:
 
 CHECKPOINT_S = 10.0  # worker time between two checkpoints of the changed segments
 CHECKPOINT_SLICE = 64  # segments checkpointed per batch once due (~5 ms of writing)
+SLICE_EVENTS = 4096  # a batch's events per further slice
 CACHE_KIB = 65_536  # SQLite page cache: the indexes of a large store stay in memory
 WAL_CHECKPOINT_S = 1.0  # the background thread copies the WAL into the database this often
 MAX_LOADED = 4096  # segment logs kept in memory (~1 KB an event; least recently used dropped)
@@ -1188,7 +1189,7 @@ class PersistentTracker:
                 accepted += len(taken)
                 self._commit_many(taken)
                 keep(event_states)
-            self._after_batch(states.values(), models=bool(models))  # after the events
+            self._after_batch(states.values(), models=bool(models), events=len(events))
         return BatchResult(
             tuple(states.values()), tuple(rejected), accepted, tuple(detected), tuple(changed)
         )
@@ -1348,7 +1349,7 @@ class PersistentTracker:
             store.put_cached_columns(line, segment, seq, pack_columns(*read))
         return read
 
-    def _after_batch(self, states: Iterable[SegmentState], *, models: bool) -> None:
+    def _after_batch(self, states: Iterable[SegmentState], *, models: bool, events: int) -> None:
         """At the end of a batch's transaction, after its events: note its states;
         checkpoint when due (every ``checkpoint_s`` of worker time, or after a model
         change), in the same transaction, then bound the loaded logs to ``max_loaded``
@@ -1357,15 +1358,17 @@ class PersistentTracker:
         if models:
             self.checkpoint()
         else:  # a slice per batch, so that the live worker never stalls on one big write
-            self.checkpoint_if_due()
+            self.checkpoint_if_due(slices=1 + events // SLICE_EVENTS)
 
-    def checkpoint_if_due(self) -> int:
-        """Between batches: the next slice (``CHECKPOINT_SLICE`` segments) of the checkpoint
-        when one is due (every ``checkpoint_s`` of worker time) or being written; how many
-        segments it wrote (0: none due). An idle owner calls it until 0, so that what an
-        instance holds when traffic stops is checkpointed without waiting for a batch."""
+    def checkpoint_if_due(self, slices: int = 1) -> int:
+        """Between batches: the next ``slices`` slices (``CHECKPOINT_SLICE`` segments each)
+        of the checkpoint when one is due (every ``checkpoint_s`` of worker time) or being
+        written; how many segments it wrote (0: none due). An idle owner calls it until 0,
+        so that what an instance holds when traffic stops is checkpointed without waiting
+        for a batch. A batch writes a slice and one more per ``SLICE_EVENTS`` of its events,
+        so that a backlog's big batches move a checkpoint on as fast as small ones."""
         if self._due is not None or time.monotonic() - self._checkpointed >= self.checkpoint_s:
-            return self.checkpoint(limit=CHECKPOINT_SLICE)
+            return self.checkpoint(limit=CHECKPOINT_SLICE * slices)
         return 0
 
     def note_states(self, states: Iterable[SegmentState]) -> None:

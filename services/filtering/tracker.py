@@ -1382,9 +1382,13 @@ def _rested(ckpt: Checkpoint, state, group, tail: Sequence[Event]) -> Checkpoint
         read = log_units(tail)
         if not read <= units:
             units = units | read
-    return _evolve(
-        ckpt, trc_t=trc_t, state=state, group=group, last_order=tail[-1].order, units=units
-    )
+    last = tail[-1]
+    new = object.__new__(Checkpoint)  # _evolve's, without its check of the names
+    fields = new.__dict__
+    fields.update(ckpt.__dict__)
+    fields["trc_t"], fields["state"], fields["group"] = trc_t, state, group
+    fields["last_order"], fields["units"] = (last.t_s, last.kind, last.identity), units
+    return new
 
 
 def _summarised(hist: SegmentHistory | Checkpoint) -> SegmentHistory:
