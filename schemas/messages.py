@@ -12,6 +12,7 @@ from typing import ClassVar, Literal
 import msgspec
 
 from schemas.wire import (
+    _VALID_IDS,
     INT_MAX,
     T_MAX,
     T_MIN,
@@ -169,8 +170,15 @@ class OnboardIndex(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("line", "segment", "train", "unit"):
-            check_id(name, getattr(self, name))
+        known = _VALID_IDS  # check_id's, inline: every index repeats ids that passed
+        if not (
+            self.line in known
+            and self.segment in known
+            and self.train in known
+            and self.unit in known
+        ):
+            for name in ("line", "segment", "train", "unit"):
+                check_id(name, getattr(self, name))
         if self.run_id:
             check_id("run_id", self.run_id)
         if (  # every number in range (so finite: NaN fails every comparison): done

@@ -1378,10 +1378,10 @@ def _rested(ckpt: Checkpoint, state, group, tail: Sequence[Event]) -> Checkpoint
         if event.kind == RESTART and (trc_t is None or event.t_s > trc_t):
             trc_t = event.t_s
     units = ckpt.units
-    if units is not None:  # a superset is safe
-        read = log_units(tail)
-        if not read <= units:
-            units = units | read
+    if units is not None and not all(  # a superset is safe
+        (e.message.train, e.message.unit) in units for e in tail if e.kind == INDEX
+    ):
+        units = units | log_units(tail)
     last = tail[-1]
     new = object.__new__(Checkpoint)  # _evolve's, without its check of the names
     fields = new.__dict__
@@ -1822,7 +1822,7 @@ class Tracker:
         events_at: dict[int, Event] = {}
         for i, msg in enumerate(msgs):
             sid = (msg.line, msg.segment)
-            event = event_of(msg)
+            event = index_event(msg) if type(msg) is OnboardIndex else event_of(msg)
             queued = pending.get(sid)
             if event.kind == INDEX:
                 if queued:
