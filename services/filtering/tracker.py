@@ -1776,10 +1776,11 @@ class Tracker:
                 return
             hists = [folds_from.pop(sid) for sid in sids]  # each has a state
             groups = [group_of[sid] for sid in sids]
-            logs = [[event for _, event in pending.pop(sid)] for sid in sids]
+            queues = [pending.pop(sid) for sid in sids]  # (message position, event)
+            logs = [[event for _, event in queued] for queued in queues]
             jobs: dict[tuple[int, bool], list[int]] = {}  # by Ns, and whether from the bank
             for k, group in enumerate(groups):
-                ns, n = models.params[group].ns, models.params[group].n
+                ns, n = shape_of[group]
                 state = hists[k].state
                 banked = isinstance(state, BankRow) and (state.banks.ns, state.banks.n) == (ns, n)
                 jobs.setdefault((ns, banked), []).append(k)
@@ -1794,32 +1795,37 @@ class Tracker:
                     scratch=self._scratch,  # each state copied out: keeps no batch's arrays
                     into=self.histories.bank(ns, hists[job[0]].state.banks.n) if banked else None,
                 )
-                if banked:
-                    self._taken.extend(
-                        (sids[k], own)
-                        for k, own in zip(job, states, strict=True)
-                        if isinstance(own, BankRow)
-                    )
-                for k, own, count in zip(job, states, folded, strict=True):
-                    was, sid, tail = hists[k], sids[k], logs[k][:count]
+                if banked and isinstance(states[0], BankRow):  # rows of the bank, all of them
+                    self._taken.extend((sids[k], own) for k, own in zip(job, states, strict=True))
+                    cusums = states[0].banks.cusum[[own.row for own in states]].tolist()
+                else:  # (a model of another shape folds from copies: Filtered states)
+                    cusums = [math.nan if own is None else own.cusum for own in states]
+                for k, own, count, cusum in zip(job, states, folded, cusums, strict=True):
+                    was, sid, log = hists[k], sids[k], logs[k]
+                    tail = log if count == len(log) else log[:count]
                     if isinstance(was, Checkpoint):  # it stays resting: the log is not read
                         changed[sid] = _rested(was, own, groups[k], tail)
-                        tails.setdefault(sid, []).extend(tail)
+                        got = tails.get(sid)
+                        if got is None:
+                            tails[sid] = list(tail)
+                        else:
+                            got.extend(tail)
                     else:
                         changed[sid] = _evolve(
                             was, log=was.log + tuple(tail), state=own, group=groups[k]
                         )
-                    if count < len(logs[k]) or halt is not None and own.cusum >= halt:
-                        hist, found = self._detect(current(sid, msgs[positions[sid][0]]))
+                    if count < len(log) or halt is not None and cusum >= halt:
+                        queued = queues[k]
+                        hist, found = self._detect(current(sid, msgs[queued[0][0]]))
                         if found is not None:
-                            detected.append((positions[sid][count - 1], found))
+                            detected.append((queued[count - 1][0], found))
                         change(sid, hist)
-                        for i in positions[sid][count:]:
-                            exact(i, sid, changed[sid], events_at[i])
+                        for i, event in queued[count:]:
+                            exact(i, sid, changed[sid], event)
 
-        positions: dict[SegmentId, list[int]] = {}  # message positions of the pending events
         group_of: dict[SegmentId, str | None] = {}  # the models do not change in a batch
-        events_at: dict[int, Event] = {}
+        shape_of = {group: (p.ns, p.n) for group, p in models.params.items()}
+        read_with, fleet = models.unit_observations, models.observation
         for i, msg in enumerate(msgs):
             sid = (msg.line, msg.segment)
             event = index_event(msg) if type(msg) is OnboardIndex else event_of(msg)
@@ -1835,25 +1841,22 @@ class Tracker:
                         last = hist.last_order
                     else:
                         last = hist.log[-1].order if hist.log else None
-                if sid not in group_of:
-                    group_of[sid] = models.group_for(msg.line, msg.segment)
+                group = group_of.get(sid, False)
+                if group is False:
+                    group = group_of[sid] = models.group_for(msg.line, msg.segment)
                 if (
                     last is not None
-                    and event.order > last
-                    and group_of[sid] is not None
-                    and models.observation_for_event(event) is not None
+                    and (event.t_s > last[0] or event.order > last)
+                    and group is not None
+                    and read_with.get((msg.train, msg.unit), fleet) is not None
                 ):
                     if not queued:
                         pending[sid] = queued = []
-                        positions[sid] = []
                         folds_from[sid] = hist  # what base(sid) stays until its flush
                     queued.append((i, event))
-                    positions[sid].append(i)
-                    events_at[i] = event
                     continue
             if queued:
                 flush([sid])
-                del positions[sid]
             exact(i, sid, current(sid, msg), event)
         flush(list(pending))
         detected.sort(key=lambda found: found[0])
