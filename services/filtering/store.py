@@ -525,8 +525,12 @@ class Store:
         are: the tracker refuses an event whose identity its log already holds, and the
         store holds that log (see ``_SCHEMA``). Inside a transaction the inserts run at its
         end (:meth:`_defer`)."""
-        run: list[tuple[str, str, str, str, str, float, bytes]] = []
-        for line, segment, kind, key, identity, t, payload in rows:
+        run: list[tuple[Any, ...]] = []
+        for row in rows:
+            line, segment, kind, key, identity, t, payload = row
+            if type(identity) is str and type(payload) is bytes and kind != "maintenance":
+                run.append(row)  # as it is stored
+                continue
             text = identity if isinstance(identity, str) else _dumps(list(identity))
             if kind == "maintenance":
                 if run:
@@ -1198,12 +1202,16 @@ class PersistentTracker:
         self._commit_many([(msg, key)])
 
     def _commit_many(self, items: Iterable[tuple[EventMessage | ModelMessage, str]]) -> None:
-        """Write accepted messages in order: runs of event rows in one ``executemany``; a
+        """Write accepted messages in order: runs of event rows in one :meth:`Store.add_events`; a
         TRC record's prune and a reported tamping's removal of detected ones run after the
         rows before them, as one message at a time would."""
         rows: list[tuple[str, str, str, str, tuple[Any, ...] | str, float, bytes]] = []
         for msg, key in items:
             payload = encode(msg)  # not what was received: unknown fields are not kept
+            if type(msg) is OnboardIndex:  # event_of's identity and time, without its logs
+                identity = index_identity(msg.train, msg.unit, msg.t)
+                rows.append((msg.line, msg.segment, "index", key, identity, msg.t, payload))
+                continue
             match msg:
                 case Calibration():
                     self.store.put_model(
@@ -1221,11 +1229,6 @@ class PersistentTracker:
                         key=key,
                         payload=payload,
                     )
-                case OnboardIndex():  # event_of's identity and time, without its logs
-                    rows.append(
-                        (msg.line, msg.segment, "index", key,
-                         index_identity(msg.train, msg.unit, msg.t), msg.t, payload)
-                    )  # fmt: skip
                 case _:
                     event = event_of(msg)
                     kind = KIND_NAMES[event.kind]
