@@ -433,7 +433,9 @@ class Store:
             yield
         except BaseException:
             self._deferred = []
-            if self._begun:
+            # begun: the previous commit was waited for; not begun: the connection may be
+            # committing the previous transaction in the background, which is not ours
+            if self._begun and self._conn.in_transaction:  # (SQLite may have rolled back)
                 self._conn.execute("ROLLBACK")
             raise
         finally:

@@ -54,6 +54,16 @@ def published(adapter: service.FilteringAdapter, ns: str) -> dict[str, bytes]:
     return {decode(payload, SegmentState).segment: payload for _key, payload in found}
 
 
+def started_adapter(rt: ServiceRuntime, store: Store) -> service.FilteringAdapter:
+    """The service's adapter on a fresh tracker, its publisher declared and its inbox
+    empty, without its subscriptions: the test hands it the batches."""
+    node = PersistentTracker(Tracker(LIMITS.for_line, LIMITS.levels), store)
+    adapter = service.FilteringAdapter(rt, node, "**")
+    adapter.states_out = rt.reliable_publisher(service.STATE_CACHE)
+    adapter.inbox = Inbox()
+    return adapter
+
+
 def test_dirty_segments_wait_under_a_backlog_and_all_go_out_after_it(
     service_config, tmp_path, monkeypatch
 ):
@@ -68,11 +78,8 @@ def test_dirty_segments_wait_under_a_backlog_and_all_go_out_after_it(
         Store(tmp_path / "filtering.sqlite") as store,
         ServiceRuntime(service.SERVICE, service_config, handle_signals=False) as rt,
     ):
-        node = PersistentTracker(Tracker(LIMITS.for_line, LIMITS.levels), store)
-        adapter = service.FilteringAdapter(rt, node, "**")
-        adapter.states_out = rt.reliable_publisher(service.STATE_CACHE)
-        adapter.inbox = Inbox()  # the worker's inbox, here with a backlog waiting in it
-        for _ in range(service.BACKLOG):
+        adapter = started_adapter(rt, store)
+        for _ in range(service.BACKLOG):  # a backlog waiting in the worker's inbox
             adapter.inbox.put("index", keys.index(ns, "L1", "s00"), b"")
 
         committing = threading.Event()  # the batch's commit in the background, held
@@ -117,10 +124,8 @@ def test_a_failed_commit_in_the_background_stops_the_instance_with_nothing_of_it
         Store(tmp_path / "filtering.sqlite") as store,
         ServiceRuntime(service.SERVICE, service_config, handle_signals=False) as rt,
     ):
-        node = PersistentTracker(Tracker(LIMITS.for_line, LIMITS.levels), store)
-        adapter = service.FilteringAdapter(rt, node, "**")
-        adapter.states_out = rt.reliable_publisher(service.STATE_CACHE)
-        adapter.inbox = Inbox()
+        adapter = started_adapter(rt, store)
+        node = adapter.node
         adapter._handle_batch(batch[:first])
         before = published(adapter, ns)
         assert len(before) == len(SEGMENTS) and not adapter.dirty

@@ -5,6 +5,7 @@ commit stops everything that follows instead of being lost."""
 from __future__ import annotations
 
 import sqlite3
+import threading
 
 import pytest
 
@@ -63,3 +64,29 @@ def test_a_failed_commit_in_the_background_raises_at_every_later_access(tmp_path
     db = sqlite3.connect(path)
     assert db.execute("SELECT COUNT(*) FROM events").fetchone() == (10,)
     db.close()
+
+
+def test_a_block_that_fails_leaves_the_commit_in_the_background_alone(tmp_path, monkeypatch):
+    """A batch that raises before its first statement rolls nothing back: the connection's
+    open transaction is the previous batch's, still committing in the background."""
+    store = Store(tmp_path / "f.sqlite")
+    inserted, release = threading.Event(), threading.Event()
+    run = store._run
+
+    def held(deferred):  # the commit holds its transaction open until released
+        run(deferred)
+        inserted.set()
+        release.wait(30)
+
+    try:
+        monkeypatch.setattr(store, "_run", held)
+        with store.transaction(background=True):
+            store.add_events(rows(4096))
+        assert inserted.wait(30)
+        with pytest.raises(ZeroDivisionError), store.transaction(background=True):
+            store.add_events(rows(5, first=4096))
+            raise ZeroDivisionError("a bug in the fold")
+        release.set()
+        assert store.count_events() == 4096
+    finally:
+        store.close()
