@@ -99,6 +99,7 @@ def index_identity(train: str, unit: str, t: float) -> str:
 CHECKPOINT_S = 10.0  # worker time between two checkpoints of the changed segments
 CHECKPOINT_SLICE = 64  # segments checkpointed per batch once due (~5 ms of writing)
 SLICE_EVENTS = 4096  # a batch's events per further slice
+CHECKPOINT_CHUNK = 2048  # checkpoint rows (~11 KB each) held at once when writing them all
 CACHE_KIB = 65_536  # SQLite page cache: the indexes of a large store stay in memory
 WAL_CHECKPOINT_S = 1.0  # the background thread copies the WAL into the database this often
 MAX_LOADED = 4096  # segment logs kept in memory (~1 KB an event; least recently used dropped)
@@ -372,6 +373,12 @@ class Store:
     def _db(self) -> sqlite3.Connection:
         """The connection, for any statement: once the commit in the background (if one
         runs) is done and the open transaction's deferred writes have run, in order."""
+        self._ready()
+        return self._conn
+
+    def _ready(self) -> None:
+        """The commit in the background done, the open transaction begun and its deferred
+        writes run: a statement can run now, in order."""
         self.sync()
         if self._depth and not self._begun:
             self._conn.execute("BEGIN")
@@ -379,7 +386,6 @@ class Store:
         if self._deferred:
             deferred, self._deferred = self._deferred, []
             self._run(deferred)
-        return self._conn
 
     def sync(self) -> None:
         """Wait for the commit in the background, if one runs; raise if it failed (and at
@@ -474,13 +480,14 @@ class Store:
             with contextlib.suppress(sqlite3.Error):  # no transaction left open
                 self._conn.execute("ROLLBACK")
 
-    def _defer(self, insert: _Insert) -> None:
+    def _defer(self, insert: _Insert, *, now: bool = False) -> None:
         """Run an INSERT of rows at the end of the open transaction (in the background if
-        the transaction is), or now outside one."""
-        if self._depth:
+        the transaction is), or ``now`` (in order: after what was deferred), or now
+        outside a transaction."""
+        if self._depth and not now:
             self._deferred.append(insert)
         else:
-            self.sync()
+            self._ready()
             self._run([insert])
 
     def _run(self, inserts: Sequence[_Insert]) -> None:
@@ -653,16 +660,19 @@ class Store:
             )
         )
         self._gen = gen
-        self._defer(
-            (
-                "INSERT OR REPLACE INTO checkpoints"
-                " (line, segment, seq, last_order, trc_t, grp, models, state, summary, gen)"
-                " VALUES",
-                f"(?, ?, (SELECT COALESCE(MAX(seq), 0) FROM events), ?, ?, ?, ?, ?, ?, {gen})",
-                "",
-                list(rows),
-            )
+        head = (
+            "INSERT OR REPLACE INTO checkpoints"
+            " (line, segment, seq, last_order, trc_t, grp, models, state, summary, gen) VALUES"
         )
+        row = f"(?, ?, (SELECT COALESCE(MAX(seq), 0) FROM events), ?, ?, ?, ?, ?, ?, {gen})"
+        rows = iter(rows)
+        chunk = list(itertools.islice(rows, CHECKPOINT_CHUNK))
+        if len(chunk) < CHECKPOINT_CHUNK:  # a slice: at the end of the transaction
+            self._defer((head, row, "", chunk))
+        else:  # every segment's (a model change, a restore): now, a chunk at a time
+            while chunk:
+                self._defer((head, row, "", chunk), now=True)
+                chunk = list(itertools.islice(rows, CHECKPOINT_CHUNK))
         if published:
             self.set_published(gen - 1)
         return gen

@@ -9,6 +9,7 @@ import threading
 
 import pytest
 
+from services.filtering import store as store_module
 from services.filtering.store import Store
 
 
@@ -88,5 +89,32 @@ def test_a_block_that_fails_leaves_the_commit_in_the_background_alone(tmp_path, 
             raise ZeroDivisionError("a bug in the fold")
         release.set()
         assert store.count_events() == 4096
+    finally:
+        store.close()
+
+
+def test_every_segment_s_checkpoint_is_written_a_chunk_at_a_time_after_the_events(
+    tmp_path, monkeypatch
+):
+    """A checkpoint of every segment (a model change, a restore) does not hold all its rows
+    (~11 KB each) at once: they are written in chunks as they come, after the events."""
+    monkeypatch.setattr(store_module, "CHECKPOINT_CHUNK", 4)
+    store = Store(tmp_path / "f.sqlite")
+    made = []
+
+    def checkpoint_rows(n):
+        for k in range(n):
+            made.append(k)
+            if k >= 4:  # the chunk before this one is written by now
+                assert store._conn.execute("SELECT COUNT(*) FROM checkpoints").fetchone()[0] >= 4
+            yield ("L1", f"s{k}", None, None, "", "", None, None)
+
+    try:
+        with store.transaction():
+            store.add_events(rows(10))
+            store.put_checkpoints(checkpoint_rows(11))
+        assert len(made) == 11
+        seqs = store._db.execute("SELECT DISTINCT seq FROM checkpoints").fetchall()
+        assert seqs == [(10,)] and len(list(store.checkpoints())) == 11
     finally:
         store.close()
