@@ -208,11 +208,8 @@ def decode(payload: bytes | bytearray | memoryview, message_type: type[T]) -> T:
     deep = too_deep(payload)
     if deep is not None:
         raise SchemaError(f"{name}: {deep}: nested deeper than {MAX_NESTING} levels")
-    decoder = _decoders.get(message_type)
-    if decoder is None:
-        decoder = _decoders[message_type] = msgspec.msgpack.Decoder(message_type)
     try:
-        return decoder.decode(payload)
+        return _decoder(message_type).decode(payload)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:
         raise SchemaError(f"{name}: {exc}") from None
     except UnicodeDecodeError as exc:  # a string (a field name too: unknown ones are named)
@@ -223,19 +220,31 @@ def decode(payload: bytes | bytearray | memoryview, message_type: type[T]) -> T:
         raise SchemaError(f"{name}: nested too deep to decode") from None
 
 
+def _decoder(message_type: type[T]) -> msgspec.msgpack.Decoder:
+    decoder = _decoders.get(message_type)
+    if decoder is None:
+        decoder = _decoders[message_type] = msgspec.msgpack.Decoder(message_type)
+    return decoder
+
+
+def _shallow(buf: bytes, limit: int) -> bool:
+    """Nesting deeper than ``limit`` needs more than ``limit`` container headers, each one
+    byte of the ranges below; a payload with fewer such bytes (strings and numbers may
+    hold some too) cannot be that deep: the usual message, decided in one C call."""
+    return len(buf) - len(buf.translate(None, _CONTAINER_BYTES)) <= limit
+
+
 def decode_many(payloads: Sequence[bytes], message_type: type[T]) -> list[T] | None:
     """:func:`decode` of every payload, each as ``message_type``, with the same checks,
     in one call (a backlog decodes thousands: the per-payload calls were a tenth of its
     time); None if any of them would raise (:func:`decode` of each then says which and
     why). Plain ``bytes`` only."""
     limit = getattr(message_type, "MAX_BYTES", None)
-    decoder = _decoders.get(message_type)
-    if decoder is None:
-        decoder = _decoders[message_type] = msgspec.msgpack.Decoder(message_type)
+    decoder = _decoder(message_type)
     for payload in payloads:  # what decode refuses before it parses, C calls only
         if type(payload) is not bytes or (limit is not None and len(payload) > limit):
             return None
-        if len(payload) - len(payload.translate(None, _CONTAINER_BYTES)) > MAX_NESTING:
+        if not _shallow(payload, MAX_NESTING):
             return None  # perhaps too deep: too_deep looks further
     try:
         return [decoder.decode(payload) for payload in payloads]
@@ -290,10 +299,7 @@ def too_deep(
     None when the payload is not a map or no value within the items looked at is that deep.
     """
     buf = payload if isinstance(payload, bytes) else bytes(payload)
-    # Nesting deeper than ``limit`` needs more than ``limit`` container headers, each one
-    # byte of the ranges below; a payload with fewer such bytes (strings and numbers may
-    # hold some too) cannot be that deep: the usual message, decided in one C call.
-    if len(buf) - len(buf.translate(None, _CONTAINER_BYTES)) <= limit:
+    if _shallow(buf, limit):
         return None
     budget = max_items
     try:

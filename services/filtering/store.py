@@ -311,9 +311,7 @@ class Store:
         self._committing: threading.Thread | None = None  # a commit in the background
         self._failed: BaseException | None = None  # what a background commit raised
         self._gen: int | None = None  # the newest checkpoint generation, once read
-        most = self._conn.getlimit(sqlite3.SQLITE_LIMIT_VARIABLE_NUMBER)
-        # rows of one INSERT, by parameters a row: the largest power of two within the limit
-        self._max_rows = {n: 1 << (most // n).bit_length() - 1 for n in range(1, 17)}
+        self._max_params = self._conn.getlimit(sqlite3.SQLITE_LIMIT_VARIABLE_NUMBER)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
         self._db.execute(f"PRAGMA cache_size={-CACHE_KIB}")
@@ -361,9 +359,7 @@ class Store:
     def close(self) -> None:
         """Wait for a commit in the background (its failure is logged: the owner saw it
         at its last access, or stopped before one), then close."""
-        if self._committing is not None:
-            self._committing.join()
-            self._committing = None
+        self._join()
         if self._failed is not None:
             log.error("store %s: a commit in the background failed: %s", self.path, self._failed)
         self.wal_checkpoints.close()  # first: the last connection to close checkpoints all
@@ -390,14 +386,17 @@ class Store:
     def sync(self) -> None:
         """Wait for the commit in the background, if one runs; raise if it failed (and at
         every later access: the transaction is lost, the owner must stop)."""
-        if self._committing is not None:
-            self._committing.join()
-            self._committing = None
+        self._join()
         if self._failed is not None:
             failed = self._failed
             if isinstance(failed, sqlite3.Error):
                 raise sqlite3.OperationalError(f"a commit in the background failed: {failed}")
             raise RuntimeError(f"a commit in the background failed: {failed!r}")
+
+    def _join(self) -> None:
+        if self._committing is not None:
+            self._committing.join()
+            self._committing = None
 
     @property
     def committing(self) -> bool:
@@ -497,8 +496,7 @@ class Store:
         ``executemany`` does (each ask waits up to the switch interval, 5 ms, while the
         owner's thread runs Python)."""
         for head, row, tail, rows in inserts:
-            width = row.count("?")
-            most = self._max_rows[width]
+            most = 1 << (self._max_params // row.count("?")).bit_length() - 1  # rows at most
             at = 0
             while at < len(rows):
                 n = min(most, 1 << (len(rows) - at).bit_length() - 1)
@@ -526,7 +524,7 @@ class Store:
         self, rows: Iterable[tuple[str, str, str, str, tuple[Any, ...] | str, float, bytes]]
     ) -> None:
         """:meth:`add_event` of several ``(line, segment, kind, key, identity, t, payload)``
-        rows, in order, in one ``executemany``; an ``identity`` already as its JSON text
+        rows, in order, in statements of many rows; an ``identity`` already as its JSON text
         is stored as it is.
 
         A tamping (``kind`` maintenance) first deletes the segment's stored row of its
@@ -537,10 +535,9 @@ class Store:
         run: list[tuple[Any, ...]] = []
         for row in rows:
             line, segment, kind, key, identity, t, payload = row
-            if type(identity) is str and type(payload) is bytes and kind != "maintenance":
-                run.append(row)  # as it is stored
-                continue
-            text = identity if isinstance(identity, str) else _dumps(list(identity))
+            if type(identity) is not str or type(payload) is not bytes:  # else as it is
+                text = identity if isinstance(identity, str) else _dumps(list(identity))
+                row = (line, segment, kind, key, text, t, bytes(payload))
             if kind == "maintenance":
                 if run:
                     self._defer((_INSERT_EVENTS, "(?, ?, ?, ?, ?, ?, ?)", "", run))
@@ -548,9 +545,9 @@ class Store:
                 self._db.execute(
                     "DELETE FROM events WHERE line = ? AND segment = ? AND kind = 'maintenance'"
                     " AND identity = ?",
-                    (line, segment, text),
+                    (line, segment, row[4]),
                 )
-            run.append((line, segment, kind, key, text, t, bytes(payload)))
+            run.append(row)
         if run:
             self._defer((_INSERT_EVENTS, "(?, ?, ?, ?, ?, ?, ?)", "", run))
 

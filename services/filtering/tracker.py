@@ -1382,13 +1382,9 @@ def _rested(ckpt: Checkpoint, state, group, tail: Sequence[Event]) -> Checkpoint
         (e.message.train, e.message.unit) in units for e in tail if e.kind == INDEX
     ):
         units = units | log_units(tail)
-    last = tail[-1]
-    new = object.__new__(Checkpoint)  # _evolve's, without its check of the names
-    fields = new.__dict__
-    fields.update(ckpt.__dict__)
-    fields["trc_t"], fields["state"], fields["group"] = trc_t, state, group
-    fields["last_order"], fields["units"] = (last.t_s, last.kind, last.identity), units
-    return new
+    changes = {"trc_t": trc_t, "state": state, "group": group, "units": units}
+    changes["last_order"] = tail[-1].order
+    return _replaced(ckpt, changes)  # a backlog's per segment: _evolve without its check
 
 
 def _summarised(hist: SegmentHistory | Checkpoint) -> SegmentHistory:
@@ -1409,7 +1405,12 @@ def _evolve(hist: _Frozen, **changes: Any) -> _Frozen:
     cls = type(hist)
     if not changes.keys() <= cls.__dataclass_fields__.keys():
         raise TypeError(f"{cls.__name__} has no field {set(changes) - set(vars(hist))}")
-    new = object.__new__(cls)
+    return _replaced(hist, changes)
+
+
+def _replaced(hist: _Frozen, changes: dict[str, Any]) -> _Frozen:
+    """:func:`_evolve` without the check that ``changes`` names fields of ``hist``."""
+    new = object.__new__(type(hist))
     new.__dict__.update(hist.__dict__)
     new.__dict__.update(changes)
     return new
@@ -1825,7 +1826,6 @@ class Tracker:
 
         group_of: dict[SegmentId, str | None] = {}  # the models do not change in a batch
         shape_of = {group: (p.ns, p.n) for group, p in models.params.items()}
-        read_with, fleet = models.unit_observations, models.observation
         for i, msg in enumerate(msgs):
             sid = (msg.line, msg.segment)
             event = index_event(msg) if type(msg) is OnboardIndex else event_of(msg)
@@ -1848,7 +1848,7 @@ class Tracker:
                     last is not None
                     and (event.t_s > last[0] or event.order > last)
                     and group is not None
-                    and read_with.get((msg.train, msg.unit), fleet) is not None
+                    and models.observation_for(msg.train, msg.unit) is not None
                 ):
                     if not queued:
                         pending[sid] = queued = []
