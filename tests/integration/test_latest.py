@@ -11,6 +11,7 @@ import zenoh
 from services.runtime.latest import LatestValues
 
 TIMEOUT_S = 5.0
+LARGE_QUERY_TIMEOUT_S = 60.0  # 10,000 replies of 2 kB
 
 
 def _ready_querier(session: zenoh.Session, key_expr: str) -> zenoh.Querier:
@@ -98,8 +99,20 @@ def test_one_query_answered_by_several_instances_gets_every_reply(open_session, 
     queriers = [_ready_querier(client, f"{ns}/q/state/{shard}001/**") for shard in "AB"]
     try:
         block = zenoh.CongestionControl.BLOCK  # as ServiceRuntime.ask
-        replies = client.get(f"{ns}/q/state/**", timeout=TIMEOUT_S, congestion_control=block)
-        keys = [str(r.ok.key_expr) for r in replies if r.ok is not None]
+        # The deadline only bounds a stalled run (0.1 s here; the deadlock closes the
+        # transports after 5 s whatever it is). CI once got 9,467 of 10,000 replies at a 5-s
+        # deadline, cause unseen: a deadline shows as an error reply ("Timeout"), the
+        # deadlock as replies missing without one.
+        replies = client.get(
+            f"{ns}/q/state/**", timeout=LARGE_QUERY_TIMEOUT_S, congestion_control=block
+        )
+        keys, errors = [], []
+        for reply in replies:
+            if reply.ok is not None:
+                keys.append(str(reply.ok.key_expr))
+            else:
+                errors.append(reply.err.payload.to_bytes()[:200])
+        assert not errors, f"{len(keys)} replies, then error replies {errors[:3]}"
         assert len(keys) == len(set(keys)) == 2 * per_shard
     finally:
         for entity in (*queriers, *servers):
