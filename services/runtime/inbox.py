@@ -112,7 +112,13 @@ class Inbox:
     # --- the worker side -----------------------------------------------------------------
 
     def take(self, max_items: int = 1, timeout: float | None = None) -> list[Item] | None:
-        """Up to ``max_items`` items in order; [] on timeout; None once closed and empty."""
+        """Up to ``max_items`` items in order; [] on timeout; None once closed and empty.
+
+        A backlog on disk comes back a slice at a time (:meth:`_refill`), the lock released
+        between slices so that puts go on, until ``max_items`` are taken: a worker's batch
+        is as large from the spill file as from memory (it was one slice, ~6,000 on-board
+        indices, whatever the worker asked for)."""
+        batch: list[Item] = []
         with self._cond:
             deadline = None if timeout is None else time.monotonic() + timeout
             while not self._items and self._spill_items == 0:
@@ -123,15 +129,27 @@ class Inbox:
                 if remaining is not None and remaining <= 0:
                     return []
                 self._cond.wait(remaining)
-            if not self._items:
-                self._refill()
-            batch = []
-            while self._items and len(batch) < max_items:
-                item = self._items.popleft()
-                self._memory -= len(item[2]) + len(item[1])
-                batch.append(item)
-            self._taken += len(batch)
-            return batch
+            self._take_into(batch, max_items)
+        while len(batch) < max_items:
+            time.sleep(0)  # the callbacks' puts first
+            with self._cond:
+                if not self._items and self._spill_items == 0:
+                    break
+                self._take_into(batch, max_items)
+        return batch
+
+    def _take_into(self, batch: list[Item], max_items: int) -> None:
+        """Under the lock: items into ``batch`` up to ``max_items``, reading at most one slice
+        back from the spill file first when memory is empty."""
+        if not self._items and self._spill_items:
+            self._refill()
+        taken = 0
+        while self._items and len(batch) < max_items:
+            item = self._items.popleft()
+            self._memory -= len(item[2]) + len(item[1])
+            batch.append(item)
+            taken += 1
+        self._taken += taken
 
     def stats(self) -> InboxStats:
         with self._cond:

@@ -53,6 +53,19 @@ def test_a_backlog_beyond_memory_waits_on_disk_and_comes_back_in_order():
     assert inbox.take(10, timeout=0) == [("k", "ns/after", b"x")]
 
 
+def test_a_batch_from_the_spill_file_is_as_large_as_asked():
+    """A worker that asks for a backlog's batch gets it from disk too, not one slice of the
+    spill file (the filtering service's batches of a deep backlog were ~6,000 messages)."""
+    inbox = Inbox(memory_bytes=50_000)
+    sent = items(3_000, seed=3)  # ~4.5 MB: almost all of it spilled, several slices
+    for item in sent:
+        inbox.put(*item)
+    assert inbox.stats().spill_bytes > 3 * (1 << 20)
+    assert inbox.take(2_500, timeout=0) == sent[:2_500]
+    assert inbox.take(2_500, timeout=0) == sent[2_500:]
+    assert inbox.stats().depth == 0
+
+
 def test_take_times_out_empty_and_ends_once_closed_and_drained():
     inbox = Inbox()
     assert inbox.take(5, timeout=0.01) == []
