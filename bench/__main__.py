@@ -26,7 +26,7 @@ Workloads (DESIGN "Performance targets"):
 10. one filtering instance with a backlog, in process: ``handle_batch`` on SQLite against the
     fold alone on the same batches, then the publication of the dirty states; once on fresh
     segments, once on 10,000 segments of 121 stored events after a restart (every segment
-    resting: ``--history 60``), ten batches of 16,384 (``bench/backlog.py``).
+    resting: ``--history 60``), ten batches of 65,536 (``bench/backlog.py``).
 11. filtering restart and model change on a store of 2,000 segments x 60 days (first start
     without checkpoints, restart from them, after SIGKILL; a new calibration), against
     ``fold_many`` alone (``bench/restart.py``; ``--segments 100000`` for issue 16's size).
@@ -211,7 +211,7 @@ def main() -> None:
     bench_siblings()
     bench_rerun()
     bench_backlog()
-    bench_backlog(10_000, 163_840, history=60)  # issue 16's figure: ten batches of 16,384
+    bench_backlog(10_000, 655_360, history=60)  # issue 16's figure: ten batches of 65,536
     bench_study()
     bench_raw_generation()
     bench_ingestion()

@@ -49,7 +49,7 @@ from services.filtering.testing import example_models
 from services.filtering.tracker import Scratch, Tracker, event_of, fold_many
 from services.limits import load_limits
 
-NS_SAMPLES, SEGMENTS, EVENTS = 200, 20_000, 65_536  # four of the service's batches
+NS_SAMPLES, SEGMENTS, EVENTS = 200, 20_000, 4 * BATCH  # four of the service's batches
 T0 = 1_767_225_600.0
 NS = "tfbench"
 

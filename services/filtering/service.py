@@ -86,10 +86,10 @@ from services.runtime.service import ServiceRuntime, configure_logging
 log = logging.getLogger(__name__)
 
 SERVICE = "filtering"
-BATCH = 16_384  # queued messages handled in one store transaction (when there is a backlog;
-# a segment's work per batch is most of it: 4,096 was 8-13 % slower at 10,000 segments
-# (python -m bench.backlog 10000 163840 --history 60, alternating), and
-# 1,024 10-20 % slower than 4,096, with fewer segments with two events or more)
+BATCH = 65_536  # queued messages handled in one store transaction (when there is a backlog;
+# a segment's work per batch is most of it: 16,384 was 19 % slower at 10,000 segments and
+# 8 % at 30,000 (python -m bench.backlog 10000 655360 --history 60, alternating), 4,096
+# 8-13 % slower than 16,384, 1,024 10-20 % slower than 4,096; ~30 MB more held than 16,384)
 EXIT_STORE_FAILED = 74  # EX_IOERR
 EXIT_SOFTWARE = 70  # EX_SOFTWARE: a bug escaped a batch
 STATE_CACHE = 16  # states kept per segment for a returning consumer (alerting, viewer)
