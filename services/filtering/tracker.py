@@ -1378,10 +1378,10 @@ def _rested(ckpt: Checkpoint, state, group, tail: Sequence[Event]) -> Checkpoint
         if event.kind == RESTART and (trc_t is None or event.t_s > trc_t):
             trc_t = event.t_s
     units = ckpt.units
-    if units is not None and not all(  # a superset is safe
-        (e.message.train, e.message.unit) in units for e in tail if e.kind == INDEX
-    ):
-        units = units | log_units(tail)
+    if units is not None:  # a superset is safe
+        read = log_units(tail)
+        if not read <= units:
+            units = units | read
     changes = {"trc_t": trc_t, "state": state, "group": group, "units": units}
     changes["last_order"] = tail[-1].order
     return _replaced(ckpt, changes)  # a backlog's per segment: _evolve without its check

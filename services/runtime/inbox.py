@@ -129,18 +129,16 @@ class Inbox:
                 if remaining is not None and remaining <= 0:
                     return []
                 self._cond.wait(remaining)
-            self._take_into(batch, max_items)
-        while len(batch) < max_items:
+            spilled = self._take_into(batch, max_items)
+        while spilled and len(batch) < max_items:  # (the live path never loops)
             time.sleep(0)  # the callbacks' puts first
             with self._cond:
-                if not self._items and self._spill_items == 0:
-                    break
-                self._take_into(batch, max_items)
+                spilled = self._take_into(batch, max_items)
         return batch
 
-    def _take_into(self, batch: list[Item], max_items: int) -> None:
+    def _take_into(self, batch: list[Item], max_items: int) -> bool:
         """Under the lock: items into ``batch`` up to ``max_items``, reading at most one slice
-        back from the spill file first when memory is empty."""
+        back from the spill file first when memory is empty; whether items remain on disk."""
         if not self._items and self._spill_items:
             self._refill()
         taken = 0
@@ -150,6 +148,7 @@ class Inbox:
             batch.append(item)
             taken += 1
         self._taken += taken
+        return self._spill_items > 0
 
     def stats(self) -> InboxStats:
         with self._cond:
