@@ -1,0 +1,489 @@
+r"""The plan's optimisation: which segment is tamped in which week.
+
+Pure numpy/scipy/numba. The problem (:class:`Problem`): segments grouped in *blocks* (a
+stretch of one line: adjacent segments in chainage order); per segment ``i`` a cost
+:math:`c_{i,w}` of being tamped in week ``w`` (0 … W-1) and :math:`c_{i,\varnothing}` of not
+being tamped in the horizon (at most one tamping per segment in the horizon). Adjacent
+segments tamped in the same week form a *worksite* (one possession, cost ``P``) which must be
+at least ``k`` segments long. Coupling constraints: tamping capacity (km per week per
+region) and a budget (tamping and possession money over the horizon).
+
+**Per block** the problem without the coupling constraints is a shortest path over the
+segments, with states "not tamped" and "tamped in week w, the worksite so far r segments
+long" (r capped at k): :func:`_dp_blocks` solves every block exactly in
+O(n W k) (compiled).
+
+**Coupling**: Dantzig-Wolfe column generation. The restricted master LP (HiGHS, through
+``scipy.optimize.linprog``) chooses a convex combination of known block plans per block under
+the capacity and budget rows; its duals :math:`y \le 0` price the weeks,
+
+.. math:: \tilde c_{i,w} = c_{i,w} - y_{r(i),w}\,\ell_i - y_B\,m_i, \qquad
+          \tilde P = P\,(1 - y_B),
+
+(:math:`\ell_i` km, :math:`m_i` tamping money), and the block DP with these costs gives each
+block's best new plan (a column) and the Lagrangian bound
+
+.. math:: LB(y) = \sum_b \min_{\text{plans of } b} \tilde c + \sum_{r,w} y_{r,w}\,
+          \mathrm{cap}_{r,w} + y_B\,B \;\le\; \text{optimum},
+
+a bound at least as tight as the LP relaxation of the MILP over (segment, week). When no block
+has a negative reduced cost (or the LP and the bound meet) the columns are final; the
+integer master (one plan per block, HiGHS MILP through ``scipy.optimize.milp``) gives the
+plan. Whole-block plans are coarse when few blocks share a binding week (a small network):
+when the integer master is further than the target gap from the bound and the problem has
+at most ``COMPACT_MAX_VARIABLES / 2`` (segment, week) options, the compact MILP over them
+(HiGHS) is solved too, and the better plan and the better bound are kept. The plan's cost
+against the best bound is the reported gap.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+from scipy import sparse
+from scipy.optimize import Bounds, LinearConstraint, linprog, milp
+
+NONE = -1  # a segment's choice: not tamped in the horizon
+MAX_COLUMN_ROUNDS = 60  # column generation rounds at most
+MILP_TIME_LIMIT_S = 30.0
+MILP_REL_GAP = 0.002  # HiGHS stops the integer master within this of its own bound
+
+
+@numba.njit(cache=True, nogil=True)
+def _dp_blocks(cost, starts, k, poss):  # pragma: no cover - compiled
+    """Best plan of every block: choice (N,) (-1 or week) and its cost (B,)."""
+    n_seg, width = cost.shape
+    weeks = width - 1
+    choice = np.empty(n_seg, np.int64)
+    value = np.empty(starts.shape[0] - 1)
+    for b in range(starts.shape[0] - 1):
+        lo, hi = starts[b], starts[b + 1]
+        kk = k[b]
+        p = poss[b]
+        n_states = 1 + weeks * kk
+        v = np.full(n_states, np.inf)
+        vn = np.full(n_states, np.inf)
+        back = np.zeros((hi - lo, n_states), np.int32)
+        v[0] = cost[lo, weeks]
+        for w in range(weeks):
+            v[1 + w * kk] = cost[lo, w] + p
+        for i in range(1, hi - lo):
+            row = lo + i
+            # best and second best closed state (none, or a worksite k long), with its week
+            best, best_s, best_w = v[0], 0, -1
+            second, second_s = np.inf, 0
+            for w in range(weeks):
+                s = 1 + w * kk + kk - 1
+                if v[s] < best:
+                    second, second_s = best, best_s
+                    best, best_s, best_w = v[s], s, w
+                elif v[s] < second:
+                    second, second_s = v[s], s
+            vn[0] = cost[row, weeks] + best
+            back[i, 0] = best_s
+            for w in range(weeks):
+                c = cost[row, w]
+                base = 1 + w * kk
+                if best_w != w:
+                    prev, prev_s = best, best_s
+                else:
+                    prev, prev_s = second, second_s
+                if kk == 1:
+                    if v[base] <= prev + p:
+                        vn[base] = c + v[base]
+                        back[i, base] = base
+                    else:
+                        vn[base] = c + prev + p
+                        back[i, base] = prev_s
+                    continue
+                vn[base] = c + prev + p
+                back[i, base] = prev_s
+                for r in range(1, kk - 1):
+                    vn[base + r] = c + v[base + r - 1]
+                    back[i, base + r] = base + r - 1
+                a, z = v[base + kk - 2], v[base + kk - 1]
+                if a <= z:
+                    vn[base + kk - 1] = c + a
+                    back[i, base + kk - 1] = base + kk - 2
+                else:
+                    vn[base + kk - 1] = c + z
+                    back[i, base + kk - 1] = base + kk - 1
+            v, vn = vn, v
+        best, s = v[0], 0
+        for w in range(weeks):
+            t = 1 + w * kk + kk - 1
+            if v[t] < best:
+                best, s = v[t], t
+        value[b] = best
+        for i in range(hi - lo - 1, -1, -1):
+            choice[lo + i] = NONE if s == 0 else (s - 1) // kk
+            if i > 0:
+                s = back[i, s]
+    return choice, value
+
+
+@dataclass
+class Problem:
+    """Everything the optimisation needs; arrays over N segments in block order.
+
+    ``cost`` (N, W+1): column ``w < W`` tamped in week ``w`` (``inf``: not allowed), column
+    ``W`` not tamped. ``starts`` (B+1,) block offsets; ``k`` (B,) shortest worksite in
+    segments; ``possession`` (B,) cost of a possession; ``region`` (B,) region index;
+    ``km`` (N,) length; ``money`` (N,) tamping money (what the budget counts);
+    ``capacity`` (R, W) km per week (``inf``: none); ``budget`` or None.
+    """
+
+    cost: np.ndarray
+    starts: np.ndarray
+    k: np.ndarray
+    possession: np.ndarray
+    region: np.ndarray
+    km: np.ndarray
+    money: np.ndarray
+    capacity: np.ndarray
+    budget: float | None = None
+
+    @property
+    def weeks(self) -> int:
+        return self.cost.shape[1] - 1
+
+    @property
+    def n_blocks(self) -> int:
+        return len(self.starts) - 1
+
+
+@dataclass
+class Solution:
+    """The chosen week per segment (-1: none), its cost, the bound and how it was found."""
+
+    choice: np.ndarray  # (N,)
+    cost: float
+    bound: float
+    status: str  # "optimal" (cost == bound), "within_gap", "gap_above_target"
+    rounds: int = 0
+    columns: int = 0
+    seconds: float = 0.0
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def gap(self) -> float:
+        """(cost - bound) / |cost|: 0 when proven optimal."""
+        return max(0.0, self.cost - self.bound) / max(abs(self.cost), 1e-12)
+
+
+def block_of(problem: Problem) -> np.ndarray:
+    """Block index of every segment."""
+    return np.repeat(np.arange(problem.n_blocks), np.diff(problem.starts))
+
+
+def plan_cost(problem: Problem, choice: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Per block: (cost, km per week (B, W), money) of a choice vector."""
+    c, weeks, blocks = problem.cost, problem.weeks, block_of(problem)
+    col = np.where(choice < 0, weeks, choice)
+    seg_cost = c[np.arange(len(choice)), col]
+    starts_run = run_starts(problem, choice)
+    poss = problem.possession[blocks] * starts_run
+    cost_b = np.bincount(blocks, seg_cost + poss, minlength=problem.n_blocks)
+    tamped = choice >= 0
+    km = np.zeros((problem.n_blocks, weeks))
+    np.add.at(km, (blocks[tamped], choice[tamped]), problem.km[tamped])
+    money = np.bincount(blocks, problem.money * tamped + poss, minlength=problem.n_blocks)
+    return float(cost_b.sum()), km, money
+
+
+def run_starts(problem: Problem, choice: np.ndarray) -> np.ndarray:
+    """1 where a worksite starts (a tamped segment whose block predecessor is not tamped in
+    the same week), else 0."""
+    first = np.zeros(len(choice), bool)
+    first[problem.starts[:-1]] = True
+    prev = np.r_[NONE, choice[:-1]]
+    return ((choice >= 0) & (first | (prev != choice))).astype(float)
+
+
+def _priced(problem: Problem, y_cap: np.ndarray, y_budget: float) -> tuple[np.ndarray, np.ndarray]:
+    """Costs and possession costs under the duals (module docstring)."""
+    blocks = block_of(problem)
+    cost = problem.cost.copy()
+    weeks = problem.weeks
+    cost[:, :weeks] -= y_cap[problem.region[blocks]] * problem.km[:, None]
+    cost[:, :weeks] -= y_budget * problem.money[:, None]
+    return cost, problem.possession * (1.0 - y_budget)
+
+
+def solve(problem: Problem, *, target_gap: float = 0.01) -> Solution:
+    """The plan of ``problem``: column generation, then the integer master (module docstring)."""
+    started = time.perf_counter()
+    timings = {"dp": 0.0, "lp": 0.0, "milp": 0.0}
+    n_b, weeks = problem.n_blocks, problem.weeks
+    cap = problem.capacity
+    budget = problem.budget if problem.budget is not None else np.inf
+    block_region = problem.region
+
+    def dp(cost, poss):
+        t = time.perf_counter()
+        out = _dp_blocks(cost, problem.starts, problem.k, poss)
+        timings["dp"] += time.perf_counter() - t
+        return out
+
+    choice, value = dp(problem.cost, problem.possession)
+    total, km, money = plan_cost(problem, choice)
+    load = np.zeros_like(cap)
+    np.add.at(load, block_region, km)
+    if (load <= cap + 1e-9).all() and money.sum() <= budget + 1e-9:
+        return Solution(choice, total, float(value.sum()), "optimal", 1, n_b,
+                        time.perf_counter() - started, timings)  # fmt: skip
+
+    # Columns: the uncoupled optimum and "nothing tamped" of every block.
+    none = np.full(len(choice), NONE)
+    columns = _Columns(n_b, weeks)
+    for ch in (none, choice):
+        _, km_c, money_c = plan_cost(problem, ch)
+        cost_c = _block_costs(problem, ch)
+        columns.add_all(ch, cost_c, km_c, money_c, problem.starts)
+    cap_rows = np.argwhere(np.isfinite(cap))  # (r, w) pairs with a capacity
+    best_bound = -np.inf
+    rounds = 0
+    lp_value = np.inf
+    for rounds in range(1, MAX_COLUMN_ROUNDS + 1):  # noqa: B007 (rounds is reported)
+        t = time.perf_counter()
+        lp_value, pi, y_cap, y_budget = _master_lp(columns, cap, cap_rows, budget, block_region)
+        timings["lp"] += time.perf_counter() - t
+        cost, poss = _priced(problem, y_cap, y_budget)
+        ch, value = dp(cost, poss)
+        bound = value.sum() + (y_cap[np.isfinite(cap)] * cap[np.isfinite(cap)]).sum()
+        bound += y_budget * budget if np.isfinite(budget) else 0.0
+        best_bound = max(best_bound, float(bound))
+        reduced = value - pi
+        new = np.flatnonzero(reduced < -1e-9 * (1.0 + np.abs(pi)))
+        if new.size == 0 or lp_value - best_bound <= 1e-7 * max(1.0, abs(lp_value)):
+            break
+        _, km_c, money_c = plan_cost(problem, ch)
+        columns.add_some(new, ch, _block_costs(problem, ch), km_c, money_c, problem.starts)
+    t = time.perf_counter()
+    chosen = _master_milp(columns, cap, cap_rows, budget, block_region, best_bound)
+    choice = columns.choice_vector(chosen, len(choice), problem.starts)
+    total = plan_cost(problem, choice)[0]
+    timings["milp"] = time.perf_counter() - t
+    if total - best_bound > target_gap * max(abs(total), 1e-12):
+        # Plans of whole blocks are too coarse here (few blocks share a binding week): the
+        # MILP over (segment, week) of the blocks any column tamps, within the time left.
+        t = time.perf_counter()
+        found = _compact_milp(problem, target_gap)
+        timings["compact_milp"] = time.perf_counter() - t
+        if found is not None:
+            compact_choice, compact_bound = found
+            best_bound = max(best_bound, compact_bound)
+            compact_total = plan_cost(problem, compact_choice)[0]
+            if compact_total < total:
+                choice, total = compact_choice, compact_total
+    bound = min(best_bound, total)
+    gap = max(0.0, total - bound) / max(abs(total), 1e-12)
+    status = "within_gap" if gap <= target_gap else "gap_above_target"
+    status = "optimal" if gap <= 1e-9 else status
+    return Solution(choice, total, float(bound), status, rounds, columns.n,
+                    time.perf_counter() - started, timings)  # fmt: skip
+
+
+def _block_costs(problem: Problem, choice: np.ndarray) -> np.ndarray:
+    blocks = block_of(problem)
+    col = np.where(choice < 0, problem.weeks, choice)
+    seg = problem.cost[np.arange(len(choice)), col] + problem.possession[blocks] * run_starts(
+        problem, choice
+    )
+    return np.bincount(blocks, seg, minlength=problem.n_blocks)
+
+
+class _Columns:
+    """Known plans of every block: cost, km per week, money, and the choices themselves."""
+
+    def __init__(self, n_blocks: int, weeks: int) -> None:
+        self.block: list[int] = []
+        self.cost: list[float] = []
+        self.km: list[np.ndarray] = []
+        self.money: list[float] = []
+        self.choices: list[np.ndarray] = []
+        self.seen: set[tuple[int, bytes]] = set()
+
+    @property
+    def n(self) -> int:
+        return len(self.block)
+
+    def add_all(self, choice, cost, km, money, starts) -> None:
+        self.add_some(np.arange(len(starts) - 1), choice, cost, km, money, starts)
+
+    def add_some(self, blocks, choice, cost, km, money, starts) -> None:
+        for b in blocks:
+            part = choice[starts[b] : starts[b + 1]].copy()
+            key = (int(b), part.tobytes())
+            if key in self.seen:
+                continue
+            self.seen.add(key)
+            self.block.append(int(b))
+            self.cost.append(float(cost[b]))
+            self.km.append(km[b].copy())
+            self.money.append(float(money[b]))
+            self.choices.append(part)
+
+    def choice_vector(self, chosen: np.ndarray, n: int, starts) -> np.ndarray:
+        out = np.full(n, NONE)
+        for c in np.flatnonzero(chosen):
+            b = self.block[c]
+            out[starts[b] : starts[b + 1]] = self.choices[c]
+        return out
+
+    def matrices(self, cap, cap_rows, budget, block_region):
+        """(c, A_eq, A_ub, b_ub): the master's cost, convexity rows, capacity/budget rows."""
+        n, n_b = self.n, max(self.block) + 1 if self.block else 0
+        c = np.array(self.cost)
+        blocks = np.array(self.block)
+        a_eq = sparse.csr_matrix((np.ones(n), (blocks, np.arange(n))), shape=(n_b, n))
+        km = np.array(self.km)  # (n, W)
+        row_of = {(int(r), int(w)): i for i, (r, w) in enumerate(cap_rows)}
+        rows, cols, vals = [], [], []
+        regions = block_region[blocks]
+        nz_c, nz_w = np.nonzero(km)
+        for ci, w in zip(nz_c, nz_w, strict=True):
+            i = row_of.get((int(regions[ci]), int(w)))
+            if i is not None:
+                rows.append(i)
+                cols.append(ci)
+                vals.append(km[ci, w])
+        n_ub = len(cap_rows) + (1 if np.isfinite(budget) else 0)
+        if np.isfinite(budget):
+            rows += [len(cap_rows)] * n
+            cols += list(range(n))
+            vals += self.money
+        a_ub = sparse.csr_matrix((vals, (rows, cols)), shape=(n_ub, n))
+        b_ub = np.r_[cap[cap_rows[:, 0], cap_rows[:, 1]], [budget] if np.isfinite(budget) else []]
+        return c, a_eq, n_b, a_ub, b_ub
+
+
+def _master_lp(columns: _Columns, cap, cap_rows, budget, block_region):
+    c, a_eq, n_b, a_ub, b_ub = columns.matrices(cap, cap_rows, budget, block_region)
+    res = linprog(
+        c,
+        A_ub=a_ub if a_ub.shape[0] else None,
+        b_ub=b_ub if a_ub.shape[0] else None,
+        A_eq=a_eq,
+        b_eq=np.ones(n_b),
+        bounds=(0, None),
+        method="highs",
+    )
+    if res.status != 0:
+        raise RuntimeError(f"master LP: {res.message}")
+    y = res.ineqlin.marginals if a_ub.shape[0] else np.zeros(0)
+    y_cap = np.zeros_like(cap)
+    y_cap[cap_rows[:, 0], cap_rows[:, 1]] = y[: len(cap_rows)]
+    y_budget = float(y[len(cap_rows)]) if np.isfinite(budget) else 0.0
+    return float(res.fun), res.eqlin.marginals, y_cap, y_budget
+
+
+def _master_milp(columns: _Columns, cap, cap_rows, budget, block_region, bound) -> np.ndarray:
+    c, a_eq, n_b, a_ub, b_ub = columns.matrices(cap, cap_rows, budget, block_region)
+    constraints = [LinearConstraint(a_eq, np.ones(n_b), np.ones(n_b))]
+    if a_ub.shape[0]:
+        constraints.append(LinearConstraint(a_ub, -np.inf, b_ub))
+    res = milp(
+        c,
+        constraints=constraints,
+        integrality=np.ones(len(c)),
+        bounds=Bounds(0, 1),
+        options={"time_limit": MILP_TIME_LIMIT_S, "mip_rel_gap": MILP_REL_GAP},
+    )
+    if res.x is None:
+        raise RuntimeError(f"master MILP: {res.message}")
+    return np.round(res.x).astype(bool)
+
+
+COMPACT_MAX_VARIABLES = 200_000  # (segment, week) options the compact MILP takes at most
+
+
+def _compact_milp(problem: Problem, target_gap: float) -> tuple[np.ndarray, float] | None:
+    """The MILP over (segment, week): x[i,w] tamped, s[i,w] a worksite starts; (choice,
+    HiGHS's dual bound), or None when it is too large or finds nothing.
+
+    .. math::
+        \\min \\sum_{i,w} (c_{i,w} - c_{i,\\varnothing}) x_{i,w} + P s_{i,w}
+        \\;\\text{s.t.}\\; \\sum_w x_{i,w} \\le 1,\\;
+        s_{i,w} \\ge x_{i,w} - x_{i-1,w},\\; s_{i,w} \\le x_{i+m,w}\\ (0 \\le m < k),
+    capacity and budget rows.
+    """
+    weeks = problem.weeks
+    blocks = block_of(problem)
+    seg = np.flatnonzero(np.isfinite(problem.cost[:, :weeks]).any(axis=1))
+    allowed = np.isfinite(problem.cost[seg, :weeks])
+    n_opt = int(allowed.sum())
+    if n_opt == 0 or 2 * n_opt > COMPACT_MAX_VARIABLES:
+        return None
+    # variable index of x[i, w] and s[i, w]; -1 where not allowed
+    xi = np.full((len(problem.km), weeks), -1)
+    xi[seg[:, None].repeat(weeks, 1)[allowed], np.nonzero(allowed)[1]] = np.arange(n_opt)
+    si = np.where(xi >= 0, xi + n_opt, -1)
+    none_cost = problem.cost[:, weeks]
+    c = np.zeros(2 * n_opt)
+    rr, ww = np.nonzero(xi >= 0)
+    c[xi[rr, ww]] = problem.cost[rr, ww] - none_cost[rr]
+    c[si[rr, ww]] = problem.possession[blocks[rr]]
+    rows, cols, vals, lo, hi = [], [], [], [], []
+
+    def row(entries, low, high):
+        for col, val in entries:
+            rows.append(len(lo))
+            cols.append(col)
+            vals.append(val)
+        lo.append(low)
+        hi.append(high)
+
+    first = np.zeros(len(problem.km), bool)
+    first[problem.starts[:-1]] = True
+    last = np.zeros(len(problem.km), bool)
+    last[problem.starts[1:] - 1] = True
+    k_of = problem.k[blocks]
+    for i in seg:
+        opts = [(int(xi[i, w]), 1.0) for w in range(weeks) if xi[i, w] >= 0]
+        if len(opts) > 1:
+            row(opts, -np.inf, 1.0)
+        for w in range(weeks):
+            if xi[i, w] < 0:
+                continue
+            x, s = int(xi[i, w]), int(si[i, w])
+            entries = [(s, 1.0), (x, -1.0)]
+            if not first[i] and xi[i - 1, w] >= 0:
+                entries.append((int(xi[i - 1, w]), 1.0))
+            row(entries, 0.0, np.inf)  # s >= x - x_prev
+            for m in range(int(k_of[i])):
+                j = i + m
+                if j > i and (last[j - 1] or xi[j, w] < 0):  # the worksite cannot fit
+                    row([(s, 1.0)], -np.inf, 0.0)
+                    break
+                row([(s, 1.0), (int(xi[j, w]), -1.0)], -np.inf, 0.0)
+    region_of = problem.region[blocks]
+    for r, w in np.argwhere(np.isfinite(problem.capacity)):
+        members = [(int(xi[i, w]), float(problem.km[i])) for i in seg if region_of[i] == r
+                   and xi[i, w] >= 0]  # fmt: skip
+        if members:
+            row(members, -np.inf, float(problem.capacity[r, w]))
+    if problem.budget is not None:
+        pairs = list(zip(rr, ww, strict=True))
+        entries = [(int(xi[i, w]), float(problem.money[i])) for i, w in pairs]
+        entries += [(int(si[i, w]), float(problem.possession[blocks[i]])) for i, w in pairs]
+        row(entries, -np.inf, float(problem.budget))
+    a = sparse.csr_matrix((vals, (rows, cols)), shape=(len(lo), 2 * n_opt))
+    res = milp(
+        c,
+        constraints=[LinearConstraint(a, np.array(lo), np.array(hi))],
+        integrality=np.ones(2 * n_opt),
+        bounds=Bounds(0, 1),
+        options={"time_limit": MILP_TIME_LIMIT_S, "mip_rel_gap": target_gap / 4},
+    )
+    if res.x is None:
+        return None
+    x = np.round(res.x[:n_opt]) > 0.5
+    choice = np.full(len(problem.km), NONE)
+    choice[rr[x]] = ww[x]
+    dual = getattr(res, "mip_dual_bound", None)
+    bound = -np.inf if dual is None else float(dual) + none_cost.sum()
+    return choice, bound

@@ -1,0 +1,110 @@
+"""The plan's optimisation against brute-force enumeration of every plan of small problems."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from services.planning.solver import NONE, Problem, plan_cost, run_starts, solve
+
+
+def brute_force(problem: Problem) -> float:
+    """The cheapest feasible plan's cost, by enumerating every choice vector."""
+    n, weeks = problem.cost.shape[0], problem.weeks
+    best = np.inf
+    blocks = np.repeat(np.arange(problem.n_blocks), np.diff(problem.starts))
+    for combo in itertools.product(range(-1, weeks), repeat=n):
+        choice = np.array(combo)
+        if not np.isfinite(problem.cost[np.arange(n), np.where(choice < 0, weeks, choice)]).all():
+            continue
+        if not worksites_long_enough(problem, choice):
+            continue
+        total, km, money = plan_cost(problem, choice)
+        load = np.zeros_like(problem.capacity)
+        np.add.at(load, problem.region, km)
+        if (load > problem.capacity + 1e-9).any():
+            continue
+        if problem.budget is not None and money.sum() > problem.budget + 1e-9:
+            continue
+        best = min(best, total)
+    assert blocks.size == n
+    return best
+
+
+def worksites_long_enough(problem: Problem, choice: np.ndarray) -> bool:
+    starts = run_starts(problem, choice).astype(bool)
+    for b in range(problem.n_blocks):
+        lo, hi = problem.starts[b], problem.starts[b + 1]
+        i = lo
+        while i < hi:
+            if choice[i] == NONE:
+                i += 1
+                continue
+            j = i + 1
+            while j < hi and choice[j] == choice[i] and not starts[j]:
+                j += 1
+            if j - i < problem.k[b]:
+                return False
+            i = j
+    return True
+
+
+def random_problem(seed: int, *, coupled: bool) -> Problem:
+    rng = np.random.default_rng(seed)
+    weeks = int(rng.integers(1, 4))
+    sizes = [int(s) for s in rng.integers(1, 4, size=int(rng.integers(1, 3)))]
+    n = sum(sizes)
+    if n > 6:
+        sizes, n = sizes[:1], sizes[0]
+    cost = rng.uniform(0, 10, (n, weeks + 1))
+    cost[:, weeks] = rng.uniform(0, 25, n)  # not tamping: sometimes the dearest
+    cost[rng.random((n, weeks + 1)) < 0.1] = np.inf
+    cost[:, weeks] = np.where(np.isfinite(cost[:, weeks]), cost[:, weeks], 30.0)
+    n_b = len(sizes)
+    km = rng.uniform(0.1, 0.3, n)
+    capacity = np.full((2, weeks), np.inf)
+    budget = None
+    if coupled:
+        capacity = rng.uniform(0.2, 0.6, (2, weeks))
+        budget = float(rng.uniform(5, 40))
+    return Problem(
+        cost=cost,
+        starts=np.r_[0, np.cumsum(sizes)].astype(np.int64),
+        k=rng.integers(1, 3, n_b).astype(np.int64),
+        possession=rng.uniform(0, 6, n_b),
+        region=rng.integers(0, 2, n_b),
+        km=km,
+        money=rng.uniform(1, 5, n),
+        capacity=capacity,
+        budget=budget,
+    )
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_uncoupled_plan_is_the_brute_force_optimum(seed):
+    problem = random_problem(seed, coupled=False)
+    solution = solve(problem)
+    assert solution.status == "optimal"
+    assert solution.cost == pytest.approx(brute_force(problem), rel=1e-9)
+    assert worksites_long_enough(problem, solution.choice)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_coupled_plan_is_feasible_and_its_bound_holds(seed):
+    problem = random_problem(seed, coupled=True)
+    solution = solve(problem)
+    best = brute_force(problem)
+    total, km, money = plan_cost(problem, solution.choice)
+    load = np.zeros_like(problem.capacity)
+    np.add.at(load, problem.region, km)
+    assert (load <= problem.capacity + 1e-9).all() and money.sum() <= problem.budget + 1e-9
+    assert worksites_long_enough(problem, solution.choice)
+    assert total == pytest.approx(solution.cost)
+    assert solution.bound <= best + 1e-7 * max(1, abs(best))  # a bound, never above the optimum
+    assert solution.cost >= best - 1e-7 * max(1, abs(best))
+    assert solution.status in ("optimal", "within_gap")
+    assert solution.cost <= best + 0.01 * abs(solution.cost) + 1e-9
+    if solution.status == "optimal":
+        assert solution.cost == pytest.approx(best, rel=1e-7)
