@@ -56,3 +56,24 @@ def load_limits(path: str | Path = DEFAULT_LIMITS_FILE) -> Limits:
     if unknown:
         raise ValueError(f"{path}: unknown speed class(es) {sorted(unknown)}")
     return Limits(levels, classes, default, lines)
+
+
+def load_immediate_action(path: str | Path, limits: Limits) -> dict[str, np.ndarray]:
+    """The ``immediate_action`` limits (mm, one per indicator) of every speed class of a
+    limits file, each at or above the class's highest level; ValueError says what to fix."""
+    try:
+        raw = json5.loads(Path(path).read_text())["immediate_action"]
+        table = {name: np.asarray(raw[name], dtype=float) for name in limits.speed_classes}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(
+            f"{path}: no immediate_action limits for every speed class ({type(exc).__name__}: "
+            f"{exc})"
+        ) from None
+    for name, ial in table.items():
+        below = limits.speed_classes[name][-1]
+        if ial.shape != below.shape or not np.isfinite(ial).all() or (ial < below).any():
+            raise ValueError(
+                f"{path}: immediate_action {name!r}: need {below.size} limits at or above "
+                f"{limits.levels[-1]} {below.tolist()}, got {ial.tolist()}"
+            )
+    return table

@@ -94,6 +94,15 @@ def above_any(m, v, post: Posterior, tau, log_limit) -> np.ndarray:
     return out
 
 
+def above_each(m, v, post: Posterior, tau, log_limit) -> np.ndarray:
+    """P(indicator above its limit) per indicator at one time per segment, ``tau`` (N,) days,
+    untamped: (N, n)."""
+    t = np.asarray(tau, float)[:, None, None]
+    mean = m[:, None, :] + post.mu[None] * t
+    var = v[:, None, :] + post.var[None] * t
+    return _above(mean, np.maximum(var, 1e-12), log_limit[:, None, :]).mean(axis=1)
+
+
 def above_any_after_tamping(post: Posterior, age, log_limit) -> np.ndarray:
     """P(any indicator above ``log_limit`` (n,)) at ages ``age`` (A,) days after a tamping."""
     a = np.asarray(age, float)[None, :, None]

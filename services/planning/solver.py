@@ -203,13 +203,17 @@ def run_starts(problem: Problem, choice: np.ndarray) -> np.ndarray:
     return ((choice >= 0) & (first | (prev != choice))).astype(float)
 
 
-def _priced(problem: Problem, y_cap: np.ndarray, y_budget: float) -> tuple[np.ndarray, np.ndarray]:
-    """Costs and possession costs under the duals (module docstring)."""
+def _priced(problem: Problem, y_cap, y_budget, pi=None):
+    """Costs relative to "not tamped" under the duals (module docstring): column ``W`` is 0,
+    column ``w`` the reduced cost of tamping the segment in week ``w``; and the possession's."""
     blocks = block_of(problem)
-    cost = problem.cost.copy()
     weeks = problem.weeks
+    cost = np.zeros_like(problem.cost)
+    cost[:, :weeks] = problem.cost[:, :weeks] - problem.cost[:, weeks : weeks + 1]
     cost[:, :weeks] -= y_cap[problem.region[blocks]] * problem.km[:, None]
     cost[:, :weeks] -= y_budget * problem.money[:, None]
+    if pi is not None:
+        cost[:, :weeks] -= pi[:, None]
     return cost, problem.possession * (1.0 - y_budget)
 
 
@@ -217,10 +221,10 @@ def solve(problem: Problem, *, target_gap: float = 0.01) -> Solution:
     """The plan of ``problem``: column generation, then the integer master (module docstring)."""
     started = time.perf_counter()
     timings = {"dp": 0.0, "lp": 0.0, "milp": 0.0}
-    n_b, weeks = problem.n_blocks, problem.weeks
+    weeks = problem.weeks
     cap = problem.capacity
     budget = problem.budget if problem.budget is not None else np.inf
-    block_region = problem.region
+    constant = float(problem.cost[:, weeks].sum())
 
     def dp(cost, poss):
         t = time.perf_counter()
@@ -231,45 +235,43 @@ def solve(problem: Problem, *, target_gap: float = 0.01) -> Solution:
     choice, value = dp(problem.cost, problem.possession)
     total, km, money = plan_cost(problem, choice)
     load = np.zeros_like(cap)
-    np.add.at(load, block_region, km)
+    np.add.at(load, problem.region, km)
     if (load <= cap + 1e-9).all() and money.sum() <= budget + 1e-9:
-        return Solution(choice, total, float(value.sum()), "optimal", 1, n_b,
+        return Solution(choice, total, float(value.sum()), "optimal", 1, 0,
                         time.perf_counter() - started, timings)  # fmt: skip
 
-    # Columns: the uncoupled optimum and "nothing tamped" of every block.
-    none = np.full(len(choice), NONE)
-    columns = _Columns(n_b, weeks)
-    for ch in (none, choice):
-        _, km_c, money_c = plan_cost(problem, ch)
-        cost_c = _block_costs(problem, ch)
-        columns.add_all(ch, cost_c, km_c, money_c, problem.starts)
+    columns = _Worksites(problem)
+    columns.add(choice)
     cap_rows = np.argwhere(np.isfinite(cap))  # (r, w) pairs with a capacity
     best_bound = -np.inf
     rounds = 0
-    lp_value = np.inf
     for rounds in range(1, MAX_COLUMN_ROUNDS + 1):  # noqa: B007 (rounds is reported)
         t = time.perf_counter()
-        lp_value, pi, y_cap, y_budget = _master_lp(columns, cap, cap_rows, budget, block_region)
+        lp_value, pi, y_cap, y_budget = columns.master_lp(cap_rows, budget)
         timings["lp"] += time.perf_counter() - t
+        # the Lagrangian bound: capacity and budget priced, every block solved exactly
         cost, poss = _priced(problem, y_cap, y_budget)
-        ch, value = dp(cost, poss)
-        bound = value.sum() + (y_cap[np.isfinite(cap)] * cap[np.isfinite(cap)]).sum()
+        bound_choice, value = dp(cost, poss)
+        bound = constant + value.sum() + (y_cap[cap_rows[:, 0], cap_rows[:, 1]] * cap[
+            cap_rows[:, 0], cap_rows[:, 1]]).sum()  # fmt: skip
         bound += y_budget * budget if np.isfinite(budget) else 0.0
         best_bound = max(best_bound, float(bound))
-        reduced = value - pi
-        new = np.flatnonzero(reduced < -1e-9 * (1.0 + np.abs(pi)))
-        if new.size == 0 or lp_value - best_bound <= 1e-7 * max(1.0, abs(lp_value)):
+        columns.add(bound_choice)
+        # pricing: the master's segment duals too; a plan below 0 holds a worksite to add
+        cost, poss = _priced(problem, y_cap, y_budget, pi)
+        priced_choice, value = dp(cost, poss)
+        if value.min() >= -1e-9 * max(1.0, abs(lp_value) / max(1, problem.n_blocks)):
             break
-        _, km_c, money_c = plan_cost(problem, ch)
-        columns.add_some(new, ch, _block_costs(problem, ch), km_c, money_c, problem.starts)
+        if constant + lp_value - best_bound <= 1e-7 * max(1.0, abs(constant + lp_value)):
+            break
+        if not columns.add(priced_choice):
+            break
     t = time.perf_counter()
-    chosen = _master_milp(columns, cap, cap_rows, budget, block_region, best_bound)
-    choice = columns.choice_vector(chosen, len(choice), problem.starts)
+    choice = columns.master_milp(cap_rows, budget, target_gap)
     total = plan_cost(problem, choice)[0]
     timings["milp"] = time.perf_counter() - t
     if total - best_bound > target_gap * max(abs(total), 1e-12):
-        # Plans of whole blocks are too coarse here (few blocks share a binding week): the
-        # MILP over (segment, week) of the blocks any column tamps, within the time left.
+        # the worksites found are not enough: the MILP over (segment, week), if not too large
         t = time.perf_counter()
         found = _compact_milp(problem, target_gap)
         timings["compact_milp"] = time.perf_counter() - t
@@ -287,115 +289,112 @@ def solve(problem: Problem, *, target_gap: float = 0.01) -> Solution:
                     time.perf_counter() - started, timings)  # fmt: skip
 
 
-def _block_costs(problem: Problem, choice: np.ndarray) -> np.ndarray:
-    blocks = block_of(problem)
-    col = np.where(choice < 0, problem.weeks, choice)
-    seg = problem.cost[np.arange(len(choice)), col] + problem.possession[blocks] * run_starts(
-        problem, choice
-    )
-    return np.bincount(blocks, seg, minlength=problem.n_blocks)
+class _Worksites:
+    """The master's columns: worksites (a run of adjacent segments of one block, one week).
 
+    Master: :math:`\\min \\sum_c (P + \\sum_{i \\in c} c_{i,w_c} - c_{i,\\varnothing})\\,\\theta_c`
+    with every segment in at most one chosen worksite, capacity and budget rows; a plan is
+    the union of the chosen worksites (adjacent ones in one week merge, sharing a
+    possession, which only lowers the cost).
+    """
 
-class _Columns:
-    """Known plans of every block: cost, km per week, money, and the choices themselves."""
-
-    def __init__(self, n_blocks: int, weeks: int) -> None:
-        self.block: list[int] = []
-        self.cost: list[float] = []
-        self.km: list[np.ndarray] = []
-        self.money: list[float] = []
-        self.choices: list[np.ndarray] = []
-        self.seen: set[tuple[int, bytes]] = set()
+    def __init__(self, problem: Problem) -> None:
+        self.problem = problem
+        self.blocks = block_of(problem)
+        self.first: list[int] = []  # first segment
+        self.length: list[int] = []
+        self.week: list[int] = []
+        self.seen: set[tuple[int, int, int]] = set()
 
     @property
     def n(self) -> int:
-        return len(self.block)
+        return len(self.first)
 
-    def add_all(self, choice, cost, km, money, starts) -> None:
-        self.add_some(np.arange(len(starts) - 1), choice, cost, km, money, starts)
+    def add(self, choice: np.ndarray) -> int:
+        """Add the worksites of a plan not known yet; how many were new."""
+        starts = np.flatnonzero(run_starts(self.problem, choice))
+        new = 0
+        for a in starts:
+            b = a + 1
+            while b < len(choice) and choice[b] == choice[a] and self.blocks[b] == self.blocks[a]:
+                b += 1
+            key = (int(a), int(b - a), int(choice[a]))
+            if key not in self.seen:
+                self.seen.add(key)
+                self.first.append(key[0])
+                self.length.append(key[1])
+                self.week.append(key[2])
+                new += 1
+        return new
 
-    def add_some(self, blocks, choice, cost, km, money, starts) -> None:
-        for b in blocks:
-            part = choice[starts[b] : starts[b + 1]].copy()
-            key = (int(b), part.tobytes())
-            if key in self.seen:
-                continue
-            self.seen.add(key)
-            self.block.append(int(b))
-            self.cost.append(float(cost[b]))
-            self.km.append(km[b].copy())
-            self.money.append(float(money[b]))
-            self.choices.append(part)
-
-    def choice_vector(self, chosen: np.ndarray, n: int, starts) -> np.ndarray:
-        out = np.full(n, NONE)
-        for c in np.flatnonzero(chosen):
-            b = self.block[c]
-            out[starts[b] : starts[b + 1]] = self.choices[c]
-        return out
-
-    def matrices(self, cap, cap_rows, budget, block_region):
-        """(c, A_eq, A_ub, b_ub): the master's cost, convexity rows, capacity/budget rows."""
-        n, n_b = self.n, max(self.block) + 1 if self.block else 0
-        c = np.array(self.cost)
-        blocks = np.array(self.block)
-        a_eq = sparse.csr_matrix((np.ones(n), (blocks, np.arange(n))), shape=(n_b, n))
-        km = np.array(self.km)  # (n, W)
+    def matrices(self, cap_rows, budget):
+        p = self.problem
+        weeks = p.weeks
+        n = self.n
+        first, length, week = (np.array(x, np.int64) for x in (self.first, self.length, self.week))
+        seg = np.repeat(first, length) + (np.arange(length.sum()) - np.repeat(
+            np.cumsum(length) - length, length))  # fmt: skip
+        col = np.repeat(np.arange(n), length)
+        rel = p.cost[seg, week[col]] - p.cost[seg, weeks]
+        poss = p.possession[self.blocks[first]]
+        cost = np.bincount(col, rel, minlength=n) + poss
+        km = np.bincount(col, p.km[seg], minlength=n)
+        money = np.bincount(col, p.money[seg], minlength=n) + poss
+        used, seg_row = np.unique(seg, return_inverse=True)
+        a_seg = sparse.csr_matrix((np.ones(len(seg)), (seg_row, col)), shape=(len(used), n))
         row_of = {(int(r), int(w)): i for i, (r, w) in enumerate(cap_rows)}
-        rows, cols, vals = [], [], []
-        regions = block_region[blocks]
-        nz_c, nz_w = np.nonzero(km)
-        for ci, w in zip(nz_c, nz_w, strict=True):
-            i = row_of.get((int(regions[ci]), int(w)))
-            if i is not None:
-                rows.append(i)
-                cols.append(ci)
-                vals.append(km[ci, w])
+        region = p.region[self.blocks[first]]
+        pairs = zip(region.tolist(), week.tolist(), strict=True)
+        rows = np.array([row_of.get(pair, -1) for pair in pairs], np.int64)
+        has = rows >= 0
         n_ub = len(cap_rows) + (1 if np.isfinite(budget) else 0)
+        r_idx = list(rows[has])
+        c_idx = list(np.flatnonzero(has))
+        vals = list(km[has])
         if np.isfinite(budget):
-            rows += [len(cap_rows)] * n
-            cols += list(range(n))
-            vals += self.money
-        a_ub = sparse.csr_matrix((vals, (rows, cols)), shape=(n_ub, n))
-        b_ub = np.r_[cap[cap_rows[:, 0], cap_rows[:, 1]], [budget] if np.isfinite(budget) else []]
-        return c, a_eq, n_b, a_ub, b_ub
+            r_idx += [len(cap_rows)] * n
+            c_idx += list(range(n))
+            vals += list(money)
+        a_cap = sparse.csr_matrix((vals, (r_idx, c_idx)), shape=(n_ub, n))
+        b_cap = p.capacity[cap_rows[:, 0], cap_rows[:, 1]]
+        if np.isfinite(budget):
+            b_cap = np.r_[b_cap, budget]
+        return cost, used, a_seg, a_cap, b_cap
 
+    def master_lp(self, cap_rows, budget):
+        """(LP value, segment duals (N,), capacity duals (R, W), budget dual)."""
+        cost, used, a_seg, a_cap, b_cap = self.matrices(cap_rows, budget)
+        a_ub = sparse.vstack([a_seg, a_cap]).tocsr()
+        b_ub = np.r_[np.ones(a_seg.shape[0]), b_cap]
+        res = linprog(cost, A_ub=a_ub, b_ub=b_ub, bounds=(0, None), method="highs")
+        if res.status != 0:
+            raise RuntimeError(f"master LP: {res.message}")
+        y = res.ineqlin.marginals
+        pi = np.zeros(len(self.problem.km))
+        pi[used] = y[: len(used)]
+        y_rest = y[len(used) :]
+        y_cap = np.zeros_like(self.problem.capacity)
+        y_cap[cap_rows[:, 0], cap_rows[:, 1]] = y_rest[: len(cap_rows)]
+        y_budget = float(y_rest[len(cap_rows)]) if np.isfinite(budget) else 0.0
+        return float(res.fun), pi, y_cap, y_budget
 
-def _master_lp(columns: _Columns, cap, cap_rows, budget, block_region):
-    c, a_eq, n_b, a_ub, b_ub = columns.matrices(cap, cap_rows, budget, block_region)
-    res = linprog(
-        c,
-        A_ub=a_ub if a_ub.shape[0] else None,
-        b_ub=b_ub if a_ub.shape[0] else None,
-        A_eq=a_eq,
-        b_eq=np.ones(n_b),
-        bounds=(0, None),
-        method="highs",
-    )
-    if res.status != 0:
-        raise RuntimeError(f"master LP: {res.message}")
-    y = res.ineqlin.marginals if a_ub.shape[0] else np.zeros(0)
-    y_cap = np.zeros_like(cap)
-    y_cap[cap_rows[:, 0], cap_rows[:, 1]] = y[: len(cap_rows)]
-    y_budget = float(y[len(cap_rows)]) if np.isfinite(budget) else 0.0
-    return float(res.fun), res.eqlin.marginals, y_cap, y_budget
-
-
-def _master_milp(columns: _Columns, cap, cap_rows, budget, block_region, bound) -> np.ndarray:
-    c, a_eq, n_b, a_ub, b_ub = columns.matrices(cap, cap_rows, budget, block_region)
-    constraints = [LinearConstraint(a_eq, np.ones(n_b), np.ones(n_b))]
-    if a_ub.shape[0]:
-        constraints.append(LinearConstraint(a_ub, -np.inf, b_ub))
-    res = milp(
-        c,
-        constraints=constraints,
-        integrality=np.ones(len(c)),
-        bounds=Bounds(0, 1),
-        options={"time_limit": MILP_TIME_LIMIT_S, "mip_rel_gap": MILP_REL_GAP},
-    )
-    if res.x is None:
-        raise RuntimeError(f"master MILP: {res.message}")
-    return np.round(res.x).astype(bool)
+    def master_milp(self, cap_rows, budget, target_gap) -> np.ndarray:
+        """The best set of known worksites, as a choice vector."""
+        cost, used, a_seg, a_cap, b_cap = self.matrices(cap_rows, budget)
+        a = sparse.vstack([a_seg, a_cap]).tocsr()
+        res = milp(
+            cost,
+            constraints=[LinearConstraint(a, -np.inf, np.r_[np.ones(a_seg.shape[0]), b_cap])],
+            integrality=np.ones(self.n),
+            bounds=Bounds(0, 1),
+            options={"time_limit": MILP_TIME_LIMIT_S, "mip_rel_gap": target_gap / 4},
+        )
+        if res.x is None:
+            raise RuntimeError(f"master MILP: {res.message}")
+        choice = np.full(len(self.problem.km), NONE)
+        for c in np.flatnonzero(res.x > 0.5):
+            choice[self.first[c] : self.first[c] + self.length[c]] = self.week[c]
+        return choice
 
 
 COMPACT_MAX_VARIABLES = 200_000  # (segment, week) options the compact MILP takes at most
