@@ -25,8 +25,10 @@ What the planner asks of it, per indicator ``i`` and then over the indicators:
        + e^{2\mu d/s^2}\,\Phi\Big(\frac{-d - \mu\tau}{s\sqrt\tau}\Big),
 
   and 1 when :math:`z_0 \ge b`. The start is uncertain, :math:`z_0 \sim N(m_i, P_{ii})`:
-  Gauss-Hermite quadrature over it. Indicators combine by the union bound
-  :math:`\min(1, F_{top} + F_{align})`, which never understates the risk.
+  :math:`P(z_0 \ge b)` exactly, plus Gauss-Legendre quadrature over the quantiles of
+  the start below ``b`` (a smooth integrand, unlike over the whole normal). Indicators
+  combine by the union bound :math:`\min(1, F_{top} + F_{align})`, which never understates
+  the risk.
   With :math:`\mu \ge 0` a path that reached ``b`` is above it at :math:`\tau` with
   probability at least 1/2, so :math:`F(\tau) \le 2\,P(z(\tau) > b)`: segments whose bound is
   negligible skip the quadrature.
@@ -34,13 +36,14 @@ What the planner asks of it, per indicator ``i`` and then over the indicators:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
-from numpy.polynomial.hermite_e import hermegauss
-from scipy.special import log_ndtr, ndtr
+from numpy.polynomial.legendre import leggauss
+from scipy.special import ndtr, ndtri
 
-CHUNK = 2048  # segments per vectorised block: (CHUNK, samples, times, 2) arrays of ~30 MB
 NEGLIGIBLE = 1e-7  # a first-passage bound below this is taken as 0
 
 
@@ -83,15 +86,11 @@ def above_any(m, v, post: Posterior, tau, log_limit) -> np.ndarray:
     ``m``, ``v`` (N, n): state mean and variances; ``tau`` (N, T) days >= 0; ``log_limit``
     (N, n). Returns (N, T).
     """
-    out = np.empty(tau.shape)
-    for lo in range(0, m.shape[0], CHUNK):
-        s = slice(lo, lo + CHUNK)
-        t = tau[s][:, None, :, None]  # (c, 1, T, 1)
-        mean = m[s][:, None, None, :] + post.mu[None, :, None, :] * t  # (c, S, T, n)
-        var = v[s][:, None, None, :] + post.var[None, :, None, :] * t
-        p = _above(mean, np.maximum(var, 1e-12), log_limit[s][:, None, None, :])
-        out[s] = (1.0 - np.prod(1.0 - p, axis=-1)).mean(axis=1)
-    return out
+    return _above_any_kernel(
+        np.ascontiguousarray(m, float), np.ascontiguousarray(v, float),
+        np.ascontiguousarray(tau, float), np.ascontiguousarray(log_limit, float),
+        post.mu, post.var,
+    )  # fmt: skip
 
 
 def above_each(m, v, post: Posterior, tau, log_limit) -> np.ndarray:
@@ -116,23 +115,83 @@ def first_passage(m, v, post: Posterior, tau, log_limit, nodes: int = 5) -> np.n
     """P(some indicator reaches its limit within ``tau`` days), untamped: module docstring.
 
     ``m``, ``v`` (N, n), ``tau`` (N, T) days, ``log_limit`` (N, n). Returns (N, T), the union
-    bound over indicators of the mixture's first-passage probabilities.
+    bound over indicators of the mixture's first-passage probabilities. The start above the
+    limit counts exactly; below it, Gauss-Legendre quadrature over the start's quantile.
     """
-    x, w = hermegauss(nodes)
-    w = w / w.sum()
-    out = np.empty(tau.shape)
-    for lo in range(0, m.shape[0], CHUNK):
-        s = slice(lo, lo + CHUNK)
-        z0 = m[s][:, None, :] + np.sqrt(np.maximum(v[s], 0.0))[:, None, :] * x[None, :, None]
-        d = (log_limit[s][:, None, :] - z0)[:, None, :, None, :]  # (c, 1, K, 1, n)
-        t = np.maximum(tau[s], 1e-9)[:, None, None, :, None]  # (c, 1, 1, T, 1)
-        mu = post.mu[None, :, None, None, :]  # (1, S, 1, 1, n)
-        s2 = np.maximum(post.var, 1e-18)[None, :, None, None, :]
-        sd = np.sqrt(s2 * t)
-        with np.errstate(over="ignore", invalid="ignore"):
-            first = ndtr((mu * t - d) / sd)
-            second = np.exp(np.minimum(2.0 * mu * d / s2 + log_ndtr((-d - mu * t) / sd), 0.0))
-            f = np.where(d > 0, np.minimum(first + second, 1.0), 1.0)  # (c, S, K, T, n)
-        f = np.tensordot(f.mean(axis=1), w, axes=([1], [0]))  # (c, T, n)
-        out[s] = np.minimum(f.sum(axis=-1), 1.0)
+    x, w = leggauss(nodes)
+    sd0 = np.sqrt(np.maximum(v, 0.0))
+    safe = np.maximum(sd0, 1e-12)
+    below = np.where(sd0 > 0, ndtr((log_limit - m) / safe), (m < log_limit).astype(float))
+    u = below[..., None] * (x + 1.0) / 2.0  # (N, n, K) quantiles of the start below the limit
+    z0 = m[..., None] + sd0[..., None] * ndtri(np.clip(u, 1e-300, 1.0))
+    weight = below[..., None] * w / 2.0
+    return _first_passage_kernel(
+        np.ascontiguousarray(log_limit[..., None] - z0), np.ascontiguousarray(weight),
+        1.0 - below, np.ascontiguousarray(tau, float), post.mu, post.var,
+    )  # fmt: skip
+
+
+_SQRT2 = math.sqrt(2.0)
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _ndtr(x):  # pragma: no cover - compiled
+    return 0.5 * math.erfc(-x / _SQRT2)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _log_ndtr(x):  # pragma: no cover - compiled
+    if x > -20.0:
+        return math.log(0.5 * math.erfc(-x / _SQRT2))
+    # asymptotic series of the lower tail (relative error below 1e-9 here)
+    x2 = x * x
+    return -0.5 * x2 - math.log(-x) - _LOG_SQRT_2PI + math.log(1.0 - 1.0 / x2 + 3.0 / (x2 * x2))
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _above_any_kernel(m, v, tau, log_limit, mu, var):  # pragma: no cover - compiled
+    n_seg, n_t = tau.shape
+    n_s, n = mu.shape
+    out = np.empty((n_seg, n_t))
+    for i in numba.prange(n_seg):
+        for u in range(n_t):
+            t = tau[i, u]
+            total = 0.0
+            for j in range(n_s):
+                below = 1.0
+                for k in range(n):
+                    sd = math.sqrt(max(v[i, k] + var[j, k] * t, 1e-12))
+                    below *= 1.0 - _ndtr((m[i, k] + mu[j, k] * t - log_limit[i, k]) / sd)
+                total += 1.0 - below
+            out[i, u] = total / n_s
+    return out
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _first_passage_kernel(dist, weight, above, tau, mu, var):  # pragma: no cover
+    n_seg, n_t = tau.shape
+    n_s, n = mu.shape
+    out = np.empty((n_seg, n_t))
+    for i in numba.prange(n_seg):
+        for u in range(n_t):
+            t = max(tau[i, u], 1e-9)
+            total = 0.0
+            for k in range(n):
+                total += above[i, k]
+                for q in range(dist.shape[2]):
+                    d = dist[i, k, q]
+                    if d <= 0.0:
+                        total += weight[i, k, q]
+                        continue
+                    f = 0.0
+                    for j in range(n_s):
+                        s2 = max(var[j, k], 1e-18)
+                        st = math.sqrt(s2 * t)
+                        drift = mu[j, k] * t
+                        first = _ndtr((drift - d) / st)
+                        log_second = 2.0 * mu[j, k] * d / s2 + _log_ndtr((-d - drift) / st)
+                        f += min(first + math.exp(min(log_second, 0.0)), 1.0)
+                    total += weight[i, k, q] * f / n_s
+            out[i, u] = min(total, 1.0)
     return out
