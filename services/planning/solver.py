@@ -218,13 +218,72 @@ def _priced(problem: Problem, y_cap, y_budget, pi=None):
 
 
 def solve(problem: Problem, *, target_gap: float = 0.01) -> Solution:
-    """The plan of ``problem``: column generation, then the integer master (module docstring)."""
+    """The plan of ``problem``: every block's best plan; where that breaks a capacity or the
+    budget, column generation and the integer master (module docstring). Without a budget the
+    regions are independent and each is solved on its own."""
     started = time.perf_counter()
     timings = {"dp": 0.0, "lp": 0.0, "milp": 0.0}
+    cap = problem.capacity
+    budget = problem.budget if problem.budget is not None else np.inf
+    t = time.perf_counter()
+    choice, value = _dp_blocks(problem.cost, problem.starts, problem.k, problem.possession)
+    timings["dp"] += time.perf_counter() - t
+    _, km, money = plan_cost(problem, choice)
+    load = np.zeros_like(cap)
+    np.add.at(load, problem.region, km)
+    over = np.flatnonzero((load > cap + 1e-9).any(axis=1))
+    rounds = columns = 0
+    bound = float(value.sum())
+    if money.sum() > budget + 1e-9:
+        choice, bound, rounds, columns = _coupled(problem, target_gap, timings)
+    elif over.size:
+        # regions within their capacity keep their blocks' best plans (optimal there)
+        for r in over:
+            blocks = np.flatnonzero(problem.region == r)
+            sub, rows = _subproblem(problem, blocks)
+            sub_choice, sub_bound, n_rounds, n_columns = _coupled(sub, target_gap, timings)
+            choice[rows] = sub_choice
+            bound += sub_bound - value[blocks].sum()
+            rounds = max(rounds, n_rounds)
+            columns += n_columns
+    total = plan_cost(problem, choice)[0]
+    bound = min(bound, total)
+    gap = max(0.0, total - bound) / max(abs(total), 1e-12)
+    status = "within_gap" if gap <= target_gap else "gap_above_target"
+    status = "optimal" if gap <= 1e-9 else status
+    return Solution(choice, total, float(bound), status, rounds, columns,
+                    time.perf_counter() - started, timings)  # fmt: skip
+
+
+def _subproblem(problem: Problem, blocks: np.ndarray) -> tuple[Problem, np.ndarray]:
+    """The problem of some blocks of one region, and the rows of their segments."""
+    lo, hi = problem.starts[blocks], problem.starts[blocks + 1]
+    rows = np.concatenate([np.arange(a, b) for a, b in zip(lo, hi, strict=True)])
+    region = problem.region[blocks[0]]
+    sub = Problem(
+        cost=problem.cost[rows],
+        starts=np.r_[0, np.cumsum(hi - lo)].astype(np.int64),
+        k=problem.k[blocks],
+        possession=problem.possession[blocks],
+        region=np.zeros(len(blocks), np.int64),
+        km=problem.km[rows],
+        money=problem.money[rows],
+        capacity=problem.capacity[region : region + 1],
+        budget=problem.budget,
+    )
+    return sub, rows
+
+
+def _coupled(problem: Problem, target_gap: float, timings: dict[str, float]):
+    """Column generation and the integer master: (choice, bound, rounds, columns).
+
+    The bound and the duals come from the Dantzig-Wolfe master over whole block plans; the
+    plan from the set-packing MILP over every worksite of those plans, which may recombine
+    worksites of different plans of one block (finer than choosing one plan per block).
+    """
     weeks = problem.weeks
     cap = problem.capacity
     budget = problem.budget if problem.budget is not None else np.inf
-    constant = float(problem.cost[:, weeks].sum())
 
     def dp(cost, poss):
         t = time.perf_counter()
@@ -232,61 +291,141 @@ def solve(problem: Problem, *, target_gap: float = 0.01) -> Solution:
         timings["dp"] += time.perf_counter() - t
         return out
 
-    choice, value = dp(problem.cost, problem.possession)
-    total, km, money = plan_cost(problem, choice)
-    load = np.zeros_like(cap)
-    np.add.at(load, problem.region, km)
-    if (load <= cap + 1e-9).all() and money.sum() <= budget + 1e-9:
-        return Solution(choice, total, float(value.sum()), "optimal", 1, 0,
-                        time.perf_counter() - started, timings)  # fmt: skip
-
-    columns = _Worksites(problem)
-    columns.add(choice)
+    plans = _Columns(problem.n_blocks, weeks)
+    worksites = _Worksites(problem)
+    for choice in (np.full(len(problem.km), NONE), dp(problem.cost, problem.possession)[0]):
+        _, km_c, money_c = plan_cost(problem, choice)
+        plans.add_all(choice, _block_costs(problem, choice), km_c, money_c, problem.starts)
+        worksites.add(choice)
     cap_rows = np.argwhere(np.isfinite(cap))  # (r, w) pairs with a capacity
     best_bound = -np.inf
     rounds = 0
     for rounds in range(1, MAX_COLUMN_ROUNDS + 1):  # noqa: B007 (rounds is reported)
         t = time.perf_counter()
-        lp_value, pi, y_cap, y_budget = columns.master_lp(cap_rows, budget)
+        lp_value, pi, y_cap, y_budget = _master_lp(plans, cap, cap_rows, budget, problem.region)
         timings["lp"] += time.perf_counter() - t
-        # the Lagrangian bound: capacity and budget priced, every block solved exactly
         cost, poss = _priced(problem, y_cap, y_budget)
-        bound_choice, value = dp(cost, poss)
-        bound = constant + value.sum() + (y_cap[cap_rows[:, 0], cap_rows[:, 1]] * cap[
+        choice, value = dp(cost, poss)  # relative to "not tamped": add that back
+        value = value + np.bincount(block_of(problem), problem.cost[:, weeks], problem.n_blocks)
+        bound = value.sum() + (y_cap[cap_rows[:, 0], cap_rows[:, 1]] * cap[
             cap_rows[:, 0], cap_rows[:, 1]]).sum()  # fmt: skip
         bound += y_budget * budget if np.isfinite(budget) else 0.0
         best_bound = max(best_bound, float(bound))
-        columns.add(bound_choice)
-        # pricing: the master's segment duals too; a plan below 0 holds a worksite to add
-        cost, poss = _priced(problem, y_cap, y_budget, pi)
-        priced_choice, value = dp(cost, poss)
-        if value.min() >= -1e-9 * max(1.0, abs(lp_value) / max(1, problem.n_blocks)):
+        new = np.flatnonzero(value - pi < -1e-9 * (1.0 + np.abs(pi)))
+        if new.size == 0 or lp_value - best_bound <= 1e-7 * max(1.0, abs(lp_value)):
             break
-        if constant + lp_value - best_bound <= 1e-7 * max(1.0, abs(constant + lp_value)):
-            break
-        if not columns.add(priced_choice):
-            break
+        _, km_c, money_c = plan_cost(problem, choice)
+        plans.add_some(new, choice, _block_costs(problem, choice), km_c, money_c, problem.starts)
+        worksites.add(choice)
     t = time.perf_counter()
-    choice = columns.master_milp(cap_rows, budget, target_gap)
+    choice = worksites.master_milp(cap_rows, budget, target_gap)
     total = plan_cost(problem, choice)[0]
-    timings["milp"] = time.perf_counter() - t
+    timings["milp"] += time.perf_counter() - t
     if total - best_bound > target_gap * max(abs(total), 1e-12):
         # the worksites found are not enough: the MILP over (segment, week), if not too large
         t = time.perf_counter()
         found = _compact_milp(problem, target_gap)
-        timings["compact_milp"] = time.perf_counter() - t
+        timings["compact_milp"] = timings.get("compact_milp", 0.0) + time.perf_counter() - t
         if found is not None:
             compact_choice, compact_bound = found
             best_bound = max(best_bound, compact_bound)
-            compact_total = plan_cost(problem, compact_choice)[0]
-            if compact_total < total:
-                choice, total = compact_choice, compact_total
-    bound = min(best_bound, total)
-    gap = max(0.0, total - bound) / max(abs(total), 1e-12)
-    status = "within_gap" if gap <= target_gap else "gap_above_target"
-    status = "optimal" if gap <= 1e-9 else status
-    return Solution(choice, total, float(bound), status, rounds, columns.n,
-                    time.perf_counter() - started, timings)  # fmt: skip
+            if plan_cost(problem, compact_choice)[0] < total:
+                choice = compact_choice
+    return choice, best_bound, rounds, plans.n + worksites.n
+
+
+def _block_costs(problem: Problem, choice: np.ndarray) -> np.ndarray:
+    blocks = block_of(problem)
+    col = np.where(choice < 0, problem.weeks, choice)
+    seg = problem.cost[np.arange(len(choice)), col] + problem.possession[blocks] * run_starts(
+        problem, choice
+    )
+    return np.bincount(blocks, seg, minlength=problem.n_blocks)
+
+
+class _Columns:
+    """Known plans of every block: cost, km per week, money, and the choices themselves."""
+
+    def __init__(self, n_blocks: int, weeks: int) -> None:
+        self.block: list[int] = []
+        self.cost: list[float] = []
+        self.km: list[np.ndarray] = []
+        self.money: list[float] = []
+        self.choices: list[np.ndarray] = []
+        self.seen: set[tuple[int, bytes]] = set()
+
+    @property
+    def n(self) -> int:
+        return len(self.block)
+
+    def add_all(self, choice, cost, km, money, starts) -> None:
+        self.add_some(np.arange(len(starts) - 1), choice, cost, km, money, starts)
+
+    def add_some(self, blocks, choice, cost, km, money, starts) -> None:
+        for b in blocks:
+            part = choice[starts[b] : starts[b + 1]].copy()
+            key = (int(b), part.tobytes())
+            if key in self.seen:
+                continue
+            self.seen.add(key)
+            self.block.append(int(b))
+            self.cost.append(float(cost[b]))
+            self.km.append(km[b].copy())
+            self.money.append(float(money[b]))
+            self.choices.append(part)
+
+    def choice_vector(self, chosen: np.ndarray, n: int, starts) -> np.ndarray:
+        out = np.full(n, NONE)
+        for c in np.flatnonzero(chosen):
+            b = self.block[c]
+            out[starts[b] : starts[b + 1]] = self.choices[c]
+        return out
+
+    def matrices(self, cap, cap_rows, budget, block_region):
+        """(c, A_eq, A_ub, b_ub): the master's cost, convexity rows, capacity/budget rows."""
+        n, n_b = self.n, max(self.block) + 1 if self.block else 0
+        c = np.array(self.cost)
+        blocks = np.array(self.block)
+        a_eq = sparse.csr_matrix((np.ones(n), (blocks, np.arange(n))), shape=(n_b, n))
+        km = np.array(self.km)  # (n, W)
+        row_of = {(int(r), int(w)): i for i, (r, w) in enumerate(cap_rows)}
+        rows, cols, vals = [], [], []
+        regions = block_region[blocks]
+        nz_c, nz_w = np.nonzero(km)
+        for ci, w in zip(nz_c, nz_w, strict=True):
+            i = row_of.get((int(regions[ci]), int(w)))
+            if i is not None:
+                rows.append(i)
+                cols.append(ci)
+                vals.append(km[ci, w])
+        n_ub = len(cap_rows) + (1 if np.isfinite(budget) else 0)
+        if np.isfinite(budget):
+            rows += [len(cap_rows)] * n
+            cols += list(range(n))
+            vals += self.money
+        a_ub = sparse.csr_matrix((vals, (rows, cols)), shape=(n_ub, n))
+        b_ub = np.r_[cap[cap_rows[:, 0], cap_rows[:, 1]], [budget] if np.isfinite(budget) else []]
+        return c, a_eq, n_b, a_ub, b_ub
+
+
+def _master_lp(columns: _Columns, cap, cap_rows, budget, block_region):
+    c, a_eq, n_b, a_ub, b_ub = columns.matrices(cap, cap_rows, budget, block_region)
+    res = linprog(
+        c,
+        A_ub=a_ub if a_ub.shape[0] else None,
+        b_ub=b_ub if a_ub.shape[0] else None,
+        A_eq=a_eq,
+        b_eq=np.ones(n_b),
+        bounds=(0, None),
+        method="highs",
+    )
+    if res.status != 0:
+        raise RuntimeError(f"master LP: {res.message}")
+    y = res.ineqlin.marginals if a_ub.shape[0] else np.zeros(0)
+    y_cap = np.zeros_like(cap)
+    y_cap[cap_rows[:, 0], cap_rows[:, 1]] = y[: len(cap_rows)]
+    y_budget = float(y[len(cap_rows)]) if np.isfinite(budget) else 0.0
+    return float(res.fun), res.eqlin.marginals, y_cap, y_budget
 
 
 class _Worksites:
@@ -311,19 +450,44 @@ class _Worksites:
         return len(self.first)
 
     def add(self, choice: np.ndarray) -> int:
-        """Add the worksites of a plan not known yet; how many were new."""
-        starts = np.flatnonzero(run_starts(self.problem, choice))
+        """Add the worksites of a plan not known yet, each also in every other week it may be
+        tamped, and cut into pieces that fit a week's capacity when it does not; how many were
+        new."""
+        p = self.problem
+        starts = np.flatnonzero(run_starts(p, choice))
         new = 0
         for a in starts:
             b = a + 1
             while b < len(choice) and choice[b] == choice[a] and self.blocks[b] == self.blocks[a]:
                 b += 1
-            key = (int(a), int(b - a), int(choice[a]))
+            new += self._insert(int(a), int(b - a), int(choice[a]))
+            region = p.region[self.blocks[a]]
+            cap = p.capacity[region].min()
+            km = np.cumsum(p.km[a:b])
+            if km[-1] <= cap:
+                continue
+            longest = int(np.searchsorted(km, cap, side="right"))  # segments within capacity
+            k = int(p.k[self.blocks[a]])
+            if longest < k:
+                continue
+            for offset in range(longest):
+                cuts = [a, *range(a + offset, b, longest)[offset == 0 :], b]
+                for lo, hi in zip(cuts[:-1], cuts[1:], strict=True):
+                    if k <= hi - lo <= longest:
+                        new += self._insert(lo, hi - lo, int(choice[a]))
+        return new
+
+    def _insert(self, first: int, length: int, week: int) -> int:
+        """A worksite in ``week`` and in every other week all its segments may be tamped."""
+        allowed = np.isfinite(self.problem.cost[first : first + length, : self.problem.weeks])
+        new = 0
+        for w in np.flatnonzero(allowed.all(axis=0)):
+            key = (first, length, int(w))
             if key not in self.seen:
                 self.seen.add(key)
-                self.first.append(key[0])
-                self.length.append(key[1])
-                self.week.append(key[2])
+                self.first.append(first)
+                self.length.append(length)
+                self.week.append(int(w))
                 new += 1
         return new
 
@@ -361,22 +525,26 @@ class _Worksites:
             b_cap = np.r_[b_cap, budget]
         return cost, used, a_seg, a_cap, b_cap
 
-    def master_lp(self, cap_rows, budget):
-        """(LP value, segment duals (N,), capacity duals (R, W), budget dual)."""
-        cost, used, a_seg, a_cap, b_cap = self.matrices(cap_rows, budget)
+    def rounded(self, cost, a_seg, a_cap, b_cap) -> np.ndarray:
+        """Worksites by their LP value (then cost), each taken if it still fits."""
         a_ub = sparse.vstack([a_seg, a_cap]).tocsr()
         b_ub = np.r_[np.ones(a_seg.shape[0]), b_cap]
-        res = linprog(cost, A_ub=a_ub, b_ub=b_ub, bounds=(0, None), method="highs")
-        if res.status != 0:
-            raise RuntimeError(f"master LP: {res.message}")
-        y = res.ineqlin.marginals
-        pi = np.zeros(len(self.problem.km))
-        pi[used] = y[: len(used)]
-        y_rest = y[len(used) :]
-        y_cap = np.zeros_like(self.problem.capacity)
-        y_cap[cap_rows[:, 0], cap_rows[:, 1]] = y_rest[: len(cap_rows)]
-        y_budget = float(y_rest[len(cap_rows)]) if np.isfinite(budget) else 0.0
-        return float(res.fun), pi, y_cap, y_budget
+        res = linprog(cost, A_ub=a_ub, b_ub=b_ub, bounds=(0, 1), method="highs")
+        x = res.x if res.x is not None else np.zeros(self.n)
+        a_seg, a_cap = a_seg.tocsc(), a_cap.tocsc()
+        free = np.ones(a_seg.shape[0], bool)
+        left = b_cap.astype(float).copy()
+        choice = np.full(len(self.problem.km), NONE)
+        for c in np.lexsort((cost, -x)):
+            if cost[c] >= 0 and x[c] < 0.5:
+                continue
+            segs = a_seg[:, c].indices
+            use = a_cap[:, c].toarray().ravel()
+            if free[segs].all() and (use <= left + 1e-9).all():
+                free[segs] = False
+                left -= use
+                choice[self.first[c] : self.first[c] + self.length[c]] = self.week[c]
+        return choice
 
     def master_milp(self, cap_rows, budget, target_gap) -> np.ndarray:
         """The best set of known worksites, as a choice vector."""
@@ -389,8 +557,8 @@ class _Worksites:
             bounds=Bounds(0, 1),
             options={"time_limit": MILP_TIME_LIMIT_S, "mip_rel_gap": target_gap / 4},
         )
-        if res.x is None:
-            raise RuntimeError(f"master MILP: {res.message}")
+        if res.x is None:  # no integer solution in the time: round the LP's greedily
+            return self.rounded(cost, a_seg, a_cap, b_cap)
         choice = np.full(len(self.problem.km), NONE)
         for c in np.flatnonzero(res.x > 0.5):
             choice[self.first[c] : self.first[c] + self.length[c]] = self.week[c]
