@@ -17,6 +17,7 @@ from schemas.messages import (
     GpsFix,
     InspectionPlan,
     MaintenanceEvent,
+    MaintenancePlan,
     Message,
     OnboardIndex,
     PositionedChunk,
@@ -157,6 +158,16 @@ def q_plan(ns: str) -> str:
     return _key(ns, "q", "plan")
 
 
+def maintenance_plan(ns: str) -> str:
+    """The planner's MaintenancePlan, published after every re-plan."""
+    return _key(ns, "plan", "maintenance")
+
+
+def q_maintenance_plan(ns: str) -> str:
+    """The planner's queryable: the MaintenancePlan (``?weeks=N;budget=X`` plans anew)."""
+    return _key(ns, "q", "plan", "maintenance")
+
+
 def stack_health(ns: str) -> str:
     """``trackfusion up``'s StackHealth report, once a second."""
     return _key(ns, "health", "stack")
@@ -272,8 +283,12 @@ _MESSAGE_KEYS: dict[type[Message], tuple[tuple[str, ...], tuple[str, ...]]] = {
     ViewerSelect: (("viewer", "select"), ()),
     RaisedAlerts: (("q", "alerts"), ()),  # replies of the alerting queryables
     InspectionPlan: (("q", "plan"), ()),
+    MaintenancePlan: (("plan", "maintenance"), ()),
 }
-_ALSO = {SegmentState: (("q", "state"),)}  # a state is also a reply of the state queryable
+_ALSO = {  # also the reply of a queryable
+    SegmentState: (("q", "state"),),
+    MaintenancePlan: (("q", "plan", "maintenance"),),
+}
 
 
 def _key_form(message: Message) -> tuple[tuple[str, ...], tuple[str, ...]]:

@@ -536,6 +536,80 @@ class InspectionPlan(Message, frozen=True, kw_only=True):
         check_time("t", self.t)
 
 
+class PlannedTamping(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One segment of a :class:`MaintenancePlan`: tamped in a week, or not tamped although
+    its risk limit is not met (capacity, budget or the minimum interval prevent it)."""
+
+    line: str
+    segment: str
+    week: int  # 0-based week of the horizon it is tamped in; -1: not tamped in the horizon
+    worksite: int  # possession id: one per run of adjacent segments tamped in one week; -1
+    length_km: float
+    deadline_week: int  # last week whose tamping meets the risk limit; -1: none does;
+    # horizon_weeks: the limit holds over the horizon without a tamping
+    p_reach_ial: float  # P(reaching the immediate-action limit before the tamping, or before
+    # the horizon's end when not tamped)
+    risk_met: bool  # p_reach_ial <= the plan's eps
+    cost: float  # expected cost of the segment under the plan
+    cost_untamped: float  # expected cost of not tamping it in the horizon
+
+    def __post_init__(self) -> None:
+        check_id("line", self.line)
+        check_id("segment", self.segment)
+        check_int("week", self.week, -1, 1000)
+        check_int("worksite", self.worksite, -1, INT_MAX)
+        check_int("deadline_week", self.deadline_week, -1, 1000)
+        check_finite("length_km", self.length_km, positive=True)
+        check_range("p_reach_ial", self.p_reach_ial, 0.0, 1.0)
+        check_finite("cost", self.cost)
+        check_finite("cost_untamped", self.cost_untamped)
+
+
+class MaintenancePlan(Message, frozen=True, kw_only=True):
+    """The tamping plan: published on ``{ns}/plan/maintenance`` after every re-plan and the
+    reply of ``{ns}/q/plan/maintenance``."""
+
+    MAX_BYTES: ClassVar[int] = 64 * KIB * KIB  # a row is ~200 bytes: 100,000 segments fit
+    t: float | None  # epoch s of the start of week 0 (a Monday 00:00 UTC); None: no data yet
+    computed_at: float | None  # the event time the plan was made at (newest state time)
+    horizon_weeks: int
+    eps: float  # the risk limit
+    # "optimal", "within_gap" (cost within target_gap of the bound), "gap_above_target",
+    # or "no_data" (no segment with a state and a model)
+    status: Literal["optimal", "within_gap", "gap_above_target", "no_data"]
+    objective: float  # expected cost of the plan over the horizon
+    bound: float  # a lower bound of the optimum
+    gap: float  # (objective - bound) / objective over the segments the optimisation decided
+    solve_s: float  # wall time of the optimisation (not an event time)
+    km_per_week: list[float]  # km tamped in each week
+    possessions: int
+    money: float  # tamping and possession money of the plan
+    budget: float | None  # the budget it was made under; None: none
+    segments: int  # segments planned (with a state and a degradation model)
+    without_model: int  # segments with a state but no posterior of their group yet
+    version: int = 0  # counts the plans a planner instance made
+    rows: list[PlannedTamping]  # by week (not tamped last), line, segment
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_time("t", self.t)
+        check_time("computed_at", self.computed_at)
+        check_int("horizon_weeks", self.horizon_weeks, 1, 1000)
+        check_range("eps", self.eps, 0.0, 1.0)
+        for name in ("objective", "bound", "solve_s", "money"):
+            check_finite(name, getattr(self, name))
+        check(self.gap >= 0 and self.gap == self.gap, f"gap: must be >= 0, got {self.gap!r}")
+        check_finite("budget", self.budget)
+        check(
+            len(self.km_per_week) in (0, self.horizon_weeks),
+            f"km_per_week: {len(self.km_per_week)} values for {self.horizon_weeks} weeks",
+        )
+        for name in ("possessions", "segments", "without_model", "version"):
+            check_int(name, getattr(self, name))
+        for row in self.rows:
+            check(row.week < self.horizon_weeks, f"rows: {row.segment} week {row.week} beyond")
+
+
 ALL_MESSAGES: tuple[type[Message], ...] = (
     RawChunk,
     GpsFix,
@@ -552,4 +626,5 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     ViewerSelect,
     RaisedAlerts,
     InspectionPlan,
+    MaintenancePlan,
 )

@@ -23,8 +23,10 @@ from schemas import (
     GpsFix,
     InspectionPlan,
     MaintenanceEvent,
+    MaintenancePlan,
     NDArray,
     OnboardIndex,
+    PlannedTamping,
     PlanRow,
     PositionedChunk,
     RaisedAlerts,
@@ -163,6 +165,37 @@ def examples() -> list[schemas.Message]:
         ViewerSelect(line="L1", segment="s0001"),
         RaisedAlerts(alerts=[alert]),
         InspectionPlan(t=T0, rows=[plan_row("L1", "s0001", 0.4, T0 + 30 * DAY_S)]),
+        MaintenancePlan(
+            t=T0,
+            computed_at=T0 + DAY_S,
+            horizon_weeks=2,
+            eps=0.05,
+            status="within_gap",
+            objective=1.5e5,
+            bound=1.49e5,
+            gap=0.0067,
+            solve_s=0.2,
+            km_per_week=[1.0, 0.0],
+            possessions=1,
+            money=2.8e4,
+            budget=None,
+            segments=10,
+            without_model=0,
+            rows=[
+                PlannedTamping(
+                    line="L1",
+                    segment="s0001",
+                    week=0,
+                    worksite=0,
+                    length_km=0.2,
+                    deadline_week=1,
+                    p_reach_ial=0.01,
+                    risk_met=True,
+                    cost=4.0e3,
+                    cost_untamped=9.0e3,
+                )
+            ],
+        ),
     ]
 
 
@@ -580,7 +613,7 @@ def test_wire_reference_documents_the_plan_rows():
 
 def test_wire_reference_documents_every_field_of_every_message():
     documented = _readme_fields()
-    assert set(documented) - {"PlanRow"} == {m.__name__ for m in ALL_MESSAGES}
+    assert set(documented) - {"PlanRow", "PlannedTamping"} == {m.__name__ for m in ALL_MESSAGES}
     for message_type in ALL_MESSAGES:
         version, fields = documented[message_type.__name__]
         assert version == schemas.SCHEMA_VERSION
