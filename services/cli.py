@@ -49,6 +49,8 @@ COMMANDS = (
             "services.filtering.service"),
     Command("alerting", "raise and clear alerts from segment states; answer q/alerts and "
             "q/plan", "services.alerting.service"),
+    Command("planning", "plan tamping per segment and week from states and degradation models; "
+            "answer q/plan/maintenance", "services.planning.service"),
     Command("viewer", "log states, indices, TRC records, alerts and trains to a Rerun viewer",
             "services.viewer.service"),
     Command("simulate", "publish a simulated fleet, TRC runs and maintenance on Zenoh",

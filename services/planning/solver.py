@@ -48,7 +48,7 @@ from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 
 NONE = -1  # a segment's choice: not tamped in the horizon
 MAX_COLUMN_ROUNDS = 60  # column generation rounds at most
-MILP_TIME_LIMIT_S = 30.0
+MILP_TIME_LIMIT_S = 10.0  # per integer master or compact MILP
 MILP_REL_GAP = 0.002  # HiGHS stops the integer master within this of its own bound
 
 

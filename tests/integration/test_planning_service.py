@@ -1,0 +1,78 @@
+"""The planner in-process on a real router: a posterior and states in, a plan published and
+answered, a plan for another horizon on request, bad parameters and bad payloads refused."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from schemas import DeadLetter, MaintenancePlan, decode, encode, keys
+from services.planning import service as planning
+from services.planning.testing import T0, make_posterior, make_state
+
+TIMEOUT_S = 10.0
+SEGMENTS = [f"s{k:05d}" for k in range(12)]  # the first segments of the demo network's L1
+
+
+@pytest.fixture
+def config_file(tmp_path: Path) -> Path:
+    path = tmp_path / "planning.json5"
+    path.write_text("{ replan: { quiet_s: 0.2, max_wait_s: 1.0 } }")
+    return path
+
+
+def query(session: zenoh.Session, selector: str) -> list[zenoh.Reply]:
+    return list(session.get(selector, timeout=TIMEOUT_S))
+
+
+def test_states_and_a_model_give_a_published_plan_that_the_queryable_answers(
+    open_session, service_config, service_thread, collector, until_matched, config_file
+):
+    ns = service_config.ns
+    client = open_session()
+    plans = collector(lambda s: decode(s.payload.to_bytes(), MaintenancePlan))
+    client.declare_subscriber(keys.maintenance_plan(ns), plans)
+    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
+    client.declare_subscriber(keys.deadletter(ns, planning.SERVICE), letters)
+    service_thread(
+        "planning",
+        lambda stop: planning.main(
+            service_config, planning_config=config_file, stop=stop, handle_signals=False
+        ),
+        alive=keys.alive(ns, planning.SERVICE, "test"),
+    )
+    (before,) = query(client, keys.q_maintenance_plan(ns))
+    assert decode(before.ok.payload.to_bytes(), MaintenancePlan).status == "no_data"
+
+    model_pub = client.declare_publisher(keys.degradation(ns, "net"))
+    until_matched(model_pub)
+    model_pub.put(encode(make_posterior()))
+    state_pub = client.declare_publisher(keys.segment_keys(ns, "state", "L1/**"))
+    for k, segment in enumerate(SEGMENTS):
+        worn = (10.0, 8.5) if 2 <= k < 8 else (3.0, 2.5)  # six worn segments in a row
+        client.put(keys.state(ns, "L1", segment), encode(make_state("L1", segment, T0,
+                                                                    mean_mm=worn)))  # fmt: skip
+    client.put(keys.state(ns, "L1", "s00000"), b"not msgpack")
+    assert letters.get().reason
+
+    plan = plans.get()
+    while plan.segments < len(SEGMENTS):  # a plan made before every state arrived
+        plan = plans.get()
+    assert plan.status in ("optimal", "within_gap") and plan.gap <= 0.01
+    assert plan.t is not None and plan.t <= T0 < plan.t + 7 * 86400.0
+    tamped = {r.segment for r in plan.rows if r.week >= 0}
+    assert {f"s{k:05d}" for k in range(2, 8)} <= tamped
+    assert plan.possessions >= 1 and sum(plan.km_per_week) > 0
+
+    (reply,) = query(client, keys.q_maintenance_plan(ns))
+    assert decode(reply.ok.payload.to_bytes(), MaintenancePlan) == plan
+    (reply,) = query(client, keys.q_maintenance_plan(ns) + "?weeks=4;budget=0")
+    short = decode(reply.ok.payload.to_bytes(), MaintenancePlan)
+    assert short.horizon_weeks == 4 and short.budget == 0.0 and len(short.km_per_week) == 4
+    assert short.money == 0.0 and all(not r.risk_met for r in short.rows)
+    (bad,) = query(client, keys.q_maintenance_plan(ns) + "?weeks=x")
+    assert bad.err is not None and b"weeks" in bad.err.payload.to_bytes()
+    state_pub.undeclare()
+    model_pub.undeclare()

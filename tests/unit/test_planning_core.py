@@ -1,0 +1,155 @@
+"""The planning core: costs and deadlines from forecasts, the minimum interval, worksites,
+re-planning one segment, the config and the adapter's pure parts."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+
+import numpy as np
+import pytest
+
+from schemas import DAY_S, MaintenanceEvent
+from services.planning import risk
+from services.planning.core import PlanningConfig, PlanningCore, SegmentRef, week_start
+from services.planning.service import load_planning_config, plan_parameters, to_message
+from services.planning.testing import T0, make_limits, make_posterior, make_state
+
+WORN = (9.0, 7.6)  # between the intervention (8, 7) and immediate-action (11, 9.5) limits
+FRESH = (2.2, 2.0)
+
+
+def line(n: int, worn: range, *, config: PlanningConfig | None = None) -> PlanningCore:
+    limits, ial = make_limits()
+    refs = [SegmentRef("L1", f"s{k:02d}", 200.0) for k in range(n)]
+    core = PlanningCore(config or PlanningConfig(), limits, ial, refs)
+    core.on_posterior(make_posterior())
+    for k in range(n):
+        core.on_state(make_state("L1", f"s{k:02d}", T0, mean_mm=WORN if k in worn else FRESH))
+    return core
+
+
+def test_week_zero_starts_on_the_monday_before():
+    start = week_start(T0)
+    assert datetime.fromtimestamp(start, UTC).weekday() == 0
+    assert start <= T0 < start + 7 * DAY_S
+    assert week_start(start) == start
+
+
+def test_worn_segments_are_tamped_in_one_worksite_before_their_deadline_fresh_ones_not():
+    core = line(20, range(6, 9))
+    plan = core.plan(T0)
+    assert plan.status == "optimal"
+    tamped = {r.segment: r for r in plan.rows if r.week >= 0}
+    assert {"s06", "s07", "s08"} <= set(tamped)
+    # the shortest worksite is 1 km: five 200 m segments, one possession
+    assert len(tamped) == 5 and plan.possessions == 1
+    assert len({r.worksite for r in tamped.values()}) == 1
+    for r in tamped.values():
+        assert r.risk_met and r.week <= max(r.deadline_week, 0)
+    assert not any(r.segment in ("s00", "s19") for r in plan.rows)
+
+
+def test_the_deadline_is_where_the_first_passage_crosses_eps():
+    core = line(5, range(5))
+    plan = core.plan(T0)
+    row = next(r for r in plan.rows if r.segment == "s02")
+    post = core.posteriors["net"][1]
+    state = core.states[2]
+    t0 = week_start(T0)
+    days = (t0 - state.t) / DAY_S + 7.0 * np.arange(1, 27)
+    fp = risk.first_passage(
+        state.mean.array()[None], np.diag(state.cov.array())[None], post, days[None],
+        np.log(np.array([[11.0, 9.5]])),
+    )[0]  # fmt: skip
+    eps = core.config.eps
+    assert row.deadline_week == int((fp <= eps).sum()) - 1
+    assert fp[row.deadline_week] <= eps < fp[row.deadline_week + 1]
+
+
+def test_a_recent_tamping_holds_the_next_one_off_for_the_minimum_interval():
+    config = PlanningConfig(min_interval_weeks=60.0)
+    core = line(5, range(5), config=config)
+    for k in range(5):
+        t = T0 - 50 * 7 * DAY_S
+        core.on_maintenance(
+            MaintenanceEvent(line="L1", segment=f"s{k:02d}", event_id=f"e{k}", t_start=t, t_end=t)
+        )
+    plan = core.plan(T0)
+    assert min(r.week for r in plan.rows if r.week >= 0) >= 9
+
+
+def test_capacity_spreads_the_work_over_weeks():
+    config = PlanningConfig(capacity_km_per_week=1.0)
+    core = line(30, range(2, 28), config=config)
+    plan = core.plan(T0)
+    assert max(plan.km_per_week) <= 1.0 + 1e-9
+    assert sum(plan.km_per_week) >= 5.0
+    assert all(r.risk_met for r in plan.rows)
+    # whole 1 km worksites in 1 km weeks: the relaxation's bound is loose here, and said so
+    assert plan.bound <= plan.objective + 1e-6
+    assert plan.gap == pytest.approx((plan.objective - plan.bound) / plan.objective, rel=1e-6)
+
+
+def test_a_budget_of_nothing_tamps_nothing_and_lists_the_unmet_risk():
+    core = line(10, range(10))
+    plan = core.plan(T0, budget=0.0)
+    assert plan.money == 0.0 and all(r.week == -1 and not r.risk_met for r in plan.rows)
+    assert len(plan.rows) == 10
+
+
+def test_replanning_after_one_state_recomputes_that_segment_only(monkeypatch):
+    core = line(20, range(6, 9))
+    core.plan(T0)
+    seen: list[int] = []
+    original = core._segment_rows
+
+    def counting(idx, t0, weeks):
+        seen.append(len(idx))
+        return original(idx, t0, weeks)
+
+    monkeypatch.setattr(core, "_segment_rows", counting)
+    core.on_state(make_state("L1", "s15", T0 + DAY_S, mean_mm=WORN))
+    plan = core.plan(T0 + DAY_S)
+    assert seen == [1]
+    assert any(r.segment == "s15" and r.week >= 0 for r in plan.rows)
+
+
+def test_a_state_of_a_group_without_a_posterior_waits_when_there_are_several_groups():
+    core = line(3, range(0))
+    core.on_posterior(make_posterior("other"))
+    core.on_state(make_state("L1", "s00", T0, mean_mm=WORN, group="unknown"))
+    assert core.plan(T0).without_model == 1
+
+
+def test_the_default_config_file_loads_and_unknown_keys_are_refused(tmp_path):
+    config = load_planning_config()
+    assert config == PlanningConfig()
+    bad = tmp_path / "p.json5"
+    bad.write_text("{ costs: { tamping: 1 } }")
+    with pytest.raises(ValueError, match="costs: unknown key"):
+        load_planning_config(bad)
+    bad.write_text("{ capacity: { lines: { L1: 'north' } } }")
+    with pytest.raises(ValueError, match="north"):
+        load_planning_config(bad)
+
+
+@pytest.mark.parametrize(
+    ("parameters", "expected"),
+    [({}, (None, None)), ({"weeks": "8"}, (8, None)), ({"budget": "1e5"}, (None, 1e5))],
+)
+def test_query_parameters(parameters, expected):
+    assert plan_parameters(parameters) == expected
+
+
+@pytest.mark.parametrize("parameters", [{"weeks": "0"}, {"weeks": "x"}, {"budget": "-1"}])
+def test_bad_query_parameters_say_which(parameters):
+    with pytest.raises(ValueError, match=next(iter(parameters))):
+        plan_parameters(parameters)
+
+
+def test_the_plan_message_carries_the_rows():
+    core = line(20, range(6, 9))
+    message = to_message(core.plan(T0), computed_at=T0, eps=0.05, budget=None, horizon_weeks=26,
+                         version=3)  # fmt: skip
+    assert message.version == 3 and len(message.km_per_week) == 26
+    assert {r.segment for r in message.rows if r.week >= 0} >= {"s06", "s07", "s08"}
