@@ -431,12 +431,37 @@ def alerts_run(args: argparse.Namespace) -> int:
 
 def plan_add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--limit", type=int, default=PLAN_ROWS, help="rows to show (default %(default)s)"
+        "what",
+        nargs="?",
+        choices=["inspection", "maintenance"],
+        default="inspection",
+        help="inspection: the TRC inspection ranking (alerting, the default); maintenance: "
+        "the tamping plan (planning)",
     )
+    parser.add_argument(
+        "--limit", type=int, default=PLAN_ROWS, help="inspection rows to show (default %(default)s)"
+    )
+    parser.add_argument("--weeks", type=int, help="maintenance: plan this many weeks instead")
+    parser.add_argument("--budget", type=float, help="maintenance: plan under this budget")
+    output = parser.add_mutually_exclusive_group()
+    output.add_argument("--json", action="store_const", const="json", dest="format")
+    output.add_argument("--csv", action="store_const", const="csv", dest="format")
     add_query_arguments(parser)
 
 
 def plan_run(args: argparse.Namespace) -> int:
+    if args.what == "maintenance":
+        from services.tools import maintenance_plan
+
+        return maintenance_plan.main(
+            config_from_args(args),
+            weeks=args.weeks,
+            budget=args.budget,
+            fmt=args.format or "table",
+            timeout=args.timeout,
+        )
+    if args.weeks is not None or args.budget is not None or args.format is not None:
+        raise ValueError("--weeks, --budget, --json and --csv are for `plan maintenance`")
     return main_plan(config_from_args(args), args.limit, args.timeout)
 
 

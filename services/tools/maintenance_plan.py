@@ -1,0 +1,106 @@
+"""`trackfusion plan maintenance`: the tamping plan of the running planner, as a table, JSON
+or CSV. Pure formatting functions, and a thin ``main`` that queries
+``{ns}/q/plan/maintenance``."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import sys
+from datetime import UTC, datetime
+from typing import TextIO
+
+import msgspec
+
+from schemas import DAY_S, MaintenancePlan, decode, keys
+from services.runtime.config import RuntimeConfig
+
+CSV_COLUMNS = [
+    "line", "segment", "week", "week_start", "worksite", "length_km", "deadline_week",
+    "p_reach_ial", "risk_met", "cost", "cost_untamped",
+]  # fmt: skip
+
+
+def _day(t: float) -> str:
+    return datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%d")
+
+
+def selector(ns: str, weeks: int | None, budget: float | None) -> str:
+    params = [f"weeks={weeks}"] if weeks is not None else []
+    params += [f"budget={budget:g}"] if budget is not None else []
+    return keys.q_maintenance_plan(ns) + ("?" + ";".join(params) if params else "")
+
+
+def to_csv(plan: MaintenancePlan) -> str:
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=CSV_COLUMNS)
+    writer.writeheader()
+    for row in plan.rows:
+        values = msgspec.structs.asdict(row)
+        start = plan.t + row.week * 7 * DAY_S if plan.t is not None and row.week >= 0 else None
+        values["week_start"] = _day(start) if start is not None else ""
+        writer.writerow(values)
+    return out.getvalue()
+
+
+def to_json(plan: MaintenancePlan) -> str:
+    return json.dumps(msgspec.to_builtins(plan), indent=1)
+
+
+def format_plan(plan: MaintenancePlan) -> str:
+    """A planner's reading: how good the plan is, the weeks, the worksites, the unmet risks."""
+    if plan.status == "no_data" or plan.t is None:
+        return "no plan yet: no segment has both a state and a degradation model"
+    budget = "none" if plan.budget is None else f"{plan.budget:,.0f}"
+    lines = [
+        f"Tamping plan, {plan.horizon_weeks} weeks from {_day(plan.t)} (data up to "
+        f"{_day(plan.computed_at or plan.t)}), {plan.segments} segments",
+        f"  expected cost {plan.objective:,.0f}; bound {plan.bound:,.0f}; gap "
+        f"{100 * plan.gap:.2f} % ({plan.status}); solved in {plan.solve_s:.1f} s",
+        f"  {sum(plan.km_per_week):.1f} km in {plan.possessions} possessions; money "
+        f"{plan.money:,.0f} (budget {budget}); risk limit P(IAL before tamping) <= {plan.eps:g}",
+    ]
+    sites: dict[int, list] = {}
+    for row in plan.rows:
+        if row.week >= 0:
+            sites.setdefault(row.worksite, []).append(row)
+    lines.append(f"{'week':>4} {'starts':10} {'worksite':24} {'km':>5} {'deadline':>8} max P(IAL)")
+    for rows in sorted(sites.values(), key=lambda r: (r[0].week, r[0].line, r[0].segment)):
+        first, last = rows[0], rows[-1]
+        deadline = min(r.deadline_week for r in rows)
+        lines.append(
+            f"{first.week:4d} {_day(plan.t + first.week * 7 * DAY_S):10} "
+            f"{first.line + '/' + first.segment + '-' + last.segment:24} "
+            f"{sum(r.length_km for r in rows):5.1f} "
+            f"{'-' if deadline >= plan.horizon_weeks else deadline:>8} "
+            f"{max(r.p_reach_ial for r in rows):.3f}"
+        )
+    unmet = [r for r in plan.rows if not r.risk_met]
+    if unmet:
+        lines.append(f"risk limit not met on {len(unmet)} segments:")
+        for r in unmet[:20]:
+            when = "not tamped" if r.week < 0 else f"tamped week {r.week}"
+            lines.append(f"  {r.line}/{r.segment}: P(IAL first) {r.p_reach_ial:.2f}, {when}")
+    return "\n".join(lines)
+
+
+def main(
+    conf: RuntimeConfig,
+    *,
+    weeks: int | None,
+    budget: float | None,
+    fmt: str,
+    timeout: float,
+    out: TextIO = sys.stdout,
+) -> int:
+    from services.tools.operator import _session, ask
+
+    with _session(conf) as session:
+        replies = list(ask(session, selector(conf.ns, weeks, budget), timeout))
+    if not replies:
+        raise SystemExit("plan maintenance: no answer from the planning service (is it running?)")
+    plan = decode(replies[0][1], MaintenancePlan)
+    text = {"json": to_json, "csv": to_csv}.get(fmt, format_plan)(plan)
+    out.write(text if text.endswith("\n") else text + "\n")
+    return 0

@@ -1,0 +1,52 @@
+"""`trackfusion plan maintenance`: the question it asks and how it prints the answer."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+
+from schemas import MaintenancePlan, decode, encode
+from services.cli import build_parser
+from services.planning.core import PlanningConfig, PlanningCore, SegmentRef
+from services.planning.service import to_message
+from services.planning.testing import T0, make_limits, make_posterior, make_state
+from services.tools.maintenance_plan import format_plan, selector, to_csv, to_json
+
+
+def plan_message() -> MaintenancePlan:
+    limits, ial = make_limits()
+    refs = [SegmentRef("L1", f"s{k:02d}", 200.0) for k in range(12)]
+    core = PlanningCore(PlanningConfig(), limits, ial, refs)
+    core.on_posterior(make_posterior())
+    for k in range(12):
+        worn = (9.0, 7.6) if 3 <= k < 6 else (2.2, 2.0)
+        core.on_state(make_state("L1", f"s{k:02d}", T0, mean_mm=worn))
+    message = to_message(core.plan(T0), computed_at=T0, eps=0.05, budget=None, horizon_weeks=26,
+                         version=1)  # fmt: skip
+    return decode(encode(message), MaintenancePlan)
+
+
+def test_the_command_line_asks_for_weeks_and_budget():
+    args = build_parser().parse_args(["plan", "maintenance", "--weeks", "8", "--budget", "1e5",
+                                      "--csv"])  # fmt: skip
+    assert (args.what, args.weeks, args.budget, args.format) == ("maintenance", 8, 1e5, "csv")
+    assert build_parser().parse_args(["plan"]).what == "inspection"
+    assert selector("tf", 8, 1e5) == "tf/q/plan/maintenance?weeks=8;budget=100000"
+    assert selector("tf", None, None) == "tf/q/plan/maintenance"
+
+
+def test_the_table_csv_and_json_show_the_worksite():
+    plan = plan_message()
+    text = format_plan(plan)
+    assert "L1/s" in text and "possessions" in text and "gap" in text
+    rows = list(csv.DictReader(io.StringIO(to_csv(plan))))
+    tamped = [r for r in rows if int(r["week"]) >= 0]
+    assert {r["segment"] for r in tamped} >= {"s03", "s04", "s05"}
+    assert all(r["week_start"] for r in tamped)
+    assert json.loads(to_json(plan))["possessions"] == plan.possessions
+
+
+def test_no_plan_yet_says_why():
+    empty = to_message(None, computed_at=None, eps=0.05, budget=None, horizon_weeks=26, version=0)
+    assert "no plan yet" in format_plan(empty)
