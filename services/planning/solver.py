@@ -48,7 +48,7 @@ from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 
 NONE = -1  # a segment's choice: not tamped in the horizon
 MAX_COLUMN_ROUNDS = 60  # column generation rounds at most
-MILP_TIME_LIMIT_S = 10.0  # per integer master or compact MILP
+MILP_TIME_LIMIT_S = 5.0  # per integer master or compact MILP
 MILP_REL_GAP = 0.002  # HiGHS stops the integer master within this of its own bound
 
 
@@ -217,10 +217,12 @@ def _priced(problem: Problem, y_cap, y_budget, pi=None):
     return cost, problem.possession * (1.0 - y_budget)
 
 
-def solve(problem: Problem, *, target_gap: float = 0.01) -> Solution:
+def solve(problem: Problem, *, target_gap: float = 0.01, milp_s: float = 30.0) -> Solution:
     """The plan of ``problem``: every block's best plan; where that breaks a capacity or the
     budget, column generation and the integer master (module docstring). Without a budget the
-    regions are independent and each is solved on its own."""
+    regions are independent and each is solved on its own. ``milp_s``: seconds the integer
+    masters may take in all (shared by the regions that need one), after which the rounded
+    LP stands."""
     started = time.perf_counter()
     timings = {"dp": 0.0, "lp": 0.0, "milp": 0.0}
     cap = problem.capacity
@@ -235,13 +237,15 @@ def solve(problem: Problem, *, target_gap: float = 0.01) -> Solution:
     rounds = columns = 0
     bound = float(value.sum())
     if money.sum() > budget + 1e-9:
-        choice, bound, rounds, columns = _coupled(problem, target_gap, timings)
+        choice, bound, rounds, columns = _coupled(problem, target_gap, timings, milp_s)
     elif over.size:
         # regions within their capacity keep their blocks' best plans (optimal there)
-        for r in over:
+        deadline = time.perf_counter() + milp_s
+        for n, r in enumerate(over):
             blocks = np.flatnonzero(problem.region == r)
             sub, rows = _subproblem(problem, blocks)
-            sub_choice, sub_bound, n_rounds, n_columns = _coupled(sub, target_gap, timings)
+            share = max(0.0, deadline - time.perf_counter()) / (len(over) - n)
+            sub_choice, sub_bound, n_rounds, n_columns = _coupled(sub, target_gap, timings, share)
             choice[rows] = sub_choice
             bound += sub_bound - value[blocks].sum()
             rounds = max(rounds, n_rounds)
@@ -274,7 +278,7 @@ def _subproblem(problem: Problem, blocks: np.ndarray) -> tuple[Problem, np.ndarr
     return sub, rows
 
 
-def _coupled(problem: Problem, target_gap: float, timings: dict[str, float]):
+def _coupled(problem: Problem, target_gap: float, timings: dict[str, float], milp_s: float):
     """Column generation and the integer master: (choice, bound, rounds, columns).
 
     The bound and the duals come from the Dantzig-Wolfe master over whole block plans; the
@@ -318,13 +322,23 @@ def _coupled(problem: Problem, target_gap: float, timings: dict[str, float]):
         plans.add_some(new, choice, _block_costs(problem, choice), km_c, money_c, problem.starts)
         worksites.add(choice)
     t = time.perf_counter()
-    choice = worksites.master_milp(cap_rows, budget, target_gap)
+    # the LP over the worksites, rounded: often within the target already
+    cost, _, a_seg, a_cap, b_cap = worksites.matrices(cap_rows, budget)
+    choice = worksites.rounded(cost, a_seg, a_cap, b_cap)
     total = plan_cost(problem, choice)[0]
-    timings["milp"] += time.perf_counter() - t
-    if total - best_bound > target_gap * max(abs(total), 1e-12):
+    timings["rounding"] = timings.get("rounding", 0.0) + time.perf_counter() - t
+    if total - best_bound > target_gap * max(abs(total), 1e-12) and milp_s >= 0.2:
+        t = time.perf_counter()
+        found = worksites.master_milp(cap_rows, budget, target_gap, min(milp_s, MILP_TIME_LIMIT_S))
+        if plan_cost(problem, found)[0] < total:
+            choice, total = found, plan_cost(problem, found)[0]
+        timings["milp"] += time.perf_counter() - t
+        milp_s -= time.perf_counter() - t
+    left = milp_s
+    if total - best_bound > target_gap * max(abs(total), 1e-12) and left >= 0.2:
         # the worksites found are not enough: the MILP over (segment, week), if not too large
         t = time.perf_counter()
-        found = _compact_milp(problem, target_gap)
+        found = _compact_milp(problem, target_gap, min(left, MILP_TIME_LIMIT_S))
         timings["compact_milp"] = timings.get("compact_milp", 0.0) + time.perf_counter() - t
         if found is not None:
             compact_choice, compact_bound = found
@@ -535,9 +549,8 @@ class _Worksites:
         free = np.ones(a_seg.shape[0], bool)
         left = b_cap.astype(float).copy()
         choice = np.full(len(self.problem.km), NONE)
-        for c in np.lexsort((cost, -x)):
-            if cost[c] >= 0 and x[c] < 0.5:
-                continue
+        support = np.flatnonzero(x > 1e-6)
+        for c in support[np.lexsort((cost[support], -x[support]))]:
             segs = a_seg[:, c].indices
             use = a_cap[:, c].toarray().ravel()
             if free[segs].all() and (use <= left + 1e-9).all():
@@ -546,7 +559,7 @@ class _Worksites:
                 choice[self.first[c] : self.first[c] + self.length[c]] = self.week[c]
         return choice
 
-    def master_milp(self, cap_rows, budget, target_gap) -> np.ndarray:
+    def master_milp(self, cap_rows, budget, target_gap, time_limit: float) -> np.ndarray:
         """The best set of known worksites, as a choice vector."""
         cost, used, a_seg, a_cap, b_cap = self.matrices(cap_rows, budget)
         a = sparse.vstack([a_seg, a_cap]).tocsr()
@@ -555,7 +568,7 @@ class _Worksites:
             constraints=[LinearConstraint(a, -np.inf, np.r_[np.ones(a_seg.shape[0]), b_cap])],
             integrality=np.ones(self.n),
             bounds=Bounds(0, 1),
-            options={"time_limit": MILP_TIME_LIMIT_S, "mip_rel_gap": target_gap / 4},
+            options={"time_limit": time_limit, "mip_rel_gap": target_gap / 4},
         )
         if res.x is None:  # no integer solution in the time: round the LP's greedily
             return self.rounded(cost, a_seg, a_cap, b_cap)
@@ -565,10 +578,12 @@ class _Worksites:
         return choice
 
 
-COMPACT_MAX_VARIABLES = 200_000  # (segment, week) options the compact MILP takes at most
+COMPACT_MAX_VARIABLES = 20_000  # (segment, week) options the compact MILP takes at most
 
 
-def _compact_milp(problem: Problem, target_gap: float) -> tuple[np.ndarray, float] | None:
+def _compact_milp(
+    problem: Problem, target_gap: float, time_limit: float = MILP_TIME_LIMIT_S
+) -> tuple[np.ndarray, float] | None:
     """The MILP over (segment, week): x[i,w] tamped, s[i,w] a worksite starts; (choice,
     HiGHS's dual bound), or None when it is too large or finds nothing.
 
@@ -644,7 +659,7 @@ def _compact_milp(problem: Problem, target_gap: float) -> tuple[np.ndarray, floa
         constraints=[LinearConstraint(a, np.array(lo), np.array(hi))],
         integrality=np.ones(2 * n_opt),
         bounds=Bounds(0, 1),
-        options={"time_limit": MILP_TIME_LIMIT_S, "mip_rel_gap": target_gap / 4},
+        options={"time_limit": time_limit, "mip_rel_gap": target_gap / 4},
     )
     if res.x is None:
         return None

@@ -101,11 +101,16 @@ def make_state(
 
 
 def random_network(
-    n_lines: int, segments_per_line: int, *, seed: int = 0, segment_m: float = 200.0
+    n_lines: int,
+    segments_per_line: int,
+    *,
+    seed: int = 0,
+    segment_m: float = 200.0,
+    max_age: float = 1.2,
 ) -> tuple[list[SegmentRef], list[SegmentState]]:
     """Lines of adjacent segments, each at a random age since its last tamping (uniform up to
-    the expected time to the intervention limit x 1.2) with drift x LogNormal(0, 0.4); the
-    states at :data:`T0` with a log-space sd of 0.05."""
+    the expected time to the intervention limit x ``max_age``) with drift x LogNormal(0, 0.4);
+    the states at :data:`T0` with a log-space sd of 0.05."""
     rng = np.random.default_rng(seed)
     width = len(str(segments_per_line - 1))
     refs, states = [], []
@@ -114,7 +119,7 @@ def random_network(
         line = f"L{line_no + 1}"
         mu = MU * np.exp(0.4 * rng.standard_normal((segments_per_line, 2)))
         t_limit = ((log_il - np.log(Z_PLUS_MM)) / mu).min(axis=1)
-        age = rng.uniform(0, 1.2, segments_per_line) * t_limit
+        age = rng.uniform(0, max_age, segments_per_line) * t_limit
         z = np.log(Z_PLUS_MM) + Z_PLUS_SD * rng.standard_normal((segments_per_line, 2))
         z += mu * age[:, None] + SIGMA_SD * np.sqrt(age)[:, None] * rng.standard_normal(
             (segments_per_line, 2)

@@ -84,7 +84,6 @@ def test_capacity_spreads_the_work_over_weeks():
     plan = core.plan(T0)
     assert max(plan.km_per_week) <= 1.0 + 1e-9
     assert sum(plan.km_per_week) >= 5.0
-    assert all(r.risk_met for r in plan.rows)
     # whole 1 km worksites in 1 km weeks: the relaxation's bound is loose here, and said so
     assert plan.bound <= plan.objective + 1e-6
     assert plan.gap == pytest.approx((plan.objective - plan.bound) / plan.objective, rel=1e-6)
