@@ -75,6 +75,7 @@ class PlanningConfig:
     region_of_line: Mapping[str, str] = field(default_factory=dict)
     budget: float | None = None
     target_gap: float = 0.01
+    milp_s: float = 10.0  # seconds the integer programs of one plan may take in all
     posterior_samples: int = 32
     quadrature_nodes: int = 5
     replan_quiet_s: float = 2.0
@@ -105,6 +106,8 @@ class PlanningConfig:
             raise ValueError(f"capacity.lines: regions {sorted(unknown)} not in capacity.regions")
         if self.budget is not None and not (math.isfinite(self.budget) and self.budget >= 0):
             raise ValueError(f"budget: >= 0 or null, got {self.budget}")
+        if not (math.isfinite(self.milp_s) and self.milp_s >= 0):
+            raise ValueError(f"milp_s: seconds >= 0, got {self.milp_s}")
         if not 0.0 < self.target_gap < 1.0:
             raise ValueError(f"target_gap: in (0, 1), got {self.target_gap}")
         if self.posterior_samples < 1 or self.quadrature_nodes < 1:
@@ -115,12 +118,12 @@ class PlanningConfig:
         """Build from the object of ``planning.json5``; ValueError names what is wrong."""
         top = {
             "horizon_weeks", "eps", "min_interval_weeks", "min_worksite_m", "costs",
-            "capacity", "budget", "target_gap", "forecast", "replan",
+            "capacity", "budget", "target_gap", "milp_s", "forecast", "replan",
         }  # fmt: skip
         _known("planning config", raw, top)
         try:
             kwargs: dict[str, Any] = {}
-            for name in ("eps", "min_interval_weeks", "min_worksite_m", "target_gap"):
+            for name in ("eps", "min_interval_weeks", "min_worksite_m", "target_gap", "milp_s"):
                 if name in raw:
                     kwargs[name] = float(raw[name])
             if "horizon_weeks" in raw:
@@ -314,7 +317,7 @@ class PlanningCore:
             return Plan(t0, n_weeks, self._risk_rows(planned, costs, fp, n_weeks), 0.0, 0.0,
                         0.0, "optimal", 0.0, [0.0] * n_weeks, 0, 0.0, len(planned),
                         without_model)  # fmt: skip
-        solution = solve(problem, target_gap=cfg.target_gap)
+        solution = solve(problem, target_gap=cfg.target_gap, milp_s=cfg.milp_s)
         return self._result(
             t0, n_weeks, planned, costs, fp, problem, order, solution, without_model
         )

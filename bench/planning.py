@@ -1,0 +1,270 @@
+"""`python -m bench.planning`: the maintenance planner in closed loop on the simulated world.
+
+A simulated year (``simulators.truth.Truth``: the model's degradation and tamping reset)
+whose tampings are decided by a policy, week by week; the world's own limit and scheduled
+tampings are off. Each line is recorded by a TRC run every ``--trc-weeks`` weeks (log-space
+noise sd 0.02). A reached immediate-action limit (IAL) forces an unplanned tamping a week
+later. Policies, on the same world (paired seeds):
+
+- ``planner``: the planning core, re-planned weekly from the last TRC record of every
+  segment and the population's degradation posterior (the simulator's classes and spread),
+  tamping what week 0 of its plan says;
+- ``point``: the same optimiser on point forecasts (the posterior's mean parameters, the
+  record taken as exact);
+- ``threshold``: tamp (the shortest worksite around it) when the last TRC record exceeds the
+  intervention limit, within the week's capacity;
+- ``cycle``: every section of 25 segments tamped every ``--cycle-years``, staggered;
+- ``oracle``: the planning core on the true state and the segment's true parameters.
+
+Figures per policy (sums over the seeds): total cost (the planner's cost model: tamping,
+possessions, days above the intervention and immediate-action limits, unplanned tampings),
+segment-days above the intervention and IAL limits, km tamped, possessions, TRC runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import math
+import time
+from collections import defaultdict
+
+import numpy as np
+
+from schemas import DAY_S, INDICATORS, DegradationPosterior, MaintenanceEvent
+from services.limits import DEFAULT_LIMITS_FILE, load_immediate_action, load_limits
+from services.planning.core import PlanningConfig, PlanningCore, SegmentRef, week_start
+from services.planning.testing import f8, make_state
+from simulators.network import generate_network, stable_rng
+from simulators.truth import Truth, load_config
+from track.network import load_network
+
+START = 1_767_571_200.0  # 2026-01-05T00:00:00Z, a Monday
+TRC_NOISE = 0.02
+POLICIES = ("planner", "point", "threshold", "cycle", "oracle")
+
+
+def world_config() -> dict:
+    cfg = copy.deepcopy(load_config())
+    cfg["maintenance"]["scheduled_period_days"] = 0
+    cfg["maintenance"]["interval_fraction"] = 0.0
+    return cfg
+
+
+def population_posterior(cfg: dict, ns: int, seed: int) -> DegradationPosterior:
+    """Samples of the simulator's classes by their shares, with its segment spread."""
+    rng = np.random.default_rng(seed)
+    t = cfg["truth"]
+    names = list(t["classes"])
+    share = np.array([t["mix"].get(n, 0.0) for n in names])
+    k = rng.choice(len(names), ns, p=share / share.sum())
+    mu, sigma, zp, szp = [], [], [], []
+    for j in range(ns):
+        c = t["classes"][names[k[j]]]
+        sd = np.asarray(c["sigma_sd"]) * math.exp(t["sigma_spread"] * rng.standard_normal())
+        zsd = np.asarray(c["z_plus_sd"])
+        mu.append(np.asarray(c["mu"]) * np.exp(t["mu_spread"] * rng.standard_normal(2)))
+        sigma.append(np.array([[1, c["corr"]], [c["corr"], 1]]) * np.outer(sd, sd))
+        zp.append(np.log(c["z_plus_mm"]))
+        szp.append(np.array([[1, c["z_plus_corr"]], [c["z_plus_corr"], 1]]) * np.outer(zsd, zsd))
+    return _posterior("net", np.array(mu), np.array(sigma), np.array(zp), np.array(szp))
+
+
+def _posterior(group, mu, sigma, zp, szp) -> DegradationPosterior:
+    return DegradationPosterior(
+        group=group, version=1, t=START, indicators=list(INDICATORS), mu=f8(mu),
+        sigma=f8(sigma), z_plus=f8(zp), sigma_z_plus=f8(szp), n_increments=1, n_levels=1,
+    )  # fmt: skip
+
+
+class Loop:
+    """One policy on one seed's world for ``weeks`` weeks."""
+
+    def __init__(self, network, cfg, seed: int, policy: str, args) -> None:
+        self.policy = policy
+        self.args = args
+        self.truth = Truth(network, cfg, START, seed)
+        self.truth.log_limits = np.full_like(self.truth.log_limits, np.inf)  # no own tamping
+        self.truth._pending[:] = np.inf
+        self.refs = [SegmentRef(line.id, seg.id, seg.length_m) for line, seg in network.segments()]
+        self.km = np.array([r.length_m for r in self.refs]) / 1000.0
+        self.limits = load_limits(DEFAULT_LIMITS_FILE)
+        ial = load_immediate_action(DEFAULT_LIMITS_FILE, self.limits)
+        il_level = self.limits.levels.index("intervention")
+        self.log_il = np.log([self.limits.for_line(r.line)[il_level] for r in self.refs])
+        self.log_ial = np.log([ial[self.limits.speed_class(r.line)] for r in self.refs])
+        self.config = PlanningConfig(capacity_km_per_week=args.capacity, milp_s=args.milp_s)
+        self.core = PlanningCore(self.config, self.limits, ial, self.refs)
+        rng = stable_rng(seed, "bench-trc")
+        lines = sorted({r.line for r in self.refs})
+        self.trc_phase = {line: int(rng.integers(0, args.trc_weeks)) for line in lines}
+        self.trc_seen = np.full((len(self.refs), 2), np.nan)
+        self.trc_t = np.full(len(self.refs), np.nan)
+        self.trc_rng = stable_rng(seed, "bench-trc-noise")
+        self.trc_runs = 0
+        if policy in ("planner", "point"):
+            post = population_posterior(cfg, args.samples, seed)
+            if policy == "point":
+                mean = lambda a: a.array().mean(axis=0, keepdims=True)  # noqa: E731
+                post = _posterior("net", mean(post.mu), mean(post.sigma), mean(post.z_plus),
+                                  mean(post.sigma_z_plus))  # fmt: skip
+            self.core.on_posterior(post)
+        elif policy == "oracle":
+            t = self.truth
+            for i in range(len(self.refs)):
+                self.core.on_posterior(
+                    _posterior(
+                        f"g{i}",
+                        t.mu[i][None],
+                        t.sigma[i][None],
+                        t.z_plus[i][None],
+                        t.sigma_z_plus[i][None],
+                    )
+                )
+        self.k = max(1, math.ceil(self.config.min_worksite_m / np.median(self.km * 1000)))
+        self.unplanned_due = np.full(len(self.refs), np.inf)
+        self.last_tamped = np.full(len(self.refs), -np.inf)
+        self.figures = defaultdict(float)
+
+    # --- observations ----------------------------------------------------------------------
+
+    def trc(self, week: int) -> None:
+        for line, phase in self.trc_phase.items():
+            if week % self.args.trc_weeks != phase:
+                continue
+            self.trc_runs += 1
+            rows = [i for i, r in enumerate(self.refs) if r.line == line]
+            z = self.truth.z[rows]
+            self.trc_seen[rows] = z + TRC_NOISE * self.trc_rng.standard_normal(z.shape)
+            self.trc_t[rows] = self.truth.t
+
+    def feed(self) -> None:
+        exact = self.policy in ("point", "oracle")
+        sd = 1e-4 if exact else TRC_NOISE
+        for i, ref in enumerate(self.refs):
+            if self.policy == "oracle":
+                z, t, group = self.truth.z[i], self.truth.t, f"g{i}"
+            elif np.isnan(self.trc_t[i]):
+                continue
+            else:
+                z, t, group = self.trc_seen[i], self.trc_t[i], "net"
+            self.core.on_state(make_state(ref.line, ref.segment, float(t), mean_mm=np.exp(z),
+                                          sd_log=(sd, sd), group=group))  # fmt: skip
+
+    # --- decisions -----------------------------------------------------------------------
+
+    def decide(self, week: int) -> np.ndarray:
+        now = self.truth.t
+        if self.policy in ("planner", "point", "oracle"):
+            self.feed()
+            plan = self.core.plan(now)
+            index = {(r.line, r.segment): i for i, r in enumerate(self.refs)}
+            return np.array([index[(r.line, r.segment)] for r in plan.rows if r.week == 0], int)
+        if self.policy == "threshold":
+            over = np.flatnonzero((self.trc_seen > self.log_il).any(axis=1))
+            recent = now - self.last_tamped < self.config.min_interval_weeks * 7 * DAY_S
+            over = over[~recent[over]]
+            order = over[np.argsort(-(self.trc_seen[over] - self.log_il[over]).max(axis=1))]
+            chosen: set[int] = set()
+            for i in order:
+                site = [j for j in range(i, i + self.k) if j < len(self.refs)
+                        and self.refs[j].line == self.refs[i].line]  # fmt: skip
+                if self.km[list(chosen | set(site))].sum() > self.args.capacity * self._lines():
+                    break
+                chosen |= set(site)
+            return np.array(sorted(chosen), int)
+        # cycle: sections of 25 segments, each tamped once every cycle_years, staggered
+        period = round(self.args.cycle_years * 52)
+        section = np.arange(len(self.refs)) // 25
+        return np.flatnonzero(section % period == week % period)
+
+    def _lines(self) -> int:
+        return len(self.trc_phase)
+
+    # --- one week ----------------------------------------------------------------------------
+
+    def week(self, week: int) -> None:
+        self.trc(week)
+        tamp = self.decide(week)
+        t_mid = self.truth.t + 3.5 * DAY_S
+        self.tamp(tamp, t_mid, planned=True)
+        for _ in range(7):
+            self.truth.step()
+            above_il = (self.truth.z > self.log_il).any(axis=1)
+            above_ial = (self.truth.z > self.log_ial).any(axis=1)
+            self.figures["days_il"] += above_il.sum()
+            self.figures["days_ial"] += above_ial.sum()
+            c = self.config.costs
+            self.figures["cost"] += (
+                c.intervention_per_km_day * self.km[above_il].sum()
+                + c.immediate_action_per_km_day * self.km[above_ial].sum()
+            )
+            new = above_ial & np.isinf(self.unplanned_due) & np.isinf(self.truth._pending)
+            for i in np.flatnonzero(new):  # reached the IAL: an unplanned tamping in a week
+                self.unplanned_due[i] = self.truth.t + 7 * DAY_S
+                self.truth._pending[i] = self.unplanned_due[i]
+                self.last_tamped[i] = self.unplanned_due[i]
+                self.figures["unplanned"] += 1
+                self.figures["cost"] += c.unplanned_per_km * self.km[i]
+            self.unplanned_due[self.unplanned_due <= self.truth.t] = np.inf
+
+    def tamp(self, rows: np.ndarray, t: float, planned: bool) -> None:
+        rows = rows[np.isinf(self.truth._pending[rows])]
+        if not rows.size:
+            return
+        self.truth._pending[rows] = t
+        self.last_tamped[rows] = t
+        c = self.config.costs
+        runs = 1 + int((np.diff(rows) != 1).sum())
+        self.figures["km"] += self.km[rows].sum()
+        self.figures["possessions"] += runs
+        self.figures["cost"] += c.tamping_per_km * self.km[rows].sum() + c.possession * runs
+        for i in rows:
+            ref = self.refs[i]
+            self.core.on_maintenance(MaintenanceEvent(line=ref.line, segment=ref.segment,
+                                                      event_id=f"b{i}-{t:.0f}", t_start=t,
+                                                      t_end=t))  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=2)
+    parser.add_argument("--weeks", type=int, default=52)
+    parser.add_argument("--lines", type=int, default=0,
+                        help="also a generated network of this many 20 km lines")  # fmt: skip
+    parser.add_argument("--capacity", type=float, default=2.0, help="km a week per line")
+    parser.add_argument("--trc-weeks", type=int, default=9)
+    parser.add_argument("--cycle-years", type=float, default=4.0)
+    parser.add_argument("--samples", type=int, default=64)
+    parser.add_argument("--milp-s", type=float, default=1.0, help="HiGHS time per plan")
+    parser.add_argument("--policies", default=",".join(POLICIES))
+    args = parser.parse_args(argv)
+    cfg = world_config()
+    networks = [("demo", load_network(None))]
+    if args.lines:
+        networks.append((f"{args.lines}x20km", generate_network(args.lines, 20.0, seed=7)))
+    assert week_start(START) == START
+    for name, network in networks:
+        print(f"\n{name}: {network.n_segments} segments, {args.weeks} weeks, seeds "
+              f"1..{args.seeds}, capacity {args.capacity:g} km/week a line")  # fmt: skip
+        print(f"{'policy':10} {'total cost':>14} {'days>IL':>9} {'days>IAL':>9} {'unplanned':>9} "
+              f"{'km':>7} {'possessions':>11} {'TRC runs':>8} {'s':>6}")  # fmt: skip
+        for policy in args.policies.split(","):
+            total = defaultdict(float)
+            started = time.perf_counter()
+            for seed in range(1, args.seeds + 1):
+                loop = Loop(network, cfg, seed, policy, args)
+                for week in range(args.weeks):
+                    loop.week(week)
+                for key, value in loop.figures.items():
+                    total[key] += value
+                total["trc"] += loop.trc_runs
+            print(f"{policy:10} {total['cost']:14,.0f} {total['days_il']:9,.0f} "
+                  f"{total['days_ial']:9,.0f} {total['unplanned']:9,.0f} {total['km']:7.1f} "
+                  f"{total['possessions']:11,.0f} {total['trc']:8,.0f} "
+                  f"{time.perf_counter() - started:6.0f}")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
