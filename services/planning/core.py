@@ -76,7 +76,7 @@ class PlanningConfig:
     budget: float | None = None
     target_gap: float = 0.01
     milp_s: float = 10.0  # seconds the integer programs of one plan may take in all
-    posterior_samples: int = 32
+    posterior_samples: int = 16
     quadrature_nodes: int = 5
     replan_quiet_s: float = 2.0
     replan_max_wait_s: float = 30.0
