@@ -322,8 +322,9 @@ class PlanningCore:
             t0, n_weeks, planned, costs, fp, problem, order, solution, without_model
         )
 
-    def _segment_rows(self, idx: Sequence[int], t0: float, weeks: int):
-        """Cost rows (len, W+1) and first-passage rows F(0..W) of segments ``idx``."""
+    def _segment_rows(self, idx: Sequence[int], t0: float, weeks: int, start=None):
+        """Cost rows (len, W+1) and first-passage rows F(0..W) of segments ``idx``; ``start``
+        ``(m, v, offset_days)`` replaces their states' means, variances and ages."""
         cfg, c = self.config, self.config.costs
         n = len(idx)
         m = np.empty((n, 2))
@@ -350,6 +351,8 @@ class PlanningCore:
                 earliest[r] = math.ceil(max(0.0, (due - t0) / WEEK_S - 1.0))
             group = s.posterior_group if s.posterior_group in self.posteriors else None
             groups.setdefault(group or next(iter(self.posteriors)), []).append(r)
+        if start is not None:
+            m, v, offset = (np.asarray(a, float) for a in start)
         cost = np.empty((n, weeks + 1))
         fp_out = np.zeros((n, weeks + 1))
         week = np.arange(weeks)
@@ -422,6 +425,61 @@ class PlanningCore:
             cost[r, weeks] = cost_none
             fp_out[r] = fp
         return cost, fp_out
+
+    def trc_value(
+        self, now_t: float, *, weeks: int | None = None, nodes: int = 3, noise_sd: float = 0.02
+    ) -> list[tuple[str, float, int]]:
+        r"""Lines ranked by the value of a TRC run now: ``(line, value, segments)``.
+
+        Per segment, the expected fall of its plan cost from knowing its level (to the TRC's
+        log-space noise ``noise_sd``) before deciding (the expected value of sample
+        information, each segment on its own; worksites and capacity are left out):
+
+        .. math:: VOI_i = \min_k \mathbb{E}_z[c_{i,k}(z)] - \mathbb{E}_z[\min_k c_{i,k}(z)]
+                  \ge 0,
+
+        over the level now predicted by the mixture (``nodes`` x ``nodes`` Gauss-Hermite
+        points of each indicator's predictive normal). A line's value is its segments' sum.
+        """
+        n_weeks = int(weeks if weeks is not None else self.config.horizon_weeks)
+        t0 = week_start(now_t)
+        planned = [
+            i
+            for i, s in self.states.items()
+            if s.posterior_group in self.posteriors or len(self.posteriors) == 1
+        ]
+        if not planned:
+            return []
+        m = np.empty((len(planned), 2))
+        v = np.empty((len(planned), 2))
+        for r, i in enumerate(planned):
+            s = self.states[i]
+            group = s.posterior_group if s.posterior_group in self.posteriors else None
+            post = self.posteriors[group or next(iter(self.posteriors))][1]
+            cols = [s.indicators.index(name) for name in INDICATORS]
+            tau = max(0.0, (now_t - s.t) / DAY_S)
+            m[r] = s.mean.array()[cols] + post.mu.mean(axis=0) * tau
+            v[r] = (np.diag(s.cov.array())[cols] + post.var.mean(axis=0) * tau
+                    + post.mu.var(axis=0) * tau**2)  # fmt: skip
+        x, w = np.polynomial.hermite_e.hermegauss(nodes)
+        w = w / w.sum()
+        offset = np.full(len(planned), (t0 - now_t) / DAY_S)
+        expected = np.zeros((len(planned), n_weeks + 1))
+        best = np.zeros(len(planned))
+        for a in range(nodes):
+            for b in range(nodes):
+                z = m + np.sqrt(v) * np.array([x[a], x[b]])
+                rows, _ = self._segment_rows(
+                    planned, t0, n_weeks, (z, np.full_like(v, noise_sd**2), offset)
+                )
+                expected += w[a] * w[b] * rows
+                best += w[a] * w[b] * rows.min(axis=1)
+        value = np.maximum(expected.min(axis=1) - best, 0.0)
+        by_line: dict[str, list[float]] = {}
+        for r, i in enumerate(planned):
+            by_line.setdefault(self.refs[i].line, []).append(float(value[r]))
+        ranked = [(line, float(sum(vals)), len(vals)) for line, vals in by_line.items()]
+        return sorted(ranked, key=lambda item: (-item[1], item[0]))
 
     def _cost_rows(self, planned: list[int], t0: float, weeks: int):
         """Cost and first-passage rows of every planned segment, cached per segment (a row is

@@ -152,3 +152,18 @@ def test_the_plan_message_carries_the_rows():
                          version=3)  # fmt: skip
     assert message.version == 3 and len(message.km_per_week) == 26
     assert {r.segment for r in message.rows if r.week >= 0} >= {"s06", "s07", "s08"}
+
+
+def test_a_trc_run_is_worth_most_on_the_line_whose_levels_are_uncertain_near_a_limit():
+    limits, ial = make_limits()
+    refs = [SegmentRef(line, f"s{k:02d}", 200.0) for line in ("L1", "L2") for k in range(6)]
+    core = PlanningCore(PlanningConfig(), limits, ial, refs)
+    core.on_posterior(make_posterior())
+    for k in range(6):  # L1: levels near the intervention limit known badly; L2: fresh, known
+        core.on_state(make_state("L1", f"s{k:02d}", T0, mean_mm=(7.5, 6.5), sd_log=(0.3, 0.3)))
+        core.on_state(make_state("L2", f"s{k:02d}", T0, mean_mm=FRESH, sd_log=(0.01, 0.01)))
+    ranked = core.trc_value(T0 + DAY_S)
+    assert [line for line, _, _ in ranked] == ["L1", "L2"]
+    (_, uncertain, n1), (_, known, n2) = ranked
+    assert n1 == n2 == 6 and uncertain > 0 and known >= 0
+    assert known < 1e-3 * uncertain
