@@ -28,6 +28,7 @@ from schemas.messages import (
     ServiceHealth,
     StackHealth,
     TrcRecord,
+    TrcRunValue,
     ViewerSelect,
 )
 from schemas.wire import NDArray, SchemaError, decode, decode_many, encode
@@ -61,6 +62,7 @@ __all__ = [
     "ServiceHealth",
     "StackHealth",
     "TrcRecord",
+    "TrcRunValue",
     "ViewerSelect",
     "decode",
     "decode_many",

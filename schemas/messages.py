@@ -565,6 +565,20 @@ class PlannedTamping(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
         check_finite("cost_untamped", self.cost_untamped)
 
 
+class TrcRunValue(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One line of a :class:`MaintenancePlan`'s TRC ranking: what a run of it now is worth."""
+
+    line: str
+    value: float  # expected fall of the plan's cost from the run's information, >= 0
+    segments: int  # segments of the line the value is summed over
+
+    def __post_init__(self) -> None:
+        check_id("line", self.line)
+        check_finite("value", self.value)
+        check(self.value >= 0, f"value: must be >= 0, got {self.value!r}")
+        check_int("segments", self.segments)
+
+
 class MaintenancePlan(Message, frozen=True, kw_only=True):
     """The tamping plan: published on ``{ns}/plan/maintenance`` after every re-plan and the
     reply of ``{ns}/q/plan/maintenance``."""
@@ -589,6 +603,7 @@ class MaintenancePlan(Message, frozen=True, kw_only=True):
     without_model: int  # segments with a state but no posterior of their group yet
     version: int = 0  # counts the plans a planner instance made
     rows: list[PlannedTamping]  # by week (not tamped last), line, segment
+    trc_lines: list[TrcRunValue] = []  # lines by the value of a TRC run now, highest first
 
     def __post_init__(self) -> None:
         super().__post_init__()

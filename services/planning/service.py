@@ -33,6 +33,7 @@ from schemas import (
     PlannedTamping,
     SchemaError,
     SegmentState,
+    TrcRunValue,
     decode,
     encode,
     keys,
@@ -48,6 +49,7 @@ log = logging.getLogger(__name__)
 SERVICE = "planning"
 DEFAULT_PLANNING_FILE = default_file("planning.json5")
 START_QUERY_TIMEOUT_S = 10.0  # the start-up q/state and model queries
+TRC_VALUE_MAX_SEGMENTS = 20_000  # the TRC ranking costs 9 forecasts a segment: not beyond
 QUORUM = 3  # segments whose newest state times must agree on "now" (one far-future outlier
 # cannot move the plan's weeks)
 
@@ -79,8 +81,9 @@ def to_message(
     budget: float | None,
     horizon_weeks: int,
     version: int,
+    trc_lines: list[tuple[str, float, int]] = (),
 ) -> MaintenancePlan:
-    """The wire form of a plan (``plan`` None: ``no_data``)."""
+    """The wire form of a plan (``plan`` None: ``no_data``) and the TRC ranking."""
     if plan is None:
         return MaintenancePlan(
             t=None, computed_at=computed_at, horizon_weeks=horizon_weeks, eps=eps,
@@ -121,6 +124,7 @@ def to_message(
         without_model=plan.without_model,
         version=version,
         rows=rows,
+        trc_lines=[TrcRunValue(line=ln, value=v, segments=n) for ln, v, n in trc_lines],
     )
 
 
@@ -159,7 +163,7 @@ class PlanningAdapter:
         self._newest: dict[tuple[str, str], float] = {}
         self._top: list[float] = []
 
-    def _message(self, plan: Plan | None, now_t: float | None, budget=None, weeks=None):
+    def _message(self, plan: Plan | None, now_t: float | None, budget=None, weeks=None, trc=()):
         cfg = self.core.config
         return to_message(
             plan,
@@ -168,6 +172,7 @@ class PlanningAdapter:
             budget=budget if budget is not None else cfg.budget,
             horizon_weeks=weeks or cfg.horizon_weeks,
             version=self.plans,
+            trc_lines=list(trc),
         )
 
     def start(self) -> None:
@@ -266,8 +271,11 @@ class PlanningAdapter:
                     continue
                 started = time.perf_counter()
                 plan = self.core.plan(now_t)
+                trc = []
+                if plan.segments <= TRC_VALUE_MAX_SEGMENTS:
+                    trc = self.core.trc_value(now_t)
             self.plans += 1
-            message = self._message(plan, now_t)
+            message = self._message(plan, now_t, trc=trc)
             payload = encode(message)
             self.latest = payload
             self.out.put(keys.maintenance_plan(self.rt.ns), payload)

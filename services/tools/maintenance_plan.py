@@ -76,6 +76,10 @@ def format_plan(plan: MaintenancePlan) -> str:
             f"{'-' if deadline >= plan.horizon_weeks else deadline:>8} "
             f"{max(r.p_reach_ial for r in rows):.3f}"
         )
+    if plan.trc_lines:
+        lines.append("next TRC runs by value of information (expected fall of the plan's cost):")
+        for value in plan.trc_lines[:5]:
+            lines.append(f"  {value.line:12} {value.value:12,.0f}  ({value.segments} segments)")
     unmet = [r for r in plan.rows if not r.risk_met]
     if unmet:
         lines.append(f"risk limit not met on {len(unmet)} segments:")

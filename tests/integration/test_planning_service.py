@@ -65,6 +65,7 @@ def test_states_and_a_model_give_a_published_plan_that_the_queryable_answers(
     tamped = {r.segment for r in plan.rows if r.week >= 0}
     assert {f"s{k:05d}" for k in range(2, 8)} <= tamped
     assert plan.possessions >= 1 and sum(plan.km_per_week) > 0
+    assert [v.line for v in plan.trc_lines] == ["L1"] and plan.trc_lines[0].value >= 0
 
     (reply,) = query(client, keys.q_maintenance_plan(ns))
     assert decode(reply.ok.payload.to_bytes(), MaintenancePlan) == plan

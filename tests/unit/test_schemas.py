@@ -36,6 +36,7 @@ from schemas import (
     ServiceHealth,
     StackHealth,
     TrcRecord,
+    TrcRunValue,
     ViewerSelect,
     decode,
     encode,
@@ -195,6 +196,7 @@ def examples() -> list[schemas.Message]:
                     cost_untamped=9.0e3,
                 )
             ],
+            trc_lines=[TrcRunValue(line="L1", value=1.2e3, segments=10)],
         ),
     ]
 
@@ -613,7 +615,8 @@ def test_wire_reference_documents_the_plan_rows():
 
 def test_wire_reference_documents_every_field_of_every_message():
     documented = _readme_fields()
-    assert set(documented) - {"PlanRow", "PlannedTamping"} == {m.__name__ for m in ALL_MESSAGES}
+    rows = {"PlanRow", "PlannedTamping", "TrcRunValue"}
+    assert set(documented) - rows == {m.__name__ for m in ALL_MESSAGES}
     for message_type in ALL_MESSAGES:
         version, fields = documented[message_type.__name__]
         assert version == schemas.SCHEMA_VERSION
