@@ -38,7 +38,10 @@ Workloads (DESIGN "Performance targets"):
 Not run here (minutes each, real processes): ``make scale`` (``bench/scale.py``, a national
 deployment: two routers, four filtering shards, 10,000 to 100,000 segments) and
 ``python -m bench.delivery_scale`` (what N advanced publishers cost a process, the router
-and a subscriber); ``make soak``.
+and a subscriber); ``make soak``; ``python -m bench.planning_scale`` (the maintenance plan of
+100,000 segments x 26 weeks against HiGHS's MILP over (segment, week) on one region) and
+``python -m bench.planning`` (the planner in closed loop on a simulated year against the
+threshold rule, a fixed cycle, point forecasts and an oracle).
 """
 
 from __future__ import annotations
