@@ -237,6 +237,7 @@ class PlanningCore:
         self.posteriors: dict[str, tuple[int, risk.Posterior]] = {}
         self.last_tamped: dict[int, float] = {}
         self._rows: dict[int, tuple[Any, np.ndarray, np.ndarray]] = {}  # i -> (key, cost, F)
+        self._solved: dict[bytes, tuple] = {}  # regions' solutions by their problem's digest
         self.version = 0  # changes that can move the plan
 
     def _add(self, ref: SegmentRef) -> int:
@@ -317,7 +318,7 @@ class PlanningCore:
             return Plan(t0, n_weeks, self._risk_rows(planned, costs, fp, n_weeks), 0.0, 0.0,
                         0.0, "optimal", 0.0, [0.0] * n_weeks, 0, 0.0, len(planned),
                         without_model)  # fmt: skip
-        solution = solve(problem, target_gap=cfg.target_gap, milp_s=cfg.milp_s)
+        solution = solve(problem, target_gap=cfg.target_gap, milp_s=cfg.milp_s, solved=self._solved)
         return self._result(
             t0, n_weeks, planned, costs, fp, problem, order, solution, without_model
         )

@@ -38,6 +38,7 @@ against the best bound is the reported gap.
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass, field
 
@@ -217,12 +218,19 @@ def _priced(problem: Problem, y_cap, y_budget, pi=None):
     return cost, problem.possession * (1.0 - y_budget)
 
 
-def solve(problem: Problem, *, target_gap: float = 0.01, milp_s: float = 30.0) -> Solution:
+def solve(
+    problem: Problem,
+    *,
+    target_gap: float = 0.01,
+    milp_s: float = 30.0,
+    solved: dict[bytes, tuple] | None = None,
+) -> Solution:
     """The plan of ``problem``: every block's best plan; where that breaks a capacity or the
     budget, column generation and the integer master (module docstring). Without a budget the
     regions are independent and each is solved on its own. ``milp_s``: seconds the integer
     masters may take in all (shared by the regions that need one), after which the rounded
-    LP stands."""
+    LP stands. ``solved``: the regions' solutions by their problem's digest, kept between
+    calls, so that a re-plan solves again only the regions whose costs changed."""
     started = time.perf_counter()
     timings = {"dp": 0.0, "lp": 0.0, "milp": 0.0}
     cap = problem.capacity
@@ -241,15 +249,26 @@ def solve(problem: Problem, *, target_gap: float = 0.01, milp_s: float = 30.0) -
     elif over.size:
         # regions within their capacity keep their blocks' best plans (optimal there)
         deadline = time.perf_counter() + milp_s
+        used: set[bytes] = set()
         for n, r in enumerate(over):
             blocks = np.flatnonzero(problem.region == r)
             sub, rows = _subproblem(problem, blocks)
             share = max(0.0, deadline - time.perf_counter()) / (len(over) - n)
-            sub_choice, sub_bound, n_rounds, n_columns = _coupled(sub, target_gap, timings, share)
+            key = _digest(sub, target_gap)
+            used.add(key)
+            if solved is not None and key in solved:
+                sub_choice, sub_bound, n_rounds, n_columns = solved[key]
+            else:
+                found = _coupled(sub, target_gap, timings, share)
+                sub_choice, sub_bound, n_rounds, n_columns = found
+                if solved is not None:
+                    solved[key] = found
             choice[rows] = sub_choice
             bound += sub_bound - value[blocks].sum()
             rounds = max(rounds, n_rounds)
             columns += n_columns
+        for key in set(solved or ()) - used:  # regions whose costs changed since
+            del solved[key]
     total = plan_cost(problem, choice)[0]
     bound = min(bound, total)
     gap = max(0.0, total - bound) / max(abs(total), 1e-12)
@@ -257,6 +276,16 @@ def solve(problem: Problem, *, target_gap: float = 0.01, milp_s: float = 30.0) -
     status = "optimal" if gap <= 1e-9 else status
     return Solution(choice, total, float(bound), status, rounds, columns,
                     time.perf_counter() - started, timings)  # fmt: skip
+
+
+def _digest(problem: Problem, target_gap: float) -> bytes:
+    """What identifies a problem's solution: every array of it, and the target."""
+    h = hashlib.blake2b(digest_size=16)
+    for a in (problem.cost, problem.starts, problem.k, problem.possession, problem.region,
+              problem.km, problem.money, problem.capacity):  # fmt: skip
+        h.update(np.ascontiguousarray(a).tobytes())
+    h.update(repr((problem.budget, target_gap)).encode())
+    return h.digest()
 
 
 def _subproblem(problem: Problem, blocks: np.ndarray) -> tuple[Problem, np.ndarray]:
