@@ -571,23 +571,35 @@ class _Worksites:
         return cost, used, a_seg, a_cap, b_cap
 
     def rounded(self, cost, a_seg, a_cap, b_cap) -> np.ndarray:
-        """Worksites by their LP value (then cost), each taken if it still fits."""
+        """Worksites by their LP value (then cost), each taken if it still fits; then every
+        other worksite that lowers the cost, cheapest first, while it fits."""
         a_ub = sparse.vstack([a_seg, a_cap]).tocsr()
         b_ub = np.r_[np.ones(a_seg.shape[0]), b_cap]
         res = linprog(cost, A_ub=a_ub, b_ub=b_ub, bounds=(0, 1), method="highs")
         x = res.x if res.x is not None else np.zeros(self.n)
-        a_seg, a_cap = a_seg.tocsc(), a_cap.tocsc()
-        free = np.ones(a_seg.shape[0], bool)
-        left = b_cap.astype(float).copy()
-        choice = np.full(len(self.problem.km), NONE)
+        p = self.problem
+        first, length, week = (np.array(v, np.int64) for v in (self.first, self.length, self.week))
+        cum_km = np.r_[0.0, np.cumsum(p.km)]
+        cum_money = np.r_[0.0, np.cumsum(p.money)]
+        km = cum_km[first + length] - cum_km[first]
+        region = p.region[self.blocks[first]]
+        money = cum_money[first + length] - cum_money[first] + p.possession[self.blocks[first]]
+        left = p.capacity.astype(float).copy()
+        budget = p.budget if p.budget is not None else np.inf
+        free = np.ones(len(p.km), bool)
+        choice = np.full(len(p.km), NONE)
         support = np.flatnonzero(x > 1e-6)
-        for c in support[np.lexsort((cost[support], -x[support]))]:
-            segs = a_seg[:, c].indices
-            use = a_cap[:, c].toarray().ravel()
-            if free[segs].all() and (use <= left + 1e-9).all():
-                free[segs] = False
-                left -= use
-                choice[self.first[c] : self.first[c] + self.length[c]] = self.week[c]
+        rest = np.setdiff1d(np.flatnonzero(cost < 0), support)
+        order = np.r_[
+            support[np.lexsort((cost[support], -x[support]))], rest[np.argsort(cost[rest])]
+        ]
+        for c in order.tolist():
+            lo, hi, w, r = first[c], first[c] + length[c], week[c], region[c]
+            if km[c] <= left[r, w] + 1e-9 and money[c] <= budget + 1e-9 and free[lo:hi].all():
+                free[lo:hi] = False
+                left[r, w] -= km[c]
+                budget -= money[c]
+                choice[lo:hi] = w
         return choice
 
     def master_milp(self, cap_rows, budget, target_gap, time_limit: float) -> np.ndarray:
