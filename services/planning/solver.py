@@ -389,14 +389,14 @@ def _block_costs(problem: Problem, choice: np.ndarray) -> np.ndarray:
 
 
 class _Columns:
-    """Known plans of every block: cost, km per week, money, and the choices themselves."""
+    """Known plans of every block (the Dantzig-Wolfe master's columns): cost, km per week,
+    money."""
 
     def __init__(self, n_blocks: int, weeks: int) -> None:
         self.block: list[int] = []
         self.cost: list[float] = []
         self.km: list[np.ndarray] = []
         self.money: list[float] = []
-        self.choices: list[np.ndarray] = []
         self.seen: set[tuple[int, bytes]] = set()
 
     @property
@@ -417,14 +417,6 @@ class _Columns:
             self.cost.append(float(cost[b]))
             self.km.append(km[b].copy())
             self.money.append(float(money[b]))
-            self.choices.append(part)
-
-    def choice_vector(self, chosen: np.ndarray, n: int, starts) -> np.ndarray:
-        out = np.full(n, NONE)
-        for c in np.flatnonzero(chosen):
-            b = self.block[c]
-            out[starts[b] : starts[b + 1]] = self.choices[c]
-        return out
 
     def matrices(self, cap, cap_rows, budget, block_region):
         """(c, A_eq, A_ub, b_ub): the master's cost, convexity rows, capacity/budget rows."""
