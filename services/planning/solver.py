@@ -26,13 +26,19 @@ block's best new plan (a column) and the Lagrangian bound
 .. math:: LB(y) = \sum_b \min_{\text{plans of } b} \tilde c + \sum_{r,w} y_{r,w}\,
           \mathrm{cap}_{r,w} + y_B\,B \;\le\; \text{optimum},
 
-a bound at least as tight as the LP relaxation of the MILP over (segment, week). When no block
-has a negative reduced cost (or the LP and the bound meet) the columns are final; the
-integer master (one plan per block, HiGHS MILP through ``scipy.optimize.milp``) gives the
-plan. Whole-block plans are coarse when few blocks share a binding week (a small network):
-when the integer master is further than the target gap from the bound and the problem has
-at most ``COMPACT_MAX_VARIABLES / 2`` (segment, week) options, the compact MILP over them
-(HiGHS) is solved too, and the better plan and the better bound are kept. The plan's cost
+a bound at least as tight as the LP relaxation of the MILP over (segment, week). Column
+generation stops when no block has a negative reduced cost, or the LP is within a quarter of
+the target gap of the bound. Without a budget the regions are independent: only the regions
+whose blocks' best plans break their capacity go through it, each on its own (and a re-plan
+reuses the solution of a region whose problem did not change).
+
+**The plan** is a set of *worksites* (one run of adjacent segments, one week) taken from the
+block plans found, each also in every other week all its segments may be tamped and cut into
+pieces that fit a week's capacity. Their set-packing LP (every segment in at most one
+worksite, capacity and budget rows) is rounded greedily; when that is further than the
+target gap from the bound, the set-packing MILP (HiGHS through ``scipy.optimize.milp``)
+within a time budget, then for at most ``COMPACT_MAX_VARIABLES / 2`` (segment, week)
+options the MILP over them; the better plan and the better bound are kept. The plan's cost
 against the best bound is the reported gap.
 """
 
