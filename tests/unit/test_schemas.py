@@ -519,8 +519,8 @@ def test_selectors_narrow_the_queryable_and_the_subscriptions_alike():
 
 @pytest.mark.parametrize("kind", ["index", "trc", "maintenance", "state"])
 def test_a_region_selector_splits_a_network_by_line_prefix(kind):
-    # a national deployment (docs/operating.md#national-deployment, bench/scale.py): line ids carry a
-    # region letter, and one selector per filtering instance takes a region's lines
+    # a national deployment (docs/operating.md#national-deployment, bench/scale.py): line
+    # ids carry a region letter, and one selector per filtering instance takes a region's lines
     ke = zenoh.KeyExpr
     shards = {r: ke(keys.segment_keys("tf", kind, f"{r}$*/**")) for r in "ABCD"}
     queryables = {r: ke(keys.q_state_keys("tf", f"{r}$*/**")) for r in "ABCD"}
