@@ -56,7 +56,8 @@ Robustness (one outlier cannot blow up a model)
     (:func:`robust.screen_segment`); a pooled posterior moved beyond ``max_move_sd`` by one
     segment alone is held; a few wild pairs are quarantined before the swap rule judges a
     refit. What is left out is logged, counted and returned by
-    :meth:`Calibrator.drain_quarantined` (the adapter's dead letters). See the README.
+    :meth:`Calibrator.drain_quarantined` (the adapter's dead letters). See
+    services/calibration/README.md.
 """
 
 from __future__ import annotations
