@@ -18,9 +18,9 @@ import time
 import numpy as np
 
 from services.filtering import kernel
-from services.filtering.bank import FilterBank, ObservationModel
 from services.filtering.degradation import DegradationParams
-from services.filtering.tracker import _state_views, state_layout
+from services.filtering.kalman import FilterBank, ObservationModel
+from services.filtering.state import state_layout, state_views
 
 NS, SEGMENTS, STEPS, REPEATS = 200, 2000, 20, 5
 DAY_S = 86_400.0
@@ -49,7 +49,7 @@ def bench_kernel() -> None:
         best = np.inf
         for _ in range(REPEATS):
             F = np.zeros((SEGMENTS, state_layout(NS, 2)[2]))  # z, P, log_w of each row
-            z = _state_views(F, NS, 2)[0]
+            z = state_views(F, NS, 2)[0]
             z[:] = z0[:, None, :]
             t_s = np.zeros(SEGMENTS)
             nis, score = np.zeros(SEGMENTS), np.zeros(SEGMENTS)

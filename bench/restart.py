@@ -64,9 +64,11 @@ from schemas import (
     encode,
     keys,
 )
+from services.filtering.events import event_of
+from services.filtering.fold import fold_many
+from services.filtering.models import Models, parse_model
 from services.filtering.store import Store
 from services.filtering.testing import example_models
-from services.filtering.tracker import Models, event_of, fold_many, parse_model
 from services.runtime.config import users_env, zenoh_config
 
 NS_SAMPLES = 200
@@ -163,7 +165,7 @@ def _train(segment: int, segments: int, i: int) -> str:
 
 def fold_rate(db: Path, models, sample: int) -> float:
     """Events/s of ``fold_many`` alone over the logs of ``sample`` segments of the store."""
-    from services.filtering.store import decode_keyed
+    from services.filtering.payloads import decode_keyed
 
     with Store(db) as store:
         rows = store._db.execute(

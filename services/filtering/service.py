@@ -68,7 +68,8 @@ from pathlib import Path
 
 from schemas import SegmentState, encode, keys
 from schemas.keys import SegmentId
-from services.filtering.store import PersistentTracker, Store
+from services.filtering.coordinator import PersistentTracker
+from services.filtering.store import Store
 from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_limits
 from services.runtime import systemd
