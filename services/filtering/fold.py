@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -73,98 +74,135 @@ def fold_many_counted(
     states are returned as those rows (:class:`BankRow`, taken: :meth:`Histories.settle`
     gives back the ones no segment keeps).
     """
-    # one model for every index (no unit has its own): no per-event look-up
-    per_unit = isinstance(obs, Models) and bool(obs.unit_observations)
-    shared = obs.observation if isinstance(obs, Models) else obs
     size = len(logs)
     if size == 0:
         return [], []
     ns, n = params[0].ns, params[0].n
     order = sorted(range(size), key=lambda i: -len(logs[i]))
-    depth = len(logs[order[0]])
-    kinds = np.full((size, depth), -1, dtype=np.int8)
-    times = np.zeros((size, depth))
-    values = np.zeros((size, depth, n))
-    obs_ids = np.full((size, depth), -1, dtype=np.int32)  # an index's model in ``observations``
-    observations: list[ObservationModel] = []
-    known: dict[int, int] = {}
-    zero = np.zeros(n)
+    grid = _grid(logs, order, n, obs)
+    runs = n == 2 and all(model.H.shape == (2, 2) for model in grid.observations)
+    if into is not None and not runs:  # (no model of the system's shape) from copies
+        starts, into = [start.state() for start in starts], None
+    if into is not None:
+        banks, homes = _into_free_rows(into, [starts[i] for i in order], grid.kinds)
+    else:
+        banks, homes = Banks([starts[i] for i in order], ns, n, scratch), None
+    rows_params = RowParams([params[i] for i in order])
+    lengths = np.array([len(logs[i]) for i in order])
+    folded = lengths.copy()  # events folded per row (fewer if halted)
+    fold = _fold_runs if runs else _fold_steps
+    fold(banks, grid.kinds, grid.times, grid.values, grid.obs_ids, grid.observations,
+         rows_params, lengths, folded, halt_cusum, homes)  # fmt: skip
+    if homes is not None:
+        states = [BankRow(banks, row) for row in homes[1].tolist()]
+    else:
+        states = banks.states(range(size), copy=copy or scratch is not None)
+    out: list[Filtered | BankRow | None] = [None] * size
+    counts = [0] * size
+    for i, state, count in zip(order, states, folded.tolist(), strict=True):
+        out[i] = state
+        counts[i] = count
+    return out, counts
 
-    def model_id(model: ObservationModel | None) -> int:
+
+class _Grid(NamedTuple):
+    """A fold's logs, longest first, as padded ``(rows, depth)`` arrays: ``kinds`` (-1 past
+    a log's end), ``times``, ``values`` (rows, depth, n), and ``obs_ids``: an index's
+    observation model, its position in ``observations`` (-1: none, or not an index)."""
+
+    kinds: np.ndarray
+    times: np.ndarray
+    values: np.ndarray
+    obs_ids: np.ndarray
+    observations: list[ObservationModel]
+
+
+class _ObservationIds:
+    """Numbers the observation models of a fold in the order they are first met."""
+
+    def __init__(self, observations: list[ObservationModel]) -> None:
+        self.observations = observations
+        self._known: dict[int, int] = {}
+
+    def __call__(self, model: ObservationModel | None) -> int:
         if model is None:
             return -1
-        if id(model) not in known:
-            known[id(model)] = len(observations)
-            observations.append(model)
-        return known[id(model)]
+        if id(model) not in self._known:
+            self._known[id(model)] = len(self.observations)
+            self.observations.append(model)
+        return self._known[id(model)]
 
-    # the Events of every row in one pass (a backlog folds ~1,000 rows of one index each:
-    # filling them row by row was a tenth of its fold), LogColumns row by row
+
+def _grid(logs, order: list[int], n: int, obs: ObservationModel | Models | None) -> _Grid:
+    """The :class:`_Grid` of ``logs`` in ``order``; ``obs``: :func:`fold_many`'s."""
+    # one model for every index (no unit has its own): no per-event look-up
+    per_unit = obs if isinstance(obs, Models) and obs.unit_observations else None
+    shared = obs.observation if isinstance(obs, Models) else obs
+    size, depth = len(order), len(logs[order[0]])
+    grid = _Grid(
+        np.full((size, depth), -1, dtype=np.int8),
+        np.zeros((size, depth)),
+        np.zeros((size, depth, n)),
+        np.full((size, depth), -1, dtype=np.int32),
+        [],
+    )
+    model_id = _ObservationIds(grid.observations)
+    # the Events of every row in one pass (a backlog folds ~1,000 rows of one index each),
+    # LogColumns row by row
     at_row: list[int] = []
     at_k: list[int] = []
     events: list[Event] = []
     for row, i in enumerate(order):
         log = logs[i]
-        if not isinstance(log, LogColumns):
+        if isinstance(log, LogColumns):
+            _put_columns(grid, row, log, per_unit, model_id)
+        else:
             at_row.extend([row] * len(log))
             at_k.extend(range(len(log)))
             events.extend(log)
-            continue
-        kinds[row, : len(log)] = log.kinds
-        times[row, : len(log)] = log.times
-        values[row, : len(log)] = log.values
-        if per_unit and log.unit_names:
-            ids = np.array([model_id(obs.observation_for(*u)) for u in log.unit_names])
-            at = np.flatnonzero(log.unit_codes >= 0)
-            obs_ids[row, at] = ids[log.unit_codes[at]]
     if events:
-        kinds[at_row, at_k] = [e.kind for e in events]
-        times[at_row, at_k] = [e.t_s for e in events]
-        values[at_row, at_k] = [zero if e.value is None else e.value for e in events]
-        if per_unit:
-            for row, k, e in zip(at_row, at_k, events, strict=True):
-                if e.kind == INDEX:
-                    obs_ids[row, k] = model_id(obs.observation_for_event(e))
-    if not per_unit and shared is not None:
-        observations.append(shared)
-        obs_ids[kinds == INDEX] = 0
-    runs = n == 2 and all(model.H.shape == (2, 2) for model in observations)
-    homes = None
-    if into is not None and not runs:  # (no model of the system's shape) from copies
-        starts = [start.state() for start in starts]
-    elif into is not None:
-        if not (kinds[kinds >= 0] == INDEX).all():
-            raise ValueError("a fold from resting rows takes indices only")
-        banks = into.banks
-        srcs = np.array([starts[i].row for i in order], dtype=np.int64)
-        ats = np.array(into.take(size), dtype=np.int64)
-        for name in Banks.SCALARS:  # the fields go first; the samples with the fold
-            values_of = getattr(banks, name)
-            values_of[ats] = values_of[srcs]
-        homes = (srcs, ats)
-    else:
-        banks = Banks([starts[i] for i in order], ns, n, scratch)
-    copy = copy or scratch is not None
-    rows_params = RowParams([params[i] for i in order])
-    lengths = np.array([len(logs[i]) for i in order])
-    folded = lengths.copy()  # events folded per row (fewer if halted)
-    if runs:
-        _fold_runs(banks, kinds, times, values, obs_ids, observations, rows_params, lengths,
-                   folded, halt_cusum, homes)  # fmt: skip
-    else:
-        _fold_steps(banks, kinds, times, values, obs_ids, observations, rows_params, lengths,
-                    folded, halt_cusum, homes)  # fmt: skip
-    out: list[Filtered | BankRow | None] = [None] * size
-    counts = [0] * size
-    states = (
-        [BankRow(banks, row) for row in homes[1].tolist()]
-        if homes is not None
-        else banks.states(range(size), copy=copy)
-    )
-    for i, state, count in zip(order, states, folded.tolist(), strict=True):
-        out[i] = state
-        counts[i] = count
-    return out, counts
+        _put_events(grid, at_row, at_k, events, per_unit, model_id)
+    if per_unit is None and shared is not None:
+        grid.observations.append(shared)
+        grid.obs_ids[grid.kinds == INDEX] = 0
+    return grid
+
+
+def _put_columns(grid: _Grid, row: int, log: LogColumns, per_unit: Models | None, model_id):
+    """Row ``row`` of the grid from a log of columns."""
+    grid.kinds[row, : len(log)] = log.kinds
+    grid.times[row, : len(log)] = log.times
+    grid.values[row, : len(log)] = log.values
+    if per_unit is not None and log.unit_names:
+        ids = np.array([model_id(per_unit.observation_for(*u)) for u in log.unit_names])
+        at = np.flatnonzero(log.unit_codes >= 0)
+        grid.obs_ids[row, at] = ids[log.unit_codes[at]]
+
+
+def _put_events(grid: _Grid, at_row, at_k, events: list[Event], per_unit: Models | None, model_id):
+    """Each of ``events`` at ``(at_row, at_k)`` of the grid, in one assignment per array."""
+    zero = np.zeros(grid.values.shape[-1])
+    grid.kinds[at_row, at_k] = [e.kind for e in events]
+    grid.times[at_row, at_k] = [e.t_s for e in events]
+    grid.values[at_row, at_k] = [zero if e.value is None else e.value for e in events]
+    if per_unit is not None:
+        for row, k, e in zip(at_row, at_k, events, strict=True):
+            if e.kind == INDEX:
+                grid.obs_ids[row, k] = model_id(per_unit.observation_for_event(e))
+
+
+def _into_free_rows(into: RestingBank, starts: list[BankRow], kinds: np.ndarray):
+    """``(banks, homes)`` of a fold from rows of ``into`` (``starts``, in fold order) into
+    free rows of it, the scalars copied there first (the samples move with the fold)."""
+    if not (kinds[kinds >= 0] == INDEX).all():
+        raise ValueError("a fold from resting rows takes indices only")
+    banks = into.banks
+    srcs = np.array([start.row for start in starts], dtype=np.int64)
+    ats = np.array(into.take(len(starts)), dtype=np.int64)
+    for name in Banks.SCALARS:
+        values_of = getattr(banks, name)
+        values_of[ats] = values_of[srcs]
+    return banks, (srcs, ats)
 
 
 def _fold_steps(

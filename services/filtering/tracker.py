@@ -83,7 +83,6 @@ change it:
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -94,27 +93,24 @@ from schemas import (
     Calibration,
     DegradationPosterior,
     MaintenanceEvent,
-    OnboardIndex,
     SegmentState,
 )
 from schemas.keys import SegmentId
-from services.filtering.banks import CUSUM_THRESHOLD, BankRow, Scratch, as_filtered
+from services.filtering.banks import BankRow, Scratch
+from services.filtering.batch import BatchFold
 from services.filtering.events import (
-    INDEX,
     Event,
     EventMessage,
     ModelMessage,
     event_of,
-    index_event,
 )
-from services.filtering.fold import fold_many, fold_many_counted
+from services.filtering.fold import fold_many
 from services.filtering.histories import (
     Checkpoint,
     Histories,
     LogLoader,
     SegmentHistory,
     checkpoint_of,
-    evolve,
     rested,
     summarised,
 )
@@ -280,157 +276,16 @@ class Tracker:
         return [state for state in self.segment_states(hists) if state is not None]
 
     def _fold_events(self, msgs: Sequence[EventMessage]):
-        """``(reasons, changed, detected)`` of stepping ``msgs`` one by one, nothing swapped.
-
-        The usual event, an on-board index after the last event of its segment's log on a
-        segment with a state (live, a backfill in time order), is appended and left
-        pending; the pending indices of all segments are folded from their states in one
-        :func:`fold_many` at the end (several per segment: the logs differ in length).
-        Anything else (a late index, a duplicate, a TRC record, a tamping, a segment
-        without a state or a calibration for the index's unit) first folds its segment's
-        pending indices, then takes the exact path of :meth:`step` (:func:`step_segment`,
-        :func:`detect`). Detection runs after each index one by one: the batched fold halts
-        a segment at the first index whose CUSUM reaches ``CUSUM_THRESHOLD``, runs
-        :func:`detect` there and steps the segment's later indices one by one, so the
-        result is bit for bit that of :meth:`step` per message (the fold does not depend
-        on the other segments of a call, see :class:`Banks`).
-        """
-        models = self.models
-        # a segment's history after this batch's events so far; a resting one's (its log
-        # not read) as a Checkpoint, its indices of this batch in ``tails``
-        changed: dict[SegmentId, SegmentHistory | Checkpoint] = {}
-        tails: dict[SegmentId, list[Event]] = {}
-        pending: dict[SegmentId, list[tuple[int, Event]]] = {}  # appended, not yet folded
-        folds_from: dict[SegmentId, SegmentHistory | Checkpoint] = {}  # base() of a pending one
-        reasons = [""] * len(msgs)
-        detected: list[tuple[int, MaintenanceEvent]] = []  # (message position, tamping)
-
-        def base(sid: SegmentId) -> SegmentHistory | Checkpoint | None:
-            """The segment as of this batch so far, a resting one without reading its log."""
-            got = changed.get(sid)
-            if got is not None:
-                return got
-            if self.histories.is_loaded(sid):
-                return self.histories[sid]
-            return self.histories.resting_entry(sid) if sid in self.histories else None
-
-        def current(sid: SegmentId, msg: EventMessage) -> SegmentHistory:
-            """The segment with its log: a resting one's read from the store (where this
-            batch's events are not yet) and this batch's indices appended."""
-            got = base(sid)
-            if got is None:
-                return SegmentHistory(msg.line, msg.segment)
-            if isinstance(got, Checkpoint):
-                stored = self.histories.load(sid)
-                log = stored.log + tuple(tails.get(sid, ()))
-                state = as_filtered(got.state)
-                got = evolve(stored, log=log, trc_t=got.trc_t, state=state, group=got.group)
-            return got
-
-        def change(sid: SegmentId, hist: SegmentHistory) -> None:
-            changed[sid] = hist
-            tails.pop(sid, None)  # in its log now
-
-        def exact(i: int, sid: SegmentId, hist: SegmentHistory, event: Event) -> None:
-            hist, reason = step_segment(hist, event, models)
-            reasons[i] = reason
-            if not reason:
-                hist, found = self._detect(hist)
-                if found is not None:
-                    detected.append((i, found))
-                change(sid, hist)
-
-        def flush(sids: Sequence[SegmentId]) -> None:
-            """Fold the pending indices of ``sids``; a resting segment's from its row of the
-            bank into a free row (``self._taken``), which it rests in after the swap."""
-            if not sids:
-                return
-            hists = [folds_from.pop(sid) for sid in sids]  # each has a state
-            groups = [group_of[sid] for sid in sids]
-            queues = [pending.pop(sid) for sid in sids]  # (message position, event)
-            logs = [[event for _, event in queued] for queued in queues]
-            jobs: dict[tuple[int, bool], list[int]] = {}  # by Ns, and whether from the bank
-            for k, group in enumerate(groups):
-                ns, n = shape_of[group]
-                state = hists[k].state
-                banked = isinstance(state, BankRow) and (state.banks.ns, state.banks.n) == (ns, n)
-                jobs.setdefault((ns, banked), []).append(k)
-            halt = CUSUM_THRESHOLD if self.detect_maintenance else None
-            for (ns, banked), job in jobs.items():
-                states, folded = fold_many_counted(
-                    [hists[k].state if banked else as_filtered(hists[k].state) for k in job],
-                    [logs[k] for k in job],
-                    [models.params[groups[k]] for k in job],
-                    models,
-                    halt,
-                    scratch=self._scratch,  # each state copied out: keeps no batch's arrays
-                    into=self.histories.bank(ns, hists[job[0]].state.banks.n) if banked else None,
-                )
-                if banked and isinstance(states[0], BankRow):  # rows of the bank, all of them
-                    self._taken.extend((sids[k], own) for k, own in zip(job, states, strict=True))
-                    cusums = states[0].banks.cusum[[own.row for own in states]].tolist()
-                else:  # (a model of another shape folds from copies: Filtered states)
-                    cusums = [math.nan if own is None else own.cusum for own in states]
-                for k, own, count, cusum in zip(job, states, folded, cusums, strict=True):
-                    was, sid, log = hists[k], sids[k], logs[k]
-                    tail = log if count == len(log) else log[:count]
-                    if isinstance(was, Checkpoint):  # it stays resting: the log is not read
-                        changed[sid] = rested(was, own, groups[k], tail)
-                        got = tails.get(sid)
-                        if got is None:
-                            tails[sid] = list(tail)
-                        else:
-                            got.extend(tail)
-                    else:
-                        changed[sid] = evolve(
-                            was, log=was.log + tuple(tail), state=own, group=groups[k]
-                        )
-                    if count < len(log) or halt is not None and cusum >= halt:
-                        queued = queues[k]
-                        hist, found = self._detect(current(sid, msgs[queued[0][0]]))
-                        if found is not None:
-                            detected.append((queued[count - 1][0], found))
-                        change(sid, hist)
-                        for i, event in queued[count:]:
-                            exact(i, sid, changed[sid], event)
-
-        group_of: dict[SegmentId, str | None] = {}  # the models do not change in a batch
-        shape_of = {group: (p.ns, p.n) for group, p in models.params.items()}
-        for i, msg in enumerate(msgs):
-            sid = (msg.line, msg.segment)
-            event = index_event(msg) if type(msg) is OnboardIndex else event_of(msg)
-            queued = pending.get(sid)
-            if event.kind == INDEX:
-                if queued:
-                    last = queued[-1][1].order
-                else:
-                    hist = base(sid)
-                    if hist is None or hist.state is None:
-                        last = None
-                    elif isinstance(hist, Checkpoint):
-                        last = hist.last_order
-                    else:
-                        last = hist.log[-1].order if hist.log else None
-                group = group_of.get(sid, False)
-                if group is False:
-                    group = group_of[sid] = models.group_for(msg.line, msg.segment)
-                if (
-                    last is not None
-                    and (event.t_s > last[0] or event.order > last)
-                    and group is not None
-                    and models.observation_for(msg.train, msg.unit) is not None
-                ):
-                    if not queued:
-                        pending[sid] = queued = []
-                        folds_from[sid] = hist  # what base(sid) stays until its flush
-                    queued.append((i, event))
-                    continue
-            if queued:
-                flush([sid])
-            exact(i, sid, current(sid, msg), event)
-        flush(list(pending))
-        detected.sort(key=lambda found: found[0])
-        return reasons, changed, [found for _, found in detected]
+        """``(reasons, changed, detected)`` of stepping ``msgs`` one by one, nothing swapped
+        (:class:`BatchFold`: the result is bit for bit that of :meth:`step` per message)."""
+        batch = BatchFold(
+            self.histories,
+            self.models,
+            detect_maintenance=self.detect_maintenance,
+            scratch=self._scratch,
+            taken=self._taken,
+        )
+        return batch.run(msgs)
 
     def update_models(self, msgs: Sequence[ModelMessage]) -> ModelUpdate:
         """Apply several model messages at once, re-running each affected segment once.
