@@ -64,6 +64,31 @@ class BatchResult:
     changed: tuple[SegmentId, ...] = ()
 
 
+class _Batch:
+    """What a batch did so far (:meth:`PersistentTracker.handle_batch`)."""
+
+    def __init__(self, rejected: list[tuple[str, str, bytes]]) -> None:
+        self.states: dict[SegmentId, SegmentState] = {}  # the newest of each segment, last
+        self.rejected = rejected  # (key, reason, payload): dead letters
+        self.accepted = 0
+        self.detected: list[MaintenanceEvent] = []
+        self.changed: list[SegmentId] = []
+
+    def keep(self, new_states: Iterable[SegmentState]) -> None:
+        for state in new_states:
+            self.states.pop((state.line, state.segment), None)  # the newest, last
+            self.states[(state.line, state.segment)] = state
+
+    def result(self) -> BatchResult:
+        return BatchResult(
+            tuple(self.states.values()),
+            tuple(self.rejected),
+            self.accepted,
+            tuple(self.detected),
+            tuple(self.changed),
+        )
+
+
 class PersistentTracker:
     """A :class:`Tracker` whose accepted inputs are committed to a :class:`Store` first.
 
@@ -154,12 +179,38 @@ class PersistentTracker:
         that fails raises at the store's next access (the next batch): stop then, as after
         a store error here.
         """
+        models, events, rejected = self._sorted_inputs(items)
+        batch = _Batch(rejected)
+        with self.store.transaction(background=background):
+            if models:
+                self._apply_models(models, batch)
+            msgs = [msg for msg, _, _ in events]
+            try:
+                if summarize:
+                    reasons, event_states, found = self.tracker.step_events(msgs)
+                    changed: list[SegmentId] = []
+                else:
+                    reasons, changed, found = self.tracker.fold_events(msgs)
+                    event_states = ()
+            except Exception:  # one of them cannot be folded: find it, one at a time
+                log.info("a batch of %d events failed; stepping them one by one", len(events))
+                self._step_one_by_one(events, batch)
+            else:
+                self._commit_folded(events, reasons, found, batch)
+                batch.changed = changed
+                batch.keep(event_states)
+            self._after_batch(batch.states.values(), models=bool(models), events=len(events))
+        return batch.result()
+
+    def _sorted_inputs(self, items: Iterable[tuple[str, bytes]]):
+        """``(models, events, rejected)`` of a batch's ``(key, payload)``: the decoded
+        model messages and events, each with its key and payload, and the dead letters
+        ``(key, reason, payload)``; the indices decoded in one call (:func:`indices_of`)."""
         rejected: list[tuple[str, str, bytes]] = []
         models: list[tuple[ModelMessage, str, bytes]] = []
         events: list[tuple[EventMessage, str, bytes]] = []
         items = list(items)
-        indices = indices_of(items)
-        for (key, payload), index in zip(items, indices, strict=True):
+        for (key, payload), index in zip(items, indices_of(items), strict=True):
             if index is not None:
                 msg: EventMessage | ModelMessage | None = index
             else:
@@ -179,71 +230,53 @@ class PersistentTracker:
                 rejected.append((key, str(e), payload))
                 continue
             events.append((msg, key, payload))
-        states: dict[SegmentId, SegmentState] = {}
+        return models, events, rejected
 
-        def keep(new_states: Iterable[SegmentState]) -> None:
-            for state in new_states:
-                states.pop((state.line, state.segment), None)  # the newest, last
-                states[(state.line, state.segment)] = state
+    def _apply_models(self, models: list[tuple[ModelMessage, str, bytes]], batch: _Batch) -> None:
+        """The batch's model messages, coalesced (:meth:`Tracker.update_models`), and the
+        accepted ones committed."""
+        origin = {id(msg): (key, payload) for msg, key, payload in models}
+        update = self.tracker.update_models([msg for msg, _, _ in models])
+        for msg, reason in update.refused:
+            key, payload = origin[id(msg)]
+            batch.rejected.append((key, reason, payload))
+        self._commit_many([(msg, origin[id(msg)][0]) for msg in update.accepted])
+        batch.accepted += len(update.accepted)
+        batch.keep(update.states)
 
-        accepted = 0
-        detected: list[MaintenanceEvent] = []
-        changed: list[SegmentId] = []
-        with self.store.transaction(background=background):
-            if models:
-                origin = {id(msg): (key, payload) for msg, key, payload in models}
-                update = self.tracker.update_models([msg for msg, _, _ in models])
-                for msg, reason in update.refused:
-                    key, payload = origin[id(msg)]
-                    rejected.append((key, reason, payload))
-                self._commit_many([(msg, origin[id(msg)][0]) for msg in update.accepted])
-                accepted += len(update.accepted)
-                keep(update.states)
+    def _commit_folded(self, events, reasons: list[str], found, batch: _Batch) -> None:
+        """Commit a folded batch's accepted events, after the tampings detected on the way:
+        a report later in the batch that supersedes one of them then deletes its row, as
+        the tracker dropped it from the log."""
+        self._commit_detected(found)
+        batch.detected.extend(found)
+        taken = [
+            (msg, key)
+            for (msg, key, _payload), reason in zip(events, reasons, strict=True)
+            if not reason
+        ]
+        batch.accepted += len(taken)
+        self._commit_many(taken)
+
+    def _step_one_by_one(self, events: list[tuple[EventMessage, str, bytes]], batch: _Batch):
+        """Each event stepped and committed alone: the one the core refuses, or that
+        raises, becomes a dead letter with the reason, and the batch goes on."""
+        for msg, key, payload in events:
             try:
-                if summarize:
-                    reasons, event_states, found = self.tracker.step_events(
-                        [msg for msg, _, _ in events]
-                    )
-                else:
-                    reasons, changed, found = self.tracker.fold_events(
-                        [msg for msg, _, _ in events]
-                    )
-                    event_states = ()
-            except Exception:  # one of them cannot be folded: find it, one at a time
-                log.info("a batch of %d events failed; stepping them one by one", len(events))
-                for msg, key, payload in events:
-                    try:
-                        step = self.tracker.step(msg)
-                    except ValueError as e:  # an event the core refuses
-                        rejected.append((key, str(e), payload))
-                        continue
-                    except Exception as e:  # a bug: the letter says what, the batch goes on
-                        log.exception("error stepping %s", key)
-                        rejected.append((key, f"{type(e).__name__}: {e}", payload))
-                        continue
-                    if step.accepted:
-                        accepted += 1
-                        self._commit(msg, key)
-                        self._commit_detected(step.detected)
-                        detected.extend(step.detected)
-                        keep(step.states)
-            else:
-                # detected ones first: a report later in the batch that supersedes one of
-                # them then deletes its row, as the tracker dropped it from the log
-                self._commit_detected(found)
-                detected.extend(found)
-                taken = [
-                    (msg, key)
-                    for (msg, key, _payload), reason in zip(events, reasons, strict=True)
-                    if not reason
-                ]
-                accepted += len(taken)
-                self._commit_many(taken)
-                keep(event_states)
-            self._after_batch(states.values(), models=bool(models), events=len(events))
-        return BatchResult(
-            tuple(states.values()), tuple(rejected), accepted, tuple(detected), tuple(changed)
-        )
+                step = self.tracker.step(msg)
+            except ValueError as e:  # an event the core refuses
+                batch.rejected.append((key, str(e), payload))
+                continue
+            except Exception as e:  # a bug: the letter says what, the batch goes on
+                log.exception("error stepping %s", key)
+                batch.rejected.append((key, f"{type(e).__name__}: {e}", payload))
+                continue
+            if step.accepted:
+                batch.accepted += 1
+                self._commit(msg, key)
+                self._commit_detected(step.detected)
+                batch.detected.extend(step.detected)
+                batch.keep(step.states)
 
     def _commit(self, msg: EventMessage | ModelMessage, key: str) -> None:
         self._commit_many([(msg, key)])
