@@ -13,6 +13,7 @@ Run: ``.venv/bin/python -m bench.kernel``.
 
 from __future__ import annotations
 
+import functools
 import time
 
 import numpy as np
@@ -72,9 +73,10 @@ def bench_kernel() -> None:
             best = min(best, time.perf_counter() - started)
         return best / (SEGMENTS * STEPS * NS) * 1e9, bank.z
 
-    compiled(kernel._index_step_serial)  # compile or load the cache
-    serial_ns, z_serial = compiled(kernel._index_step_serial)
-    parallel_ns, z_parallel = compiled(kernel._index_step_parallel)
+    serial = functools.partial(kernel.index_step, parallel=False)
+    compiled(serial)  # compile or load the cache
+    serial_ns, z_serial = compiled(serial)
+    parallel_ns, z_parallel = compiled(functools.partial(kernel.index_step, parallel=True))
     bank_ns, z_bank = numpy_bank()
     same = np.array_equal(z_serial, z_parallel) and np.allclose(z_serial, z_bank, atol=1e-9)
     print(

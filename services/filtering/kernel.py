@@ -229,7 +229,8 @@ RUN_PARALLEL_ROWS = 64  # and runs of indices (index_runs: a re-run's are ~120 i
 _PARALLEL_LOCK = threading.Lock()  # numba's default thread pool takes one caller at a time
 
 
-def index_step(F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score):
+def index_step(F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score, *,
+               parallel: bool | None = None):  # fmt: skip
     """Apply one on-board index to each listed row, in place (see the module docstring).
 
     ``F`` (S, 7 Ns) C-contiguous, ``t_s`` (S,): the bank, a row of ``F`` being a
@@ -242,11 +243,12 @@ def index_step(F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis,
     out: the CUSUM score of each row.
 
     Compiled: on all cores from ``PARALLEL_ROWS`` rows (a re-run, a backlog), else on the
-    calling thread (the live step). The rows are independent and each is computed by the
-    same inlined code either way, so the bits do not depend on which.
+    calling thread (the live step); ``parallel`` True or False chooses instead. The rows
+    are independent and each is computed by the same inlined code either way, so the bits
+    do not depend on which.
     """
     args = (F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score)
-    if len(rows) < PARALLEL_ROWS:
+    if not (len(rows) >= PARALLEL_ROWS if parallel is None else parallel):
         _index_step_serial(*args)
         return
     with _PARALLEL_LOCK:
