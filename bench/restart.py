@@ -18,7 +18,7 @@ router in this one on loopback) is started on it, four times:
 Ready is the service's liveliness token; *answering* is a ``q/state`` query here returning
 every segment. The time is from the process start (interpreter and imports included).
 RSS is the service process's, summed over the instances (``VmHWM``: peak; ``VmRSS`` once
-ready). Baseline in this process: :func:`services.filtering.tracker.fold_many` of the same
+ready). Baseline in this process: :func:`services.filtering.fold.fold_many` of the same
 events, alone, on a sample of segments, extrapolated per event.
 
 ``--shards S`` runs S instances instead of one, each on its own store and ``--selector``

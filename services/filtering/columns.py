@@ -47,7 +47,7 @@ def log_columns(
 
     The payloads are decoded in one call, as one MessagePack array of them, and the
     columns built without an Event per index: the same times and values (``math.log``, as
-    :func:`~services.filtering.tracker.index_event`), so the fold gives the same bits.
+    :func:`~services.filtering.events.index_event`), so the fold gives the same bits.
     """
     try:
         msgs = _STORED_INDICES.decode(

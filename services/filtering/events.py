@@ -72,7 +72,7 @@ def event_of(msg: EventMessage) -> Event:
 
 def index_event(msg: Any) -> Event:
     """The core's event of an OnboardIndex, or of a stored one decoded without its checks
-    (:func:`services.filtering.store.stored_events`): anything with its fields."""
+    (:func:`services.filtering.payloads.stored_events`): anything with its fields."""
     y = (math.log(msg.top6_mm), math.log(msg.align10_mm))  # no array: 7 % of a backlog
     return Event(INDEX, msg.t, ("index", msg.train, msg.unit, msg.t), y, msg)
 

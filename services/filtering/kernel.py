@@ -30,7 +30,7 @@ and sample :math:`j` (drift :math:`\mu_j`, diffusion :math:`\Sigma_j`), paper Eq
     \log w_j \mathrel{+}= -\tfrac12 (\mathrm{nis}_j + \ln |S_j| + 2 \ln 2\pi),
 
 the NIS of the row :math:`\sum_j w_j \mathrm{nis}_j`, and the CUSUM score of
-:func:`services.filtering.tracker.low_score` on the prediction,
+:func:`services.filtering.banks.low_score` on the prediction,
 
 .. math::
 
@@ -235,7 +235,7 @@ def index_step(F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis,
 
     ``F`` (S, 7 Ns) C-contiguous, ``t_s`` (S,): the bank, a row of ``F`` being a
     segment's ``z`` (Ns, 2), ``P`` (Ns, 2, 2) and ``log_w`` (Ns), each row-major, one after
-    the other (:func:`services.filtering.tracker.state_layout`); ``rows`` (k,) the rows to
+    the other (:func:`services.filtering.state.state_layout`); ``rows`` (k,) the rows to
     step, ``t_new`` (k,) epoch s, ``y`` (k, 2) log indices;
     ``mu`` (G, Ns, 2), ``sigma`` (G, Ns, 2, 2) and ``group`` (k,) the degradation
     parameters of each row; ``H``, ``b``, ``R`` the observation model (2 x 2);
