@@ -47,7 +47,7 @@ from services.filtering.tracker import Step, Tracker
 
 log = logging.getLogger(__name__)
 CHECKPOINT_S = 10.0  # worker time between two checkpoints of the changed segments
-CHECKPOINT_SLICE = 64  # segments checkpointed per batch once due (~5 ms of writing)
+CHECKPOINT_SLICE = 64  # segments checkpointed per batch once a checkpoint is due
 SLICE_EVENTS = 4096  # a batch's events per further slice
 MAX_LOADED = 4096  # segment logs kept in memory (~1 KB an event; least recently used dropped)
 
@@ -341,7 +341,7 @@ class PersistentTracker:
         from its whole log (read from the store) when one sorts before (a late event), when
         the models changed since, when it has no checkpoint, or when its row no longer
         decodes. The logs are not read otherwise (they load when a segment needs them).
-        A stored row that no longer decodes (written before a schema limit was added) is
+        A stored row that no longer decodes (one the current schema's limits refuse) is
         skipped with a warning rather than stopping the service at every start.
         """
         models = [m for m in self._decoded(self.store.models()) if m is not None]
@@ -352,7 +352,7 @@ class PersistentTracker:
 
         def checkpoints() -> Iterator[Checkpoint]:
             """The stored checkpoints, one at a time (each state goes into the bank as it
-            comes: a list of them held every state twice, 1.1 GB more at 100,000)."""
+            comes: a list of them would hold every state twice)."""
             rows = self.store.checkpoints()
             for line, segment, _seq, order, trc_t, grp, key, blob, summary, gen in rows:
                 try:

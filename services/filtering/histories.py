@@ -297,8 +297,8 @@ _Frozen = TypeVar("_Frozen", "SegmentHistory", "Checkpoint")
 
 def evolve(hist: _Frozen, **changes: Any) -> _Frozen:
     """``dataclasses.replace(hist, **changes)`` of a SegmentHistory or a Checkpoint, without
-    its per-call field introspection (a tenth of a backlog's time): every field, whatever
-    they are, copied, then changed."""
+    its per-call field introspection (a backlog makes one per segment and batch): every
+    field, whatever they are, copied, then changed."""
     cls = type(hist)
     if not changes.keys() <= cls.__dataclass_fields__.keys():
         raise TypeError(f"{cls.__name__} has no field {set(changes) - set(vars(hist))}")

@@ -20,7 +20,7 @@ predict = transition  # the prediction step is exactly the degradation transitio
 
 # Large batches are processed in blocks of about this many filters: every temporary then
 # stays below glibc's mmap threshold (128 KiB) and in cache, instead of being mapped and
-# page-faulted afresh by each of the ~100 elementwise operations of an update (3x faster).
+# page-faulted afresh by each of the ~100 elementwise operations of an update.
 BLOCK_FILTERS = 8192
 _LOG_2PI = float(np.log(2.0 * np.pi))
 

@@ -178,7 +178,7 @@ def models_key(
 
 def key_units(key: str) -> frozenset[tuple[str, str]] | None:
     """The log's units a :func:`models_key` was written for (None: not known, or a key
-    written before they were kept: it matches no current key, so its segment replays)."""
+    without them: it matches no current key, so its segment replays)."""
     try:
         parsed = json.loads(key)
     except ValueError:

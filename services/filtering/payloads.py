@@ -100,7 +100,7 @@ def stored_events(rows: Iterable[tuple[str, str, bytes]]) -> Iterator[Event]:
     checked, so they skip what guards the wire (size limit, nesting scan, key check): a
     re-run decodes every stored event, and those checks cost more than the fold. An index
     (nearly every row) is decoded into :data:`StoredIndex`, the same fields without the
-    message's checks (13 of a re-run's 28 µs an event went there), and only what the fold
+    message's checks (nearly half of a re-run's decoding), and only what the fold
     needs is checked again: the schema version and two positive finite indices. TRC records
     and tampings run their checks. A row failing a check is skipped with a warning.
     """

@@ -36,8 +36,8 @@ class Filtered:
     """The filter bank of one segment after the last event of its log.
 
     ``flat``, when set, is the one buffer whose views ``z``, ``P`` and ``log_w`` are
-    (:func:`state_layout`): a fold then copies each state in and out as one array
-    (three small copies a segment were a third of a backlog's time)."""
+    (:func:`state_layout`): a fold then copies each state in and out as one array rather
+    than three."""
 
     z: np.ndarray  # (Ns, n)
     P: np.ndarray  # (Ns, n, n)
@@ -61,8 +61,8 @@ class Filtered:
     def of_buffer(flat: np.ndarray, ns: int, n: int, *scalars: Any) -> Filtered:
         """A state on ``flat`` (W,) contiguous (:func:`state_layout`); ``scalars``: ``t_s``
         to ``cusum_t1`` in field order. Made without the frozen dataclass's ``__init__``
-        (a fold makes one per segment: its eleven guarded assignments were a tenth of a
-        backlog's fold); the same object."""
+        and its eleven guarded assignments (a fold makes one per segment); the same
+        object."""
         at_p, at_w, width = state_layout(ns, n)
         if flat.shape != (width,):
             raise ValueError(f"state buffer of shape {flat.shape}, not ({width},) (Ns={ns})")
@@ -91,8 +91,8 @@ class Filtered:
 
 def stack_rows(arrays: Sequence[np.ndarray], out: np.ndarray | None = None) -> np.ndarray:
     """``np.stack(arrays)`` of equal-shaped arrays, as one concatenation (``np.stack``
-    expands each array in Python first: 5x slower on a backlog's 1,000 small states),
-    into ``out`` if given (its first ``len(arrays)`` rows)."""
+    expands each array in Python first, slow on many small states), into ``out`` if given
+    (its first ``len(arrays)`` rows)."""
     shape = arrays[0].shape
     if not all(a.shape == shape for a in arrays):
         raise ValueError(f"cannot stack arrays of shapes {sorted({a.shape for a in arrays})}")

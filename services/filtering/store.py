@@ -42,8 +42,8 @@ _INSERT_EVENTS = "INSERT INTO events (line, segment, kind, key, identity, t, pay
 
 def index_identity(train: str, unit: str, t: float) -> str:
     """``json.dumps(["index", train, unit, t])`` (an index's identity as the events table
-    stores it; ``t`` finite, as the schema checks), the quoted ids kept per unit: encoding
-    each row's identity was 8 % of a backlog's time."""
+    stores it; ``t`` finite, as the schema checks), the quoted ids kept per unit, so that a
+    row's identity is one string format rather than a JSON encoding."""
     prefix = _INDEX_PREFIXES.get((train, unit))
     if prefix is None:
         if len(_INDEX_PREFIXES) >= _INDEX_PREFIXES_MAX:
@@ -72,11 +72,10 @@ _SCHEMA = (
     + """;
 -- One row per (line, segment, identity): the tracker refuses an event whose identity its
 -- log holds (a duplicate), and the one it takes in place of a stored one (a tamping's
--- correction, same event_id) replaces that row (Store.add_events). A UNIQUE index on them
--- (older files: migrated at open, Store._migrate_events) cost each insert a random page
--- of wide keys: 4x the writing of a backlog's row on a 30,000-segment store.
--- An index on (line, segment, t) cost every insert another B-tree (10-18 % of a backlog's
--- time) and is dropped from older files.
+-- correction, same event_id) replaces that row (Store.add_events). There is no UNIQUE
+-- index on them: it would cost each insert a random page of wide keys (a file that has one
+-- is migrated at open, Store._migrate_events). Nor an index on (line, segment, t): it would
+-- cost every insert another B-tree (a file that has one loses it here).
 DROP INDEX IF EXISTS events_segment_t;
 -- a segment's rows: a restart reads its events after its checkpoint's seq, a pruning or a
 -- tamping's lookup scans its ~100 rows
@@ -157,9 +156,8 @@ class _WalCheckpointer:
 
     SQLite's automatic checkpoint runs inside the COMMIT that crosses 1,000 pages, in the
     writer's thread, and with ``synchronous=NORMAL`` it is the only write that syncs the
-    file: a backlog's COMMITs paid it every few batches (the worker's slowest commits, up to
-    64 ms; the backlog ran 10–40 % faster without it). ``ran`` is set after each checkpoint
-    (for tests)."""
+    file: a backlog's COMMITs would pay it every few batches, in the worker's thread.
+    ``ran`` is set after each checkpoint (for tests)."""
 
     def __init__(self, path: Path, period_s: float | None) -> None:
         self.path, self.period_s = path, period_s
@@ -238,11 +236,11 @@ class Store:
             self.wal_checkpoints.start()
 
     def _migrate_events(self, migrating: Callable[[int], object] | None) -> None:
-        """A file written before the events lost their UNIQUE (line, segment, identity)
-        constraint: its ``events`` table is copied into one without it (one transaction;
-        every row and ``seq`` kept, and the sequence, so that no ``seq`` a checkpoint
-        names is given again), then its index and triggers made again; ``migrating`` is
-        told how many events first (87 s for 12.1 M on the reference machine)."""
+        """A file whose ``events`` table has a UNIQUE (line, segment, identity) constraint:
+        the table is copied into one without it (one transaction; every row and ``seq``
+        kept, and the sequence, so that no ``seq`` a checkpoint names is given again), then
+        its index and triggers made again; ``migrating`` is told how many events first (the
+        copy takes a time proportional to them)."""
         names = [row[1] for row in self._db.execute("PRAGMA index_list(events)")]
         if not any(name.startswith("sqlite_autoindex_events") for name in names):
             return
@@ -573,7 +571,7 @@ class Store:
         )
         self._gen = gen
         # the same text for every generation (SQLite's cache of statements keeps one per
-        # text: a text per generation held ~0.7 MB each), the events' newest seq read once
+        # text), the events' newest seq read once
         head = (
             "INSERT OR REPLACE INTO checkpoints"
             " (line, segment, seq, last_order, trc_t, grp, models, state, summary, gen)"
@@ -609,9 +607,9 @@ class Store:
 
     def _latest_gen(self) -> int:
         """The newest checkpoint generation: kept in ``checkpoint_meta`` (a scan of the
-        checkpoints for MAX(gen) reads every row's pages: an estimated ~0.2 s a slice at
-        100,000 segments); a file written before that row existed is scanned once. Read
-        once, then counted here (a read would wait for the commit in the background)."""
+        checkpoints for MAX(gen) reads every row's pages); a file without that row is
+        scanned once. Read once, then counted here (a read would wait for the commit in
+        the background)."""
         if self._gen is not None:
             return self._gen
         row = self._db.execute("SELECT value FROM checkpoint_meta WHERE name = 'gen'").fetchone()

@@ -71,8 +71,8 @@ def summarize_states(
     # Every number of the batch is checked here at once as SegmentState checks its arrays
     # (finite, probabilities in [0, 1]); then the first state is built checked and the
     # others as copies of it with their own arrays (same dtypes and shapes) and scalars,
-    # whose checks run: a third of a summary's time was each state's 11 arrays checked
-    # one by one. A batch that fails is built state by state, which raises the reason.
+    # whose checks run, rather than each state's 11 arrays checked one by one. A batch
+    # that fails is built state by state, which raises the reason.
     numbers = (both.mean, both.cov, both.ci_low_mm, both.ci_high_mm, both.width, *limits_mm)
     checked = all(np.isfinite(a).all() for a in numbers) and bool(
         ((p_exceed >= 0) & (p_exceed <= 1)).all()
