@@ -8,8 +8,9 @@ adds to a message cannot grow the file (the payload size limits bound the rest).
 committed *before* the state it leads to is published (a backlog's batch commits in a thread
 while the next one folds, :meth:`Store.transaction`, and its states wait for it), so a
 SIGKILL loses nothing that was published (WAL journal; ``synchronous=NORMAL`` is durable
-against a process crash, which is what the design asks for; power loss may drop the last
-transactions: use ``synchronous="FULL"`` for that).
+against a process crash; power loss may drop the last transactions: use
+``synchronous="FULL"`` for that). Each segment's checkpoint (its state without its log) is
+stored too, so that a restart does not replay every log.
 
 Events older than a segment's latest TRC record can no longer change its state and are
 deleted when that record is stored (:meth:`Store.prune`).
