@@ -50,8 +50,8 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from services.filtering import study
-from services.filtering.bank import FilterBank, ObservationModel
 from services.filtering.degradation import DegradationParams
+from services.filtering.kalman import FilterBank, ObservationModel
 from services.filtering.mixture import summarize
 
 NS, SEGMENTS, WEEKS = 200, 500, 52

@@ -43,10 +43,14 @@ import numpy as np
 
 from bench.restart import build_store
 from schemas import DAY_S, OnboardIndex, TrcRecord, encode, keys
+from services.filtering.banks import Scratch
+from services.filtering.coordinator import PersistentTracker
+from services.filtering.events import event_of
+from services.filtering.fold import fold_many
 from services.filtering.service import BATCH, FREEZE_S
-from services.filtering.store import PersistentTracker, Store
+from services.filtering.store import Store
 from services.filtering.testing import example_models
-from services.filtering.tracker import Scratch, Tracker, event_of, fold_many
+from services.filtering.tracker import Tracker
 from services.limits import load_limits
 
 NS_SAMPLES, SEGMENTS, EVENTS = 200, 20_000, 4 * BATCH  # four of the service's batches

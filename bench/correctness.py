@@ -86,8 +86,10 @@ from services.calibration.config import CalibratorConfig
 from services.calibration.initial import initial_models
 from services.defaults import default_file
 from services.filtering.degradation import transition_unchecked
+from services.filtering.events import TAMPING, tamping_time
 from services.filtering.mixture import effective_sample_size, summarize
-from services.filtering.tracker import TAMPING, Tracker, state_weights, tamping_time
+from services.filtering.summary import state_weights
+from services.filtering.tracker import Tracker
 from services.limits import load_limits
 from simulators.fleet import MIXED
 from simulators.truth import Truth, load_config

@@ -26,9 +26,11 @@ import time
 import numpy as np
 
 from schemas import DAY_S, MaintenanceEvent, OnboardIndex, TrcRecord, encode
-from services.filtering.bank import FilterBank
+from services.filtering.events import INDEX, TAMPING
+from services.filtering.kalman import FilterBank
+from services.filtering.segment import replay
 from services.filtering.testing import example_models
-from services.filtering.tracker import INDEX, TAMPING, Tracker, replay
+from services.filtering.tracker import Tracker
 from services.limits import load_limits
 
 NS_SAMPLES, SEGMENTS, EVENTS, BASELINE_SEGMENTS = 200, 2000, 50, 100

@@ -32,8 +32,8 @@ import numpy as np
 
 from services.calibration.posterior import posterior_drift_diffusion
 from services.defaults import default_file
-from services.filtering.bank import update_unchecked
 from services.filtering.degradation import DegradationParams, transition_unchecked
+from services.filtering.kalman import update_unchecked
 from services.filtering.mixture import summarize
 
 INDICATOR_NAMES = ("Top", "Align")

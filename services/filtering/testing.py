@@ -20,7 +20,7 @@ from schemas import (
     keys,
 )
 from schemas.keys import SegmentId
-from services.filtering.tracker import event_of
+from services.filtering.events import event_of
 
 T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
 EVENT_TYPES = {"index": OnboardIndex, "trc": TrcRecord, "maintenance": MaintenanceEvent}

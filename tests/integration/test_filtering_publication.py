@@ -11,7 +11,8 @@ import zenoh
 
 from schemas import DAY_S, OnboardIndex, SegmentState, TrcRecord, decode, encode, keys
 from services.filtering import service
-from services.filtering.store import PersistentTracker, Store
+from services.filtering.coordinator import PersistentTracker
+from services.filtering.store import Store
 from services.filtering.testing import example_models
 from services.filtering.tracker import Tracker
 from services.limits import load_limits

@@ -13,15 +13,13 @@ import msgspec
 import numpy as np
 import pytest
 
-from schemas import DAY_S, SchemaError, encode, keys
+from schemas import DAY_S, Calibration, DegradationPosterior, SchemaError, encode, keys
 from services.filtering import store as store_module
-from services.filtering.store import PersistentTracker, Store, decode_keyed, index_identity
-from services.filtering.tracker import (
-    CUSUM_THRESHOLD,
-    Calibration,
-    DegradationPosterior,
-    event_of,
-)
+from services.filtering.banks import CUSUM_THRESHOLD
+from services.filtering.coordinator import PersistentTracker
+from services.filtering.events import event_of
+from services.filtering.payloads import decode_keyed
+from services.filtering.store import Store, index_identity
 from tests.unit.test_filtering_tracker import (
     MU,
     Z_PLUS,
@@ -225,7 +223,7 @@ def test_an_index_identity_is_its_json(monkeypatch):
 def test_evolve_is_dataclasses_replace():
     from dataclasses import replace
 
-    import services.filtering.tracker as core
+    import services.filtering.histories as core
 
     messages = mixed_stream(2)
     tracker = new_tracker()
@@ -233,9 +231,9 @@ def test_evolve_is_dataclasses_replace():
         tracker.step(msg)
     hist = tracker.histories[SEGMENTS[0]]
     changes = {"log": hist.log[:3], "state": None, "group": "line.L9"}
-    assert core._evolve(hist, **changes) == replace(hist, **changes)
+    assert core.evolve(hist, **changes) == replace(hist, **changes)
     with pytest.raises(TypeError):
-        core._evolve(hist, stat=None)
+        core.evolve(hist, stat=None)
 
 
 def test_a_batch_refuses_its_bad_indices_with_the_reasons_of_one_at_a_time(tmp_path):

@@ -20,16 +20,18 @@ from schemas import (
     encode,
     keys,
 )
-from services.filtering.bank import FilterBank, ObservationModel, update
+from services.filtering.coordinator import PersistentTracker
 from services.filtering.degradation import DegradationParams
+from services.filtering.kalman import FilterBank, ObservationModel, update
 from services.filtering.mixture import (
     effective_sample_size,
     forecast,
     summarize,
     weights_from_log,
 )
-from services.filtering.store import PersistentTracker, Store
-from services.filtering.tracker import Tracker, state_weights
+from services.filtering.store import Store
+from services.filtering.summary import state_weights
+from services.filtering.tracker import Tracker
 from services.limits import load_limits
 
 T0 = 1_767_225_600.0  # 2026-01-01 UTC

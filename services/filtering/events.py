@@ -1,0 +1,123 @@
+"""A segment's events in the filter's terms: :class:`Event` (kind, time, identity, value)
+made from a decoded message, a log's canonical order, and the log as columns
+(:class:`LogColumns`)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from schemas import (
+    DAY_S,
+    Calibration,
+    DegradationPosterior,
+    MaintenanceEvent,
+    OnboardIndex,
+    TrcRecord,
+)
+
+TAMPING, RESTART, INDEX = 0, 1, 2  # kind priority at equal times: a TRC record after a tamping
+KIND_NAMES = {RESTART: "trc", TAMPING: "maintenance", INDEX: "index"}
+
+EventMessage = OnboardIndex | TrcRecord | MaintenanceEvent
+ModelMessage = Calibration | DegradationPosterior
+
+
+class Event(NamedTuple):
+    """One segment event in the core's terms; ``order`` is its canonical sort key.
+
+    A named tuple (immutable, compared field by field like a frozen dataclass): a re-run
+    makes one per stored event, and a tuple is quicker to make than a dataclass."""
+
+    kind: int  # RESTART, TAMPING or INDEX
+    t_s: float  # epoch s of the event (a tamping's assumed time)
+    identity: tuple[Any, ...]
+    # z of a restart (an array) or y of an index (a pair) in log mm, None for a tamping
+    value: np.ndarray | tuple[float, float] | None
+    message: EventMessage
+
+    @property
+    def order(self) -> tuple[float, int, tuple[Any, ...]]:
+        return (self.t_s, self.kind, self.identity)
+
+    @property
+    def t_days(self) -> float:
+        return self.t_s / DAY_S
+
+
+def tamping_time(msg: MaintenanceEvent) -> float:
+    """Epoch s the filter assumes for a tamping: known time, else the middle of the
+    reported interval (Eq. 2's mid-interval rule on the report's interval)."""
+    if msg.t_start == msg.t_end:
+        return msg.t_start
+    return 0.5 * (msg.t_start + msg.t_end)
+
+
+def event_of(msg: EventMessage) -> Event:
+    """The core's event for a decoded message."""
+    match msg:
+        case OnboardIndex():
+            return index_event(msg)
+        case TrcRecord():
+            z = np.log([msg.top6_mm, msg.align10_mm])
+            return Event(RESTART, msg.t, ("trc", msg.run_id, msg.t), z, msg)
+        case MaintenanceEvent():
+            return Event(TAMPING, tamping_time(msg), ("maintenance", msg.event_id), None, msg)
+    raise TypeError(f"not a segment event: {type(msg).__name__}")
+
+
+def index_event(msg: Any) -> Event:
+    """The core's event of an OnboardIndex, or of a stored one decoded without its checks
+    (:func:`services.filtering.payloads.stored_events`): anything with its fields."""
+    y = (math.log(msg.top6_mm), math.log(msg.align10_mm))  # a tuple: an array each costs more
+    return Event(INDEX, msg.t, ("index", msg.train, msg.unit, msg.t), y, msg)
+
+
+@dataclass(frozen=True, eq=False)
+class LogColumns:
+    """A segment's canonical log as columns, without an object per event: what a re-run of
+    a resting segment folds (a model change reads every segment's log, and an Event each
+    would cost more than its fold). :func:`fold_many` takes it where it takes a tuple of
+    Events, with the same bits: the same times and values, in the same order.
+
+    ``values[k]``: the z of a restart, the y of an index, zeros for a tamping;
+    ``unit_codes[k]``: the position in ``unit_names`` of an index's ``(train, unit)``,
+    -1 for the other kinds; ``last_order``: the :attr:`Event.order` of the last event.
+    """
+
+    kinds: np.ndarray  # (L,) int8: RESTART, TAMPING or INDEX
+    times: np.ndarray  # (L,) epoch s
+    values: np.ndarray  # (L, n)
+    unit_codes: np.ndarray  # (L,) int32
+    unit_names: tuple[tuple[str, str], ...]
+    last_order: tuple[float, int, tuple[Any, ...]] | None
+
+    def __len__(self) -> int:
+        return len(self.kinds)
+
+
+Log = tuple[Event, ...] | LogColumns
+
+
+def log_units(log: Iterable[Event] | LogColumns) -> frozenset[tuple[str, str]]:
+    """The ``(train, unit)`` of the indices of a log: whose calibrations its fold reads."""
+    if isinstance(log, LogColumns):
+        return frozenset(log.unit_names)
+    return frozenset((e.message.train, e.message.unit) for e in log if e.kind == INDEX)
+
+
+def canonical_log(events: Iterable[Event]) -> tuple[tuple[Event, ...], float | None]:
+    """``(log, trc_t)`` of a segment's stored events (any order): the events at or after
+    the latest TRC record, in canonical order. The store holds exactly the accepted log
+    (duplicates refused, superseded tampings and events before a TRC record deleted), except
+    a tamping correction that moved before the latest TRC record, which this drops."""
+    events = list(events)
+    restarts = [e.t_s for e in events if e.kind == RESTART]
+    trc_t = max(restarts) if restarts else None
+    kept = [e for e in events if trc_t is None or e.t_s >= trc_t]
+    kept.sort(key=lambda e: e.order)
+    return tuple(kept), trc_t
