@@ -475,7 +475,7 @@ def run(args: argparse.Namespace, trains: int, stop: threading.Event) -> dict:
                     "--fidelity",
                     "index",
                     "--trains",
-                    "1",  # 0 crashes: simulators/index_model.py:111 (uniform(0, < 0, 0))
+                    "1",  # 0 crashes: simulators.world.index_pass_events (uniform(0, < 0, 0))
                     "--days",
                     str(args.prime_days),
                     "--start",

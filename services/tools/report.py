@@ -485,7 +485,7 @@ def main(
 ) -> int:
     """Ask the running system and write the report; SystemExit (1) without any state."""
     network = network_map(network_path)
-    with operator._session(conf) as session:
+    with operator.open_session(conf) as session:
         states = operator.query_states(session, conf.ns, f"{line}/**" if line else "**", timeout)
         if not states:
             what = f"line {line}" if line else f"namespace {conf.ns!r}"

@@ -10,8 +10,8 @@ import pytest
 from schemas import DAY_S, OnboardIndex
 from simulators.fleet import MIXED, Fleet
 from simulators.groundtruth import GroundTruthWriter, load_truth
-from simulators.index_model import index_pass_events
 from simulators.truth import Truth, load_config, truth_events
+from simulators.world import index_pass_events
 from track.network import demo_network
 
 T0 = 1767225600.0  # 2026-01-01T00:00:00Z

@@ -139,8 +139,8 @@ def test_raw_trains_on_a_one_way_track_send_only_while_running_its_way():
 
 
 def test_index_passes_on_a_one_way_track_all_run_its_way():
-    from simulators.index_model import index_pass_events
     from simulators.truth import Truth
+    from simulators.world import index_pass_events
 
     network = _lakeside("left")
     config = load_config()
