@@ -9,28 +9,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["CalibrationError", "ObservationFit", "fit_observation"]
+from services.drift_diffusion import CalibrationError, as_finite
 
-
-class CalibrationError(ValueError):
-    """The data cannot support the requested estimate; the message says what is missing."""
-
-
-def as_finite(name: str, x, ndim: int) -> np.ndarray:
-    """Return ``x`` as a finite float64 array of ``ndim`` dims or raise ValueError naming it.
-
-    A 1-D array where 2-D is expected is taken as a single column (n = 1).
-    """
-    a = np.asarray(x, dtype=np.float64)
-    if ndim == 2 and a.ndim == 1:
-        a = a[:, None]
-    if a.ndim != ndim:
-        raise ValueError(f"{name}: expected a {ndim}-D array, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(
-            f"{name}: contains NaN or inf at {np.argwhere(~np.isfinite(a))[:3].tolist()}"
-        )
-    return a
+__all__ = ["ObservationFit", "fit_observation"]
 
 
 @dataclass(frozen=True)

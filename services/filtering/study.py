@@ -30,8 +30,8 @@ from pathlib import Path
 import json5
 import numpy as np
 
-from services.calibration.posterior import posterior_drift_diffusion
 from services.defaults import default_file
+from services.drift_diffusion import posterior_drift_diffusion
 from services.filtering.bank import update_unchecked
 from services.filtering.degradation import DegradationParams, transition_unchecked
 from services.filtering.mixture import summarize

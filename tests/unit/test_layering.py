@@ -7,8 +7,10 @@ From the bottom up:
   the simulators; whoever wants a packaged network passes its path.
 - The shared layer of the services: ``services.runtime`` (the bus, delivery, inboxes and
   configuration every process uses), ``services.defaults`` (the packaged default files and how
-  they are found and read) and ``services.limits`` (the alert limits filtering and alerting
-  both apply). It imports ``schemas``, ``track`` and itself, no service.
+  they are found and read), ``services.limits`` (the alert limits filtering and alerting
+  both apply) and ``services.drift_diffusion`` (the degradation model's posterior, which
+  calibration fits and the frequency study draws from). It imports ``schemas``, ``track``
+  and itself, no service.
 - A service (``services/<name>/`` of :data:`SERVICES`) imports the shared layer, ``schemas``,
   ``track`` and itself: no service imports another one, so each deploys and changes alone.
 - The commands (``services/tools``, ``services/cli.py``) put the services together: they may
@@ -37,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("schemas", "services", "simulators", "track", "bench")
 OURS = (*PACKAGES, "tests")
 SERVICES = ("alerting", "calibration", "extraction", "filtering", "ingestion", "planning", "viewer")
-SHARED = ("services.runtime", "services.defaults", "services.limits")
+SHARED = ("services.runtime", "services.defaults", "services.limits", "services.drift_diffusion")
 COMMANDS = ("services.tools", "services.cli")
 # Layer of a module (the longest prefix that matches) -> the modules it may import.
 ALLOWED: dict[str, tuple[str, ...]] = {
