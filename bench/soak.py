@@ -91,9 +91,9 @@ import zenoh
 
 from schemas import DAY_S, NDArray, OnboardIndex, keys
 from schemas.keys import SegmentId
+from services.defaults import demo_network
 from services.extraction.pipeline import ExtractionConfig
 from services.runtime.config import users_env, zenoh_config
-from track.network import demo_network
 from track.versine import END_GUARD_M
 
 REPO = Path(__file__).resolve().parents[1]

@@ -30,8 +30,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
-import json5
-
 from schemas import (
     MaintenanceEvent,
     OnboardIndex,
@@ -53,6 +51,7 @@ from services.runtime.config import (
     add_zenoh_arguments,
     config_from_args,
     default_db,
+    read_json5,
 )
 from services.runtime.latest import LatestValues
 from services.runtime.service import ServiceRuntime, configure_logging
@@ -113,10 +112,10 @@ def settings_from(options: Mapping[str, Any], **overrides: Any) -> Settings:
 
 def load_initial_models(path: Path, core: CalibratorConfig):
     """The initial models of the JSON5 file at ``path``; ValueError saying what is wrong."""
+    spec = read_json5(path)
     try:
-        spec = json5.loads(path.read_text(encoding="utf-8"))
         return initial_models(spec, samples=core.samples, seed=core.seed)
-    except (OSError, ValueError) as e:
+    except ValueError as e:
         raise ValueError(f"initial models {path}: {e}") from None
 
 

@@ -21,17 +21,15 @@ from pathlib import Path
 import zenoh
 
 from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode, keys
-from services.defaults import default_file
+from services.defaults import DEMO_NETWORK, load_network
 from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore, Output, Rejection
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 from services.runtime.service import ServiceRuntime, configure_logging
-from track.network import load_network
 
 log = logging.getLogger(__name__)
 
 SERVICE = "ingestion"
-DEFAULT_NETWORK = default_file("demo-network.geojson")
 
 
 def decode_gateway(kind: str, key: str, payload: bytes) -> RawChunk | GpsFix:
@@ -132,7 +130,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--network",
         metavar="FILE.geojson",
         type=Path,
-        default=DEFAULT_NETWORK,
+        default=DEMO_NETWORK,
         help="network to map-match on (default: %(default)s)",
     )
     add_zenoh_arguments(parser)

@@ -337,7 +337,7 @@ def to_geojson(rows: Iterable[dict], geometry: dict[SegmentId, list]) -> dict:
 
 
 def segment_geometry(network_path: str | None) -> dict[SegmentId, list]:
-    from track.network import load_network
+    from services.defaults import load_network
 
     network = load_network(network_path)
     return {

@@ -419,7 +419,8 @@ def network_map(network_path: str | None = None) -> NetworkMap:
     A line feature may name its stations with ``station_names`` (one per ``stations``
     chainage); without names a station is labelled with its chainage in km.
     """
-    from track.network import DEMO_NETWORK, Network
+    from services.defaults import DEMO_NETWORK
+    from track.network import Network
 
     path = Path(network_path or DEMO_NETWORK)
     try:

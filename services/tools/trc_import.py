@@ -36,6 +36,7 @@ import zenoh
 
 from schemas import SchemaError, TrcRecord, encode, keys
 from schemas.wire import check_time
+from services.defaults import load_network
 from services.runtime.config import RuntimeConfig, config_from_args
 from services.tools.operator import (
     add_query_arguments,
@@ -43,7 +44,7 @@ from services.tools.operator import (
     open_session,
     parse_time,
 )
-from track.network import check_id, load_network
+from track.network import check_id
 from track.segments import SegmentTable
 from track.trc_profile import (
     MAX_OFFSET_M,

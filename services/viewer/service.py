@@ -53,6 +53,7 @@ from schemas import (
     encode,
     keys,
 )
+from services.defaults import DEMO_NETWORK, load_network
 from services.runtime.config import (
     RuntimeConfig,
     add_zenoh_arguments,
@@ -67,7 +68,6 @@ from services.viewer.core import (
     ViewerCore,
     coalesce_key,
 )
-from track.network import DEMO_NETWORK, load_network
 
 log = logging.getLogger(__name__)
 

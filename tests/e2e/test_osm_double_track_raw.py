@@ -13,11 +13,11 @@ import numpy as np
 from support import run_cli
 
 from schemas import DAY_S, OnboardIndex, decode, keys
+from services.defaults import load_network
 from simulators.fleet import Fleet
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
 from simulators.truth import load_config
-from track.network import load_network
 
 OSM = Path(__file__).parents[1] / "fixtures" / "osm" / "lakeside.geojson"
 START = 1_767_225_600.0  # the simulator's default start, 2026-01-01T00:00:00Z

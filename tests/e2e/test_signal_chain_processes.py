@@ -9,9 +9,9 @@ import signal
 import numpy as np
 
 from schemas import DAY_S, DeadLetter, OnboardIndex, decode, keys
+from services.defaults import demo_network
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
-from track.network import demo_network
 
 START = 1_767_225_600.0  # the simulator's default start, 2026-01-01T00:00:00Z
 SECONDS = 900

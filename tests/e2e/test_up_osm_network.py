@@ -13,8 +13,8 @@ import zenoh
 from support import run_cli
 
 from schemas import SegmentState, decode, keys
+from services.defaults import load_network
 from services.runtime.config import zenoh_config
-from track.network import load_network
 
 OSM = Path(__file__).parents[1] / "fixtures" / "osm" / "lakeside.geojson"
 START_S = 60.0  # upper bound for a process to start or a first state on two loaded cores

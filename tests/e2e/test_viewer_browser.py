@@ -32,9 +32,9 @@ from browser import CHROMIUM, first_picture, hue_pixels
 
 from schemas import DAY_S, Alert, GpsFix, StackHealth, decode, encode, keys
 from services.alerting.testing import T0, make_state, p_top6
+from services.defaults import DEMO_NETWORK, demo_network
 from services.runtime.config import zenoh_config
 from services.viewer import service as viewer
-from track.network import DEMO_NETWORK, demo_network
 
 TIMEOUT_S = 5.0
 # Upper bounds only (each loop ends as soon as its condition holds). SwiftShader renders on

@@ -25,9 +25,9 @@ from schemas import (
     keys,
 )
 from services.alerting.testing import T0, make_state, p_top6
+from services.defaults import DEMO_NETWORK, demo_network
 from services.viewer import service as viewer
 from services.viewer.testing import blueprint_views, rrd_contents, rrd_printout, verify_rrd
-from track.network import DEMO_NETWORK, demo_network
 
 PUT = zenoh.SampleKind.PUT
 TIMEOUT_S = 5.0

@@ -7,7 +7,6 @@ import functools
 import sqlite3
 from pathlib import Path
 
-import json5
 import msgspec
 import numpy as np
 import pytest
@@ -34,6 +33,7 @@ from services.calibration.robust import check_model
 from services.calibration.state import Quarantine
 from services.calibration.store import MemoryStore, SqliteStore
 from services.defaults import default_file
+from services.runtime.config import read_json5
 
 T0 = 1_700_000_000.0
 H = np.array([[0.9, 0.05], [0.05, 0.75]])
@@ -222,7 +222,7 @@ def test_swap_rule_loglik_threshold():
 
 
 def test_initial_calibration_replaced_by_first_fit():
-    spec = json5.loads((default_file("initial-models.json5")).read_text())
+    spec = read_json5(default_file("initial-models.json5"))
     cal0, posts = initial_models(spec, samples=50, seed=4)
     assert cal0 is not None and cal0.version == 1 and [p.group for p in posts] == ["net"]
     assert posts[0].mu.shape == [50, 2]
@@ -561,7 +561,7 @@ def test_a_99_mm_record_does_not_move_the_network_posterior(outlier_at):
 def test_the_incident_seven_records_on_one_segment_from_the_initial_models():
     """Issue 14's case (1e308 then, 99 mm now): only the initial models and seven records of
     one segment, one of them 99 mm."""
-    spec = json5.loads((default_file("initial-models.json5")).read_text())
+    spec = read_json5(default_file("initial-models.json5"))
     cal0, posts = initial_models(spec, samples=200, seed=0)
     core = Calibrator(FleetOnly(samples=200))
     core.install_initial(cal0, posts)

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from schemas import ACCEL_CHANNELS, GpsFix, NDArray, PositionedChunk, RawChunk, encode
+from services.defaults import demo_network
 from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore, Rejection
 from services.ingestion.health import G_MPS2
 from services.ingestion.matching import _LineGeometry
 from simulators.profile import LineProfile
 from simulators.train import RAW_CHANNELS, TrainSimulator
-from track.network import demo_network
 
 T0 = 1_767_225_600.0
 N = 2000  # samples per 1 s chunk at 2000 Hz

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from schemas import DAY_S, OnboardIndex
+from services.defaults import demo_network
 from simulators.fleet import MIXED, Fleet
 from simulators.groundtruth import GroundTruthWriter, load_truth
 from simulators.truth import Truth, load_config, truth_events
 from simulators.world import index_pass_events
-from track.network import demo_network
 
 T0 = 1767225600.0  # 2026-01-01T00:00:00Z
 
@@ -133,10 +133,10 @@ def test_onboard_messages_are_unchanged_by_the_default_fleet_section(net, cfg):
 
 
 def test_raw_mode_units_read_with_their_gain_and_tilt_and_classes_change_the_bogie(cfg):
+    from services.defaults import demo_network
     from simulators.bogie import BogiePhysics
     from simulators.profile import LineProfile
     from simulators.train import TrainConfig, TrainSimulator
-    from track.network import demo_network
 
     line = demo_network().lines["L1"]
     profile = LineProfile(line.id, [(s.start_m, s.end_m) for s in line.segments], 3)

@@ -17,10 +17,10 @@ from schemas import (
     decode,
     keys,
 )
+from services.defaults import demo_network
 from simulators.gateway import key_and_payload
 from simulators.truth import load_config
 from simulators.world import WorldSpec, world_events
-from track.network import demo_network
 
 START = 1_767_225_600.0  # 2026-01-01T00:00:00Z
 KINDS = {

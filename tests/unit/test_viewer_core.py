@@ -23,6 +23,7 @@ from schemas import (
     ViewerSelect,
 )
 from services.alerting.testing import T0, make_state, p_top6
+from services.defaults import demo_network
 from services.viewer.core import (
     UNKNOWN_RGB,
     ViewerCore,
@@ -34,7 +35,6 @@ from services.viewer.core import (
     select_worst_sticky,
 )
 from services.viewer.testing import rrd_contents, verify_rrd
-from track.network import demo_network
 
 
 @pytest.mark.parametrize(
