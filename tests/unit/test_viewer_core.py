@@ -287,14 +287,15 @@ def test_history_thinned_to_the_newest_per_segment_and_event_day(recording):
     assert rrd_contents(path)["worst/1/top6/g1/state"]["Scalars:scalars"] == 3
 
 
-def test_inbox_keeps_the_newest_per_key_and_every_alert():
-    from services.viewer.service import _Inbox
+def test_the_inbox_keeps_the_newest_state_of_a_segment_and_day_and_every_alert(recording):
+    from services.viewer.service import ViewerAdapter
 
-    inbox = _Inbox(capacity=2)
+    rec, _ = recording
+    inbox = ViewerAdapter(None, ViewerCore(rec, demo_network(), worst_n=2)).inbox  # type: ignore[arg-type]
     states = [make_state(T0 + k * 60.0, segment="s1") for k in range(3)]
     for state in (states[0], states[2], states[1]):  # s1, day 0: only the newest stays
         inbox.put(state)
-    other = make_state(T0, segment="s2")
+    other_day = make_state(T0 + DAY_S, segment="s1")
     alerts = [
         Alert(
             line="L1",
@@ -308,16 +309,10 @@ def test_inbox_keeps_the_newest_per_key_and_every_alert():
         )  # fmt: skip
         for k in range(2)
     ]
-    for message in (other, *alerts):
+    for message in (other_day, *alerts):
         inbox.put(message)
-    assert inbox.take(timeout=0) == [states[2], other, *alerts]
+    assert inbox.take(timeout=0) == [states[2], other_day, *alerts]
     assert inbox.superseded == 2 and inbox.dropped == 0
-    for segment in ("s1", "s2", "s3"):  # capacity 2: the oldest key goes
-        inbox.put(make_state(T0, segment=segment))
-    assert [m.segment for m in inbox.take(timeout=0)] == ["s2", "s3"]
-    assert inbox.dropped == 1
-    inbox.close()
-    assert inbox.take(timeout=None) is None
 
 
 def test_select_worst_sticky_keeps_plotted_segments_through_near_ties():
