@@ -132,45 +132,15 @@ def fit_observation(
         )
     zbar, ybar = Z.mean(axis=0), Y.mean(axis=0)
     Zc, Yc = Z - zbar, Y - ybar
-    zsd = np.sqrt((Zc**2).mean(axis=0))
-    const = np.flatnonzero(zsd <= rel_tol * np.maximum(1.0, np.abs(zbar)))
-    if const.size:
-        raise CalibrationError(
-            f"TRC indicator column(s) {const.tolist()} are constant over the {N} pairs; "
-            "H cannot be identified: need pairs spanning a range of each indicator"
-        )
-    # Condition of the standardised design measures collinearity between indicators only;
-    # the intercept is handled exactly by centring.
-    sv = np.linalg.svd(Zc / zsd, compute_uv=False)
-    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else np.inf
-    if cond > max_condition:
-        raise CalibrationError(
-            f"TRC indicators are (nearly) collinear: condition number {cond:.3g} > "
-            f"{max_condition:.3g}; H cannot be separated per indicator: need pairs where "
-            "the indicators vary independently, or fit fewer indicators"
-        )
+    cond = _condition(Zc, zbar, max_condition, rel_tol)
     Ht, *_ = np.linalg.lstsq(Zc, Yc, rcond=None)  # (n, m) = H^T
     H = Ht.T
     b = ybar - zbar @ Ht
     E = Yc - Zc @ Ht
     R = E.T @ E / N
     R = 0.5 * (R + R.T)
-    # Judge R against the spread of Y itself: an exact fit leaves round-off residuals whose
-    # own eigenvalue ratio can look harmless.
-    tiny = np.finfo(float).tiny
     var_y = (Yc**2).mean(axis=0)
-    ev = np.linalg.eigvalsh(R)
-    if ev[0] <= rel_tol * max(var_y.max(), tiny):
-        exact = np.flatnonzero(np.diag(R) <= rel_tol * np.maximum(var_y, tiny))
-        what = (
-            f"on-board index column(s) {exact.tolist()} are fitted exactly"
-            if exact.size
-            else "a combination of on-board indices is fitted exactly (collinear indices)"
-        )
-        raise CalibrationError(
-            f"residual covariance R is not positive definite (eigenvalues {ev.tolist()}): "
-            f"{what}; need noisy, non-duplicated on-board indices"
-        )
+    _check_residuals(R, var_y, rel_tol)
     r2 = 1.0 - np.diag(R) / var_y
     dof = N - n - 1
     s_ii = np.diag(E.T @ E) / dof
@@ -193,6 +163,47 @@ def fit_observation(
         se_b=se_b,
         se_R=se_R,
     )
+
+
+def _condition(Zc: np.ndarray, zbar: np.ndarray, max_condition: float, rel_tol: float) -> float:
+    """Condition number of the standardised centred indicators ``Zc``; CalibrationError when
+    an indicator is constant or they are collinear (H could not be told apart per indicator).
+    It measures collinearity between indicators only: centring handles the intercept."""
+    zsd = np.sqrt((Zc**2).mean(axis=0))
+    const = np.flatnonzero(zsd <= rel_tol * np.maximum(1.0, np.abs(zbar)))
+    if const.size:
+        raise CalibrationError(
+            f"TRC indicator column(s) {const.tolist()} are constant over the {len(Zc)} pairs; "
+            "H cannot be identified: need pairs spanning a range of each indicator"
+        )
+    sv = np.linalg.svd(Zc / zsd, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else np.inf
+    if cond > max_condition:
+        raise CalibrationError(
+            f"TRC indicators are (nearly) collinear: condition number {cond:.3g} > "
+            f"{max_condition:.3g}; H cannot be separated per indicator: need pairs where "
+            "the indicators vary independently, or fit fewer indicators"
+        )
+    return cond
+
+
+def _check_residuals(R: np.ndarray, var_y: np.ndarray, rel_tol: float) -> None:
+    """CalibrationError when ``R`` is not positive definite, judged against the spread of Y
+    itself (``var_y``): an exact fit leaves round-off residuals whose own eigenvalue ratio
+    can look harmless."""
+    tiny = np.finfo(float).tiny
+    ev = np.linalg.eigvalsh(R)
+    if ev[0] <= rel_tol * max(var_y.max(), tiny):
+        exact = np.flatnonzero(np.diag(R) <= rel_tol * np.maximum(var_y, tiny))
+        what = (
+            f"on-board index column(s) {exact.tolist()} are fitted exactly"
+            if exact.size
+            else "a combination of on-board indices is fitted exactly (collinear indices)"
+        )
+        raise CalibrationError(
+            f"residual covariance R is not positive definite (eigenvalues {ev.tolist()}): "
+            f"{what}; need noisy, non-duplicated on-board indices"
+        )
 
 
 def _se_R(R: np.ndarray, dof: float) -> np.ndarray:
