@@ -5,12 +5,13 @@ Subscribes ``{ns}/state/**``, ``{ns}/index/**``, ``{ns}/trc/**``, ``{ns}/alert/*
 (``ServiceRuntime.subscribe``: a Zenoh ``RingChannel`` each: when the viewer falls behind,
 the oldest samples are dropped and the pipeline never waits for it). The runtime's
 per-subscription workers decode (errors become dead letters) and hand them to one bounded
-inbox (:class:`~services.runtime.inbox.LatestInbox`) in which a newer state or index of a segment and event-day, or a newer fix of a
-train, replaces the held one (alerts and TRC records queue); ONE worker thread takes
-everything held at once, hands it to the core and lets the core write what is due, so
-only that thread touches the recording. A slow browser makes Rerun's log calls wait; the
-inbox then coalesces and the Zenoh callbacks still never wait. The liveliness tokens
-(``{ns}/alive/**``) go to a set the worker hands to the core for the health board.
+inbox (:class:`~services.runtime.inbox.LatestInbox`) in which a newer state or index of a
+segment and event-day, or a newer fix of a train, replaces the held one (alerts and TRC
+records queue); ONE worker thread takes everything held at once, hands it to the core and
+lets the core write what is due, so only that thread touches the recording. A slow
+browser makes Rerun's log calls wait; the inbox then coalesces and the Zenoh callbacks
+still never wait. The liveliness tokens (``{ns}/alive/**``) go to a set the worker hands
+to the core for the health board.
 
 :func:`main_select` is ``trackfusion viewer select LINE/SEGMENT``: it publishes a
 ViewerSelect that a running viewer answers by plotting that segment in its "selected" row.

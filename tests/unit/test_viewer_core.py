@@ -25,15 +25,12 @@ from schemas import (
 from services.alerting.testing import T0, make_state, p_top6
 from services.defaults import demo_network
 from services.viewer.core import (
-    UNKNOWN_RGB,
     ViewerCore,
-    build_blueprint,
-    exceedance_color,
-    health_markdown,
     segment_exceedance,
     select_worst,
     select_worst_sticky,
 )
+from services.viewer.scene import UNKNOWN_RGB, build_blueprint, exceedance_color, health_markdown
 from services.viewer.testing import rrd_contents, verify_rrd
 
 
