@@ -149,20 +149,7 @@ def fit_observation(
     se_H = np.sqrt(np.outer(s_ii, np.diag(G)))
     se_b = np.sqrt(s_ii * (1.0 / N + zbar @ G @ zbar))
     se_R = _se_R(R, dof)
-    return ObservationFit(
-        H=H,
-        b=b,
-        R=R,
-        n_pairs=N,
-        r2=r2,
-        resid_std=np.sqrt(np.diag(R)),
-        condition=cond,
-        z_min=Z.min(axis=0),
-        z_max=Z.max(axis=0),
-        se_H=se_H,
-        se_b=se_b,
-        se_R=se_R,
-    )
+    return _observation_fit(Z, H, b, R, r2, cond, (se_H, se_b, se_R))
 
 
 def _condition(Zc: np.ndarray, zbar: np.ndarray, max_condition: float, rel_tol: float) -> float:
@@ -204,6 +191,25 @@ def _check_residuals(R: np.ndarray, var_y: np.ndarray, rel_tol: float) -> None:
             f"residual covariance R is not positive definite (eigenvalues {ev.tolist()}): "
             f"{what}; need noisy, non-duplicated on-board indices"
         )
+
+
+def _observation_fit(Z, H, b, R, r2, condition: float, se: tuple) -> ObservationFit:
+    """The fit of ``H``, ``b``, ``R`` on the pairs of ``Z``; ``se``: those of H, b, R."""
+    se_H, se_b, se_R = se
+    return ObservationFit(
+        H=H,
+        b=b,
+        R=R,
+        n_pairs=len(Z),
+        r2=r2,
+        resid_std=np.sqrt(np.diag(R)),
+        condition=condition,
+        z_min=Z.min(axis=0),
+        z_max=Z.max(axis=0),
+        se_H=se_H,
+        se_b=se_b,
+        se_R=se_R,
+    )
 
 
 def _se_R(R: np.ndarray, dof: float) -> np.ndarray:
@@ -257,17 +263,5 @@ def fit_unit_observation(Z, Y, *, H0, b0, R0, design, shrink_pairs: float) -> Ob
     se = np.sqrt(np.outer(np.diag(R), np.diag(A_inv)))  # (m, n + 1)
     sst = ((Y - Y.mean(axis=0)) ** 2).sum(axis=0)
     r2 = 1.0 - (E**2).sum(axis=0) / np.where(sst > 0, sst, np.inf)
-    return ObservationFit(
-        H=H,
-        b=b,
-        R=R,
-        n_pairs=N,
-        r2=r2,
-        resid_std=np.sqrt(np.diag(R)),
-        condition=float(np.linalg.cond(A)),
-        z_min=Z.min(axis=0),
-        z_max=Z.max(axis=0),
-        se_H=se[:, :n],
-        se_b=se[:, n],
-        se_R=_se_R(R, dof),
-    )
+    cond = float(np.linalg.cond(A))
+    return _observation_fit(Z, H, b, R, r2, cond, (se[:, :n], se[:, n], _se_R(R, dof)))

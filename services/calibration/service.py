@@ -45,6 +45,7 @@ from services.calibration.config import CalibratorConfig
 from services.calibration.initial import initial_models
 from services.calibration.state import Event, Model, Quarantine
 from services.calibration.store import SqliteStore
+from services.defaults import add_network_argument
 from services.runtime.config import (
     RuntimeConfig,
     add_db_argument,
@@ -245,11 +246,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="prior models published as version 1 until data gives better ones "
         "(e.g. services/defaults/initial-models.json5; default: none)",
     )
-    parser.add_argument(
-        "--network",
-        type=Path,
-        metavar="FILE.geojson",
-        help="refuse events on segments this network does not have (default: accept any)",
+    add_network_argument(
+        parser, "refuse events on segments this network does not have", default="accept any"
     )
     parser.add_argument(
         "--min-pairs", type=int, help=f"pairs before the first fit (default: {core.min_pairs})"

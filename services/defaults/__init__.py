@@ -37,6 +37,14 @@ def demo_network(segment_length_m: float | None = None) -> Network:
     return Network.from_geojson(DEMO_NETWORK, segment_length_m)
 
 
+def add_network_argument(parser, what: str, *, default: str = "the demo network") -> None:
+    """``--network FILE.geojson``: the network file ``what`` is about (a parser or an
+    argument group); read it with :func:`load_network`."""
+    parser.add_argument(
+        "--network", metavar="FILE.geojson", type=Path, help=f"{what} (default: {default})"
+    )
+
+
 def load_network(path: str | Path | None, segment_length_m: float | None = None) -> Network:
     """The network of a command's ``--network``: the GeoJSON file ``path``, the demo network
     without one; ValueError saying what to fix when the file is bad."""

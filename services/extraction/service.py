@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 from schemas import PositionedChunk, decode, encode, keys
-from services.defaults import DEMO_NETWORK
+from services.defaults import DEMO_NETWORK, add_network_argument
 from services.extraction.pipeline import ExtractionConfig, Extractor
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 from services.runtime.service import ServiceRuntime, configure_logging
@@ -103,12 +103,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "Subscribe to {ns}/accel/** (PositionedChunk), publish one OnboardIndex per "
         "segment pass on {ns}/index/{line}/{segment}."
     )
-    parser.add_argument(
-        "--network",
-        metavar="FILE",
-        type=Path,
-        help=f"network GeoJSON with the segment bounds (default: {DEMO_NETWORK})",
-    )
+    add_network_argument(parser, "the segment bounds")
     add_zenoh_arguments(parser)
 
 

@@ -36,6 +36,7 @@ from schemas import (
     keys,
 )
 from schemas.keys import SegmentId
+from services.defaults import add_network_argument
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 
 QUERY_TIMEOUT_S = 10.0  # `--timeout`: a service catching up on a backlog answers late
@@ -404,8 +405,7 @@ def add_query_arguments(parser: argparse.ArgumentParser, *, timeout: bool = True
         )
 
 
-def status_add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_query_arguments(parser)
+status_add_arguments = alerts_add_arguments = add_query_arguments
 
 
 def status_run(args: argparse.Namespace) -> int:
@@ -421,10 +421,6 @@ def state_add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def state_run(args: argparse.Namespace) -> int:
     return main_state(config_from_args(args), args.segment, args.timeout)
-
-
-def alerts_add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_query_arguments(parser)
 
 
 def alerts_run(args: argparse.Namespace) -> int:
@@ -445,7 +441,7 @@ def plan_run(args: argparse.Namespace) -> int:
 def export_add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("what", choices=["states", "alerts"])
     parser.add_argument("--format", choices=["csv", "geojson"], default="csv")
-    parser.add_argument("--network", metavar="FILE.geojson", help="geometry (default: the demo)")
+    add_network_argument(parser, "the geometry")
     add_query_arguments(parser)
 
 

@@ -32,6 +32,7 @@ from schemas import (
     keys,
 )
 from schemas.keys import SegmentId
+from services.defaults import add_network_argument
 from services.runtime.config import RuntimeConfig, config_from_args
 from services.tools import operator
 
@@ -520,7 +521,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--line", help="one line (default: all lines)")
     parser.add_argument("--out", default=DEFAULT_OUT, metavar="FILE.html", help="(%(default)s)")
-    parser.add_argument("--network", metavar="FILE.geojson", help="geometry (default: the demo)")
+    add_network_argument(parser, "the geometry")
     parser.add_argument(
         "--worst", type=int, default=WORST_N, metavar="N", help="fans drawn (%(default)s)"
     )

@@ -36,7 +36,7 @@ import zenoh
 
 from schemas import SchemaError, TrcRecord, encode, keys
 from schemas.wire import check_time
-from services.defaults import load_network
+from services.defaults import add_network_argument, load_network
 from services.runtime.config import RuntimeConfig, config_from_args
 from services.tools.operator import (
     add_query_arguments,
@@ -287,7 +287,7 @@ def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--line", help="line id of the run (of --network)")
     group.add_argument("--run-id", help="id of the run, carried by its TrcRecords")
     group.add_argument("--t", metavar="ISO", help="time of the run: ISO 8601 or epoch s")
-    group.add_argument("--network", metavar="FILE.geojson", help="segments (default: the demo)")
+    add_network_argument(group, "the segments")
     group.add_argument(
         "--archive",
         metavar="FILE",

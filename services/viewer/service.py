@@ -53,7 +53,7 @@ from schemas import (
     encode,
     keys,
 )
-from services.defaults import DEMO_NETWORK, load_network
+from services.defaults import add_network_argument, load_network
 from services.runtime.config import (
     RuntimeConfig,
     add_zenoh_arguments,
@@ -376,13 +376,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "native viewer when DISPLAY/WAYLAND_DISPLAY is set, else the web viewer (its URL is "
         "printed on stdout)."
     )
-    parser.add_argument(
-        "--network",
-        metavar="FILE.geojson",
-        type=Path,
-        default=DEMO_NETWORK,
-        help="the map (default: %(default)s)",
-    )
+    add_network_argument(parser, "the map")
     sink = parser.add_mutually_exclusive_group()
     sink.add_argument(
         "--rrd", metavar="FILE", type=Path, help="save the recording to FILE (headless)"
