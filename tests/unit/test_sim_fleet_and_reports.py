@@ -11,20 +11,10 @@ from schemas import DAY_S, OnboardIndex
 from services.defaults import demo_network
 from simulators.fleet import MIXED, Fleet
 from simulators.groundtruth import GroundTruthWriter, load_truth
-from simulators.truth import Truth, load_config, truth_events
+from simulators.truth import Truth, truth_events
 from simulators.world import index_pass_events
 
 T0 = 1767225600.0  # 2026-01-01T00:00:00Z
-
-
-@pytest.fixture(scope="module")
-def net():
-    return demo_network()
-
-
-@pytest.fixture(scope="module")
-def cfg():
-    return load_config()
 
 
 def unkind(cfg, unreported=0.3, late=0.4):
@@ -133,7 +123,6 @@ def test_onboard_messages_are_unchanged_by_the_default_fleet_section(net, cfg):
 
 
 def test_raw_mode_units_read_with_their_gain_and_tilt_and_classes_change_the_bogie(cfg):
-    from services.defaults import demo_network
     from simulators.bogie import BogiePhysics
     from simulators.profile import LineProfile
     from simulators.train import TrainConfig, TrainSimulator
