@@ -5,9 +5,8 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import json5
 import pytest
@@ -73,8 +72,7 @@ def up(free_port, namespace, spawn, tmp_path) -> Callable[..., Up]:
     return start
 
 
-@dataclass
-class FastModeWorld:
+class FastModeWorld(NamedTuple):
     """A generated network file, the test's session hearing every event (``last``) and the
     services' liveliness tokens (``alive``), and calibration running on the initial models."""
 

@@ -68,14 +68,7 @@ def drained(
 
 
 def test_pipeline_survives_a_filtering_kill(namespace, fast_mode_world, spawn, tmp_path):
-    world = fast_mode_world(1, 6.0, seed=3)
-    network, wiring, session, last, alive = (
-        world.network,
-        world.wiring,
-        world.session,
-        world.last,
-        world.alive,
-    )
+    network, wiring, session, last, alive = fast_mode_world(1, 6.0, seed=3)
 
     def start_filtering(name: str):
         db = str(tmp_path / f"{name}.sqlite")

@@ -63,14 +63,7 @@ def settled(
 
 
 def test_split_instances_equal_one_instance(namespace, fast_mode_world, spawn, tmp_path):
-    world = fast_mode_world(2, 3.0, seed=5)
-    network, wiring, session, last, alive = (
-        world.network,
-        world.wiring,
-        world.session,
-        world.last,
-        world.alive,
-    )
+    network, wiring, session, last, alive = fast_mode_world(2, 3.0, seed=5)
     filtering = {
         name: spawn(
             f"filtering-{name}",

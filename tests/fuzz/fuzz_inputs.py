@@ -177,14 +177,9 @@ class Fuzzer:
         return self.rng.choice(inp.wrong_keys), encode(inp.template)
 
     def _wrong_message_type(self, inp: Input) -> tuple[str, bytes] | None:
-        payload = encode(self.rng.choice(inp.others))
-        try:
-            decode(payload, type(inp.template))
-        except SchemaError:
-            return inp.key, payload
         # a payload of another type that decodes as this one (its fields are a superset):
         # nothing on the wire tells them apart, so it is not sent (see the report)
-        return None
+        return _if_refused(inp, encode(self.rng.choice(inp.others)))
 
     def _out_of_range(self, inp: Input) -> tuple[str, bytes] | None:
         m = plain(inp.template)
@@ -195,12 +190,7 @@ class Fuzzer:
 
     def _refused(self, inp: Input, m: dict[str, Any], *first: str) -> tuple[str, bytes] | None:
         """``m`` packed on the input's key if its type refuses it, else None (not sent)."""
-        payload = msgpack.packb(front(m, *first))
-        try:
-            decode(payload, type(inp.template))
-        except SchemaError:
-            return inp.key, payload
-        return None
+        return _if_refused(inp, msgpack.packb(front(m, *first)))
 
     def _deep_nesting(self, inp: Input) -> tuple[str, bytes] | None:
         # an unknown field holding a list in a list in ... (msgpack's packer refuses to
@@ -319,3 +309,12 @@ def wrong_values(value: Any, *, optional: bool) -> list[Any]:
     if value is None:
         return ["x", [1.0], {"a": 1}]
     return [None]
+
+
+def _if_refused(inp: Input, payload: bytes) -> tuple[str, bytes] | None:
+    """``payload`` on the input's key if the input's type refuses it, else None (not sent)."""
+    try:
+        decode(payload, type(inp.template))
+    except SchemaError:
+        return inp.key, payload
+    return None
