@@ -14,15 +14,13 @@ import rerun as rr
 
 from schemas import (
     DAY_S,
-    Alert,
     GpsFix,
-    OnboardIndex,
     ServiceHealth,
     StackHealth,
     TrcRecord,
     ViewerSelect,
 )
-from services.alerting.testing import T0, make_state, p_top6
+from services.alerting.testing import T0, make_alert, make_index, make_state, p_top6
 from services.defaults import demo_network
 from services.viewer.core import (
     ViewerCore,
@@ -205,30 +203,11 @@ def test_core_writes_series_map_trains_and_alerts(recording):
     ]
     batch = [
         *states,  # three rows of one segment: one send_columns per series
-        OnboardIndex(
-            line="L1",
-            segment=seg,
-            train="T1",
-            unit="u1",
-            t=T0 + 0.5 * DAY_S,
-            top6_mm=5.0,
-            align10_mm=3.5,
-            speed_mps=20.0,
-            coverage=1.0,
-        ),  # fmt: skip
+        make_index(T0 + 0.5 * DAY_S, segment=seg, coverage=1.0),
         TrcRecord(line="L1", segment=seg, t=T0, top6_mm=4.1, align10_mm=3.1, run_id="r1"),
         GpsFix(train="T1", t=T0 + 10, lat_deg=lat, lon_deg=lon),
         GpsFix(train="T2", t=T0 + 10, lat_deg=lat, lon_deg=lon, fix_quality=0),  # skipped
-        Alert(
-            line="L1",
-            segment=seg,
-            t=T0 + DAY_S,
-            kind="exceedance",
-            status="raised",
-            indicator="top6",
-            level="intervention",
-            probability=0.6,
-        ),  # fmt: skip
+        make_alert(T0 + DAY_S, segment=seg, probability=0.6),
     ]
     assert core.log_batch(batch) == len(batch)
     assert core.shown()["worst/1"] == ("L1", seg)
@@ -293,19 +272,7 @@ def test_the_inbox_keeps_the_newest_state_of_a_segment_and_day_and_every_alert(r
     for state in (states[0], states[2], states[1]):  # s1, day 0: only the newest stays
         inbox.put(state)
     other_day = make_state(T0 + DAY_S, segment="s1")
-    alerts = [
-        Alert(
-            line="L1",
-            segment="s1",
-            t=T0 + k,
-            kind="exceedance",
-            status="raised",
-            indicator="top6",
-            level="alert",
-            probability=0.9,
-        )  # fmt: skip
-        for k in range(2)
-    ]
+    alerts = [make_alert(T0 + k, level="alert") for k in range(2)]
     for message in (other_day, *alerts):
         inbox.put(message)
     assert inbox.take(timeout=0) == [states[2], other_day, *alerts]
