@@ -4,8 +4,8 @@ Workload: 120 s of realistic 1 s PositionedChunks (simulated bogie physics on a 
 stand-in line, supply-corrected, knots from the true position) replayed through
 ``UNITS`` independent :class:`~services.extraction.pipeline.UnitPipeline` instances in
 round robin (as a service sees many trains), in-process, one thread. Raw samples count
-every accelerometer value (rows x 6 channels), like DESIGN's 12 M/s target
-(1,000 trains x 2,000 Hz x 6). Baselines measured in the same run: the DESIGN target, and
+every accelerometer value (rows x 6 channels), like the 12 M/s target
+(1,000 trains x 2,000 Hz x 6). Baselines measured in the same run: the target, and
 ``scipy.signal.sosfiltfilt`` (order-4 Butterworth band-pass at 2000 Hz, zero-phase, one
 block) over the same samples, i.e. the textbook offline processing without decimation.
 
@@ -25,7 +25,7 @@ from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
 from track.segments import LineSegments, SegmentTable
 
-TARGET = 12e6  # raw samples / s / core, ingestion + extraction together (DESIGN)
+TARGET = 12e6  # raw samples / s / core, ingestion + extraction together
 UNITS, SECONDS, REPEATS = 16, 120, 2
 G_MPS2 = 9.80665
 

@@ -98,7 +98,7 @@ def _service(
     )
 
 
-#: Certificate common name -> what that remote may do. Keys as in DESIGN's key table.
+#: Certificate common name -> what that remote may do. Keys as in :mod:`schemas.keys`.
 ROLES: Mapping[str, Grant] = {
     "ingestion": _service(
         "ingestion",
