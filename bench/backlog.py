@@ -1,5 +1,5 @@
-"""Backlog throughput of one filtering instance, in process (issue 16, DESIGN: >= 50,000
-events/s per instance with a backlog).
+"""Backlog throughput of one filtering instance, in process (target: >= 50,000
+events/s per instance with a backlog, docs/performance.md).
 
 Workload: ``SEGMENTS`` segments at Ns = 200, each with a TRC record, then ``EVENTS``
 OnboardIndex in time order on random segments (a backfill, a consumer catching up), as

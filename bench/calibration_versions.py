@@ -1,4 +1,4 @@
-"""Model versions the calibration service publishes on the demo (issue 12, item 4).
+"""Model versions the calibration service publishes on the demo.
 
 Runs the demo world of ``services/defaults/stack.json5`` (the demo network, fast mode
 ``fidelity="index"``, 4 service passes per line and day, seed 1, one year from 2026-01-01)

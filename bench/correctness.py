@@ -1,4 +1,4 @@
-"""Correctness on simulated truth (issue 5, item 4): the estimation pipeline against the truth.
+"""Correctness on simulated truth: the estimation pipeline against the truth.
 
 Everything runs in-process on the pure cores (no Zenoh, no clock, deterministic for a seed),
 in the simulator's fast mode (``fidelity="index"``) on the demo network (295 segments):
@@ -134,7 +134,7 @@ class Settings:
 
 
 def world_config(st: Settings) -> dict:
-    """The simulator config with the run's unkind-world options (issue 18)."""
+    """The simulator config with the run's unkind-world options."""
     config = load_config()
     config["maintenance"].update(unreported_fraction=st.unreported, late_fraction=st.late)
     if st.fleet == "mixed":

@@ -25,7 +25,7 @@ from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
 from track.segments import LineSegments, SegmentTable
 
-TARGET = 12e6  # raw samples / s / core, ingestion + extraction together
+TARGET = 12e6  # raw samples / s / core, ingestion + extraction together (docs/performance.md)
 UNITS, SECONDS, REPEATS = 16, 120, 2
 G_MPS2 = 9.80665
 

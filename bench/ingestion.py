@@ -8,7 +8,7 @@ supply correction + map matching + encode of every PositionedChunk, i.e. what on
 ingestion worker does per payload minus Zenoh.
 
 A raw sample is one value of one accelerometer channel (a 1 s chunk is 2000 x 6), the
-unit of the throughput target: >= 12 M raw samples/s per core through ingestion AND extraction
+unit of the target: >= 12 M raw samples/s per core through ingestion AND extraction
 together, so ingestion alone has to be well above it. Baseline in the same run: msgspec
 decode + encode of the same payloads with nothing done in between (the floor a worker
 cannot beat), so the ratio is what the work itself costs.
@@ -29,7 +29,7 @@ from simulators.gateway import key_and_payload
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
 
-TARGET_SAMPLES_PER_S = 12e6  # target: ingestion + extraction, per core
+TARGET_SAMPLES_PER_S = 12e6  # ingestion + extraction, per core (docs/performance.md)
 T0 = 1_767_225_600.0
 
 

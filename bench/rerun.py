@@ -1,7 +1,8 @@
 """Model-change re-run of the filtering core: events replayed per second, summaries included.
 
 A new Calibration re-runs every segment of :class:`services.filtering.tracker.Tracker` from
-its last TRC record (issue 12: calibration publishes often in the live demo). Workload:
+its last TRC record (calibration publishes a new version about twice a month of event
+time). Workload:
 ``SEGMENTS`` segments at Ns = 200, each a TRC record and ``EVENTS - 1`` on-board indices
 (a tamping on every tenth segment); the figure is events replayed per second by
 ``Tracker.update_models([calibration])``, which re-runs them in one batched pass and

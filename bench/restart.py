@@ -1,4 +1,4 @@
-"""Restart and model change of a filtering instance holding many segments (issue 16).
+"""Restart and model change of a filtering instance holding many segments.
 
 A store of ``--segments`` segments (lines of ``LINE_SEGMENTS``), each with a TRC record and
 ``2 × --days`` OnboardIndex since (Ns = 200 posterior samples), is written directly with

@@ -1,4 +1,5 @@
-"""Every message of the key table (:mod:`schemas.keys`) as a versioned, validated msgspec Struct.
+"""Every message of the key table (docs/architecture.md#key-expressions) as a versioned,
+validated msgspec Struct.
 
 Times are event times in UTC epoch seconds (float64) taken from the data; geometry is in
 millimetres; the state ``mean``/``cov`` are in natural-log space z = [ln Top6_mm, ln Align10_mm].

@@ -1,8 +1,9 @@
 """`trackfusion alerting`: the thin adapter around :mod:`services.alerting.core`.
 
-Subscribes ``{ns}/state/**`` (SegmentState) and ``{ns}/trc/**`` (TrcRecord, to learn each
-line's TRC schedule); both subscriptions feed ONE bounded queue drained by ONE worker, so
-the core sees one ordered stream and needs no lock of its own (the queryables take the
+Subscribes ``{ns}/state/**`` (SegmentState), ``{ns}/trc/**`` (TrcRecord, to learn each
+line's TRC schedule) and ``{ns}/maintenance/**`` (MaintenanceEvent: detected tampings and
+the reports that confirm them); the subscriptions feed the runtime's inbox drained by ONE
+worker, so the core sees one ordered stream and needs no lock of its own (the queryables take the
 adapter's lock to read it). Alerts go out with ``session.put`` on ``{ns}/alert/{line}/{segment}``;
 ``{ns}/q/alerts`` and ``{ns}/q/plan`` answer from the core with a RaisedAlerts and an
 InspectionPlan (schemas/README.md). At start it also asks ``{ns}/q/state/**`` for every

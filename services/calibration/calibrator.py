@@ -17,7 +17,7 @@ outlying pairs), :mod:`.units` (per-unit models), :mod:`.groups` (posterior grou
 what a store persists. This module keeps the state, the bookkeeping of events and pairs, and
 the publication rule.
 
-Publication rule (issue 12: model updates without storms)
+Publication rule (model updates without storms)
     Every new version makes the filtering service re-run the segments it applies to, so an
     accepted fit or a rebuilt posterior (a *candidate*) is **held**, and replaces the model in
     force (is published, version in force + 1) only when both hold:
@@ -48,7 +48,7 @@ Publication rule (issue 12: model updates without storms)
     ``publications_delayed``, ``calibrations_published``, ``posteriors_published``. The held
     candidates, the publication time of each model in force and event time are persisted.
 
-Robustness (issue 14)
+Robustness (one outlier cannot blow up a model)
     Every model is checked (:func:`robust.check_model`: finite, SPD covariances) before it is
     held and again before it is published; TRC records that the data blame (a spike, a newest
     record beyond the physical rate bound, a post-tamping level far off the network's, a
@@ -56,7 +56,8 @@ Robustness (issue 14)
     (:func:`robust.screen_segment`); a pooled posterior moved beyond ``max_move_sd`` by one
     segment alone is held; a few wild pairs are quarantined before the swap rule judges a
     refit. What is left out is logged, counted and returned by
-    :meth:`Calibrator.drain_quarantined` (the adapter's dead letters). See the README.
+    :meth:`Calibrator.drain_quarantined` (the adapter's dead letters). See
+    services/calibration/README.md.
 """
 
 from __future__ import annotations

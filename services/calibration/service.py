@@ -9,7 +9,7 @@ those the core's publication rule lets out (a material change, at most one versi
 per day of event time; ``calibrator.py``), checked at every batch, so a version held by the
 rate limit goes out with the first batch whose events pass the limit.
 A queryable on ``{ns}/model/**`` answers late joiners with the latest of each model.
-What the core leaves out (a TRC record, a pair, a posterior held by the move bound; issue 14)
+What the core leaves out (a TRC record, a pair, a posterior held by the move bound; ``robust.py``)
 is published as a dead letter on ``{ns}/deadletter/calibration`` with the reason, keyed by the
 record's own key (``{ns}/trc/{line}/{segment}`` or ``{ns}/index/{line}/{segment}``), the
 record as payload when the core kept it. With ``network`` (a network GeoJSON file), events on

@@ -113,8 +113,8 @@ _CHUNK_FLAGS = ("clipping", "supply")  # chunk-wide findings: lower the quality 
 
 @dataclass(frozen=True)
 class ExtractionConfig:
-    """Signal-chain constants (paper 3.2); the defaults are part of what an
-    OnboardIndex means: every consumer of the indices relies on them."""
+    """Signal-chain constants (paper 3.2); the defaults are the signal chain of
+    docs/science.md#signal-chain-paper-section-3."""
 
     rate_hz: float = 2000.0  # input sample rate
     decimation: int = 4  # 2000 -> 500 Hz

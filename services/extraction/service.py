@@ -2,9 +2,10 @@
 
 Subscribes ``{ns}/accel/**`` (PositionedChunk from ingestion), runs every chunk through the
 :class:`~services.extraction.pipeline.Extractor` in ONE worker thread (pipelines per
-(train, unit) created on demand; no lock needed), and publishes each OnboardIndex with
-``session.put`` on ``{ns}/index/{line}/{segment}`` (congestion control BLOCK: an index is
-never dropped, a slow consumer slows extraction down). A malformed chunk becomes a dead
+(train, unit) created on demand; no lock needed), and publishes each OnboardIndex on
+``{ns}/index/{line}/{segment}`` through the runtime's at-least-once publisher (cached per
+key for consumers that come back; congestion control BLOCK: an index is never dropped, a
+slow consumer slows extraction down). A malformed chunk becomes a dead
 letter. The counters (passes indexed, skipped by reason) are logged every
 ``LOG_EVERY_S`` and at exit.
 """

@@ -1,7 +1,8 @@
 """`trackfusion ingestion`: the thin adapter around :mod:`services.ingestion.core`.
 
 Subscribes ``{ns}/raw/**`` (RawChunk) and ``{ns}/gps/*`` (GpsFix); both subscriptions feed
-ONE bounded queue drained by ONE worker (order kept per key), so the core is single-threaded.
+the runtime's inbox, drained by ONE worker (order kept per key), so the core is
+single-threaded and no Zenoh callback waits for it.
 Payloads are decoded with ``schemas.decode`` (a malformed one is a dead letter with the
 decoder's reason); PositionedChunks go out with ``session.put`` on
 ``{ns}/accel/{train}/{unit}`` (congestion control BLOCK: extraction must not lose samples);

@@ -509,7 +509,7 @@ class Supervisor:
         return [flow.text(now) for flow in self.flows if flow.stalled(now)]
 
     def health(self, now: float, *, running: bool = True) -> dict[str, Any]:
-        """The machine-readable board (README, "Health file")."""
+        """The machine-readable board (docs/operating.md#varhealthjson)."""
         alive = self.board.alive_instances()
         processes = {name: c.health(now, alive) for name, c in self.children.items()}
         stalled = self.stalled(now)

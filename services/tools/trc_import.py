@@ -281,7 +281,7 @@ def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
     """The flags of the ``--profile`` form of ``import-trc``."""
     group = parser.add_argument_group(
         "a sampled TRC run (--profile): aligned to the line's previous run, Top6/Align10 "
-        "computed per segment; the CSV format is in README.md (TRC profiles)"
+        "computed per segment; the CSV format is in README.md, section TRC profiles"
     )
     group.add_argument("--profile", metavar="FILE.csv", help="the run's profile export")
     group.add_argument("--line", help="line id of the run (of --network)")

@@ -257,7 +257,7 @@ def test_the_signal_chain_resumes_after_each_of_its_services_is_killed(
     """Raw data (1 train, 15 simulated minutes at 60×): SIGKILL ingestion, then extraction,
     each restarted at once; indices flow again after each restart with no other step.
     Raw chunks and positioned chunks in flight at a kill are not in the at-least-once
-    streams (README, reliability model): passes then are skipped, not wrong."""
+    streams (docs/operating.md#delivery-guarantees): passes then are skipped, not wrong."""
     session = open_session()
     indices = collector(lambda s: decode(s.payload.to_bytes(), OnboardIndex))
     session.declare_subscriber(keys.segment_keys(namespace, "index"), indices)

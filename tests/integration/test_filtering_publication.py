@@ -1,4 +1,4 @@
-"""The filtering service's publication rule (issue 16) on a real runtime, store and router:
+"""The filtering service's publication rule on a real runtime, store and router:
 under a backlog the changed segments wait as dirty (a batch's until its commit in the
 background is done) and the oldest are published first;
 once the backlog is gone every one is published with the state of its last event."""

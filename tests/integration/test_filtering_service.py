@@ -213,7 +213,7 @@ def test_an_instance_owning_l1_ignores_l2(
 def test_a_refused_model_is_dead_lettered_and_the_one_in_force_stays(
     namespace, open_session, collector, until_matched, model_queryable, start_filtering
 ):
-    """Issue 12: a Calibration whose indices disagree with the filter's (m = 3 here) is a
+    """A Calibration whose indices disagree with the filter's (m = 3 here) is a
     dead letter and the good one stays in force: it must not make every later index fail
     until a restart."""
     session = open_session()

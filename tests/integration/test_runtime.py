@@ -271,7 +271,7 @@ def test_zenoh_config_from_plain_settings_forces_multicast_off():
 
 def test_a_service_without_instance_or_db_finds_its_file_again_after_a_restart():
     """The state file is named after the configured instance id, never the process's
-    hostname-pid id (issue 15: `trackfusion calibration` restarted on an empty store)."""
+    hostname-pid id (which would start every restart on an empty store)."""
     from services.runtime.config import default_db, default_instance
 
     assert default_db("calibration", None) == Path("var/calibration-default.sqlite")

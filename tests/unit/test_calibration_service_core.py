@@ -508,7 +508,7 @@ def test_a_store_from_before_publication_times_opens(tmp_path):
     store.close()
 
 
-# ---------------------------------------------------------------- robustness (issue 14)
+# ---------------------------------------------------------------- robustness
 
 
 def seven_records(line, seg, t0, mm, *, outlier_at=3, outlier_mm=99.0, rng=None):
@@ -559,8 +559,8 @@ def test_a_99_mm_record_does_not_move_the_network_posterior(outlier_at):
 
 
 def test_the_incident_seven_records_on_one_segment_from_the_initial_models():
-    """Issue 14's case (1e308 then, 99 mm now): only the initial models and seven records of
-    one segment, one of them 99 mm."""
+    """One outlier against the initial models: only the initial models and seven records of
+    one segment, one of them 99 mm (the largest value the wire accepts is 100 mm)."""
     spec = read_json5(default_file("initial-models.json5"))
     cal0, posts = initial_models(spec, samples=200, seed=0)
     core = Calibrator(FleetOnly(samples=200))

@@ -1,4 +1,4 @@
-"""Per-unit observation models (issue 18): each on-board unit's H, b, R, shrunk towards the
+"""Per-unit observation models: each on-board unit's H, b, R, shrunk towards the
 fleet's model while it has few pairs."""
 
 from __future__ import annotations

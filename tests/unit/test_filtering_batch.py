@@ -1,4 +1,4 @@
-"""Issue 16: a batch of events folded together equals its messages stepped one by one.
+"""A batch of events folded together equals its messages stepped one by one.
 
 ``Tracker.step_events`` folds the in-order indices of many segments in one vectorised pass
 and takes the exact path for everything else; these tests step one mixed stream both ways

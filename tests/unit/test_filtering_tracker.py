@@ -390,8 +390,8 @@ def test_a_batch_equals_its_messages_one_by_one(tmp_path):
 
 
 def test_the_store_keeps_the_message_and_refuses_what_it_cannot_store(tmp_path):
-    """Issue 14: a valid message is stored re-encoded; a message with a large unknown field
-    (issue 15: every type refuses a field it does not have), a model version beyond SQLite's
+    """A valid message is stored re-encoded; a message with a large unknown field
+    (every type refuses a field it does not have), a model version beyond SQLite's
     INTEGER, or a payload nested 10,000 deep, is a dead letter naming the field, not an
     exception out of the batch."""
     node = PersistentTracker(new_tracker(), Store(tmp_path / "f.sqlite"))

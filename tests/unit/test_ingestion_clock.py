@@ -1,4 +1,4 @@
-"""Issue 14: nothing a gateway sends locks a train out. Time plausibility (the train's clock,
+"""Nothing a gateway sends locks a train out. Time plausibility (the train's clock,
 its re-base) and units (m/s², counts, integer samples) in the ingestion core."""
 
 from __future__ import annotations

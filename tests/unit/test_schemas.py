@@ -206,7 +206,7 @@ def _required_only(message) -> bytes:
 
 @pytest.mark.parametrize("message", examples(), ids=lambda m: type(m).__name__)
 def test_every_message_type_refuses_every_other_types_payload(message):
-    """Issue 15: an OnboardIndex carrying a run_id decoded as a TrcRecord; now no payload of
+    """An OnboardIndex carrying a run_id has every field of a TrcRecord; no payload of
     one type, complete or with only its required fields, decodes as another type."""
     complete, minimal = encode(message), _required_only(message)
     assert decode(minimal, type(message)) is not None  # valid as its own type
@@ -296,7 +296,7 @@ BAD_PAYLOADS = {
         Alert,
         "kind",
     ),
-    # issue 14: limits and plausibility
+    # limits and plausibility
     "version beyond int64": (
         _calibration(version=2**63),
         Calibration,
@@ -522,8 +522,8 @@ def test_selectors_narrow_the_queryable_and_the_subscriptions_alike():
 
 @pytest.mark.parametrize("kind", ["index", "trc", "maintenance", "state"])
 def test_a_region_selector_splits_a_network_by_line_prefix(kind):
-    # a national deployment (README "National deployment", bench/scale.py): line ids carry a
-    # region letter, and one selector per filtering instance takes a region's lines
+    # a national deployment (docs/operating.md#national-deployment, bench/scale.py): line
+    # ids carry a region letter, and one selector per filtering instance takes a region's lines
     ke = zenoh.KeyExpr
     shards = {r: ke(keys.segment_keys("tf", kind, f"{r}$*/**")) for r in "ABCD"}
     queryables = {r: ke(keys.q_state_keys("tf", f"{r}$*/**")) for r in "ABCD"}

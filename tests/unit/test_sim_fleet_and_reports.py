@@ -1,4 +1,4 @@
-"""The simulator's unkind world: unreported and late maintenance, a mixed fleet (issue 18)."""
+"""The simulator's unkind world: unreported and late maintenance, a mixed fleet."""
 
 from __future__ import annotations
 
