@@ -86,7 +86,7 @@ def make_alert(
 
 def make_index(t: float = T0, *, line: str = "L1", segment: str = "s1", **kw) -> OnboardIndex:
     """An OnboardIndex of train T1, unit u1 (``kw`` overrides its other fields)."""
-    fields = dict(train="T1", unit="u1", top6_mm=5.0, align10_mm=3.5, speed_mps=20.0)
+    fields = dict(train="T1", unit="u1", top6_mm=5.0, align10_mm=3.5, speed_mps=20.0, coverage=1.0)
     return OnboardIndex(line=line, segment=segment, t=t, **{**fields, **kw})
 
 

@@ -17,11 +17,11 @@ from schemas import (
     DegradationPosterior,
     MaintenanceEvent,
     NDArray,
-    OnboardIndex,
     TrcRecord,
     decode,
     encode,
 )
+from services.alerting.testing import make_index
 from services.calibration.calibrator import Calibrator
 from services.calibration.config import CalibratorConfig
 from services.calibration.initial import initial_models
@@ -56,19 +56,10 @@ def trc(line, seg, run, t, z):
 
 def index(line, seg, t, y, run="", train="T1", unit="u1", quality=1.0):
     top, align = (float(v) for v in np.exp(y))
-    return OnboardIndex(
-        line=line,
-        segment=seg,
-        train=train,
-        unit=unit,
-        t=t,
-        top6_mm=top,
-        align10_mm=align,
-        speed_mps=30.0,
-        coverage=1.0,
-        quality=quality,
-        run_id=run,
-    )
+    return make_index(
+        t, line=line, segment=seg, train=train, unit=unit, top6_mm=top, align10_mm=align,
+        speed_mps=30.0, quality=quality, run_id=run,
+    )  # fmt: skip
 
 
 def campaign(n_pairs, rng, *, line="L1", start=0, H=H, B=B, R=R, t0=T0):

@@ -203,7 +203,7 @@ def test_core_writes_series_map_trains_and_alerts(recording):
     ]
     batch = [
         *states,  # three rows of one segment: one send_columns per series
-        make_index(T0 + 0.5 * DAY_S, segment=seg, coverage=1.0),
+        make_index(T0 + 0.5 * DAY_S, segment=seg),
         TrcRecord(line="L1", segment=seg, t=T0, top6_mm=4.1, align10_mm=3.1, run_id="r1"),
         GpsFix(train="T1", t=T0 + 10, lat_deg=lat, lon_deg=lon),
         GpsFix(train="T2", t=T0 + 10, lat_deg=lat, lon_deg=lon, fix_quality=0),  # skipped
