@@ -23,11 +23,11 @@ import time
 import numpy as np
 
 from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode
+from services.defaults import demo_network
 from services.ingestion.core import IngestionCore
 from simulators.gateway import key_and_payload
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
-from track.network import demo_network
 
 TARGET_SAMPLES_PER_S = 12e6  # ingestion + extraction, per core (docs/performance.md)
 T0 = 1_767_225_600.0

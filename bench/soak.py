@@ -91,9 +91,9 @@ import zenoh
 
 from schemas import DAY_S, NDArray, OnboardIndex, keys
 from schemas.keys import SegmentId
+from services.defaults import demo_network
 from services.extraction.pipeline import ExtractionConfig
 from services.runtime.config import users_env, zenoh_config
-from track.network import demo_network
 from track.versine import END_GUARD_M
 
 REPO = Path(__file__).resolve().parents[1]
@@ -475,7 +475,7 @@ def run(args: argparse.Namespace, trains: int, stop: threading.Event) -> dict:
                     "--fidelity",
                     "index",
                     "--trains",
-                    "1",  # 0 crashes: simulators/index_model.py:111 (uniform(0, < 0, 0))
+                    "1",  # 0 crashes: simulators.world.index_pass_events (uniform(0, < 0, 0))
                     "--days",
                     str(args.prime_days),
                     "--start",

@@ -10,10 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import json5
 import numpy as np
 
 from services.defaults import default_file
+from services.runtime.config import read_json5
 
 DEFAULT_LIMITS_FILE = default_file("limits.json5")
 
@@ -36,8 +36,8 @@ class Limits:
 
 def load_limits(path: str | Path = DEFAULT_LIMITS_FILE) -> Limits:
     """Read and check a limits file; ValueError says what to fix."""
+    raw = read_json5(path)
     try:
-        raw = json5.loads(Path(path).read_text())
         levels = tuple(raw["levels"])
         classes = {
             name: np.array([values[level] for level in levels], dtype=float)

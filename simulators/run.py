@@ -12,6 +12,7 @@ from datetime import datetime
 from pathlib import Path
 
 from schemas import DAY_S
+from services.defaults import add_network_argument, load_network
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 from services.runtime.service import configure_logging
 from simulators.gateway import publish
@@ -19,7 +20,6 @@ from simulators.groundtruth import GroundTruthWriter
 from simulators.network import generate_network
 from simulators.truth import load_config
 from simulators.world import WorldSpec, message_count, world_events
-from track.network import load_network
 
 log = logging.getLogger(__name__)
 DEFAULT_START = "2026-01-01T00:00:00+00:00"
@@ -138,7 +138,7 @@ def simulate_add_arguments(parser: argparse.ArgumentParser) -> None:
         "Run the fleet simulator on a network and publish its gateways' raw data "
         "(--fidelity raw) or on-board indices (--fidelity index), TRC records and tamping."
     )
-    parser.add_argument("--network", metavar="FILE.geojson", help="network (default: the demo)")
+    add_network_argument(parser, "the lines the trains run on")
     parser.add_argument(
         "--trains", type=int, default=6, help="raw: trains; index: passes per line per day"
     )

@@ -131,7 +131,6 @@ def parse_profile_csv(text: str, spacing_m: float = SPACING_M) -> TrcProfile:
         Listing up to ``MAX_PROBLEMS`` problems with their line numbers (1-based, as an
         editor shows them).
     """
-    problems: list[tuple[int, str]] = []
     rows = [
         (n, line)
         for n, line in enumerate(text.splitlines(), 1)
@@ -142,22 +141,14 @@ def parse_profile_csv(text: str, spacing_m: float = SPACING_M) -> TrcProfile:
     header_no, header_line = rows[0]
     header = [h.strip() for h in next(csv.reader([header_line]))]
     wanted = [CHAINAGE_COLUMN, *PROFILE_COLUMNS, *POSITION_COLUMNS]
-    duplicated = sorted({h for h in header if header.count(h) > 1 and h in wanted})
-    if duplicated:
-        problems.append((header_no, f"header repeats column(s) {duplicated}"))
-    if CHAINAGE_COLUMN not in header:
-        problems.append((header_no, f"header lacks column {CHAINAGE_COLUMN!r}"))
-    for family, names in (("level", LEVEL_COLUMNS), ("alignment", ALIGN_COLUMNS)):
-        if not set(names) & set(header):
-            problems.append((header_no, f"header has no {family} column: need one of {names}"))
-    if (POSITION_COLUMNS[0] in header) != (POSITION_COLUMNS[1] in header):
-        problems.append((header_no, "header has one of lat, lon: give both or neither"))
+    problems = [(header_no, why) for why in _header_problems(header, wanted)]
     if problems:
         raise ProfileFileError(problems)
     used = [h for h in wanted if h in header]
     index = {h: header.index(h) for h in used}
     ignored = tuple(h for h in header if h not in wanted)
 
+    problems: list[tuple[int, str]] = []
     values = np.full((len(rows) - 1, len(used)), np.nan)
     line_nos = np.array([n for n, _ in rows[1:]], dtype=np.int64)
     for i, (n, line) in enumerate(rows[1:]):
@@ -180,22 +171,8 @@ def parse_profile_csv(text: str, spacing_m: float = SPACING_M) -> TrcProfile:
         raise ProfileFileError(problems[:MAX_PROBLEMS], max(0, len(problems) - MAX_PROBLEMS))
 
     x = values[:, 0]
-    step = np.diff(x)
     sign = 1.0 if x[-1] >= x[0] else -1.0  # the run's direction, whatever a bad row does
-    for k in np.flatnonzero(np.abs(step * sign - spacing_m) > SPACING_TOLERANCE_M):
-        d, n = step[k] * sign, int(line_nos[k + 1])
-        if step[k] == 0:
-            reason = f"chainage {x[k + 1]:g} repeats the previous row's (a duplicate)"
-        elif d < 0:
-            reason = (
-                f"chainage {x[k + 1]:g} goes back after {x[k]:g}: a run is monotone "
-                f"({'descending' if sign < 0 else 'ascending'} from its first to its last row)"
-            )
-        elif d > spacing_m:
-            reason = f"gap of {d:g} m after chainage {x[k]:g} (samples every {spacing_m:g} m)"
-        else:
-            reason = f"step of {d:g} m after chainage {x[k]:g}, expected {spacing_m:g} m"
-        problems.append((n, reason))
+    problems = [(int(line_nos[k + 1]), why) for k, why in _spacing_problems(x, sign, spacing_m)]
     if problems:
         raise ProfileFileError(problems[:MAX_PROBLEMS], max(0, len(problems) - MAX_PROBLEMS))
 
@@ -224,6 +201,44 @@ def parse_profile_csv(text: str, spacing_m: float = SPACING_M) -> TrcProfile:
         ),
         ignored_columns=ignored,
     )
+
+
+def _header_problems(header: list[str], wanted: list[str]) -> list[str]:
+    """What is wrong with a profile file's header (nothing: [])."""
+    problems = []
+    duplicated = sorted({h for h in header if header.count(h) > 1 and h in wanted})
+    if duplicated:
+        problems.append(f"header repeats column(s) {duplicated}")
+    if CHAINAGE_COLUMN not in header:
+        problems.append(f"header lacks column {CHAINAGE_COLUMN!r}")
+    for family, names in (("level", LEVEL_COLUMNS), ("alignment", ALIGN_COLUMNS)):
+        if not set(names) & set(header):
+            problems.append(f"header has no {family} column: need one of {names}")
+    if (POSITION_COLUMNS[0] in header) != (POSITION_COLUMNS[1] in header):
+        problems.append("header has one of lat, lon: give both or neither")
+    return problems
+
+
+def _spacing_problems(x: np.ndarray, sign: float, spacing_m: float) -> list[tuple[int, str]]:
+    """``(k, why)`` for every step ``x[k] -> x[k + 1]`` of the chainage that is not one
+    sample spacing in the run's direction ``sign``."""
+    step = np.diff(x)
+    problems = []
+    for k in np.flatnonzero(np.abs(step * sign - spacing_m) > SPACING_TOLERANCE_M):
+        d = step[k] * sign
+        if step[k] == 0:
+            reason = f"chainage {x[k + 1]:g} repeats the previous row's (a duplicate)"
+        elif d < 0:
+            reason = (
+                f"chainage {x[k + 1]:g} goes back after {x[k]:g}: a run is monotone "
+                f"({'descending' if sign < 0 else 'ascending'} from its first to its last row)"
+            )
+        elif d > spacing_m:
+            reason = f"gap of {d:g} m after chainage {x[k]:g} (samples every {spacing_m:g} m)"
+        else:
+            reason = f"step of {d:g} m after chainage {x[k]:g}, expected {spacing_m:g} m"
+        problems.append((int(k), reason))
+    return problems
 
 
 # --- the grid ---------------------------------------------------------------------------------

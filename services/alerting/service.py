@@ -20,7 +20,6 @@ import logging
 import threading
 from pathlib import Path
 
-import json5
 import zenoh
 
 from schemas import (
@@ -44,6 +43,7 @@ from services.runtime.config import (
     add_zenoh_arguments,
     config_from_args,
     default_db,
+    read_json5,
 )
 from services.runtime.service import ServiceRuntime, configure_logging
 
@@ -56,12 +56,10 @@ STATE_QUERY_TIMEOUT_S = 10.0  # the start-up q/state query (ends sooner when all
 
 def load_alerting_config(path: str | Path = DEFAULT_ALERTING_FILE) -> AlertingConfig:
     """Read ``services/defaults/alerting.json5`` (or ``path``); ValueError says what to fix."""
+    raw = read_json5(path)
     try:
-        raw = json5.loads(Path(path).read_text(encoding="utf-8"))
-        if not isinstance(raw, dict):
-            raise ValueError("must hold a JSON5 object {...}")
         return AlertingConfig.from_dict(raw)
-    except (OSError, ValueError) as exc:
+    except ValueError as exc:
         raise ValueError(f"alerting config {path}: {exc}") from None
 
 

@@ -96,7 +96,7 @@ from services.calibration.moves import Move, calibration_change, posterior_chang
 from services.calibration.pairing import ln_mm, match_record, oldest_waiting
 from services.calibration.posterior import SegmentIncrements, history_to_increments
 from services.calibration.refit import outlying_pairs, worse
-from services.calibration.regression import CalibrationError, fit_observation
+from services.calibration.regression import fit_observation
 from services.calibration.robust import Rules, check_model, raw_pieces, reference, screen_segment
 from services.calibration.state import (
     CALIBRATION_KEY,
@@ -114,6 +114,7 @@ from services.calibration.state import (
     unit_key,
 )
 from services.calibration.units import pair_design, unit_calibration, units_due
+from services.drift_diffusion import CalibrationError
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from schemas import INDICATORS
-from services.calibration.posterior import NIWPrior
+from services.drift_diffusion import NIWPrior
 
 _N = len(INDICATORS)
 

@@ -9,28 +9,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["CalibrationError", "ObservationFit", "fit_observation"]
+from services.drift_diffusion import CalibrationError, as_finite
 
-
-class CalibrationError(ValueError):
-    """The data cannot support the requested estimate; the message says what is missing."""
-
-
-def as_finite(name: str, x, ndim: int) -> np.ndarray:
-    """Return ``x`` as a finite float64 array of ``ndim`` dims or raise ValueError naming it.
-
-    A 1-D array where 2-D is expected is taken as a single column (n = 1).
-    """
-    a = np.asarray(x, dtype=np.float64)
-    if ndim == 2 and a.ndim == 1:
-        a = a[:, None]
-    if a.ndim != ndim:
-        raise ValueError(f"{name}: expected a {ndim}-D array, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(
-            f"{name}: contains NaN or inf at {np.argwhere(~np.isfinite(a))[:3].tolist()}"
-        )
-    return a
+__all__ = ["ObservationFit", "fit_observation"]
 
 
 @dataclass(frozen=True)
@@ -151,15 +132,37 @@ def fit_observation(
         )
     zbar, ybar = Z.mean(axis=0), Y.mean(axis=0)
     Zc, Yc = Z - zbar, Y - ybar
+    cond = _condition(Zc, zbar, max_condition, rel_tol)
+    Ht, *_ = np.linalg.lstsq(Zc, Yc, rcond=None)  # (n, m) = H^T
+    H = Ht.T
+    b = ybar - zbar @ Ht
+    E = Yc - Zc @ Ht
+    R = E.T @ E / N
+    R = 0.5 * (R + R.T)
+    var_y = (Yc**2).mean(axis=0)
+    _check_residuals(R, var_y, rel_tol)
+    r2 = 1.0 - np.diag(R) / var_y
+    dof = N - n - 1
+    s_ii = np.diag(E.T @ E) / dof
+    _, sv_c, vt = np.linalg.svd(Zc, full_matrices=False)
+    G = (vt.T / sv_c**2) @ vt  # (Zc^T Zc)^-1 without forming it
+    se_H = np.sqrt(np.outer(s_ii, np.diag(G)))
+    se_b = np.sqrt(s_ii * (1.0 / N + zbar @ G @ zbar))
+    se_R = _se_R(R, dof)
+    return _observation_fit(Z, H, b, R, r2, cond, (se_H, se_b, se_R))
+
+
+def _condition(Zc: np.ndarray, zbar: np.ndarray, max_condition: float, rel_tol: float) -> float:
+    """Condition number of the standardised centred indicators ``Zc``; CalibrationError when
+    an indicator is constant or they are collinear (H could not be told apart per indicator).
+    It measures collinearity between indicators only: centring handles the intercept."""
     zsd = np.sqrt((Zc**2).mean(axis=0))
     const = np.flatnonzero(zsd <= rel_tol * np.maximum(1.0, np.abs(zbar)))
     if const.size:
         raise CalibrationError(
-            f"TRC indicator column(s) {const.tolist()} are constant over the {N} pairs; "
+            f"TRC indicator column(s) {const.tolist()} are constant over the {len(Zc)} pairs; "
             "H cannot be identified: need pairs spanning a range of each indicator"
         )
-    # Condition of the standardised design measures collinearity between indicators only;
-    # the intercept is handled exactly by centring.
     sv = np.linalg.svd(Zc / zsd, compute_uv=False)
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else np.inf
     if cond > max_condition:
@@ -168,16 +171,14 @@ def fit_observation(
             f"{max_condition:.3g}; H cannot be separated per indicator: need pairs where "
             "the indicators vary independently, or fit fewer indicators"
         )
-    Ht, *_ = np.linalg.lstsq(Zc, Yc, rcond=None)  # (n, m) = H^T
-    H = Ht.T
-    b = ybar - zbar @ Ht
-    E = Yc - Zc @ Ht
-    R = E.T @ E / N
-    R = 0.5 * (R + R.T)
-    # Judge R against the spread of Y itself: an exact fit leaves round-off residuals whose
-    # own eigenvalue ratio can look harmless.
+    return cond
+
+
+def _check_residuals(R: np.ndarray, var_y: np.ndarray, rel_tol: float) -> None:
+    """CalibrationError when ``R`` is not positive definite, judged against the spread of Y
+    itself (``var_y``): an exact fit leaves round-off residuals whose own eigenvalue ratio
+    can look harmless."""
     tiny = np.finfo(float).tiny
-    var_y = (Yc**2).mean(axis=0)
     ev = np.linalg.eigvalsh(R)
     if ev[0] <= rel_tol * max(var_y.max(), tiny):
         exact = np.flatnonzero(np.diag(R) <= rel_tol * np.maximum(var_y, tiny))
@@ -190,22 +191,19 @@ def fit_observation(
             f"residual covariance R is not positive definite (eigenvalues {ev.tolist()}): "
             f"{what}; need noisy, non-duplicated on-board indices"
         )
-    r2 = 1.0 - np.diag(R) / var_y
-    dof = N - n - 1
-    s_ii = np.diag(E.T @ E) / dof
-    _, sv_c, vt = np.linalg.svd(Zc, full_matrices=False)
-    G = (vt.T / sv_c**2) @ vt  # (Zc^T Zc)^-1 without forming it
-    se_H = np.sqrt(np.outer(s_ii, np.diag(G)))
-    se_b = np.sqrt(s_ii * (1.0 / N + zbar @ G @ zbar))
-    se_R = _se_R(R, dof)
+
+
+def _observation_fit(Z, H, b, R, r2, condition: float, se: tuple) -> ObservationFit:
+    """The fit of ``H``, ``b``, ``R`` on the pairs of ``Z``; ``se``: those of H, b, R."""
+    se_H, se_b, se_R = se
     return ObservationFit(
         H=H,
         b=b,
         R=R,
-        n_pairs=N,
+        n_pairs=len(Z),
         r2=r2,
         resid_std=np.sqrt(np.diag(R)),
-        condition=cond,
+        condition=condition,
         z_min=Z.min(axis=0),
         z_max=Z.max(axis=0),
         se_H=se_H,
@@ -265,17 +263,5 @@ def fit_unit_observation(Z, Y, *, H0, b0, R0, design, shrink_pairs: float) -> Ob
     se = np.sqrt(np.outer(np.diag(R), np.diag(A_inv)))  # (m, n + 1)
     sst = ((Y - Y.mean(axis=0)) ** 2).sum(axis=0)
     r2 = 1.0 - (E**2).sum(axis=0) / np.where(sst > 0, sst, np.inf)
-    return ObservationFit(
-        H=H,
-        b=b,
-        R=R,
-        n_pairs=N,
-        r2=r2,
-        resid_std=np.sqrt(np.diag(R)),
-        condition=float(np.linalg.cond(A)),
-        z_min=Z.min(axis=0),
-        z_max=Z.max(axis=0),
-        se_H=se[:, :n],
-        se_b=se[:, n],
-        se_R=_se_R(R, dof),
-    )
+    cond = float(np.linalg.cond(A))
+    return _observation_fit(Z, H, b, R, r2, cond, (se[:, :n], se[:, n], _se_R(R, dof)))

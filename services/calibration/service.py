@@ -30,8 +30,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
-import json5
-
 from schemas import (
     MaintenanceEvent,
     OnboardIndex,
@@ -47,12 +45,14 @@ from services.calibration.config import CalibratorConfig
 from services.calibration.initial import initial_models
 from services.calibration.state import Event, Model, Quarantine
 from services.calibration.store import SqliteStore
+from services.defaults import add_network_argument
 from services.runtime.config import (
     RuntimeConfig,
     add_db_argument,
     add_zenoh_arguments,
     config_from_args,
     default_db,
+    read_json5,
 )
 from services.runtime.latest import LatestValues
 from services.runtime.service import ServiceRuntime, configure_logging
@@ -113,10 +113,10 @@ def settings_from(options: Mapping[str, Any], **overrides: Any) -> Settings:
 
 def load_initial_models(path: Path, core: CalibratorConfig):
     """The initial models of the JSON5 file at ``path``; ValueError saying what is wrong."""
+    spec = read_json5(path)
     try:
-        spec = json5.loads(path.read_text(encoding="utf-8"))
         return initial_models(spec, samples=core.samples, seed=core.seed)
-    except (OSError, ValueError) as e:
+    except ValueError as e:
         raise ValueError(f"initial models {path}: {e}") from None
 
 
@@ -246,11 +246,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="prior models published as version 1 until data gives better ones "
         "(e.g. services/defaults/initial-models.json5; default: none)",
     )
-    parser.add_argument(
-        "--network",
-        type=Path,
-        metavar="FILE.geojson",
-        help="refuse events on segments this network does not have (default: accept any)",
+    add_network_argument(
+        parser, "refuse events on segments this network does not have", default="accept any"
     )
     parser.add_argument(
         "--min-pairs", type=int, help=f"pairs before the first fit (default: {core.min_pairs})"

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from schemas import PositionedChunk, decode, encode, keys
-from services.defaults import default_file
+from services.defaults import DEMO_NETWORK, add_network_argument
 from services.extraction.pipeline import ExtractionConfig, Extractor
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 from services.runtime.service import ServiceRuntime, configure_logging
@@ -28,7 +28,6 @@ from track.segments import SegmentTable
 log = logging.getLogger(__name__)
 
 SERVICE = "extraction"
-DEFAULT_NETWORK = default_file("demo-network.geojson")
 LOG_EVERY_S = 60.0  # wall clock: only for the log line, never for the data
 
 
@@ -71,7 +70,7 @@ class ExtractionAdapter:
 
 def load_segments(network_path: str | Path | None) -> SegmentTable:
     """The segment table of a network GeoJSON file; ValueError says what is wrong."""
-    path = Path(network_path or DEFAULT_NETWORK)
+    path = Path(network_path or DEMO_NETWORK)
     try:
         return SegmentTable.from_geojson(path)
     except (OSError, ValueError) as exc:
@@ -105,12 +104,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "Subscribe to {ns}/accel/** (PositionedChunk), publish one OnboardIndex per "
         "segment pass on {ns}/index/{line}/{segment}."
     )
-    parser.add_argument(
-        "--network",
-        metavar="FILE",
-        type=Path,
-        help=f"network GeoJSON with the segment bounds (default: {DEFAULT_NETWORK})",
-    )
+    add_network_argument(parser, "the segment bounds")
     add_zenoh_arguments(parser)
 
 

@@ -59,10 +59,9 @@ and visible, never silently lost).
 from __future__ import annotations
 
 import logging
-import math
 from bisect import bisect_left, bisect_right
 from collections.abc import Iterable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -76,8 +75,9 @@ from services.ingestion.health import (
     inspect_chunk,
     time_range_reason,
 )
-from services.ingestion.matching import Knot, Positioner
+from services.ingestion.matching import Positioner
 from services.ingestion.sequencing import UnitState, release_unit, step_unit
+from services.ingestion.train import TrainState, TrainStats
 from services.ingestion.trajectory import can_extrapolate, publish_trajectory
 
 log = logging.getLogger(__name__)
@@ -92,55 +92,6 @@ class Rejection:
 
 
 Output = PositionedChunk | Rejection
-
-
-@dataclass
-class TrainStats:
-    """Positioning counters of one train."""
-
-    fixes: int = 0
-    no_fix: int = 0  # fix_quality 0
-    matched: int = 0  # knots from a good match
-    poor: int = 0  # knots marked not ok
-    switches: int = 0  # line changes
-    duplicates: int = 0
-    unpositioned: int = 0
-    extrapolated: int = 0  # chunks whose tail was dead-reckoned past the last knot
-    held: int = 0  # chunks that had to wait for a knot (none close enough before them)
-    max_correction_m: float = 0.0  # largest later correction of a dead-reckoned position
-    clock_jumps: int = 0  # fixes and chunks refused as ahead of (or far behind) the clock
-    rebases: int = 0  # times the train's clock was re-based to a new timeline
-
-
-@dataclass
-class TrainState:
-    """Map-matching state and the chunks of one train waiting for their knots."""
-
-    stats: TrainStats = field(default_factory=TrainStats)
-    line: str | None = None
-    direction: int = 0  # +1 / -1 along the chainage, 0 not known yet
-    extreme_m: float = 0.0  # farthest chainage reached in ``direction`` (or the start)
-    off_count: int = 0
-    # on a route of close tracks: the track was chosen by the running direction (until then
-    # the train is not positioned on either)
-    track_known: bool = False
-    matched_fix_t: float | None = None  # the previous fix map matching saw
-    last_fix_t: float | None = None
-    last_good_t: float | None = None
-    now: float = -math.inf  # newest event time of the train
-    knots: list[Knot] = field(default_factory=list)  # from the fixes (map matching)
-    knot_t: list[float] = field(default_factory=list)
-    # the published trajectory: what PositionedChunks carried, never changed afterwards
-    pub: list[Knot] = field(default_factory=list)
-    pub_t: list[float] = field(default_factory=list)
-    # corrections of the published trajectory being spread: (from t, offset m, until t)
-    corrections: list[tuple[float, float, float]] = field(default_factory=list)
-    poor_until: float = -math.inf  # published knots before this follow a large correction
-    pending: list[tuple[Inspected, bool]] = field(default_factory=list)
-    units: list[UnitState] = field(default_factory=list)  # the train's units, for windows
-    # times of the current run of consecutive fixes refused as a clock jump (a re-base
-    # candidate); cleared by a fix on the train's timeline
-    suspects: list[float] = field(default_factory=list)
 
 
 def step_train(

@@ -22,17 +22,15 @@ from pathlib import Path
 import zenoh
 
 from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode, keys
-from services.defaults import default_file
+from services.defaults import add_network_argument, load_network
 from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore, Output, Rejection
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 from services.runtime.service import ServiceRuntime, configure_logging
-from track.network import load_network
 
 log = logging.getLogger(__name__)
 
 SERVICE = "ingestion"
-DEFAULT_NETWORK = default_file("demo-network.geojson")
 
 
 def decode_gateway(kind: str, key: str, payload: bytes) -> RawChunk | GpsFix:
@@ -129,13 +127,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "Subscribe to {ns}/raw/** and {ns}/gps/*, publish PositionedChunks on "
         "{ns}/accel/{train}/{unit}; thresholds in the config file's services.ingestion."
     )
-    parser.add_argument(
-        "--network",
-        metavar="FILE.geojson",
-        type=Path,
-        default=DEFAULT_NETWORK,
-        help="network to map-match on (default: %(default)s)",
-    )
+    add_network_argument(parser, "the lines to map-match on")
     add_zenoh_arguments(parser)
 
 

@@ -1,6 +1,7 @@
 """Questions an engineer asks the running system: `trackfusion status|state|alerts|plan|
-import-trc|export`. Each opens a short-lived Zenoh session, asks, prints, and closes
-(``import-trc --profile`` is in :mod:`services.tools.trc_import`).
+export`. Each opens a short-lived Zenoh session, asks, prints, and closes. The publishing
+part of `trackfusion import-trc FILE.csv` is here too; the command itself, with its
+``--profile`` form, is :mod:`services.tools.trc_import`.
 
 Pure parts (CSV parsing, formatting, GeoJSON building) are plain functions, tested without
 Zenoh; the thin part is ``ask`` (a ``session.get`` on a queryable) and ``main_*``.
@@ -35,6 +36,7 @@ from schemas import (
     keys,
 )
 from schemas.keys import SegmentId
+from services.defaults import add_network_argument
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 
 QUERY_TIMEOUT_S = 10.0  # `--timeout`: a service catching up on a backlog answers late
@@ -59,7 +61,8 @@ def ask(session: zenoh.Session, selector: str, timeout: float = QUERY_TIMEOUT_S)
         yield str(reply.ok.key_expr), reply.ok.payload.to_bytes()
 
 
-def _session(conf: RuntimeConfig) -> zenoh.Session:
+def open_session(conf: RuntimeConfig) -> zenoh.Session:
+    """A session of a command; SystemExit saying what to check when the router is not there."""
     try:
         return zenoh.open(conf.zenoh_config())
     except zenoh.ZError as exc:
@@ -73,7 +76,7 @@ def main_status(
     conf: RuntimeConfig, timeout: float = QUERY_TIMEOUT_S, out: TextIO = sys.stdout
 ) -> int:
     """Every live service instance (liveliness tokens under ``{ns}/alive/**``)."""
-    with _session(conf) as session:
+    with open_session(conf) as session:
         tokens = [
             str(reply.ok.key_expr)
             for reply in session.liveliness().get(keys.alive_all(conf.ns), timeout=timeout)
@@ -143,7 +146,7 @@ def main_state(
     """`trackfusion state LINE/SEGMENT` (or `LINE/**` for a whole line)."""
     if segment.count("/") != 1:
         raise SystemExit(f"state: {segment!r} is not LINE/SEGMENT (e.g. L1/s00042)")
-    with _session(conf) as session:
+    with open_session(conf) as session:
         states = query_states(session, conf.ns, segment, timeout)
     if not states:
         print(f"no state for {segment} (unknown segment, or no TRC record and model yet)", file=out)
@@ -166,7 +169,7 @@ def query_alerts(session: zenoh.Session, ns: str, timeout: float = QUERY_TIMEOUT
 def main_alerts(
     conf: RuntimeConfig, timeout: float = QUERY_TIMEOUT_S, out: TextIO = sys.stdout
 ) -> int:
-    with _session(conf) as session:
+    with open_session(conf) as session:
         alerts = query_alerts(session, conf.ns, timeout)
     if not alerts:
         print("no alert raised", file=out)
@@ -187,7 +190,7 @@ def main_plan(
     out: TextIO = sys.stdout,
 ) -> int:
     """The TRC inspection plan: segments ranked by P(exceeding before the next TRC run)."""
-    with _session(conf) as session:
+    with open_session(conf) as session:
         replies = list(ask(session, keys.q_plan(conf.ns), timeout))
     if not replies:
         raise SystemExit("plan: no answer from the alerting service (is it running?)")
@@ -256,7 +259,7 @@ def main_import_trc(conf: RuntimeConfig, path: str, out: TextIO = sys.stdout) ->
     except (OSError, UnicodeDecodeError) as exc:
         raise SystemExit(f"import-trc: cannot read {path}: {exc}") from None
     published, errors = 0, []
-    with _session(conf) as session:
+    with open_session(conf) as session:
         for item in parse_trc_csv(io.StringIO(text, newline="")):
             if isinstance(item, RowError):
                 errors.append(item)
@@ -335,7 +338,7 @@ def to_geojson(rows: Iterable[dict], geometry: dict[SegmentId, list]) -> dict:
 
 
 def segment_geometry(network_path: str | None) -> dict[SegmentId, list]:
-    from track.network import load_network
+    from services.defaults import load_network
 
     network = load_network(network_path)
     return {
@@ -353,7 +356,7 @@ def main_export(
     timeout: float = QUERY_TIMEOUT_S,
     out: TextIO = sys.stdout,
 ) -> int:
-    with _session(conf) as session:
+    with open_session(conf) as session:
         if what == "states":
             states = query_states(session, conf.ns, timeout=timeout)
             rows, columns = [state_row(s) for s in states], STATE_COLUMNS
@@ -402,8 +405,7 @@ def add_query_arguments(parser: argparse.ArgumentParser, *, timeout: bool = True
         )
 
 
-def status_add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_query_arguments(parser)
+status_add_arguments = alerts_add_arguments = add_query_arguments
 
 
 def status_run(args: argparse.Namespace) -> int:
@@ -421,10 +423,6 @@ def state_run(args: argparse.Namespace) -> int:
     return main_state(config_from_args(args), args.segment, args.timeout)
 
 
-def alerts_add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_query_arguments(parser)
-
-
 def alerts_run(args: argparse.Namespace) -> int:
     return main_alerts(config_from_args(args), args.timeout)
 
@@ -440,34 +438,10 @@ def plan_run(args: argparse.Namespace) -> int:
     return main_plan(config_from_args(args), args.limit, args.timeout)
 
 
-def import_trc_add_arguments(parser: argparse.ArgumentParser) -> None:
-    from services.tools.trc_import import add_profile_arguments
-
-    parser.description = (
-        "Publish every good row of a TRC CSV export as a TrcRecord; bad rows are reported "
-        "with their line numbers (exit code 1 when there were any). With --profile, a "
-        "sampled TRC run instead: aligned to the line's previous run, Top6/Align10 computed "
-        "per segment, published and archived."
-    )
-    parser.add_argument("file", metavar="FILE.csv", nargs="?", help="per-segment TRC export")
-    add_profile_arguments(parser)
-    add_query_arguments(parser, timeout=False)
-
-
-def import_trc_run(args: argparse.Namespace) -> int:
-    if (args.file is None) == (args.profile is None):
-        raise ValueError("give either FILE.csv (per-segment values) or --profile FILE.csv")
-    if args.profile is not None:
-        from services.tools.trc_import import run_profile
-
-        return run_profile(args, config_from_args(args))
-    return main_import_trc(config_from_args(args), args.file)
-
-
 def export_add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("what", choices=["states", "alerts"])
     parser.add_argument("--format", choices=["csv", "geojson"], default="csv")
-    parser.add_argument("--network", metavar="FILE.geojson", help="geometry (default: the demo)")
+    add_network_argument(parser, "the geometry")
     add_query_arguments(parser)
 
 

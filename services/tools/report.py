@@ -32,6 +32,7 @@ from schemas import (
     keys,
 )
 from schemas.keys import SegmentId
+from services.defaults import add_network_argument
 from services.runtime.config import RuntimeConfig, config_from_args
 from services.tools import operator
 
@@ -419,7 +420,8 @@ def network_map(network_path: str | None = None) -> NetworkMap:
     A line feature may name its stations with ``station_names`` (one per ``stations``
     chainage); without names a station is labelled with its chainage in km.
     """
-    from track.network import DEMO_NETWORK, Network
+    from services.defaults import DEMO_NETWORK
+    from track.network import Network
 
     path = Path(network_path or DEMO_NETWORK)
     try:
@@ -485,7 +487,7 @@ def main(
 ) -> int:
     """Ask the running system and write the report; SystemExit (1) without any state."""
     network = network_map(network_path)
-    with operator._session(conf) as session:
+    with operator.open_session(conf) as session:
         states = operator.query_states(session, conf.ns, f"{line}/**" if line else "**", timeout)
         if not states:
             what = f"line {line}" if line else f"namespace {conf.ns!r}"
@@ -519,7 +521,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--line", help="one line (default: all lines)")
     parser.add_argument("--out", default=DEFAULT_OUT, metavar="FILE.html", help="(%(default)s)")
-    parser.add_argument("--network", metavar="FILE.geojson", help="geometry (default: the demo)")
+    add_network_argument(parser, "the geometry")
     parser.add_argument(
         "--worst", type=int, default=WORST_N, metavar="N", help="fans drawn (%(default)s)"
     )

@@ -1,4 +1,6 @@
-"""`trackfusion import-trc --profile FILE.csv --line L --run-id R --t ISO`: a sampled TRC run.
+"""`trackfusion import-trc`: TRC records onto the bus, from a per-segment CSV export
+(:func:`services.tools.operator.main_import_trc`) or, with ``--profile FILE.csv --line L
+--run-id R --t ISO``, from a sampled TRC run.
 
 The thin part around :mod:`track.trc_profile` (parse, align, statistic per segment): read
 the file, take the reference run from the archive, publish one TrcRecord per covered
@@ -34,9 +36,15 @@ import zenoh
 
 from schemas import SchemaError, TrcRecord, encode, keys
 from schemas.wire import check_time
-from services.runtime.config import RuntimeConfig
-from services.tools.operator import _session, parse_time
-from track.network import check_id, load_network
+from services.defaults import add_network_argument, load_network
+from services.runtime.config import RuntimeConfig, config_from_args
+from services.tools.operator import (
+    add_query_arguments,
+    main_import_trc,
+    open_session,
+    parse_time,
+)
+from track.network import check_id
 from track.segments import SegmentTable
 from track.trc_profile import (
     MAX_OFFSET_M,
@@ -253,7 +261,7 @@ def main_import_trc_profile(
         if dry_run or archive is None:
             print("dry run: nothing published, nothing archived", file=out)
             return 0
-        with _session(conf) as session:
+        with open_session(conf) as session:
             for record in records:
                 session.put(
                     keys.trc(conf.ns, line, record.segment),
@@ -279,7 +287,7 @@ def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--line", help="line id of the run (of --network)")
     group.add_argument("--run-id", help="id of the run, carried by its TrcRecords")
     group.add_argument("--t", metavar="ISO", help="time of the run: ISO 8601 or epoch s")
-    group.add_argument("--network", metavar="FILE.geojson", help="segments (default: the demo)")
+    add_network_argument(group, "the segments")
     group.add_argument(
         "--archive",
         metavar="FILE",
@@ -325,3 +333,23 @@ def run_profile(args: argparse.Namespace, conf: RuntimeConfig) -> int:
         max_offset_m=args.max_offset,
         dry_run=args.dry_run,
     )
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Publish every good row of a TRC CSV export as a TrcRecord; bad rows are reported "
+        "with their line numbers (exit code 1 when there were any). With --profile, a "
+        "sampled TRC run instead: aligned to the line's previous run, Top6/Align10 computed "
+        "per segment, published and archived."
+    )
+    parser.add_argument("file", metavar="FILE.csv", nargs="?", help="per-segment TRC export")
+    add_profile_arguments(parser)
+    add_query_arguments(parser, timeout=False)
+
+
+def run(args: argparse.Namespace) -> int:
+    if (args.file is None) == (args.profile is None):
+        raise ValueError("give either FILE.csv (per-segment values) or --profile FILE.csv")
+    if args.profile is not None:
+        return run_profile(args, config_from_args(args))
+    return main_import_trc(config_from_args(args), args.file)

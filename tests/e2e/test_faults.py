@@ -33,6 +33,7 @@ from schemas import (
     keys,
 )
 from schemas.keys import SegmentId
+from services.defaults import load_network
 from services.filtering.testing import states_by_instance
 from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_limits
@@ -42,7 +43,6 @@ from simulators.network import generate_network
 from simulators.run import DEFAULT_START
 from simulators.truth import load_config
 from simulators.world import WorldSpec, world_events
-from track.network import load_network
 
 DAYS, TRAINS, SPEEDUP = 100, 2, 120_000.0  # ≈ 72 s of publishing
 WAIT_S = 120.0

@@ -13,11 +13,11 @@ import zenoh
 from support import ServiceThread
 
 from schemas import DeadLetter, PositionedChunk, decode, keys
+from services.defaults import demo_network
 from services.ingestion import service as ingestion
 from simulators.gateway import key_and_payload
 from simulators.profile import LineProfile
 from simulators.train import RAW_CHANNELS, TrainSimulator
-from track.network import demo_network
 
 T0 = 1_767_225_600.0
 

@@ -242,8 +242,8 @@ def test_deploy_files_load():
 @pytest.mark.parametrize(
     ("text", "message"),
     [
-        (None, "cannot read config file"),
-        ("{ns: 'tf',,}", "not valid JSON5"),
+        (None, r"config file .*bad.json5: cannot read: No such file"),
+        ("{ns: 'tf',\n,}", r"bad.json5:2: not valid JSON5: Unexpected"),
         ("[1, 2]", "must hold a JSON5 object"),
         ("{modee: 'client'}", "invalid Zenoh settings.*modee"),
         ("{mode: 'server'}", "mode must be one of client, peer, router"),

@@ -8,6 +8,7 @@ import pytest
 from scipy import signal
 
 from schemas import ACCEL_CHANNELS, NDArray, OnboardIndex, PositionedChunk
+from services.defaults import DEMO_NETWORK
 from services.extraction.pipeline import (
     ExtractionConfig,
     Extractor,
@@ -16,7 +17,6 @@ from services.extraction.pipeline import (
 )
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
-from track.network import DEMO_NETWORK
 from track.segments import LineSegments, SegmentTable
 from track.versine import ALIGN_CHORD_M, TOP_CHORD_M
 

@@ -7,10 +7,10 @@ import re
 from pathlib import Path
 
 from schemas import GpsFix, RawChunk
+from services.defaults import demo_network
 from services.ingestion.core import IngestionCore, Rejection
 from services.ingestion.service import decode_gateway
 from services.tools.gateway_check import GatewayCheck
-from track.network import demo_network
 
 README = Path(__file__).resolve().parents[2] / "schemas" / "README.md"
 

@@ -14,11 +14,12 @@ import rerun as rr
 
 from services.calibration.service import known_segments as calibration_segments
 from services.cli import main as cli_main
+from services.defaults import load_network
 from services.filtering.service import known_segments as filtering_segments
 from services.tools.report import network_map
 from services.viewer.core import ViewerCore
 from services.viewer.testing import rrd_printout
-from track.network import Line, Network, check_id, load_network, lonlat_to_xy
+from track.network import Line, Network, check_id, lonlat_to_xy
 from track.osm import import_osm, parse_maxspeed, running_of_pair, slug, to_geojson
 from track.segments import SegmentTable
 

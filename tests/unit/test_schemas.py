@@ -404,7 +404,7 @@ def test_a_prior_model_may_have_time_zero():
 # --- keys --------------------------------------------------------------------------------
 
 
-def test_keys_follow_the_design_table():
+def test_each_key_has_its_documented_form():
     ns = "tf"
     assert keys.raw(ns, "T1", "b1") == "tf/raw/T1/b1"
     assert keys.gps(ns, "T1") == "tf/gps/T1"
@@ -423,6 +423,9 @@ def test_keys_follow_the_design_table():
     assert keys.q_plan(ns) == "tf/q/plan"
     assert keys.stack_health(ns) == "tf/health/stack"
     assert keys.viewer_select(ns) == "tf/viewer/select"
+    assert str(keys.raw) == "{ns}/raw/{train}/{unit}"
+    with pytest.raises(TypeError, match="takes 2 id"):
+        keys.raw(ns, "T1")
 
 
 def test_wildcards_include_their_concrete_keys():

@@ -3,6 +3,8 @@ kept once, profiles read back as written."""
 
 from __future__ import annotations
 
+from contextlib import closing
+
 import numpy as np
 
 from services.tools.trc_import import ProfileArchive
@@ -50,8 +52,5 @@ def test_a_run_imported_again_is_kept_once(tmp_path):
         assert archive.count("L1") == 2
     finally:
         archive.close()
-    reopened = ProfileArchive(path)
-    try:
+    with closing(ProfileArchive(path)) as reopened:
         assert reopened.count("L1") == 2
-    finally:
-        reopened.close()
