@@ -17,7 +17,7 @@ from services.filtering.events import INDEX, Event, EventMessage, event_of, inde
 from services.filtering.fold import fold_many_counted
 from services.filtering.histories import Checkpoint, Histories, SegmentHistory, evolve, rested
 from services.filtering.models import Models
-from services.filtering.segment import detect, step_segment
+from services.filtering.segment import Advanced, advance, detect
 
 Entry = SegmentHistory | Checkpoint  # a segment as of the batch so far (Checkpoint: resting)
 
@@ -43,7 +43,9 @@ def _last_order(hist: Entry | None):
 
 class BatchFold:
     """Steps a batch of events over the segment histories without changing them: ``run``
-    returns ``(reasons, changed, detected)``, the histories to swap in by the owner.
+    returns ``(reasons, changed, detected, withdrawn)``, the histories to swap in by the
+    owner, the detected tampings added to the logs and those taken out of them, net over
+    the batch (one found and withdrawn again within it is in neither).
 
     The usual event, an on-board index after the last event of its segment's log on a
     segment with a state (live, a backfill in time order), is appended and left pending;
@@ -51,7 +53,7 @@ class BatchFold:
     (several per segment: the logs differ in length). Anything else (a late index, a
     duplicate, a TRC record, a tamping, a segment without a state or a calibration for
     the index's unit) first folds its segment's pending indices, then takes the exact path
-    of one message (:func:`step_segment`, :func:`detect`). Detection runs after each index
+    of one message (:func:`advance`). Detection runs after each index
     one by one: the batched fold halts a segment at the first index whose CUSUM reaches
     ``CUSUM_THRESHOLD``, runs :func:`detect` there and steps the segment's later indices
     one by one. A resting segment is folded from its row of the bank into a free row,
@@ -78,14 +80,18 @@ class BatchFold:
         self.tails: dict[SegmentId, list[Event]] = {}
         self.pending: dict[SegmentId, list[tuple[int, Event]]] = {}  # appended, not folded
         self.folds_from: dict[SegmentId, Entry] = {}  # base() of a pending one
-        self.detected: list[tuple[int, MaintenanceEvent]] = []  # (message position, tamping)
+        # per (segment, identity) of a detected tamping the batch touched: the one the log
+        # held before the batch (None: none), and the one it holds now, with the position of
+        # the message that put it there
+        self.held_before: dict[tuple[SegmentId, tuple], MaintenanceEvent | None] = {}
+        self.held_now: dict[tuple[SegmentId, tuple], tuple[int, MaintenanceEvent | None]] = {}
         self.group_of: dict[SegmentId, str | None] = {}  # the models do not change in a batch
         self.shape_of = {group: (p.ns, p.n) for group, p in models.params.items()}
         self.msgs: Sequence[EventMessage] = ()
         self.reasons: list[str] = []
 
     def run(self, msgs: Sequence[EventMessage]):
-        """``(reasons, changed, detected)`` of stepping ``msgs`` one by one."""
+        """``(reasons, changed, detected, withdrawn)`` of stepping ``msgs`` one by one."""
         self.msgs, self.reasons = msgs, [""] * len(msgs)
         for i, msg in enumerate(msgs):
             sid = (msg.line, msg.segment)
@@ -96,8 +102,26 @@ class BatchFold:
                 self.flush([sid])
             self._exact(i, sid, self._current(sid, msg), event)
         self.flush(list(self.pending))
-        self.detected.sort(key=lambda found: found[0])
-        return self.reasons, self.changed, [found for _, found in self.detected]
+        found = sorted(
+            (i, msg)
+            for key, (i, msg) in self.held_now.items()
+            if msg is not None and msg != self.held_before[key]
+        )
+        withdrawn = [
+            was
+            for key, was in self.held_before.items()
+            if was is not None and self.held_now[key][1] is None
+        ]
+        return self.reasons, self.changed, [msg for _, msg in found], withdrawn
+
+    def _note(self, i: int, sid: SegmentId, found, withdrawn) -> None:
+        """Message ``i`` took the detected tampings ``withdrawn`` out of ``sid``'s log and
+        put ``found`` in it."""
+        for msg, now in [*((m, None) for m in withdrawn), *((m, m) for m in found)]:
+            key = (sid, ("maintenance", msg.event_id))
+            if key not in self.held_before:
+                self.held_before[key] = None if now is not None else msg
+            self.held_now[key] = (i, now)
 
     def _queue(self, i: int, sid: SegmentId, msg: OnboardIndex, event: Event) -> bool:
         """Queue an index that follows its segment's log on a segment with a state, a
@@ -150,18 +174,13 @@ class BatchFold:
         self.changed[sid] = hist
         self.tails.pop(sid, None)  # in its log now
 
-    def _detect(self, hist: SegmentHistory) -> tuple[SegmentHistory, MaintenanceEvent | None]:
-        return detect(hist, self.models) if self.detect_maintenance else (hist, None)
-
     def _exact(self, i: int, sid: SegmentId, hist: SegmentHistory, event: Event) -> None:
         """Message ``i`` stepped alone, as :meth:`Tracker.step` does."""
-        hist, reason = step_segment(hist, event, self.models)
-        self.reasons[i] = reason
-        if not reason:
-            hist, found = self._detect(hist)
-            if found is not None:
-                self.detected.append((i, found))
-            self._change(sid, hist)
+        done: Advanced = advance(hist, event, self.models, detecting=self.detect_maintenance)
+        self.reasons[i] = done.reason
+        if not done.reason:
+            self._note(i, sid, done.found, done.withdrawn)
+            self._change(sid, done.hist)
 
     def flush(self, sids: Sequence[SegmentId]) -> None:
         """Fold the pending indices of ``sids``, one fold per sample count and source
@@ -218,9 +237,9 @@ class BatchFold:
     def _halted(self, sid: SegmentId, queue: list[tuple[int, Event]], count: int) -> None:
         """A segment whose CUSUM reached the threshold at its ``count``-th queued index:
         :func:`detect` there, then its later indices one by one."""
-        hist, found = self._detect(self._current(sid, self.msgs[queue[0][0]]))
+        hist, found = detect(self._current(sid, self.msgs[queue[0][0]]), self.models)
         if found is not None:
-            self.detected.append((queue[count - 1][0], found))
+            self._note(queue[count - 1][0], sid, (found,), ())
         self._change(sid, hist)
         for i, event in queue[count:]:
             self._exact(i, sid, self.changed[sid], event)

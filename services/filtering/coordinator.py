@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from schemas import (
-    DAY_S,
     Calibration,
     DegradationPosterior,
     MaintenanceEvent,
@@ -29,7 +28,6 @@ from services.filtering.columns import columns_after, log_columns, pack_columns,
 from services.filtering.events import (
     KIND_NAMES,
     RESTART,
-    TAMPING,
     Event,
     EventMessage,
     LogColumns,
@@ -40,7 +38,6 @@ from services.filtering.events import (
 from services.filtering.histories import Checkpoint, SegmentHistory
 from services.filtering.models import model_name, models_key
 from services.filtering.payloads import decode_keyed, indices_of, stored_events
-from services.filtering.segment import SUPERSEDE_DAYS
 from services.filtering.state import pack_state, unpack_state
 from services.filtering.store import Store, index_identity, order_json, order_of
 from services.filtering.tracker import Step, Tracker
@@ -62,6 +59,9 @@ class BatchResult:
     detected: tuple[MaintenanceEvent, ...] = ()  # tamping found in the data: to publish
     # with ``summarize=False``: the segments the batch's events changed (not in ``states``)
     changed: tuple[SegmentId, ...] = ()
+    # detected tampings taken out of the logs (a report superseding them, or a late event
+    # invalidating them): deleted from the store
+    withdrawn: tuple[MaintenanceEvent, ...] = ()
 
 
 class _Batch:
@@ -72,6 +72,7 @@ class _Batch:
         self.rejected = rejected  # (key, reason, payload): dead letters
         self.accepted = 0
         self.detected: list[MaintenanceEvent] = []
+        self.withdrawn: list[MaintenanceEvent] = []
         self.changed: list[SegmentId] = []
 
     def keep(self, new_states: Iterable[SegmentState]) -> None:
@@ -86,6 +87,7 @@ class _Batch:
             self.accepted,
             tuple(self.detected),
             tuple(self.changed),
+            tuple(self.withdrawn),
         )
 
 
@@ -140,11 +142,17 @@ class PersistentTracker:
             self._check_known(msg)
         step = self.tracker.step(msg)
         if step.accepted:
+            self._commit_detected(step.detected, step.withdrawn)
             self._commit(msg, str(key))
-            self._commit_detected(step.detected)
         return step
 
-    def _commit_detected(self, found: Iterable[MaintenanceEvent]) -> None:
+    def _commit_detected(
+        self, found: Iterable[MaintenanceEvent], withdrawn: Iterable[MaintenanceEvent]
+    ) -> None:
+        """The detected tampings taken out of the logs deleted, those found stored (before
+        the events that made them: a TRC record later in the batch prunes them)."""
+        for msg in withdrawn:
+            self.store.delete_tamping(msg.line, msg.segment, event_of(msg).identity)
         for msg in found:
             self._commit(msg, keys.maintenance(self.ns, msg.line, msg.segment))
 
@@ -187,16 +195,16 @@ class PersistentTracker:
             msgs = [msg for msg, _, _ in events]
             try:
                 if summarize:
-                    reasons, event_states, found = self.tracker.step_events(msgs)
+                    reasons, event_states, found, withdrawn = self.tracker.step_events(msgs)
                     changed: list[SegmentId] = []
                 else:
-                    reasons, changed, found = self.tracker.fold_events(msgs)
+                    reasons, changed, found, withdrawn = self.tracker.fold_events(msgs)
                     event_states = ()
             except Exception:  # one of them cannot be folded: find it, one at a time
                 log.info("a batch of %d events failed; stepping them one by one", len(events))
                 self._step_one_by_one(events, batch)
             else:
-                self._commit_folded(events, reasons, found, batch)
+                self._commit_folded(events, reasons, found, withdrawn, batch)
                 batch.changed = changed
                 batch.keep(event_states)
             self._after_batch(batch.states.values(), models=bool(models), events=len(events))
@@ -244,12 +252,12 @@ class PersistentTracker:
         batch.accepted += len(update.accepted)
         batch.keep(update.states)
 
-    def _commit_folded(self, events, reasons: list[str], found, batch: _Batch) -> None:
-        """Commit a folded batch's accepted events, after the tampings detected on the way:
-        a report later in the batch that supersedes one of them then deletes its row, as
-        the tracker dropped it from the log."""
-        self._commit_detected(found)
+    def _commit_folded(self, events, reasons: list[str], found, withdrawn, batch: _Batch):
+        """Commit a folded batch's accepted events, after the changes of detected tampings
+        it made (net over the batch)."""
+        self._commit_detected(found, withdrawn)
         batch.detected.extend(found)
+        batch.withdrawn.extend(withdrawn)
         taken = [
             (msg, key)
             for (msg, key, _payload), reason in zip(events, reasons, strict=True)
@@ -273,9 +281,10 @@ class PersistentTracker:
                 continue
             if step.accepted:
                 batch.accepted += 1
+                self._commit_detected(step.detected, step.withdrawn)
                 self._commit(msg, key)
-                self._commit_detected(step.detected)
                 batch.detected.extend(step.detected)
+                batch.withdrawn.extend(step.withdrawn)
                 batch.keep(step.states)
 
     def _commit(self, msg: EventMessage | ModelMessage, key: str) -> None:
@@ -283,8 +292,7 @@ class PersistentTracker:
 
     def _commit_many(self, items: Iterable[tuple[EventMessage | ModelMessage, str]]) -> None:
         """Write accepted messages in order: runs of event rows in one :meth:`Store.add_events`; a
-        TRC record's prune and a reported tamping's removal of detected ones run after the
-        rows before them, as one message at a time would."""
+        TRC record's prune runs after the rows before it, as one message at a time would."""
         rows: list[tuple[str, str, str, str, tuple[Any, ...] | str, float, bytes]] = []
         for msg, key in items:
             payload = encode(msg)  # not what was received: unknown fields are not kept
@@ -318,10 +326,6 @@ class PersistentTracker:
                         self.store.add_events(rows)
                         rows = []
                         self.store.prune(line, segment, event.t_s)
-                    elif event.kind == TAMPING and not msg.detected:
-                        self.store.add_events(rows)
-                        rows = []
-                        self.store.delete_detected(line, segment, event.t_s, SUPERSEDE_DAYS * DAY_S)
         if rows:
             self.store.add_events(rows)
 

@@ -1,24 +1,34 @@
-"""One segment's history advanced by an event (:func:`add_event`, :func:`step_segment`),
-replayed from its log (:func:`replay_many`), and searched for an unreported tamping
-(:func:`detect`)."""
+"""One segment's history advanced by an event (:func:`add_event`, :func:`step_segment`,
+:func:`advance`), replayed from its log (:func:`replay_many`), and searched for an
+unreported tamping (:func:`detect`, :func:`redetect`)."""
 
 from __future__ import annotations
 
 import bisect
 from collections.abc import Sequence
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 
 from schemas import DAY_S, MaintenanceEvent
 from services.filtering.banks import CUSUM_THRESHOLD
-from services.filtering.events import INDEX, RESTART, TAMPING, Event, LogColumns, event_of
-from services.filtering.fold import fold_many
+from services.filtering.events import (
+    INDEX,
+    RESTART,
+    TAMPING,
+    Event,
+    LogColumns,
+    event_of,
+    tamping_time,
+)
+from services.filtering.fold import fold_many, fold_many_counted
 from services.filtering.histories import SegmentHistory
 from services.filtering.models import Models
 from services.filtering.state import Filtered
 
 SUPERSEDE_DAYS = 30.0  # a reported tamping this close to a detected one replaces it
+DERIVED = "a detected tamping is found in the segment's own log, not taken as an input"
 
 
 def publishable(log: Sequence[Event] | LogColumns, models: Models, started=False) -> bool:
@@ -125,13 +135,124 @@ def step_segment(hist: SegmentHistory, event: Event, models: Models) -> tuple[Se
     new, reason = add_event(hist, event)
     if reason:
         return hist, reason
-    replaced = any(e.identity == event.identity for e in hist.log)
-    appended = bool(new.log) and new.log[-1] is event and not replaced
-    if appended and (event.kind == RESTART or hist.state is not None):
-        # ``hist.state`` is the fold of the log before ``event``: one more step of it.
+    return _refolded(hist, new, event, models), ""
+
+
+def _refolded(hist: SegmentHistory, new: SegmentHistory, event: Event, models: Models):
+    """``new`` (``hist`` with ``event`` added) with its state: one more step of
+    ``hist.state`` when ``event`` only extends the log (a TRC record, which restarts the
+    state, also when it drops the events before it), else the replay of the log."""
+    last = bool(new.log) and new.log[-1] is event
+    extends = last and len(new.log) == len(hist.log) + 1
+    if (extends and hist.state is not None) or (last and event.kind == RESTART):
         state, group = _fold(new, models, (event,), hist.state)
-        return replace(new, state=state, group=group), ""
-    return replay(new, models), ""
+        return replace(new, state=state, group=group)
+    return replay(new, models)
+
+
+def is_detected(event: Event) -> bool:
+    return event.kind == TAMPING and event.message.detected
+
+
+def _detected_in(hist: SegmentHistory) -> dict:
+    """The detected tampings of the log's window, by identity."""
+    return {e.identity: e.message for e in hist.log if is_detected(e)}
+
+
+class Advanced(NamedTuple):
+    """One event's effect on a segment (:func:`advance`): the new history, why the event
+    was refused (empty: accepted), the detected tampings it added to the log and those it
+    took out of it (a report superseding them, or a detection the event invalidated)."""
+
+    hist: SegmentHistory
+    reason: str
+    found: tuple[MaintenanceEvent, ...] = ()
+    withdrawn: tuple[MaintenanceEvent, ...] = ()
+
+
+def advance(hist: SegmentHistory, event: Event, models: Models, *, detecting: bool) -> Advanced:
+    """One event into a segment, its state and (``detecting``) its detected tampings up to
+    date.
+
+    The detected tampings of a log are those that delivering its other events one at a
+    time in canonical order would make (:func:`detect` after each): a function of the log,
+    not of the order of arrival. An event after every event of the log is the next step of
+    that walk; one that sorts before the log's end (a late event, a correction of a
+    tamping) re-runs the walk from the log's start (:func:`redetect`), which withdraws the
+    detections it invalidates. With ``detecting``, a detected tamping is not an input (the
+    instance's own output coming back, or another instance's): refused with ``DERIVED``.
+    """
+    if detecting and is_detected(event):
+        return Advanced(hist, DERIVED)
+    new, reason = add_event(hist, event)
+    if reason:
+        return Advanced(hist, reason)
+    held = any(e.identity == event.identity for e in hist.log)
+    in_step = bool(new.log) and new.log[-1] is event and not held
+    if not detecting or in_step:
+        new = _refolded(hist, new, event, models)
+        found = None
+        if detecting:
+            new, found = detect(new, models)
+        withdrawn = ()
+        if event.kind == TAMPING and len(new.log) < len(hist.log) + 1 + (found is not None):
+            withdrawn = _changes(hist, new)[1]  # a report superseding detected ones
+        return Advanced(new, "", () if found is None else (found,), withdrawn)
+    new = redetect(new, models)
+    return Advanced(new, "", *_changes(hist, new))
+
+
+def _changes(old: SegmentHistory, new: SegmentHistory):
+    """``(found, withdrawn)``: the detected tampings ``new``'s log has and ``old``'s does not
+    (or holds otherwise), and those of ``old``'s log within ``new``'s window that ``new``'s
+    does not hold as they were (a TRC record's pruning is no withdrawal)."""
+    before, after = _detected_in(old), _detected_in(new)
+    trc_t = new.trc_t
+    found = tuple(m for k, m in after.items() if before.get(k) != m)
+    withdrawn = tuple(
+        m
+        for k, m in before.items()
+        if after.get(k) != m and (trc_t is None or tamping_time(m) >= trc_t)
+    )
+    return found, withdrawn
+
+
+def redetect(hist: SegmentHistory, models: Models) -> SegmentHistory:
+    """``hist`` with its detected tampings and state those of its log's other events
+    delivered one at a time in canonical order, :func:`detect` after each (runs of indices
+    are folded together, halting where the CUSUM reaches the threshold: the same bits)."""
+    base = [e for e in hist.log if not is_detected(e)]
+    group = models.group_for(hist.line, hist.segment)
+    params = None if group is None else models.params[group]
+    cur = SegmentHistory(hist.line, hist.segment, group=group)
+    k = 0
+    while k < len(base):
+        event = base[k]
+        if event.kind == INDEX and cur.state is None:  # nothing to update: state stays None
+            cur = replace(cur, log=(*cur.log, event), group=group)
+            k += 1
+            continue
+        end = k
+        while (
+            end < len(base)
+            and base[end].kind == INDEX
+            and models.observation_for_event(base[end]) is not None
+        ):
+            end += 1
+        if end > k:
+            run = tuple(base[k:end])
+            (state,), (count,) = fold_many_counted(
+                [cur.state], [run], [params], models, CUSUM_THRESHOLD
+            )
+            cur = replace(cur, log=cur.log + run[:count], state=state, group=group)
+            k += count
+        else:
+            cur, reason = step_segment(cur, event, models)
+            k += 1
+            if reason:
+                continue
+        cur, _ = detect(cur, models)
+    return replace(cur, trc_t=hist.trc_t)
 
 
 def detect(hist: SegmentHistory, models: Models) -> tuple[SegmentHistory, MaintenanceEvent | None]:

@@ -262,6 +262,14 @@ class FilteringAdapter:
                 found.t_start,
                 found.t_end,
             )
+        for gone in done.withdrawn:  # not in the log any more, deleted with the batch
+            log.info(
+                "withdrew the detected tamping %s on %s/%s: %s",
+                gone.event_id,
+                gone.line,
+                gone.segment,
+                "the segment's events no longer show it",
+            )
 
     def _store_failed(self, e: Exception) -> None:
         """The store failed (disk full, file removed; now or in a batch's commit in the

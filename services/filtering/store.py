@@ -29,8 +29,6 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from schemas import MaintenanceEvent, decode
-
 log = logging.getLogger(__name__)
 _dumps = json.JSONEncoder().encode  # json.dumps with its defaults, without the per-call setup
 _INDEX_PREFIXES: dict[tuple[str, str], str] = {}  # index_identity's, by (train, unit)
@@ -465,17 +463,15 @@ class Store:
         if run:
             self._defer((_INSERT_EVENTS, "(?, ?, ?, ?, ?, ?, ?)", "", run))
 
-    def delete_detected(self, line: str, segment: str, t: float, within_s: float) -> int:
-        """Delete the segment's detected tampings within ``within_s`` of ``t`` (a reported
-        tamping replaces them); returns how many."""
-        rows = self._db.execute(
-            "SELECT rowid, payload FROM events WHERE line = ? AND segment = ?"
-            " AND kind = 'maintenance' AND t BETWEEN ? AND ?",
-            (line, segment, t - within_s, t + within_s),
-        ).fetchall()
-        gone = [(rowid,) for rowid, payload in rows if decode(payload, MaintenanceEvent).detected]
-        self._db.executemany("DELETE FROM events WHERE rowid = ?", gone)
-        return len(gone)
+    def delete_tamping(self, line: str, segment: str, identity: tuple[Any, ...]) -> int:
+        """Delete the segment's stored tamping of ``identity`` (a detection the log no
+        longer holds); returns how many rows."""
+        cur = self._db.execute(
+            "DELETE FROM events WHERE line = ? AND segment = ? AND kind = 'maintenance'"
+            " AND identity = ?",
+            (line, segment, _dumps(list(identity))),
+        )
+        return cur.rowcount
 
     def prune(self, line: str, segment: str, before_t: float) -> int:
         """Delete the segment's events older than ``before_t`` (its latest TRC record)."""

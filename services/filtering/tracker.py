@@ -125,10 +125,9 @@ from services.filtering.models import (
 )
 from services.filtering.segment import (
     add_event,
-    detect,
+    advance,
     publishable,
     replay_many,
-    step_segment,
 )
 from services.filtering.summary import summarize_states
 
@@ -139,13 +138,16 @@ RERUN_CHUNK = 2048  # segments re-run together: one chunk of logs in memory at a
 
 @dataclass(frozen=True)
 class Step:
-    """What one message did: accepted (else ``reason``), the states to publish, and the
-    tampings it made :func:`detect` find (to be stored and published like a report)."""
+    """What one message did: accepted (else ``reason``), the states to publish, the
+    tampings it made :func:`detect` find (to be stored and published like a report), and
+    the detected tampings it took out of the log (:func:`advance`: to delete from the
+    store)."""
 
     accepted: bool
     reason: str = ""
     states: tuple[SegmentState, ...] = ()
     detected: tuple[MaintenanceEvent, ...] = ()
+    withdrawn: tuple[MaintenanceEvent, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -214,48 +216,46 @@ class Tracker:
         event = event_of(msg)
         sid = (msg.line, msg.segment)
         hist = self.histories.get(sid) or SegmentHistory(msg.line, msg.segment)
-        hist, reason = step_segment(hist, event, self.models)
-        if reason:
-            return Step(False, reason)
-        hist, found = self._detect(hist)
-        out = self.segment_state(hist)  # before the swap: if it raises, nothing changed
-        self.histories[sid] = hist
-        return Step(True, "", () if out is None else (out,), () if found is None else (found,))
+        done = advance(hist, event, self.models, detecting=self.detect_maintenance)
+        if done.reason:
+            return Step(False, done.reason)
+        out = self.segment_state(done.hist)  # before the swap: if it raises, nothing changed
+        self.histories[sid] = done.hist
+        return Step(True, "", () if out is None else (out,), done.found, done.withdrawn)
 
-    def _detect(self, hist: SegmentHistory) -> tuple[SegmentHistory, MaintenanceEvent | None]:
-        return detect(hist, self.models) if self.detect_maintenance else (hist, None)
-
-    def step_events(self, msgs: Sequence[EventMessage]) -> tuple[list[str], tuple, list]:
+    def step_events(self, msgs: Sequence[EventMessage]) -> tuple[list[str], tuple, list, list]:
         """Fold several events and summarise each changed segment once, in batches.
 
-        Returns ``(reasons, states, detected)``: per message ``""`` if accepted, else why
-        not; the newest SegmentState of each changed, publishable segment; and the tampings
-        :func:`detect` found on the way. The histories are the same as after stepping the
-        messages one by one, bit for bit (:meth:`fold_events`), and so are the final states
-        (:meth:`segment_states` is :meth:`segment_state` in batches); only the intermediate
-        states of a segment are not summarised. If anything raises, nothing is changed.
+        Returns ``(reasons, states, detected, withdrawn)``: per message ``""`` if accepted,
+        else why not; the newest SegmentState of each changed, publishable segment; the
+        tampings :func:`detect` found on the way and the detected tampings taken out of the
+        logs (net over the batch: :class:`BatchFold`). The histories are the same as after
+        stepping the messages one by one, bit for bit (:meth:`fold_events`), and so are the
+        final states (:meth:`segment_states` is :meth:`segment_state` in batches); only the
+        intermediate states of a segment are not summarised. If anything raises, nothing is changed.
         """
         try:
-            reasons, changed, detected = self._fold_events(msgs)
+            reasons, changed, detected, withdrawn = self._fold_events(msgs)
             states = self.segment_states([summarised(h) for h in changed.values()])
         except BaseException:  # before the swap: nothing changed
             self._settle()
             raise
         self._swap(changed)
         self._settle()
-        return reasons, tuple(state for state in states if state is not None), detected
+        return reasons, tuple(state for state in states if state is not None), detected, withdrawn
 
-    def fold_events(self, msgs: Sequence[EventMessage]) -> tuple[list[str], list, list]:
-        """:meth:`step_events` without the summaries: ``(reasons, changed, detected)``, with
-        the ids of the segments whose history changed (their states: :meth:`states_of`)."""
+    def fold_events(self, msgs: Sequence[EventMessage]) -> tuple[list[str], list, list, list]:
+        """:meth:`step_events` without the summaries: ``(reasons, changed, detected,
+        withdrawn)``, with the ids of the segments whose history changed (their states:
+        :meth:`states_of`)."""
         try:
-            reasons, changed, detected = self._fold_events(msgs)
+            reasons, changed, detected, withdrawn = self._fold_events(msgs)
         except BaseException:  # nothing changed
             self._settle()
             raise
         self._swap(changed)
         self._settle()
-        return reasons, list(changed), detected
+        return reasons, list(changed), detected, withdrawn
 
     def _settle(self) -> None:
         """Give back the rows the last batch's fold took and no segment rests in."""
@@ -276,8 +276,8 @@ class Tracker:
         return [state for state in self.segment_states(hists) if state is not None]
 
     def _fold_events(self, msgs: Sequence[EventMessage]):
-        """``(reasons, changed, detected)`` of stepping ``msgs`` one by one, nothing swapped
-        (:class:`BatchFold`: the result is bit for bit that of :meth:`step` per message)."""
+        """``(reasons, changed, detected, withdrawn)`` of stepping ``msgs`` one by one,
+        nothing swapped (:class:`BatchFold`: bit for bit :meth:`step` per message)."""
         batch = BatchFold(
             self.histories,
             self.models,

@@ -131,7 +131,7 @@ def test_a_batch_folds_to_the_bits_of_its_messages_one_by_one(most):
             reasons.append("" if update.accepted else update.ignored[0][1])
             states = update.states
         else:
-            got, states, detected = batched.step_events(batch)
+            got, states, detected, _ = batched.step_events(batch)
             reasons.extend(got)
             found.extend(detected)
         for state in states:
@@ -162,7 +162,7 @@ def test_a_detection_inside_a_batch_stops_the_fold_there():
         found.extend(one.step(msg).detected)
     for msg in [calibration(), posterior(), record]:
         batched.step(msg)
-    reasons, _, detected = batched.step_events(passes)
+    reasons, _, detected, _ = batched.step_events(passes)
     assert not any(reasons) and len(found) == 1
     assert [encode(m) for m in detected] == [encode(m) for m in found]
     assert_same_states(one, batched)
@@ -175,8 +175,8 @@ def test_fold_events_defers_the_summaries_to_states_of():
     events = [m for m in messages if not isinstance(m, Calibration | DegradationPosterior)]
     for tracker in (eager, lazy):
         tracker.update_models([calibration(1), posterior(), posterior("line.L2", seed=4)])
-    _, states, _ = eager.step_events(events)
-    _, changed, _ = lazy.fold_events(events)
+    _, states, _, _ = eager.step_events(events)
+    _, changed, _, _ = lazy.fold_events(events)
     assert sorted(changed) == sorted(SEGMENTS)
     assert [encode(s) for s in lazy.states_of(changed)] == [
         encode(s) for s in sorted(states, key=lambda s: changed.index((s.line, s.segment)))

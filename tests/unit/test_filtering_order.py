@@ -1,0 +1,16 @@
+"""Maintenance detection is a function of the segment's events, not of their order of
+arrival: seeded random sequences (TRC runs, unreported tampings under the indices, known and
+interval reports and corrections, ties) delivered shuffled, duplicated and late, one message
+at a time, in batches, and after a restart from the store, end in the bytes of the canonical
+order (``bench/order_check.py`` runs many more)."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench.order_check import check
+
+
+@pytest.mark.parametrize("seed", [0, 1, 3, 4, 8, 9])
+def test_every_delivery_of_a_sequence_ends_in_the_canonical_state(seed, tmp_path):
+    assert check(seed, 3, tmp_path) == []
