@@ -17,6 +17,7 @@ import argparse
 import dataclasses
 import logging
 import threading
+import time
 from pathlib import Path
 
 import zenoh
@@ -68,8 +69,9 @@ class IngestionAdapter:
         )
 
     def handle(self, kind: str, key: str, payload: bytes) -> list[Output]:
-        """One payload through the core; raises SchemaError for a malformed one."""
-        return self.core.step(decode_gateway(kind, key, payload))
+        """One payload through the core, with this machine's clock as the bound on future
+        times (event time stays the data's); raises SchemaError for a malformed one."""
+        return self.core.step(decode_gateway(kind, key, payload), time.time())
 
     def publish(self, outputs: list[Output]) -> None:
         ns, session = self.rt.ns, self.rt.session

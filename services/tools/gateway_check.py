@@ -123,7 +123,7 @@ class GatewayCheck:
             self._measure_chunk(message, arrived)
         else:
             self._measure_fix(message, arrived)
-        for out in self.core.step(message):
+        for out in self.core.step(message, arrived):
             if isinstance(out, Rejection) and "unpositioned" not in out.reason:
                 self._deviation(out.reason)
 

@@ -119,8 +119,8 @@ def test_a_simulated_one_way_train_is_on_its_track_every_trip():
     for k in np.flatnonzero(sent):
         events.append(chunk(int(k)))
         events += sim.gps_fixes(T0 + k, T0 + k + 1)
-    # in a fleet the other trains' fixes show the silence is no clock jump; alone, the
-    # train's own clock would be doubted (max_ahead_s), which is not what is tested here
+    # live, the receiving clock shows the silence is no clock jump; replayed without it,
+    # the train's own clock would be doubted (max_ahead_s), which is not what is tested here
     cfg = IngestionConfig(max_ahead_s=1e9)
     out = IngestionCore(network, cfg).run(events)
     chunks = positioned(out)
