@@ -6,11 +6,14 @@ order (``bench/order_check.py`` runs many more)."""
 
 from __future__ import annotations
 
-import pytest
+from collections import Counter
 
 from bench.order_check import check
 
 
-@pytest.mark.parametrize("seed", [0, 1, 3, 4, 8, 9])
-def test_every_delivery_of_a_sequence_ends_in_the_canonical_state(seed, tmp_path):
-    assert check(seed, 3, tmp_path) == []
+def test_every_delivery_of_a_sequence_ends_in_the_canonical_state(tmp_path):
+    seen: Counter = Counter()
+    for seed in (0, 1, 3, 4, 8, 9):
+        assert check(seed, 3, tmp_path, seen) == []
+    # the deliveries made detections, and late events withdrew some of them
+    assert seen["detected"] > 0 and seen["withdrawn"] > 0
