@@ -17,7 +17,7 @@ from services.filtering.events import INDEX, Event, EventMessage, event_of, inde
 from services.filtering.fold import fold_many_counted
 from services.filtering.histories import Checkpoint, Histories, SegmentHistory, evolve, rested
 from services.filtering.models import Models
-from services.filtering.segment import Advanced, advance, detect
+from services.filtering.segment import advance, detect
 
 Entry = SegmentHistory | Checkpoint  # a segment as of the batch so far (Checkpoint: resting)
 
@@ -53,11 +53,12 @@ class BatchFold:
     (several per segment: the logs differ in length). Anything else (a late index, a
     duplicate, a TRC record, a tamping, a segment without a state or a calibration for
     the index's unit) first folds its segment's pending indices, then takes the exact path
-    of one message (:func:`advance`). Detection runs after each index
-    one by one: the batched fold halts a segment at the first index whose CUSUM reaches
-    ``CUSUM_THRESHOLD``, runs :func:`detect` there and steps the segment's later indices
-    one by one. A resting segment is folded from its row of the bank into a free row,
-    listed in ``taken`` (the owner's list), which it rests in after the swap.
+    of one message (:func:`advance`: a late event re-runs its segment's detection).
+    Detection runs after each index one by one: the batched fold halts a segment at the
+    first index whose CUSUM reaches ``CUSUM_THRESHOLD``, runs :func:`detect` there and
+    steps the segment's later indices one by one. A resting segment is folded from its
+    row of the bank into a free row, listed in ``taken`` (the owner's list), which it
+    rests in after the swap.
     """
 
     def __init__(
@@ -176,7 +177,7 @@ class BatchFold:
 
     def _exact(self, i: int, sid: SegmentId, hist: SegmentHistory, event: Event) -> None:
         """Message ``i`` stepped alone, as :meth:`Tracker.step` does."""
-        done: Advanced = advance(hist, event, self.models, detecting=self.detect_maintenance)
+        done = advance(hist, event, self.models, detecting=self.detect_maintenance)
         self.reasons[i] = done.reason
         if not done.reason:
             self._note(i, sid, done.found, done.withdrawn)
