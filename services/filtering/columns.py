@@ -13,7 +13,7 @@ import msgspec
 import numpy as np
 
 from schemas import SCHEMA_VERSION, encode
-from services.filtering.events import INDEX, RESTART, Event, LogColumns
+from services.filtering.events import INDEX, RESTART, Event, LogColumns, outlives_restart
 
 
 class _FoldedIndex(msgspec.Struct, frozen=True, kw_only=True, gc=False):
@@ -66,7 +66,7 @@ def log_columns(
     trc_t = max(restarts) if restarts else None
     times = np.array(list(map(_TIME, msgs)), dtype=np.float64)
     if trc_t is not None:  # canonical_log keeps the events at or after the latest TRC record
-        others = [e for e in others if e.t_s >= trc_t]
+        others = [e for e in others if e.t_s >= trc_t or outlives_restart(e)]
         kept = times >= trc_t
         if not kept.all():
             msgs, tops, aligns = (

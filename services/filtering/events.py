@@ -110,14 +110,21 @@ def log_units(log: Iterable[Event] | LogColumns) -> frozenset[tuple[str, str]]:
     return frozenset((e.message.train, e.message.unit) for e in log if e.kind == INDEX)
 
 
+def outlives_restart(event: Event) -> bool:
+    """A reported tamping stays in the log before a later TRC record: the restart makes it
+    change nothing of the state, and it still decides which report of its ``event_id``
+    holds (a lower-ranked one arriving later is refused, whatever the order)."""
+    return event.kind == TAMPING and not event.message.detected
+
+
 def canonical_log(events: Iterable[Event]) -> tuple[tuple[Event, ...], float | None]:
     """``(log, trc_t)`` of a segment's stored events (any order): the events at or after
-    the latest TRC record, in canonical order. The store holds exactly the accepted log
-    (duplicates refused, superseded tampings and events before a TRC record deleted), except
-    a tamping correction that moved before the latest TRC record, which this drops."""
+    the latest TRC record and the reported tampings before it (:func:`outlives_restart`),
+    in canonical order. The store holds exactly the accepted log (duplicates refused,
+    superseded tampings and the other events before a TRC record deleted)."""
     events = list(events)
     restarts = [e.t_s for e in events if e.kind == RESTART]
     trc_t = max(restarts) if restarts else None
-    kept = [e for e in events if trc_t is None or e.t_s >= trc_t]
+    kept = [e for e in events if trc_t is None or e.t_s >= trc_t or outlives_restart(e)]
     kept.sort(key=lambda e: e.order)
     return tuple(kept), trc_t

@@ -20,6 +20,7 @@ from services.filtering.events import (
     Event,
     LogColumns,
     event_of,
+    outlives_restart,
     tamping_time,
 )
 from services.filtering.fold import fold_many, fold_many_counted
@@ -98,8 +99,10 @@ def add_event(hist: SegmentHistory, event: Event) -> tuple[SegmentHistory, str]:
     """Insert ``event`` into the log (state untouched): ``(hist, "")`` or ``(hist, reason)``.
 
     A tamping report that outranks the one held under its ``event_id`` (``MaintenanceEvent.rank``)
-    replaces it, and is accepted even when its time is now before the latest TRC record:
-    the held report then leaves the log (the TRC record already measured the tamping).
+    replaces it. A reported tamping is accepted before the latest TRC record too, and a
+    TRC record keeps those before it (:func:`outlives_restart`): there they change nothing
+    of the state, and they keep every lower-ranked report of their ``event_id`` out
+    whatever the order of arrival. Any other event before the latest TRC record is refused.
     """
     held = next((e for e in hist.log if e.identity == event.identity), None)
     log, trc_t = hist.log, hist.trc_t
@@ -116,12 +119,10 @@ def add_event(hist: SegmentHistory, event: Event) -> tuple[SegmentHistory, str]:
         if event.kind != TAMPING or event.message.rank <= held.message.rank:
             return hist, "duplicate"
         log = tuple(e for e in log if e is not held)
-        if trc_t is not None and event.t_s < trc_t:
-            return replace(hist, log=log), ""
-    elif trc_t is not None and event.t_s < trc_t:
+    elif trc_t is not None and event.t_s < trc_t and not outlives_restart(event):
         return hist, "older than the latest TRC record"
-    if event.kind == RESTART:
-        log = tuple(e for e in log if e.t_s >= event.t_s)  # a restart forgets what precedes it
+    if event.kind == RESTART:  # a restart forgets what precedes it, but for the reports
+        log = tuple(e for e in log if e.t_s >= event.t_s or outlives_restart(e))
         trc_t = event.t_s if trc_t is None else max(trc_t, event.t_s)
     at = bisect.bisect([e.order for e in log], event.order)
     return replace(hist, log=(*log[:at], event, *log[at:]), trc_t=trc_t), ""

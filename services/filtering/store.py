@@ -29,6 +29,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from schemas import MaintenanceEvent, decode
+
 log = logging.getLogger(__name__)
 _dumps = json.JSONEncoder().encode  # json.dumps with its defaults, without the per-call setup
 _INDEX_PREFIXES: dict[tuple[str, str], str] = {}  # index_identity's, by (train, unit)
@@ -474,12 +476,20 @@ class Store:
         return cur.rowcount
 
     def prune(self, line: str, segment: str, before_t: float) -> int:
-        """Delete the segment's events older than ``before_t`` (its latest TRC record)."""
+        """Delete the segment's events older than ``before_t`` (its latest TRC record) but
+        the reported tampings, which its log keeps (``events.outlives_restart``)."""
         cur = self._db.execute(
-            "DELETE FROM events WHERE line = ? AND segment = ? AND t < ?",
+            "DELETE FROM events WHERE line = ? AND segment = ? AND t < ? AND kind != 'maintenance'",
             (line, segment, before_t),
         )
-        return cur.rowcount
+        rows = self._db.execute(
+            "SELECT rowid, payload FROM events WHERE line = ? AND segment = ?"
+            " AND kind = 'maintenance' AND t < ?",
+            (line, segment, before_t),
+        ).fetchall()
+        found = [(rowid,) for rowid, payload in rows if decode(payload, MaintenanceEvent).detected]
+        self._db.executemany("DELETE FROM events WHERE rowid = ?", found)
+        return cur.rowcount + len(found)
 
     def put_model(self, *, name: str, kind: str, version: int, key: str, payload: bytes) -> None:
         """Commit the latest model of ``name`` (the caller checked it is newer)."""

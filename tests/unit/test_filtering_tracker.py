@@ -354,11 +354,12 @@ def test_store_rebuilds_identical_states_after_an_unclean_stop(tmp_path):
         first.tracker.step(msg)
         second.handle(*keyed(msg))
     assert_same_states(first.tracker, second.tracker)
-    # the TRC records at day 100 pruned everything before them: the store holds the logs
+    # the TRC records at day 100 pruned everything before them but the tamping reports:
+    # the store holds the logs
     rebuilt = PersistentTracker(new_tracker(), Store(db))
     rebuilt.rebuild()
     in_logs = sum(len(hist.log) for hist in first.tracker.histories.values())
-    assert rebuilt.store.count_events() == in_logs == 3 * 7
+    assert rebuilt.store.count_events() == in_logs == 3 * (7 + 1)
     assert_same_states(first.tracker, rebuilt.tracker)
     for node in (second, rebuilt):
         node.store.close()
@@ -600,17 +601,26 @@ def test_a_tamping_correction_replaces_the_report_whatever_the_order(corrected):
         node.store.close()
 
 
-def test_a_correction_before_the_latest_trc_record_removes_the_report():
+def test_a_correction_before_the_latest_trc_record_takes_the_tamping_out_of_the_state():
     """The report put the tamping after the TRC record; the correction puts it before, where
-    the record already measured it: the tamping leaves the log."""
+    the record already measured it: the state is the one without the tamping, and the
+    correction stays in the log before the record, so that the report coming again (or
+    first) is outranked whatever the order."""
     report = tamping(15.0, 25.0)  # placed at day 20, after the record of day 18
+    fixed = correction(report, 16.0)
     base = [*MODELS, trc(0.0), trc(18.0, 2.5, 2.2), index(22.0, 2.4, 2.2)]
     tracker, _ = run([*base, report])
     assert report.event_id in {e.identity[1] for e in tracker.histories[("L1", "s1")].log}
-    step = tracker.step(correction(report, 16.0))
-    assert step.accepted
-    without, _ = run(base)
-    assert_same_states(tracker, without)
+    assert tracker.step(fixed).accepted
+    log = tracker.histories[("L1", "s1")].log
+    assert [e.identity[0] for e in log] == ["maintenance", "trc", "index"]
+    assert log[0].t_s == fixed.t_start
+    a, b = tracker.histories[("L1", "s1")].state, run(base)[0].histories[("L1", "s1")].state
+    for name in ("z", "P", "log_w", "t_s", "n_updates", "nis", "cusum"):
+        assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True)
+    assert tracker.step(report).reason == "duplicate"  # outranked by the correction
+    other_order, _ = run([*base, fixed, report])
+    assert_same_states(tracker, other_order)
 
 
 def test_an_interval_only_tamping_sits_at_the_middle_of_the_reported_interval():
