@@ -15,8 +15,12 @@ change it:
   (``MaintenanceEvent.rank``: higher ``revision``, then the narrower interval, then the later
   time), so that a correction wins whatever the order of arrival.
 - **Log window**: every event at or after the segment's latest TRC record (every event while
-  there is none). A TRC record drops the events before it; an event older than the latest
-  TRC record cannot change the state and is refused (``accepted`` False, reason given).
+  there is none), and the reported tampings before it. A TRC record drops the other events
+  before it; such an event older than the latest TRC record cannot change the state and is
+  refused (``accepted`` False, reason given). A reported tamping before the record changes
+  nothing of the state either (the record restarts it) but stays, so that the highest
+  ranked report of each ``event_id`` holds whatever the order of arrival
+  (``events.outlives_restart``).
 - **Incremental or replay**: an event after the last one of the log is applied to the
   current state; a late one is inserted and the log replayed from its start. Both run the
   same fold, so they give bit-identical arrays.
