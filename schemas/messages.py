@@ -211,22 +211,43 @@ def _check_model_time(name: str, value: float) -> None:
 
 
 class TrcRecord(Message, frozen=True, kw_only=True):
-    """A Track Recording Car's measurement of one segment on one run."""
+    """A Track Recording Car's measurement of one segment on one run: of every indicator,
+    or of the ``indicators`` listed only (a car that records longitudinal level and not
+    alignment). Exactly the listed indicators have a value."""
 
     line: str
     segment: str
     t: float  # epoch s
-    top6_mm: float  # > 0
-    align10_mm: float  # > 0
+    top6_mm: float | None = None  # > 0 when "top6" is listed, else None
+    align10_mm: float | None = None  # > 0 when "align10" is listed, else None
     run_id: str
+    indicators: list[str] = msgspec.field(default_factory=lambda: list(INDICATORS))
 
     def __post_init__(self) -> None:
         super().__post_init__()
         for name in ("line", "segment", "run_id"):
             check_id(name, getattr(self, name))
         check_time("t", self.t)
-        _check_index("top6_mm", self.top6_mm)
-        _check_index("align10_mm", self.align10_mm)
+        _check_indicators(self.indicators)
+        for name, value in zip(INDICATORS, self.values_mm, strict=True):
+            if name in self.indicators:
+                check(value is not None, f"{name}_mm: missing, and {name} is in indicators")
+                _check_index(f"{name}_mm", value)
+            else:
+                check(value is None, f"{name}_mm: given, and {name} is not in indicators")
+
+    @property
+    def values_mm(self) -> tuple[float | None, ...]:
+        """The values in state order (:data:`INDICATORS`), None for an indicator not measured."""
+        return (self.top6_mm, self.align10_mm)
+
+
+def _check_indicators(indicators: list[str]) -> None:
+    """A non-empty list of state indicators in state order, each once."""
+    check(
+        bool(indicators) and indicators == [i for i in INDICATORS if i in indicators],
+        f"indicators: {indicators!r} is not a non-empty list of {list(INDICATORS)} in that order",
+    )
 
 
 class MaintenanceEvent(Message, frozen=True, kw_only=True):
@@ -355,6 +376,9 @@ class SegmentState(Message, frozen=True, kw_only=True):
     calibration_version: int = 0
     posterior_version: int = 0
     posterior_group: str = ""  # the DegradationPosterior group in use
+    # the indicators the last TRC record measured (the others evolved from their own state);
+    # empty before any TRC record
+    last_trc_indicators: list[str] = []
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -391,6 +415,8 @@ class SegmentState(Message, frozen=True, kw_only=True):
         check_int("n_updates", self.n_updates)
         check_int("calibration_version", self.calibration_version)
         check_int("posterior_version", self.posterior_version)
+        if self.last_trc_indicators:
+            _check_indicators(self.last_trc_indicators)
 
 
 class Alert(Message, frozen=True, kw_only=True):

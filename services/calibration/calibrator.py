@@ -342,6 +342,12 @@ class Calibrator:
 
     def _ingest_trc(self, rec: TrcRecord) -> bool:
         seg = (rec.line, rec.segment)
+        if len(rec.indicators) < _N:
+            # A pair regresses an index on the whole state (Eq. 5-6: every H row on every
+            # indicator), and an increment of the NIW posteriors is of the whole state: a
+            # record of some indicators gives neither. It counts for event time only.
+            self.stats["trc_partial"] += 1
+            return False
         known = self._trc.get(seg, {})
         if rec.run_id in known:
             self.stats["trc_duplicates"] += 1

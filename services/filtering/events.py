@@ -36,7 +36,8 @@ class Event(NamedTuple):
     kind: int  # RESTART, TAMPING or INDEX
     t_s: float  # epoch s of the event (a tamping's assumed time)
     identity: tuple[Any, ...]
-    # z of a restart (an array) or y of an index (a pair) in log mm, None for a tamping
+    # z of a restart (an array, NaN at an indicator the record did not measure) or y of an
+    # index (a pair) in log mm, None for a tamping
     value: np.ndarray | tuple[float, float] | None
     message: EventMessage
 
@@ -63,11 +64,23 @@ def event_of(msg: EventMessage) -> Event:
         case OnboardIndex():
             return index_event(msg)
         case TrcRecord():
-            z = np.log([msg.top6_mm, msg.align10_mm])
-            return Event(RESTART, msg.t, ("trc", msg.run_id, msg.t), z, msg)
+            if msg.top6_mm is not None and msg.align10_mm is not None:
+                z = np.log([msg.top6_mm, msg.align10_mm])
+                return Event(RESTART, msg.t, ("trc", msg.run_id, msg.t), z, msg)
+            # a partial record: NaN where it measured nothing; its identity names what it
+            # measured, so a level-only and an alignment-only record of one run are two
+            z = np.log([math.nan if v is None else v for v in msg.values_mm])
+            identity = ("trc", msg.run_id, msg.t, *msg.indicators)
+            return Event(RESTART, msg.t, identity, z, msg)
         case MaintenanceEvent():
             return Event(TAMPING, tamping_time(msg), ("maintenance", msg.event_id), None, msg)
     raise TypeError(f"not a segment event: {type(msg).__name__}")
+
+
+def is_full_restart(event: Event) -> bool:
+    """A TRC record of every indicator: the state after it depends on nothing before it,
+    so a segment's log starts at its latest one."""
+    return event.kind == RESTART and not np.isnan(event.value).any()
 
 
 def index_event(msg: Any) -> Event:
@@ -112,11 +125,12 @@ def log_units(log: Iterable[Event] | LogColumns) -> frozenset[tuple[str, str]]:
 
 def canonical_log(events: Iterable[Event]) -> tuple[tuple[Event, ...], float | None]:
     """``(log, trc_t)`` of a segment's stored events (any order): the events at or after
-    the latest TRC record, in canonical order. The store holds exactly the accepted log
-    (duplicates refused, superseded tampings and events before a TRC record deleted), except
-    a tamping correction that moved before the latest TRC record, which this drops."""
+    the latest TRC record of every indicator (:func:`is_full_restart`), in canonical order.
+    The store holds exactly the accepted log (duplicates refused, superseded tampings and
+    events before such a record deleted), except a tamping correction that moved before
+    the latest one, which this drops."""
     events = list(events)
-    restarts = [e.t_s for e in events if e.kind == RESTART]
+    restarts = [e.t_s for e in events if is_full_restart(e)]
     trc_t = max(restarts) if restarts else None
     kept = [e for e in events if trc_t is None or e.t_s >= trc_t]
     kept.sort(key=lambda e: e.order)

@@ -236,7 +236,7 @@ def _fold_steps(
             if len(rows) == 0:
                 continue
             if code == RESTART:
-                banks.restart(rows, times[rows, k], values[rows, k])
+                banks.restart(rows, times[rows, k], values[rows, k], rows_params)
             elif code == TAMPING:
                 banks.tamping(rows, times[rows, k], rows_params)
             else:
@@ -281,7 +281,7 @@ def _fold_runs(
                 if len(rows):
                     at = pos[rows]
                     if code == RESTART:
-                        banks.restart(rows, times[rows, at], values[rows, at])
+                        banks.restart(rows, times[rows, at], values[rows, at], params)
                     else:
                         banks.tamping(rows, times[rows, at], params)
                     pos[rows] += 1

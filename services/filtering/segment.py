@@ -12,7 +12,15 @@ import numpy as np
 
 from schemas import DAY_S, MaintenanceEvent
 from services.filtering.banks import CUSUM_THRESHOLD
-from services.filtering.events import INDEX, RESTART, TAMPING, Event, LogColumns, event_of
+from services.filtering.events import (
+    INDEX,
+    RESTART,
+    TAMPING,
+    Event,
+    LogColumns,
+    event_of,
+    is_full_restart,
+)
 from services.filtering.fold import fold_many
 from services.filtering.histories import SegmentHistory
 from services.filtering.models import Models
@@ -110,7 +118,7 @@ def add_event(hist: SegmentHistory, event: Event) -> tuple[SegmentHistory, str]:
             return replace(hist, log=log), ""
     elif trc_t is not None and event.t_s < trc_t:
         return hist, "older than the latest TRC record"
-    if event.kind == RESTART:
+    if is_full_restart(event):
         log = tuple(e for e in log if e.t_s >= event.t_s)  # a restart forgets what precedes it
         trc_t = event.t_s if trc_t is None else max(trc_t, event.t_s)
     at = bisect.bisect([e.order for e in log], event.order)

@@ -41,7 +41,8 @@ from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_f
 
 QUERY_TIMEOUT_S = 10.0  # `--timeout`: a service catching up on a backlog answers late
 PLAN_ROWS = 20  # `plan --limit`
-TRC_COLUMNS = ("line", "segment", "t", "top6_mm", "align10_mm", "run_id")
+TRC_COLUMNS = ("line", "segment", "t", "run_id")  # and one value column at least
+TRC_VALUE_COLUMNS = ("top6_mm", "align10_mm")  # in state order (INDICATORS)
 
 
 def ask(session: zenoh.Session, selector: str, timeout: float = QUERY_TIMEOUT_S):
@@ -230,23 +231,34 @@ def parse_time(text: str) -> float:
 def parse_trc_csv(text: TextIO) -> Iterator[TrcRecord | RowError]:
     """TrcRecords of a TRC export, or a RowError (with its file line number) per bad row.
 
-    Columns: line, segment, t (epoch s or ISO 8601), top6_mm, align10_mm, run_id.
+    Columns: line, segment, t (epoch s or ISO 8601), run_id, and top6_mm, align10_mm or
+    both (a level-only or alignment-only export). An empty value cell: the record did not
+    measure that indicator; a row must measure one at least.
     """
     reader = csv.DictReader(text)
-    missing = set(TRC_COLUMNS) - set(reader.fieldnames or ())
-    if missing:
-        yield RowError(1, f"header lacks column(s) {sorted(missing)}; need {list(TRC_COLUMNS)}")
+    header = set(reader.fieldnames or ())
+    missing = set(TRC_COLUMNS) - header
+    values = [c for c in TRC_VALUE_COLUMNS if c in header]
+    if missing or not values:
+        need = f"{list(TRC_COLUMNS)} and one or both of {list(TRC_VALUE_COLUMNS)}"
+        lacks = sorted(missing) if missing else list(TRC_VALUE_COLUMNS)
+        yield RowError(1, f"header lacks column(s) {lacks}; need {need}")
         return
     for row in reader:
         line_no = reader.line_num
         try:
+            measured = {c: float(row[c]) for c in values if (row[c] or "").strip()}
+            if not measured:
+                raise ValueError(f"no value in {values}")
             yield TrcRecord(
                 line=row["line"].strip(),
                 segment=row["segment"].strip(),
                 t=parse_time(row["t"]),
-                top6_mm=float(row["top6_mm"]),
-                align10_mm=float(row["align10_mm"]),
                 run_id=row["run_id"].strip(),
+                indicators=[
+                    i for i, c in zip(INDICATORS, TRC_VALUE_COLUMNS, strict=True) if c in measured
+                ],
+                **measured,
             )
         except (SchemaError, ValueError, TypeError, AttributeError) as exc:
             yield RowError(line_no, str(exc))

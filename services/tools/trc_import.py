@@ -34,7 +34,7 @@ from typing import TextIO
 import numpy as np
 import zenoh
 
-from schemas import SchemaError, TrcRecord, encode, keys
+from schemas import INDICATORS, SchemaError, TrcRecord, encode, keys
 from schemas.wire import check_time
 from services.defaults import add_network_argument, load_network
 from services.runtime.config import RuntimeConfig, config_from_args
@@ -47,6 +47,8 @@ from services.tools.operator import (
 from track.network import check_id
 from track.segments import SegmentTable
 from track.trc_profile import (
+    ALIGN_COLUMNS,
+    LEVEL_COLUMNS,
     MAX_OFFSET_M,
     WINDOW_M,
     GridProfile,
@@ -142,12 +144,34 @@ def trc_records(result: RunResult, line: str, run_id: str, t: float):
     """The TrcRecords of a run, and ``(segment, reason)`` for values no record can carry."""
     records, refused = [], []
     for v in result.values:
+        values = (v.top6_mm, v.align10_mm)
+        measured = [name for name, x in zip(INDICATORS, values, strict=True) if x is not None]
         try:
             records.append(TrcRecord(line=line, segment=v.segment, t=t, top6_mm=v.top6_mm,
-                                     align10_mm=v.align10_mm, run_id=run_id))  # fmt: skip
+                                     align10_mm=v.align10_mm, run_id=run_id,
+                                     indicators=measured))  # fmt: skip
         except SchemaError as exc:
             refused.append((v.segment, str(exc)))
     return records, refused
+
+
+def indicator_lines(profile: TrcProfile) -> list[str]:
+    """What the run's records measure, from which rails, and what they cannot, and why."""
+    out = []
+    for name, family, columns in (
+        ("top6", "longitudinal level", LEVEL_COLUMNS),
+        ("align10", "alignment", ALIGN_COLUMNS),
+    ):
+        rails = [c for c in columns if c in profile.channels]
+        if not rails:
+            out.append(
+                f"{name}: not measured, the file has no {family} column ({', '.join(columns)})"
+            )
+        elif len(rails) == 1:
+            out.append(f"{name}: from {rails[0]} alone (the file has one rail of {family})")
+        else:
+            out.append(f"{name}: the smaller of {rails[0]} and {rails[1]}")
+    return out
 
 
 def format_report(
@@ -171,6 +195,7 @@ def format_report(
     ]
     if profile.ignored_columns:
         out.append(f"ignored columns: {', '.join(profile.ignored_columns)}")
+    out.extend(indicator_lines(profile))
     if reference is None:
         out.append(
             "alignment: no earlier run of this stretch of the line in the archive, taken as it is"
@@ -179,8 +204,9 @@ def format_report(
         out.append(f"alignment: skipped (--no-align); reference would be run {reference.run_id}")
     else:
         used = result.alignment.used
+        on = "" if result.alignment.signal == "level" else ", matched on alignment"
         out.append(
-            f"alignment to run {reference.run_id} (offset = its chainage - this run's): "
+            f"alignment to run {reference.run_id} (offset = its chainage - this run's{on}): "
             f"{len(used)} of {len(result.alignment.windows)} windows used"
         )
         out.append(f"  {'window start m':>14} {'offset m':>9} {'peak':>6}")

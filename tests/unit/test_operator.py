@@ -79,6 +79,18 @@ def test_missing_columns_are_named():
     assert isinstance(error, RowError) and "align10_mm" in error.reason
 
 
+def test_level_only_and_alignment_only_exports_are_records_of_what_they_measured():
+    level = "line,segment,t,top6_mm,run_id\nL1,s1,1767225600,4.1,r1\n"
+    (record,) = list(parse_trc_csv(io.StringIO(level)))
+    assert record.indicators == ["top6"] and record.values_mm == (4.1, None)
+    mixed = "line,segment,t,top6_mm,align10_mm,run_id\nL1,s1,0,,3.0,r1\nL1,s2,0,,,r1\n"
+    items = list(parse_trc_csv(io.StringIO(mixed.replace(",0,", ",1767225600,"))))
+    assert items[0].indicators == ["align10"] and items[0].align10_mm == 3.0
+    assert isinstance(items[1], RowError) and "no value" in items[1].reason
+    (error,) = list(parse_trc_csv(io.StringIO("line,segment,t,run_id\nL1,s1,0,r1\n")))
+    assert isinstance(error, RowError) and "one or both of" in error.reason
+
+
 def test_format_state_reads_like_an_engineer_would():
     text = format_state(a_state())
     assert "L1/s00001" in text and "3.00 mm" in text and "95% [2.50, 3.60]" in text
