@@ -23,6 +23,8 @@ change it:
 - **Events** (time in the maths is days, ``t_s / DAY_S``):
 
   * ``TrcRecord``: restart, ``z = ln [top6_mm, align10_mm]`` in every sample, ``P = 0``.
+    A record of some indicators only observes those exactly (``Banks.restart_partial``),
+    keeps the log before it, and does not start a segment without state.
   * ``MaintenanceEvent`` (tamping): at ``t_start`` if ``t_start == t_end``, else at the
     middle of the *reported* interval ``(t_start + t_end) / 2``. The paper (Eq. 2) assumes
     the middle of the filter interval ``(t_{k-1}, t_k]`` in which a tamping is known to

@@ -107,7 +107,9 @@ def _alive_ids(tokens: Iterable[str]) -> Iterator[tuple[str, str]]:
 
 def format_state(state: SegmentState) -> str:
     """A segment's state as an engineer reads it: estimate, 95 % interval, risk, forecasts."""
-    lines = [f"{state.line}/{state.segment} at {_iso(state.t)} (last TRC {_iso(state.last_trc_t)})"]
+    measured = " ".join(state.last_trc_indicators)
+    last = _iso(state.last_trc_t) + (f", measured {measured}" if measured else "")
+    lines = [f"{state.line}/{state.segment} at {_iso(state.t)} (last TRC {last})"]
     mean_mm = [math.exp(v) for v in state.mean.array()]
     low, high = state.ci_low_mm.array(), state.ci_high_mm.array()
     p = state.p_exceed.array()
@@ -290,7 +292,15 @@ def main_import_trc(conf: RuntimeConfig, path: str, out: TextIO = sys.stdout) ->
 
 # --- export ---------------------------------------------------------------------------------
 
-STATE_COLUMNS = ["line", "segment", "t", "last_trc_t", "n_updates", "width"] + [
+STATE_COLUMNS = [
+    "line",
+    "segment",
+    "t",
+    "last_trc_t",
+    "last_trc_indicators",
+    "n_updates",
+    "width",
+] + [
     f"{name}_{what}"
     for name in INDICATORS
     for what in ("mm", "ci_low_mm", "ci_high_mm", "p_exceed_intervention")
@@ -304,6 +314,7 @@ def state_row(state: SegmentState) -> dict:
         "segment": state.segment,
         "t": _iso(state.t),
         "last_trc_t": _iso(state.last_trc_t),
+        "last_trc_indicators": " ".join(state.last_trc_indicators),
         "n_updates": state.n_updates,
         "width": state.width,
     }

@@ -298,7 +298,7 @@ def _table(data: ReportData, states: list[SegmentState]) -> str:
         forecast = p_forecast(s)
         cells += [_p_cell(forecast.get(h)) for h in horizons]
         plan = plan_rows.get(key)
-        cells.append(f"<td>{day(s.last_trc_t)}</td>")
+        cells.append(f"<td>{day(s.last_trc_t)}{_measured(s)}</td>")
         if plan is None:
             cells.append("<td>–</td><td>–</td>")
         else:
@@ -307,6 +307,14 @@ def _table(data: ReportData, states: list[SegmentState]) -> str:
         rows.append("<tr>" + "".join(cells) + "</tr>")
     rows.append("</tbody></table>")
     return "".join(rows)
+
+
+def _measured(state: SegmentState) -> str:
+    """What the last TRC record measured, when it was not every indicator."""
+    names = state.last_trc_indicators
+    if not names or len(names) == len(state.indicators):
+        return ""
+    return f"<br><small>{escape(' '.join(names))} only</small>"
 
 
 def _p_cell(p: float | None) -> str:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 
+import msgspec
 import numpy as np
 
 from schemas import NDArray, SegmentState, TrcRecord
@@ -89,6 +90,12 @@ def test_level_only_and_alignment_only_exports_are_records_of_what_they_measured
     assert isinstance(items[1], RowError) and "no value" in items[1].reason
     (error,) = list(parse_trc_csv(io.StringIO("line,segment,t,run_id\nL1,s1,0,r1\n")))
     assert isinstance(error, RowError) and "one or both of" in error.reason
+
+
+def test_format_state_says_what_the_last_trc_record_measured():
+    state = msgspec.structs.replace(a_state(), last_trc_t=1_767_225_600.0,
+                                    last_trc_indicators=["top6"])  # fmt: skip
+    assert "(last TRC 2026-01-01T00:00+00:00, measured top6)" in format_state(state)
 
 
 def test_format_state_reads_like_an_engineer_would():
