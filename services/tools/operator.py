@@ -105,11 +105,13 @@ def _alive_ids(tokens: Iterable[str]) -> Iterator[tuple[str, str]]:
 # --- state ----------------------------------------------------------------------------------
 
 
-def format_state(state: SegmentState) -> str:
-    """A segment's state as an engineer reads it: estimate, 95 % interval, risk, forecasts."""
+def format_state(state: SegmentState, line_name: str = "") -> str:
+    """A segment's state as an engineer reads it: estimate, 95 % interval, risk, forecasts;
+    ``line_name``: the line's name in the network file, shown after its id."""
     measured = " ".join(state.last_trc_indicators)
     last = _iso(state.last_trc_t) + (f", measured {measured}" if measured else "")
-    lines = [f"{state.line}/{state.segment} at {_iso(state.t)} (last TRC {last})"]
+    named = f" ({line_name})" if line_name and line_name != state.line else ""
+    lines = [f"{state.line}/{state.segment}{named} at {_iso(state.t)} (last TRC {last})"]
     mean_mm = [math.exp(v) for v in state.mean.array()]
     low, high = state.ci_low_mm.array(), state.ci_high_mm.array()
     p = state.p_exceed.array()
@@ -144,9 +146,17 @@ def query_states(
 
 
 def main_state(
-    conf: RuntimeConfig, segment: str, timeout: float = QUERY_TIMEOUT_S, out: TextIO = sys.stdout
+    conf: RuntimeConfig,
+    segment: str,
+    timeout: float = QUERY_TIMEOUT_S,
+    out: TextIO = sys.stdout,
+    network_path: str | None = None,
 ) -> int:
-    """`trackfusion state LINE/SEGMENT` (or `LINE/**` for a whole line)."""
+    """`trackfusion state LINE/SEGMENT` (or `LINE/**` for a whole line); the lines' names
+    from the network file ``network_path`` (the demo network without one)."""
+    from services.defaults import load_network
+
+    names = {line.id: line.name for line in load_network(network_path).lines.values()}
     if segment.count("/") != 1:
         raise SystemExit(f"state: {segment!r} is not LINE/SEGMENT (e.g. L1/s00042)")
     with open_session(conf) as session:
@@ -155,7 +165,7 @@ def main_state(
         print(f"no state for {segment} (unknown segment, or no TRC record and model yet)", file=out)
         return 1
     for state in sorted(states, key=lambda s: (s.line, s.segment)):
-        print(format_state(state), file=out)
+        print(format_state(state, names.get(state.line, "")), file=out)
     return 0
 
 
@@ -439,11 +449,12 @@ def state_add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "segment", metavar="LINE/SEGMENT", help="e.g. L1/s00042, or L1/** for a line"
     )
+    add_network_argument(parser, "the lines' names")
     add_query_arguments(parser)
 
 
 def state_run(args: argparse.Namespace) -> int:
-    return main_state(config_from_args(args), args.segment, args.timeout)
+    return main_state(config_from_args(args), args.segment, args.timeout, network_path=args.network)
 
 
 def alerts_run(args: argparse.Namespace) -> int:

@@ -96,6 +96,7 @@ def test_format_state_says_what_the_last_trc_record_measured():
     state = msgspec.structs.replace(a_state(), last_trc_t=1_767_225_600.0,
                                     last_trc_indicators=["top6"])  # fmt: skip
     assert "(last TRC 2026-01-01T00:00+00:00, measured top6)" in format_state(state)
+    assert format_state(state, "Alassio – Albenga").startswith("L1/s00001 (Alassio – Albenga) at")
 
 
 def test_format_state_reads_like_an_engineer_would():

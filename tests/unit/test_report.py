@@ -173,3 +173,13 @@ def test_a_last_trc_record_of_one_indicator_is_said():
     both = msgspec.structs.replace(level_only, last_trc_indicators=["top6", "align10"])
     html = render(ReportData(states=[both], network=a_network(), made_at=T0))
     assert "only</small>" not in html
+
+
+def test_lines_are_shown_with_the_names_operators_use():
+    network = a_network()
+    named = NetworkMap(network.polylines, network.chainage_m, network.stations,
+                       {"L1": "Alassio – Albenga, track 2"})  # fmt: skip
+    html = render(ReportData(states=some_states(), network=named, made_at=T0))
+    assert "1 line(s) (L1 (Alassio – Albenga, track 2))" in html
+    row = re.search(r"<tr><td class=\"n\">1</td>.*?</tr>", html).group(0)
+    assert "<td>L1 (Alassio – Albenga, track 2)</td>" in row
