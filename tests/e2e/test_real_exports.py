@@ -31,6 +31,9 @@ def level_only_run(network_file: Path, offset_m: float, seed: int) -> str:
     line = load_network(str(network_file)).lines[LINE]
     bounds = np.stack([line.segment_starts_m, line.segment_ends_m], -1)
     track = LineProfile(LINE, bounds, seed=3)
+    n = len(bounds)
+    z = np.stack([np.random.default_rng(3).normal(np.log(1.6), 0.4, n), np.zeros(n)], -1)
+    track.update(z, np.zeros(n, dtype=np.int64))  # the track's Top6 (Align10 unmeasured)
     rng = np.random.default_rng(seed)
     true_m = np.arange(100.0, 3100.0, 0.25)
     level = track.sample(true_m)[:2] + rng.normal(0.0, 0.15, (2, true_m.size))
