@@ -33,6 +33,7 @@ ONBOARD_INDICES = ("top6", "align10")  # on-board index order, m = 2
 ACCEL_CHANNELS = ("left_z", "left_y", "left_x", "right_z", "right_y", "right_x")
 SUPPLY_CHANNEL = "supply_v"
 DAY_S = 86_400.0  # seconds per day: degradation maths runs in days, epoch s / DAY_S
+_ALL = list(INDICATORS)  # a message's default ``indicators``: every one
 
 # Plausibility ranges (schemas/README.md, "Limits"): what a sender can be told at once.
 INDEX_MAX_MM = 100.0  # Top6, Align10: (0, 100] mm; intervention limits are ~10 mm
@@ -155,22 +156,36 @@ class PositionedChunk(Message, frozen=True, kw_only=True):
 
 
 class OnboardIndex(Message, frozen=True, kw_only=True):
-    """On-board Top6 and Align10 indices of one train pass over one segment."""
+    """On-board Top6 and Align10 indices of one train pass over one segment: both, or the
+    ``indicators`` listed only (a unit with a vertical sensor only measures Top6)."""
 
     line: str
     segment: str
     train: str
     unit: str
     t: float  # epoch s at which the unit passed the segment's middle
-    top6_mm: float  # > 0
-    align10_mm: float  # > 0
+    top6_mm: float | None = None  # > 0 when "top6" is listed, else None
+    align10_mm: float | None = None  # > 0 when "align10" is listed, else None
     speed_mps: float  # mean speed over the segment
     coverage: float  # fraction of the segment's length with valid samples, [0, 1]
     quality: float = 1.0  # [0, 1], position and sensor health
     run_id: str = ""  # a TRC run id when the unit rode the TRC (calibration campaign)
+    indicators: list[str] = msgspec.field(default_factory=lambda: list(INDICATORS))
+
+    @property
+    def values_mm(self) -> tuple[float | None, ...]:
+        """The indices in state order (:data:`INDICATORS`), None for one not measured."""
+        return (self.top6_mm, self.align10_mm)
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        if self.top6_mm is None or self.align10_mm is None or self.indicators != _ALL:
+            _check_measured(self)  # some indicators only: the values that are given
+            standing_in = [1.0 if v is None else v for v in self.values_mm]  # checked above
+            return self._check_fields(*standing_in)
+        self._check_fields(self.top6_mm, self.align10_mm)
+
+    def _check_fields(self, top6_mm: float, align10_mm: float) -> None:
         known = _VALID_IDS  # check_id's, inline: every index repeats ids that passed
         if not (
             self.line in known
@@ -184,16 +199,16 @@ class OnboardIndex(Message, frozen=True, kw_only=True):
             check_id("run_id", self.run_id)
         if (  # every number in range (so finite: NaN fails every comparison): done
             T_MIN <= self.t < T_MAX
-            and 0.0 < self.top6_mm <= INDEX_MAX_MM
-            and 0.0 < self.align10_mm <= INDEX_MAX_MM
+            and 0.0 < top6_mm <= INDEX_MAX_MM
+            and 0.0 < align10_mm <= INDEX_MAX_MM
             and 0.0 <= self.speed_mps <= SPEED_MAX_MPS
             and 0.0 <= self.coverage <= 1.0
             and 0.0 <= self.quality <= 1.0
         ):
             return
         check_time("t", self.t)  # which one is not, and why
-        _check_index("top6_mm", self.top6_mm)
-        _check_index("align10_mm", self.align10_mm)
+        _check_index("top6_mm", top6_mm)
+        _check_index("align10_mm", align10_mm)
         check_range("speed_mps", self.speed_mps, 0.0, SPEED_MAX_MPS)
         for name in ("coverage", "quality"):
             check_range(name, getattr(self, name), 0.0, 1.0)
@@ -228,18 +243,23 @@ class TrcRecord(Message, frozen=True, kw_only=True):
         for name in ("line", "segment", "run_id"):
             check_id(name, getattr(self, name))
         check_time("t", self.t)
-        _check_indicators(self.indicators)
-        for name, value in zip(INDICATORS, self.values_mm, strict=True):
-            if name in self.indicators:
-                check(value is not None, f"{name}_mm: missing, and {name} is in indicators")
-                _check_index(f"{name}_mm", value)
-            else:
-                check(value is None, f"{name}_mm: given, and {name} is not in indicators")
+        _check_measured(self)
 
     @property
     def values_mm(self) -> tuple[float | None, ...]:
         """The values in state order (:data:`INDICATORS`), None for an indicator not measured."""
         return (self.top6_mm, self.align10_mm)
+
+
+def _check_measured(msg: TrcRecord | OnboardIndex) -> None:
+    """Exactly the ``indicators`` listed have a value, each in range."""
+    _check_indicators(msg.indicators)
+    for name, value in zip(INDICATORS, msg.values_mm, strict=True):
+        if name in msg.indicators:
+            check(value is not None, f"{name}_mm: missing, and {name} is in indicators")
+            _check_index(f"{name}_mm", value)
+        else:
+            check(value is None, f"{name}_mm: given, and {name} is not in indicators")
 
 
 def _check_indicators(indicators: list[str]) -> None:

@@ -351,6 +351,24 @@ class Banks:
         self.t_s[rows] = t_s
 
 
+def index_partial(banks: Banks, rows, t_s, y, params, obs: ObservationModel) -> None:
+    r"""On-board index ``y`` (k, m) of some indices only (NaN at the others) on started
+    rows: :meth:`Banks.index_numpy` with the observed rows ``o`` of the model,
+
+    .. math:: y_o = H_{o:} z + b_o + e_o, \qquad e_o \sim N(0, R_{oo}),
+
+    the marginal of Eq. 3-4 (a vertical-only unit reads Top6 through its row of H). The
+    log weight adds the likelihood of ``y_o``; the NIS is of ``y_o``; the CUSUM scores the
+    sum of the observed indices against its prediction."""
+    observed = ~np.isnan(y)
+    for mask in np.unique(observed, axis=0):
+        pick = (observed == mask).all(axis=1)
+        o = np.flatnonzero(mask)
+        part = ObservationModel(obs.H[o], obs.b[o], obs.R[np.ix_(o, o)])
+        sub = np.ascontiguousarray(rows[pick])
+        banks.index_numpy(sub, t_s[pick], np.ascontiguousarray(y[pick][:, o]), params, part)
+
+
 def low_score(z, P, y, obs: ObservationModel, w) -> np.ndarray:
     r"""How far below its prediction an index reads, in predictive standard deviations.
 

@@ -36,8 +36,8 @@ class Event(NamedTuple):
     kind: int  # RESTART, TAMPING or INDEX
     t_s: float  # epoch s of the event (a tamping's assumed time)
     identity: tuple[Any, ...]
-    # z of a restart (an array, NaN at an indicator the record did not measure) or y of an
-    # index (a pair) in log mm, None for a tamping
+    # z of a restart (an array) or y of an index (a pair) in log mm, NaN at an indicator the
+    # record or index did not measure; None for a tamping
     value: np.ndarray | tuple[float, float] | None
     message: EventMessage
 
@@ -86,7 +86,14 @@ def is_full_restart(event: Event) -> bool:
 def index_event(msg: Any) -> Event:
     """The core's event of an OnboardIndex, or of a stored one decoded without its checks
     (:func:`services.filtering.payloads.stored_events`): anything with its fields."""
-    y = (math.log(msg.top6_mm), math.log(msg.align10_mm))  # a tuple: an array each costs more
+    top, align = msg.top6_mm, msg.align10_mm
+    if top is None or align is None:  # a unit measuring some indices only: NaN at the others
+        y = (
+            math.nan if top is None else math.log(top),
+            math.nan if align is None else math.log(align),
+        )
+    else:
+        y = (math.log(top), math.log(align))  # a tuple: an array each costs more
     return Event(INDEX, msg.t, ("index", msg.train, msg.unit, msg.t), y, msg)
 
 

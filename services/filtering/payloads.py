@@ -101,17 +101,20 @@ def stored_events(rows: Iterable[tuple[str, str, bytes]]) -> Iterator[Event]:
     re-run decodes every stored event, and those checks cost more than the fold. An index
     (nearly every row) is decoded into :data:`StoredIndex`, the same fields without the
     message's checks (nearly half of a re-run's decoding), and only what the fold
-    needs is checked again: the schema version and two positive finite indices. TRC records
+    needs is checked again: the schema version and positive finite indices (one may be
+    left out: a unit measuring some indices only). TRC records
     and tampings run their checks. A row failing a check is skipped with a warning.
     """
     for kind, key, payload in rows:
         try:
             if kind == "index":
                 msg = _STORED_INDEX.decode(payload)
+                top, align = msg.top6_mm, msg.align10_mm
                 if msg.v != SCHEMA_VERSION or not (
-                    0.0 < msg.top6_mm < math.inf and 0.0 < msg.align10_mm < math.inf
+                    (0.0 < top < math.inf if top is not None else align is not None)
+                    and (align is None or 0.0 < align < math.inf)
                 ):
-                    raise SchemaError(f"v {msg.v}, indices {msg.top6_mm}, {msg.align10_mm}")
+                    raise SchemaError(f"v {msg.v}, indices {top}, {align}")
                 yield index_event(msg)
                 continue
             msg = _STORED[kind].decode(payload)

@@ -377,7 +377,7 @@ class ViewerCore:
         self._event_time(state.t)
 
     def _keep_onboard(self, index: OnboardIndex) -> None:
-        values = np.array([[index.top6_mm], [index.align10_mm]])
+        values = np.array([[index.top6_mm], [index.align10_mm]], dtype=float)  # None: NaN
         self._history_of((index.line, index.segment)).onboard.put(index.t, values)
         self._event_time(index.t)
 

@@ -1,5 +1,6 @@
-"""TRC records of some indicators only, against a per-sample derivation straight from the
-equations (docs/science.md, Eq. 7-12 and the exact observation of the measured rows)."""
+"""TRC records and on-board indices of some indicators only, against a per-sample
+derivation straight from the equations (docs/science.md, Eq. 7-12, the exact observation of
+a record's measured rows, the update with an index's observed rows of H, b, R)."""
 
 from __future__ import annotations
 
@@ -25,9 +26,11 @@ def trc(day: float, top6: float | None, align10: float | None, run: str) -> TrcR
                      align10_mm=align10, run_id=run, indicators=names)  # fmt: skip
 
 
-def index(day: float, top6: float, align10: float) -> OnboardIndex:
+def index(day: float, top6: float | None, align10: float | None) -> OnboardIndex:
+    names = [n for n, v in (("top6", top6), ("align10", align10)) if v is not None]
     return OnboardIndex(line="L1", segment="s1", train="T1", unit="u1", t=T0 + day * DAY_S,
-                        top6_mm=top6, align10_mm=align10, speed_mps=30.0, coverage=1.0)  # fmt: skip
+                        top6_mm=top6, align10_mm=align10, speed_mps=30.0, coverage=1.0,
+                        indicators=names)  # fmt: skip
 
 
 # a full record, indices, Top6 alone at day 20, an index, Align10 alone at day 40, an index
@@ -66,16 +69,18 @@ def reference(events):
                 gain = Pj[:, o] @ np.linalg.inv(Pj[np.ix_(o, o)])
                 zj = zj + gain @ (zo - zj[o])
                 Pj = Pj - gain @ Pj[o, :]
-            else:
-                y = np.log([msg.top6_mm, msg.align10_mm])
-                S = obs.H @ Pj @ obs.H.T + obs.R
-                K = Pj @ obs.H.T @ np.linalg.inv(S)
-                nu = y - obs.H @ zj - obs.b
+            else:  # the observed rows of H, b, R
+                o = [k for k, v in enumerate(msg.values_mm) if v is not None]
+                y = np.log([msg.values_mm[k] for k in o])
+                H, b, R = obs.H[o], obs.b[o], obs.R[np.ix_(o, o)]
+                S = H @ Pj @ H.T + R
+                K = Pj @ H.T @ np.linalg.inv(S)
+                nu = y - H @ zj - b
                 zj = zj + K @ nu
-                A = np.eye(2) - K @ obs.H
-                Pj = A @ Pj @ A.T + K @ obs.R @ K.T
+                A = np.eye(2) - K @ H
+                Pj = A @ Pj @ A.T + K @ R @ K.T
                 log_w[j] += -0.5 * (nu @ np.linalg.solve(S, nu) + np.log(np.linalg.det(S)))
-                log_w[j] -= np.log(2 * np.pi)
+                log_w[j] -= 0.5 * len(o) * np.log(2 * np.pi)
             z[j], P[j] = zj, Pj
     return z, P, log_w
 
@@ -168,4 +173,48 @@ def test_the_store_keeps_the_log_a_partial_record_needs(tmp_path):
     node.handle_batch([keyed(trc(50.0, 2.5, 2.0, "r3"))])
     assert node.store.count_events() == 1
     for other in (node, rebuilt):
+        other.store.close()
+
+
+# a vertical-only unit's indices among full ones, and a partial record between them
+MIXED = [
+    trc(0.0, 2.0, 1.8, "r0"),
+    index(3.0, 2.1, None),
+    index(5.0, 1.9, 1.5),
+    index(9.0, 2.3, None),
+    trc(12.0, None, 1.9, "r1"),
+    index(15.0, 2.4, None),
+    index(18.0, None, 1.7),
+]
+
+
+def test_an_index_of_some_indicators_updates_with_its_rows_of_the_model():
+    live = tracker()
+    for k, msg in enumerate(MIXED):
+        assert live.step(msg).accepted
+        state = live.histories[("L1", "s1")].state
+        z, P, log_w = reference(MIXED[: k + 1])
+        np.testing.assert_allclose(state.z, z, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(state.P, P, rtol=1e-7, atol=1e-15)
+        np.testing.assert_allclose(state.log_w, log_w, rtol=1e-9)
+    assert state.n_updates == 2  # since the Align10 record
+
+
+def test_partial_indices_batched_shuffled_and_stored_give_the_in_order_bits(tmp_path):
+    one_by_one = tracker()
+    for msg in MIXED:
+        one_by_one.step(msg)
+    want = encode(one_by_one.state_of("L1", "s1"))
+    shuffled = list(MIXED)
+    np.random.default_rng(1).shuffle(shuffled)
+    live = tracker()
+    for msg in shuffled:
+        live.step(msg)
+    assert encode(live.state_of("L1", "s1")) == want
+    node = PersistentTracker(tracker(), Store(tmp_path / "f.sqlite"))
+    node.handle_batch([keyed(m) for m in MODELS + MIXED])
+    rebuilt = PersistentTracker(tracker(), Store(tmp_path / "f.sqlite"))
+    rebuilt.rebuild()
+    for other in (node, rebuilt):
+        assert encode(other.tracker.state_of("L1", "s1")) == want
         other.store.close()
