@@ -407,6 +407,12 @@ class Calibrator:
         if idx.quality < self.config.min_quality or idx.coverage < self.config.min_coverage:
             self.stats["index_low_quality"] += 1
             return False
+        if len(idx.indicators) < len(ONBOARD_INDICES):
+            # A pair is of every index (the store's pairs, the fleet's regression, the swap
+            # rule's likelihood): a unit measuring some indices only is read through its
+            # rows of the fleet's model (or of its own, from its pairs of both indices).
+            self.stats["index_partial"] += 1
+            return False
         rec = self._match(idx)
         if rec is not None:
             self._add_pair(idx, iid, rec)

@@ -36,7 +36,8 @@ change it:
     A tamping also starts a state on a segment without any TRC record yet.
   * ``OnboardIndex``: predict to ``t`` and update with ``y = ln [top6_mm, align10_mm]``
     (Eq. 9-12, Joseph form), and add each sample's log-likelihood of ``y`` to its log
-    weight (below).
+    weight (below). An index of some indices only updates with its rows of H, b, R
+    (``banks.index_partial``).
 
 - **Mixture weights** (a departure from Eq. 13's equal weights ``1 / Ns``): the posterior
   samples ``j`` are the segment's line (or network) pooled degradation posterior, so a
