@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from types import SimpleNamespace
 from typing import NamedTuple
 
 import numpy as np
@@ -204,10 +205,12 @@ class Banks:
         (``P_oo`` pseudo-inverted: a row measured exactly at this same time has no variance
         and moves nothing), with ``z_o`` set to the record and ``P``'s rows and columns
         ``o`` to 0 exactly. A row without state is left so: a record of some indicators
-        gives the others no value to start from. The weights, the CUSUM and its interval
-        are kept (the indicators not measured still carry the on-board data since the last
-        full restart, and a tamping missed before the record may still be found on them);
-        the update count and NIS restart, as after any TRC record.
+        gives the others no value to start from. The weights are kept (the indicators not
+        measured still carry the on-board data since the last full restart), and the
+        record is one more step of the CUSUM, scored like an index with no measurement
+        error (:func:`low_score` of ``z_o``): a record far below its prediction is the
+        sign of a tamping missed before it, which the indices of the indicators it did not
+        measure then confirm. The update count and NIS restart, as after any TRC record.
         """
         started = self.started[rows]
         rows, t_s, z = rows[started], t_s[started], z[started]
@@ -218,6 +221,11 @@ class Banks:
             o = np.flatnonzero(mask)
             dt = (t_sel - self.t_s[sel]) / DAY_S
             zp, P = transition_unchecked(self.z[sel], self.P[sel], params(sel), dt)
+            log_w = self.log_w[sel]
+            w = np.exp(log_w - log_w.max(-1, keepdims=True))
+            w /= w.sum(-1, keepdims=True)
+            exact = SimpleNamespace(H=np.eye(self.n)[o], b=np.zeros(len(o)), R=np.zeros(1))
+            self._cusum_step(sel, t_sel, low_score(zp, P, z[pick][:, o], exact, w))
             P_oo = P[..., o[:, None], o]
             gain = P[..., :, o] @ np.linalg.pinv(P_oo, hermitian=True)
             zp = zp + (gain @ (z[pick][:, None, o, None] - zp[..., o, None]))[..., 0]

@@ -218,3 +218,30 @@ def test_partial_indices_batched_shuffled_and_stored_give_the_in_order_bits(tmp_
     for other in (node, rebuilt):
         assert encode(other.tracker.state_of("L1", "s1")) == want
         other.store.close()
+
+
+def test_a_tamping_missed_before_a_level_only_record_is_still_detected():
+    """The CUSUM goes on through a partial record, which is a step of it: after an
+    unreported tamping a Top6-only record reads far below its prediction, the Align10
+    indices after it read low too, and the tamping is found between the last index before
+    the record and the record."""
+    H, b = np.array([[0.9, 0.05], [0.05, 0.75]]), np.array([-0.25, -0.35])
+
+    def reading(day: float, z) -> OnboardIndex:
+        top6, align10 = np.exp(H @ np.log(z) + b)
+        return index(day, float(top6), float(align10))
+
+    before, after = (6.0, 5.0), (2.0, 1.8)  # the tamping at day 30 resets to about z+
+    events = [trc(0.0, *before, "r0")]
+    events += [reading(day, before) for day in range(2, 30, 2)]
+    events += [trc(31.0, 2.0, None, "r1")]
+    events += [reading(day, after) for day in range(33, 61, 2)]
+    live = tracker()
+    found = []
+    for msg in events:
+        step = live.step(msg)
+        found += step.detected
+    assert len(found) == 1 and found[0].detected
+    assert (found[0].t_start - T0, found[0].t_end - T0) == (28 * DAY_S, 31 * DAY_S)
+    align10_mm = float(np.exp(live.state_of("L1", "s1").mean.array()[1]))
+    assert abs(align10_mm - 1.8) < 0.3  # Align10 follows the tamping, not its old level
