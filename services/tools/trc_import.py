@@ -156,7 +156,10 @@ def trc_records(result: RunResult, line: str, run_id: str, t: float):
 
 
 def indicator_lines(profile: TrcProfile) -> list[str]:
-    """What the run's records measure, from which rails, and what they cannot, and why."""
+    """What the run's records measure, from which rails, and what they cannot, and why;
+    nothing when they measure every indicator on both rails."""
+    if set(LEVEL_COLUMNS + ALIGN_COLUMNS) <= set(profile.channels):
+        return []
     out = []
     for name, family, columns in (
         ("top6", "longitudinal level", LEVEL_COLUMNS),
@@ -184,7 +187,9 @@ def format_report(
     n_records: int,
     refused: list[tuple[str, str]],
 ) -> str:
-    """What the operator reads: the run, its alignment per window, the segments."""
+    """What the operator reads: the run (``line``: its id, and name), what its records
+    measure when not every indicator on both rails, its alignment per window, the
+    segments."""
     x0, x1 = profile.chainage_m[0], profile.chainage_m[-1]
     if profile.descending:
         x0, x1 = x1, x0
@@ -252,7 +257,8 @@ def main_import_trc_profile(
     """Parse, align, compute and (unless ``dry_run``) publish and archive one TRC run."""
     check_id("--line", line)
     check_id("--run-id", run_id)
-    table = SegmentTable.from_network(load_network(network_path))
+    network = load_network(network_path)
+    table = SegmentTable.from_network(network)
     if line not in table.lines:
         raise ValueError(f"--line {line}: not a line of the network ({', '.join(table.lines)})")
     try:
@@ -280,8 +286,10 @@ def main_import_trc_profile(
             max_offset_m=max_offset_m,
         )
         records, refused = trc_records(result, line, run_id, t)
+        name = network.lines[line].name
+        label = f"{line} ({name})" if name and name != line else line
         print(
-            format_report(path, profile, result, line, run_id, reference, len(records), refused),
+            format_report(path, profile, result, label, run_id, reference, len(records), refused),
             file=out,
         )
         if dry_run or archive is None:

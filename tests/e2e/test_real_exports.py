@@ -91,6 +91,7 @@ def test_a_level_only_car_on_an_imported_network(up, namespace, collector, tmp_p
         assert "align10: not measured, the file has no alignment column" in reports[0]
         assert "no earlier run of this stretch" in reports[0]
         assert "alignment to run r1" in reports[1] and f"{len(COVERED)} with a record" in reports[1]
+        assert reports[0].startswith(f"run r1 on line {LINE} ({NAME}): ")
         used = [row.split() for row in reports[1].splitlines() if row.endswith("  used")]
         assert used and all(abs(float(row[1]) - 4.0) < 0.1 for row in used), reports[1]
 
