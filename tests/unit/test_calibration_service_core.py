@@ -706,12 +706,3 @@ def test_a_partial_trc_record_makes_no_pair_and_no_increment():
     assert core.stats["trc_partial"] == 1 and core.stats["trc"] == 0
     core.ingest(make_index(t))
     assert core.stats["pairs"] == 0
-
-
-def test_an_index_of_some_indices_makes_no_pair():
-    core = Calibrator(CalibratorConfig(tolerance_days=1.0))
-    t = 1.77e9
-    core.ingest(TrcRecord(line="L1", segment="s1", t=t, top6_mm=2.0, align10_mm=1.5, run_id="r1"))
-    assert core.ingest(make_index(t, top6_mm=1.8, align10_mm=None, indicators=["top6"])) is False
-    assert core.stats["index_partial"] == 1 and core.stats["pairs"] == 0
-    assert core.ingest(make_index(t + 60.0)) is True and core.stats["pairs"] == 1
