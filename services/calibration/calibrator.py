@@ -346,10 +346,7 @@ class Calibrator:
 
     def _ingest_trc(self, rec: TrcRecord) -> bool:
         seg = (rec.line, rec.segment)
-        if len(rec.indicators) < _N:
-            # A pair regresses an index on the whole state (Eq. 5-6: every H row on every
-            # indicator), and an increment of the NIW posteriors is of the whole state: a
-            # record of some indicators gives neither. It counts for event time only.
+        if len(rec.indicators) < _N:  # a pair (Eq. 5-6) and an increment need the whole z
             self.stats["trc_partial"] += 1
             return False
         known = self._trc.get(seg, {})
@@ -397,9 +394,7 @@ class Calibrator:
 
     def _add_pair(self, idx: OnboardIndex, iid: str, rec: TrcRecord) -> None:
         pair = Pair(idx.line, idx.segment, rec.run_id, iid, idx.t, ln_mm(rec), ln_mm(idx))
-        if len(idx.indicators) < len(ONBOARD_INDICES):
-            # an index of some indices: its unit's own model fits its rows of H, b, R from
-            # it; the fleet's fit, its swap rule and outlier rule take pairs of every index
+        if len(idx.indicators) < len(ONBOARD_INDICES):  # for its unit's model only
             self._partial_pairs.append(pair)
             self._paired.add(iid)
             self._changes.partial_pairs.append(pair)
