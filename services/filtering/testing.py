@@ -1,5 +1,6 @@
 """Test doubles that ship with the filtering service: plausible models to start it with,
-and probes of running instances (the newest events on the bus, every instance's states)."""
+on-board indices to feed it, and probes of running instances (the newest events on the bus,
+every instance's states)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from schemas import (
     MaintenanceEvent,
     NDArray,
     OnboardIndex,
+    SegmentState,
     TrcRecord,
     decode,
     keys,
@@ -64,6 +66,28 @@ def example_models(
             n_levels=5,
         ),
     ]
+
+
+def onboard_index(
+    line: str, segment: str, t: float, top6_mm: float, align10_mm: float, train: str = "T1"
+) -> OnboardIndex:
+    """An index of ``train``'s unit ``u1`` over the whole segment (coverage 1) at 30 m/s."""
+    return OnboardIndex(
+        line=line,
+        segment=segment,
+        train=train,
+        unit="u1",
+        t=t,
+        top6_mm=top6_mm,
+        align10_mm=align10_mm,
+        speed_mps=30.0,
+        coverage=1.0,
+    )
+
+
+def sample_state(sample: zenoh.Sample) -> SegmentState:
+    """The SegmentState a sample of ``{ns}/state/**`` carries."""
+    return decode(sample.payload.to_bytes(), SegmentState)
 
 
 class LastEvents:

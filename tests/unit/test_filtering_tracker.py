@@ -31,6 +31,7 @@ from services.filtering.mixture import (
 )
 from services.filtering.store import Store
 from services.filtering.summary import state_weights
+from services.filtering.testing import onboard_index
 from services.filtering.tracker import Tracker
 from services.limits import load_limits
 
@@ -97,17 +98,7 @@ def trc(t_days: float, top6: float = 3.0, align10: float = 2.5, line="L1", segme
 
 
 def index(t_days: float, top6: float, align10: float, line="L1", segment="s1", train="T1"):
-    return OnboardIndex(
-        line=line,
-        segment=segment,
-        train=train,
-        unit="u1",
-        t=T0 + t_days * DAY_S,
-        top6_mm=top6,
-        align10_mm=align10,
-        speed_mps=30.0,
-        coverage=1.0,
-    )
+    return onboard_index(line, segment, T0 + t_days * DAY_S, top6, align10, train)
 
 
 def tamping(t_start_days: float, t_end_days: float | None = None, line="L1", segment="s1"):
