@@ -33,13 +33,6 @@ def example_models(
 ) -> list[Calibration | DegradationPosterior]:
     """A Calibration (the study's H, b, R) and a ``net`` DegradationPosterior of ``samples``
     draws around the typical scenario (services/defaults/study.json5), both version 1."""
-    rng = np.random.default_rng(seed)
-    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((samples, 1)))
-    sigma = np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None]
-    mu = rng.normal([7e-4, 4e-4], 2e-4, (samples, 2))
-    z_plus = np.log([2.0, 1.8]) + (
-        rng.normal(0.0, z_plus_sd, (samples, 2)) if z_plus_sd else np.zeros((samples, 2))
-    )
     names = list(INDICATORS)
     return [
         Calibration(
@@ -53,19 +46,43 @@ def example_models(
             n_pairs=40,
             r2=NDArray.of([0.8, 0.7]),
         ),
-        DegradationPosterior(
-            group="net",
-            version=1,
-            t=t,
-            indicators=names,
-            mu=NDArray.of(mu),
-            sigma=NDArray.of(sigma),
-            z_plus=NDArray.of(z_plus),
-            sigma_z_plus=NDArray.of(np.broadcast_to(np.eye(2) * 0.01, (samples, 2, 2))),
-            n_increments=20,
-            n_levels=5,
-        ),
+        example_posterior(samples, seed, z_plus_sd=z_plus_sd, t=t),
     ]
+
+
+def example_posterior(
+    samples: int,
+    seed: int,
+    *,
+    group: str = "net",
+    version: int = 1,
+    z_plus_sd: float = 0.0,
+    t: float = T0,
+    n_increments: int = 20,
+    n_levels: int = 5,
+) -> DegradationPosterior:
+    """A DegradationPosterior of ``samples`` draws around the typical scenario: drifts of
+    0.07 %/day and 0.04 %/day, post-tamping levels of 2.0 and 1.8 mm (``z_plus_sd``: the
+    spread of those levels between draws)."""
+    rng = np.random.default_rng(seed)
+    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((samples, 1)))
+    sigma = np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None]
+    mu = rng.normal([7e-4, 4e-4], 2e-4, (samples, 2))
+    z_plus = np.log([2.0, 1.8]) + (
+        rng.normal(0.0, z_plus_sd, (samples, 2)) if z_plus_sd else np.zeros((samples, 2))
+    )
+    return DegradationPosterior(
+        group=group,
+        version=version,
+        t=t,
+        indicators=list(INDICATORS),
+        mu=NDArray.of(mu),
+        sigma=NDArray.of(sigma),
+        z_plus=NDArray.of(z_plus),
+        sigma_z_plus=NDArray.of(np.broadcast_to(np.eye(2) * 0.01, (samples, 2, 2))),
+        n_increments=n_increments,
+        n_levels=n_levels,
+    )
 
 
 def onboard_index(

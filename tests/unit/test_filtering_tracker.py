@@ -31,7 +31,7 @@ from services.filtering.mixture import (
 )
 from services.filtering.store import Store
 from services.filtering.summary import state_weights
-from services.filtering.testing import onboard_index
+from services.filtering.testing import example_posterior, onboard_index
 from services.filtering.tracker import Tracker
 from services.limits import load_limits
 
@@ -60,23 +60,8 @@ def calibration(version: int = 1, scale: float = 1.0) -> Calibration:
 def posterior(
     group: str = "net", version: int = 1, seed: int = 0, ns: int = NS
 ) -> DegradationPosterior:
-    rng = np.random.default_rng(seed)
-    mu = rng.normal([7e-4, 4e-4], 2e-4, (ns, 2))
-    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((ns, 1)))
-    sigma = np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None, :]
-    z_plus = np.log([2.0, 1.8]) + rng.normal(0, 0.05, (ns, 2))
-    sigma_z_plus = np.broadcast_to(np.eye(2) * 0.01, (ns, 2, 2))
-    return DegradationPosterior(
-        group=group,
-        version=version,
-        t=T0,
-        indicators=["top6", "align10"],
-        mu=NDArray.of(mu),
-        sigma=NDArray.of(sigma),
-        z_plus=NDArray.of(z_plus),
-        sigma_z_plus=NDArray.of(sigma_z_plus),
-        n_increments=30,
-        n_levels=10,
+    return example_posterior(
+        ns, seed, group=group, version=version, z_plus_sd=0.05, n_increments=30, n_levels=10
     )
 
 
