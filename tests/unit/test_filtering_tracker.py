@@ -429,16 +429,7 @@ def test_events_on_segments_the_network_lacks_are_refused_and_hold_nothing(tmp_p
 
 def keyed(msg) -> tuple[str, bytes]:
     """The key a message is published on (namespace "tf") and its payload."""
-    match msg:
-        case Calibration():
-            own = msg.train and keys.unit_calibration("tf", msg.train, msg.unit)
-            key = own or keys.calibration("tf")
-        case DegradationPosterior():
-            key = keys.degradation("tf", msg.group)
-        case _:
-            kind = {OnboardIndex: "index", TrcRecord: "trc", MaintenanceEvent: "maintenance"}
-            key = keys.segment_keys("tf", kind[type(msg)], f"{msg.line}/{msg.segment}")
-    return key, encode(msg)
+    return keys.key_of("tf", msg), encode(msg)
 
 
 # --- mixture weights: the likelihood of the segment's own on-board data -------------------
