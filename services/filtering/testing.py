@@ -13,19 +13,17 @@ from schemas import (
     INDICATORS,
     Calibration,
     DegradationPosterior,
-    MaintenanceEvent,
     NDArray,
     OnboardIndex,
     SegmentState,
-    TrcRecord,
     decode,
     keys,
 )
 from schemas.keys import SegmentId
 from services.filtering.events import event_of
+from services.filtering.payloads import EVENT_TYPES
 
 T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
-EVENT_TYPES = {"index": OnboardIndex, "trc": TrcRecord, "maintenance": MaintenanceEvent}
 
 
 def example_models(
