@@ -18,6 +18,7 @@ from schemas.wire import (
     T_MAX,
     T_MIN,
     NDArray,
+    SchemaError,
     check,
     check_array,
     check_finite,
@@ -54,11 +55,15 @@ class Message(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
     """
 
     MAX_BYTES: ClassVar[int] = 4 * KIB  # payload size limit, checked before decoding
+    IDS: ClassVar[tuple[str, ...]] = ()  # the fields that are key chunks, checked first
 
     v: int = SCHEMA_VERSION
 
     def __post_init__(self) -> None:
-        check(self.v == SCHEMA_VERSION, f"v: unknown schema version {self.v}")
+        if self.v != SCHEMA_VERSION:  # the message formatted only when it fails
+            raise SchemaError(f"v: unknown schema version {self.v}")
+        for name in self.IDS:
+            check_id(name, getattr(self, name))
 
 
 def _check_samples(msg: RawChunk | PositionedChunk) -> None:
@@ -94,6 +99,7 @@ class RawChunk(Message, frozen=True, kw_only=True):
 class GpsFix(Message, frozen=True, kw_only=True):
     """One GPS fix of a train, 1 Hz."""
 
+    IDS: ClassVar[tuple[str, ...]] = ("train",)
     train: str
     t: float  # epoch s
     lat_deg: float  # WGS84
@@ -104,7 +110,6 @@ class GpsFix(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_id("train", self.train)
         check_time("t", self.t)
         check_finite("lat_deg", self.lat_deg)
         check_finite("lon_deg", self.lon_deg)
@@ -230,6 +235,7 @@ class TrcRecord(Message, frozen=True, kw_only=True):
     or of the ``indicators`` listed only (a car that records longitudinal level and not
     alignment). Exactly the listed indicators have a value."""
 
+    IDS: ClassVar[tuple[str, ...]] = ("line", "segment", "run_id")
     line: str
     segment: str
     t: float  # epoch s
@@ -240,8 +246,6 @@ class TrcRecord(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("line", "segment", "run_id"):
-            check_id(name, getattr(self, name))
         check_time("t", self.t)
         _check_measured(self)
 
@@ -273,6 +277,7 @@ def _check_indicators(indicators: list[str]) -> None:
 class MaintenanceEvent(Message, frozen=True, kw_only=True):
     """Tamping of a segment at a known time (t_start == t_end) or within an interval."""
 
+    IDS: ClassVar[tuple[str, ...]] = ("line", "segment", "event_id")
     line: str
     segment: str
     event_id: str
@@ -284,8 +289,6 @@ class MaintenanceEvent(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("line", "segment", "event_id"):
-            check_id(name, getattr(self, name))
         check_time("t_start", self.t_start)
         check_time("t_end", self.t_end)
         check_int("revision", self.revision)
@@ -341,6 +344,7 @@ class DegradationPosterior(Message, frozen=True, kw_only=True):
 
     # Ns = 1000 samples of n = 2 indicators are 96 kB: room for Ns = 5000, or n = 5 at 1000
     MAX_BYTES: ClassVar[int] = 512 * KIB
+    IDS: ClassVar[tuple[str, ...]] = ("group",)
     group: str  # e.g. "class-fast", "line-L1", "L1.s0042"
     version: int
     t: float  # event time of the newest TRC record used
@@ -354,7 +358,6 @@ class DegradationPosterior(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_id("group", self.group)
         check_int("version", self.version, 1, INT_MAX)
         _check_model_time("t", self.t)
         check_int("n_increments", self.n_increments)
@@ -443,6 +446,7 @@ class Alert(Message, frozen=True, kw_only=True):
     """An alert raised or cleared for one segment."""
 
     MAX_BYTES: ClassVar[int] = 16 * KIB
+    IDS: ClassVar[tuple[str, ...]] = ("line", "segment")
     line: str
     segment: str
     t: float  # event time
@@ -458,8 +462,6 @@ class Alert(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_id("line", self.line)
-        check_id("segment", self.segment)
         check_time("t", self.t)
         check_range("probability", self.probability, 0.0, 1.0)
         check_range("horizon_days", self.horizon_days, 0.0, HORIZON_MAX_DAYS)
@@ -469,6 +471,7 @@ class DeadLetter(Message, frozen=True, kw_only=True):
     """A rejected payload: where it came from and why it was refused."""
 
     MAX_BYTES: ClassVar[int] = 64 * KIB
+    IDS: ClassVar[tuple[str, ...]] = ("service",)
     service: str
     key: str
     reason: str
@@ -477,7 +480,6 @@ class DeadLetter(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_id("service", self.service)
         check(bool(self.reason), "reason: must not be empty")
         check_finite("received_at", self.received_at)
 
@@ -519,13 +521,9 @@ class StackHealth(Message, frozen=True, kw_only=True):
 class ViewerSelect(Message, frozen=True, kw_only=True):
     """Pin one segment into the viewer's "selected segment" plots."""
 
+    IDS: ClassVar[tuple[str, ...]] = ("line", "segment")
     line: str
     segment: str
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_id("line", self.line)
-        check_id("segment", self.segment)
 
 
 class RaisedAlerts(Message, frozen=True, kw_only=True):

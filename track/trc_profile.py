@@ -70,7 +70,7 @@ from track.versine import (
     chord_versine,
     half_chord_samples,
     segment_statistic,
-    statistic_inset_m,
+    statistic_centres,
 )
 
 SPACING_M = 0.25  # the export's sampling step and the on-board chain's grid
@@ -520,7 +520,7 @@ def segment_values(
     entirely.
 
     A segment is covered when every chord centre of the statistic (``[start + L/2 + g,
-    end - L/2 - g)`` on the grid, :func:`track.versine.statistic_inset_m`) and both ends
+    end - L/2 - g)`` on the grid, :func:`track.versine.statistic_centres`) and both ends
     of its chord are inside the run, for each chord it has a profile for.
 
     Returns
@@ -553,9 +553,7 @@ def segment_values(
             if not names:
                 stats.append({})
                 continue
-            inset = statistic_inset_m(chord)
-            j_lo = math.ceil((start + inset) / dx - 1e-9)
-            j_hi = math.ceil((end - inset) / dx - 1e-9)  # exclusive, as the on-board chain
+            j_lo, j_hi = statistic_centres(start, end, dx, chord)  # as the on-board chain
             by_rail = {}
             for name in names:
                 h, v = versines[name]

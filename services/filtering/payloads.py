@@ -27,7 +27,8 @@ from services.filtering.events import Event, EventMessage, ModelMessage, event_o
 log = logging.getLogger(__name__)
 
 
-_EVENT_TYPES = {"index": OnboardIndex, "trc": TrcRecord, "maintenance": MaintenanceEvent}
+# The message type of each event kind (the kind chunk of its key).
+EVENT_TYPES = {"index": OnboardIndex, "trc": TrcRecord, "maintenance": MaintenanceEvent}
 _MODEL_TYPES = {"calibration": Calibration, "degradation": DegradationPosterior}
 
 
@@ -38,8 +39,8 @@ def decode_keyed(key: str, payload: bytes) -> EventMessage | ModelMessage | None
     """
     kind = keys.kind(key)
     message_type: type[EventMessage | ModelMessage]
-    if kind in _EVENT_TYPES:
-        message_type = _EVENT_TYPES[kind]
+    if kind in EVENT_TYPES:
+        message_type = EVENT_TYPES[kind]
     elif kind != "model":
         raise SchemaError(f"key {key}: not an index, trc, maintenance or model key")
     elif keys.model_kind(key) in _MODEL_TYPES:
@@ -89,7 +90,7 @@ def _unchecked(message_type: type) -> type:
 
 
 StoredIndex = _unchecked(OnboardIndex)
-_STORED = {kind: msgspec.msgpack.Decoder(t) for kind, t in _EVENT_TYPES.items()}
+_STORED = {kind: msgspec.msgpack.Decoder(t) for kind, t in EVENT_TYPES.items()}
 _STORED_INDEX = msgspec.msgpack.Decoder(StoredIndex)
 
 
