@@ -58,9 +58,7 @@ from schemas import (
     DAY_S,
     Calibration,
     OnboardIndex,
-    SegmentState,
     TrcRecord,
-    decode,
     encode,
     keys,
 )
@@ -69,7 +67,7 @@ from services.filtering.fold import fold_many
 from services.filtering.models import Models, parse_model
 from services.filtering.payloads import stored_events
 from services.filtering.store import Store
-from services.filtering.testing import example_models
+from services.filtering.testing import example_models, onboard_index, sample_state
 from services.runtime.config import users_env, zenoh_config
 
 NS_SAMPLES = 200
@@ -117,17 +115,7 @@ def build_store(
             key = keys.index(ns, line, seg)
             for i, t in enumerate(times.tolist()):
                 train = _train(k, segments, i)
-                msg = OnboardIndex(
-                    line=line,
-                    segment=seg,
-                    train=train,
-                    unit="u1",
-                    t=t,
-                    top6_mm=y[i][0],
-                    align10_mm=y[i][1],
-                    speed_mps=30.0,
-                    coverage=1.0,
-                )
+                msg = onboard_index(line, seg, t, *y[i], train=train)
                 identity = json.dumps(["index", train, "u1", t])
                 rows.append((line, seg, "index", key, identity, t, encode(msg)))
         db_.execute("BEGIN")
@@ -216,7 +204,7 @@ class Watcher:
             return self.cond.wait_for(lambda: len(self.tokens) >= instances, timeout)
 
     def _on_state(self, sample: zenoh.Sample) -> None:
-        state = decode(sample.payload.to_bytes(), SegmentState)
+        state = sample_state(sample)
         with self.cond:
             old = self.versions.get(state.segment)
             if old is not None:
@@ -491,17 +479,7 @@ def _progress(row: tuple) -> None:
 def _tail(segments: int, days: int, shards: int) -> list[OnboardIndex]:
     t = T0 + (days + 0.5) * DAY_S
     return [
-        OnboardIndex(
-            line=line_of(k, segments, shards),
-            segment=f"s{k:06d}",
-            train="T9",
-            unit="u1",
-            t=t,
-            top6_mm=2.5,
-            align10_mm=2.0,
-            speed_mps=30.0,
-            coverage=1.0,
-        )
+        onboard_index(line_of(k, segments, shards), f"s{k:06d}", t, 2.5, 2.0, train="T9")
         for k in range(0, segments, 10)
     ]
 

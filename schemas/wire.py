@@ -176,7 +176,7 @@ def unchecked_copy(message: T, **changes: Any) -> T:
     Only for a producer of many messages of one shape that checks them otherwise: a copy of
     a message that was checked, whose array fields keep their dtype and shape and whose new
     values the producer checked as the message would (the filter's summaries:
-    :func:`services.filtering.tracker.summarize_states`). Anything else builds its
+    :func:`services.filtering.summary.summarize_states`). Anything else builds its
     messages the checked way.
     """
     out = message.__copy__()  # type: ignore[attr-defined]

@@ -23,8 +23,13 @@ The rules, in order:
 4. **Too short.** A joined line shorter than ``min_length_m`` (100 m) is dropped.
 5. **Ids.** ``slug(ref or name)``, then ``-t{track_ref}`` if tagged, then ``-2``, ``-3``
    ... for further lines with the same id; ``way{n}`` when the way has neither ref nor
-   name. Ids are safe key chunks and, for the same input, the same. The human name is kept
-   as the line's ``name`` (the ``name`` of most of its length).
+   name. Ids are safe key chunks and, for the same input, the same.
+   **Names** (the line's ``name``, what the viewer, the report and the CLI show) are the
+   operators' (:func:`line_name`): the name (else ref) of the ``route=railway`` relation
+   of most of the line's length, else its ways' ``name``, else a ``route=train``
+   relation's (a service, which may run over several lines), else the ways' ``ref``, else
+   the first and last station along it ("Sanremo – Albenga"); then ", track
+   {railway:track_ref}" when tagged.
 6. **Tunnels and bridges.** The chainage ranges of ways with ``tunnel`` (``bridge``) other
    than ``no``, merged where they touch: tunnels are GNSS outages; bridges are a property.
 7. **Stations.** Points with ``railway=station|halt|stop``, or ``public_transport=
@@ -544,11 +549,7 @@ def _line(
     speeds = [(parse_maxspeed(w.tags.get("maxspeed")), b - a) for (w, _), a, b in pieces]
     known = [(s, length) for s, length in speeds if s is not None]
     speed = _weighted_median(*zip(*known, strict=True)) if known else default_speed_mps
-    # the name of most of its length (a bridge's own name on one way does not win)
-    named: dict[str, float] = defaultdict(float)
-    for (w, _), a, b in pieces:
-        if w.tags.get("name"):
-            named[w.tags["name"]] += b - a
+    lengths = [((w, rev), b - a) for (w, rev), a, b in pieces]
     line = Line(
         line_id,
         ll,
@@ -556,7 +557,7 @@ def _line(
         stations=stations[0],
         station_names=stations[1],
         line_speed_mps=round(speed, 3),
-        name=max(named, key=lambda n: named[n]) if named else chain.key[0],
+        name=line_name(lengths, chain.key[1], stations[1], line_id),
         **line_args,
     )
     extra = {
@@ -566,6 +567,44 @@ def _line(
         "osm_ways": [w.id for w, _ in chain.pieces],
     }
     return line, extra, bool(known)
+
+
+def line_name(
+    pieces: list[tuple[tuple[OsmWay, bool], float]],
+    track_ref: str,
+    station_names: list[str],
+    line_id: str,
+) -> str:
+    """The name operators give a line of ``pieces`` (``((way, reversed), length)``, in
+    order along it), its stations' names in chainage order (rule 5): each candidate of the
+    most of the line's length, so a bridge's or a station's own name on one way does not
+    win."""
+
+    def most(name_of) -> str:
+        named: dict[str, float] = defaultdict(float)
+        for (w, _), length in pieces:
+            for name in name_of(w):
+                if name:
+                    named[name] += length
+        return max(named, key=lambda n: (named[n], n)) if named else ""
+
+    def route(kind: str):
+        return lambda w: [
+            r.get("name") or r.get("ref") or "" for r in w.relations if r.get("route") == kind
+        ]
+
+    name = (
+        most(route("railway"))
+        or most(lambda w: [w.tags.get("name", "")])
+        or most(route("train"))
+        or most(lambda w: [w.tags.get("ref", "")])
+    )
+    if not name:
+        named = [n for n in station_names if not re.fullmatch(r"node/-?\d+", n)]
+        name = f"{named[0]} – {named[-1]}" if len(set(named)) > 1 else line_id
+    if track_ref and name != line_id:
+        name += f", track {track_ref}"
+    return name
 
 
 def running_of_pair(a: Line, b: Line, side: str) -> tuple[str, str] | None:

@@ -4,14 +4,17 @@ Input is what the usual tools export (``osmium export``, ``ogr2ogr``, overpass-t
 GeoJSON, or Overpass JSON with ``out geom``): ways as LineStrings with their tags, and
 station points. Tags may be flat in ``properties``, nested under ``properties.tags``, or in
 ogr2ogr's ``other_tags`` string; the OSM id comes from ``@id``/``id`` (``"way/123"``,
-``"w123"`` or a number, with ``@type``). :mod:`track.osm` makes the network of them.
+``"w123"`` or a number, with ``@type``). The relations a way is a member of (route
+relations carry the names operators use) come from overpass-turbo's ``@relations``
+property, or from the relation elements of Overpass JSON. :mod:`track.osm` makes the
+network of them.
 """
 
 from __future__ import annotations
 
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -24,6 +27,7 @@ class OsmWay:
     lonlat: np.ndarray  # (k, 2) degrees
     tags: Mapping[str, str]
     end_nodes: tuple[str, str] | None = None
+    relations: tuple[Mapping[str, str], ...] = ()  # the tags of the relations it is in
 
 
 @dataclass(frozen=True)
@@ -72,6 +76,29 @@ def _osm_id(feature: Mapping, props: Mapping, kind: str, n: int) -> str:
     return f"feature{n}"
 
 
+def _relations(props: Mapping) -> tuple[dict[str, str], ...]:
+    """The tags of the relations overpass-turbo lists a feature in (``@relations``)."""
+    listed = props.get("@relations")
+    if not isinstance(listed, list):
+        return ()
+    return tuple(
+        {str(k): str(v) for k, v in r["reltags"].items() if v is not None}
+        for r in listed
+        if isinstance(r, Mapping) and isinstance(r.get("reltags"), Mapping)
+    )
+
+
+def _way_members(members) -> list[str]:
+    """The ways (``way/123``) among an Overpass relation's members."""
+    if not isinstance(members, list):
+        return []
+    return [
+        f"way/{m['ref']}"
+        for m in members
+        if isinstance(m, Mapping) and m.get("type") == "way" and "ref" in m
+    ]
+
+
 def _coords(where: str, raw) -> np.ndarray:
     try:
         ll = np.asarray(raw, dtype=np.float64)
@@ -115,13 +142,15 @@ def read_osm(obj) -> tuple[list[OsmWay], list[OsmPoint], list[tuple[str, str]]]:
         where = f"feature {n} ({osm_id})"
         tags = _tags(props)
         if gtype == "LineString":
-            ways.append(OsmWay(osm_id, _coords(where, geom.get("coordinates")), tags))
+            coords = _coords(where, geom.get("coordinates"))
+            ways.append(OsmWay(osm_id, coords, tags, relations=_relations(props)))
         elif gtype == "MultiLineString":
             parts = geom.get("coordinates")
             if not isinstance(parts, list):
                 raise ValueError(f"{where}: MultiLineString coordinates must be a list")
             for k, part in enumerate(parts):
-                ways.append(OsmWay(f"{osm_id}#{k}", _coords(where, part), tags))
+                coords = _coords(where, part)
+                ways.append(OsmWay(f"{osm_id}#{k}", coords, tags, relations=_relations(props)))
         elif gtype == "Point":
             ll = _coords(where, [geom.get("coordinates")])[0]
             points.append(OsmPoint(osm_id, (float(ll[0]), float(ll[1])), tags))
@@ -134,6 +163,7 @@ def read_osm(obj) -> tuple[list[OsmWay], list[OsmPoint], list[tuple[str, str]]]:
 
 def _read_overpass(elements: list) -> tuple[list[OsmWay], list[OsmPoint], list[tuple[str, str]]]:
     ways, points, other = [], [], []
+    member_of: dict[str, list[dict[str, str]]] = {}  # way id -> tags of its relations
     for n, e in enumerate(elements):
         if not isinstance(e, Mapping) or "type" not in e:
             raise ValueError(f'element {n}: must be an object with a "type"')
@@ -158,6 +188,10 @@ def _read_overpass(elements: list) -> tuple[list[OsmWay], list[OsmPoint], list[t
                 except (KeyError, TypeError, ValueError):
                     raise ValueError(f"{where}: a node needs numbers lat and lon") from None
                 points.append(OsmPoint(osm_id, (float(ll[0]), float(ll[1])), tags))
+        elif e["type"] == "relation" and (members := _way_members(e.get("members"))):
+            for way_id in members:
+                member_of.setdefault(way_id, []).append(tags)
         else:
             other.append((f"element {e['type']}", osm_id))
+    ways = [replace(w, relations=tuple(member_of.get(w.id, ()))) for w in ways]
     return ways, points, other

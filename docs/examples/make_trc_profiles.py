@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from services.defaults import demo_network
 from simulators.profile import LineProfile
-from track.network import demo_network
 
 HERE = Path(__file__).resolve().parent
 SEED = 7

@@ -41,11 +41,10 @@ from services.runtime.config import (
     RuntimeConfig,
     add_db_argument,
     add_zenoh_arguments,
-    config_from_args,
     default_db,
     read_json5,
 )
-from services.runtime.service import ServiceRuntime, configure_logging
+from services.runtime.service import ServiceRuntime, run_command
 
 log = logging.getLogger(__name__)
 
@@ -214,10 +213,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    configure_logging(args.log_level)
-    return main(
-        config_from_args(args),
-        alerting_config=args.config_alerting,
-        limits=args.limits,
-        db=args.db,
+    return run_command(
+        args, main, alerting_config=args.config_alerting, limits=args.limits, db=args.db
     )

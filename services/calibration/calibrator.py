@@ -140,6 +140,7 @@ class Calibrator:
         self._maint: dict[SegmentId, dict[str, MaintenanceEvent]] = {}
         self._pending: dict[SegmentId, dict[str, OnboardIndex]] = {}
         self._pairs: list[Pair] = []
+        self._partial_pairs: list[Pair] = []  # of indices of some indices (units' fits only)
         self._quarantined: list[Pair] = []
         self._paired: set[str] = set()
         self._models: dict[str, ModelEntry] = {}  # in force: published
@@ -181,6 +182,9 @@ class Calibrator:
             self._paired.add(pair.index_id)
         for pair in state.quarantined:
             self._quarantined.append(pair)
+            self._paired.add(pair.index_id)
+        for pair in state.partial_pairs:
+            self._partial_pairs.append(pair)
             self._paired.add(pair.index_id)
         for entry in state.models:
             self._models[entry.key] = entry
@@ -342,6 +346,9 @@ class Calibrator:
 
     def _ingest_trc(self, rec: TrcRecord) -> bool:
         seg = (rec.line, rec.segment)
+        if len(rec.indicators) < _N:  # a pair (Eq. 5-6) and an increment need the whole z
+            self.stats["trc_partial"] += 1
+            return False
         known = self._trc.get(seg, {})
         if rec.run_id in known:
             self.stats["trc_duplicates"] += 1
@@ -387,6 +394,12 @@ class Calibrator:
 
     def _add_pair(self, idx: OnboardIndex, iid: str, rec: TrcRecord) -> None:
         pair = Pair(idx.line, idx.segment, rec.run_id, iid, idx.t, ln_mm(rec), ln_mm(idx))
+        if len(idx.indicators) < len(ONBOARD_INDICES):  # for its unit's model only
+            self._partial_pairs.append(pair)
+            self._paired.add(iid)
+            self._changes.partial_pairs.append(pair)
+            self.stats["pairs_partial"] += 1
+            return
         self._pairs.append(pair)
         self._paired.add(iid)
         self._changes.pairs.append(pair)
@@ -603,12 +616,12 @@ class Calibrator:
         cfg = self.config
         fleet = self._current(CALIBRATION_KEY)
         pairs = self._pairs + self._quarantined
-        if not cfg.unit_models or fleet is None or not pairs:
+        if not cfg.unit_models or fleet is None or not (pairs or self._partial_pairs):
             return
-        due = units_due(pairs, self._unit_fit_at, cfg)
+        due = units_due(pairs + self._partial_pairs, self._unit_fit_at, cfg)
         if not due:
             return
-        design = pair_design(pairs)
+        design = pair_design(pairs or self._partial_pairs)
         base: Calibration = fleet.message  # type: ignore[assignment]
         for (train, unit), ps in sorted(due.items()):
             self._unit_fit_at[(train, unit)] = len(ps)

@@ -238,8 +238,19 @@ def fit_unit_observation(Z, Y, *, H0, b0, R0, design, shrink_pairs: float) -> Ob
     (\theta_{ij}) = \sqrt{R_{ii} [(\tilde{\mathbf Z}^T\tilde{\mathbf Z} + k\mathbf D)^{-1}]
     _{jj}}`; ``se_R`` as in :func:`fit_observation` with :math:`N + k` pairs. ``r2`` is on the
     unit's own pairs (can be negative for a unit that reads little of the track's changes).
+
+    ``Y`` may be NaN where a unit did not measure an index (a vertical-only sensor): each
+    row of H, b is then fitted on the pairs that have its index (the fleet's row when none
+    has it), and each element of R on the pairs that have both of its indices, with the
+    same prior (:func:`_fit_unit_rows`).
     """
     Z = as_finite("Z", Z, 2)
+    Y = np.asarray(Y, dtype=np.float64)
+    missing = np.isnan(Y)
+    if missing.any():
+        if Y.ndim != 2 or not np.isfinite(Y[~missing]).all():
+            raise ValueError("Y: must be (N, m) of finite numbers, or NaN where not measured")
+        return _fit_unit_rows(Z, Y, H0, b0, R0, design, shrink_pairs)
     Y = as_finite("Y", Y, 2)
     if Z.shape[0] != Y.shape[0] or Z.shape[0] < 1:
         raise ValueError(f"Z and Y: need the same number >= 1 of rows, got {len(Z)}, {len(Y)}")
@@ -265,3 +276,50 @@ def fit_unit_observation(Z, Y, *, H0, b0, R0, design, shrink_pairs: float) -> Ob
     r2 = 1.0 - (E**2).sum(axis=0) / np.where(sst > 0, sst, np.inf)
     cond = float(np.linalg.cond(A))
     return _observation_fit(Z, H, b, R, r2, cond, (se[:, :n], se[:, n], _se_R(R, dof)))
+
+
+def _fit_unit_rows(Z, Y, H0, b0, R0, design, shrink_pairs: float) -> ObservationFit:
+    r""":func:`fit_unit_observation` of pairs with indices missing (``Y`` NaN there): row
+    :math:`i` on the pairs :math:`P_i` that have index :math:`i`,
+
+    .. math::
+
+        \theta_i = (\tilde{\mathbf Z}_{P_i}^T\tilde{\mathbf Z}_{P_i} + k\mathbf D)^{-1}
+                   (\tilde{\mathbf Z}_{P_i}^T \mathbf y_{P_i,i} + k\mathbf D\,\theta_{0,i}),
+        \qquad
+        R_{ij} = \frac{\sum_{P_i \cap P_j} e_i e_j + k R_{0,ij}}{|P_i \cap P_j| + k}.
+    """
+    if Z.shape[0] != Y.shape[0] or Z.shape[0] < 1:
+        raise ValueError(f"Z and Y: need the same number >= 1 of rows, got {len(Z)}, {len(Y)}")
+    if not shrink_pairs > 0:
+        raise ValueError(f"shrink_pairs: must be > 0, got {shrink_pairs}")
+    k = shrink_pairs
+    N, n = Z.shape
+    m = Y.shape[1]
+    have = ~np.isnan(Y)
+    X = np.hstack([Z, np.ones((N, 1))])
+    theta0 = np.hstack([np.asarray(H0, float), np.asarray(b0, float)[:, None]])
+    D = np.asarray(design, dtype=np.float64)
+    theta, se_theta, conds = np.empty((m, n + 1)), np.empty((m, n + 1)), []
+    for i in range(m):
+        Xi, yi = X[have[:, i]], Y[have[:, i], i]
+        A = Xi.T @ Xi + k * D
+        try:
+            A_inv = np.linalg.inv(A)
+        except np.linalg.LinAlgError as exc:
+            raise CalibrationError(f"unit fit: singular design ({exc})") from None
+        theta[i] = A_inv @ (Xi.T @ yi + k * D @ theta0[i])
+        se_theta[i] = np.diag(A_inv)
+        conds.append(float(np.linalg.cond(A)))
+    H, b = theta[:, :n], theta[:, n]
+    E = np.where(have, Y - X @ theta.T, 0.0)
+    both = have.T.astype(float) @ have.astype(float)  # pairs with indices i and j
+    R = (E.T @ E + k * np.asarray(R0, float)) / (both + k)
+    R = 0.5 * (R + R.T)
+    se = np.sqrt(np.diag(R)[:, None] * se_theta)
+    dof = max(float(have.sum(axis=0).min()) + k - n - 1, 1.0)
+    counts = have.sum(axis=0)
+    means = np.where(have, Y, 0.0).sum(axis=0) / np.maximum(counts, 1)
+    sst = (np.where(have, Y - means, 0.0) ** 2).sum(axis=0)
+    r2 = 1.0 - (E**2).sum(axis=0) / np.where(sst > 0, sst, np.inf)
+    return _observation_fit(Z, H, b, R, r2, max(conds), (se[:, :n], se[:, n], _se_R(R, dof)))

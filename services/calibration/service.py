@@ -50,12 +50,12 @@ from services.runtime.config import (
     RuntimeConfig,
     add_db_argument,
     add_zenoh_arguments,
-    config_from_args,
     default_db,
+    flag_values,
     read_json5,
 )
 from services.runtime.latest import LatestValues
-from services.runtime.service import ServiceRuntime, configure_logging
+from services.runtime.service import ServiceRuntime, run_command
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +84,17 @@ OPTIONS = (
     "initial_models",
     "network",
     *sorted(set(CalibratorConfig.__dataclass_fields__) - {"drift_prior", "level_prior"}),
+)
+# The options a flag of the same name overrides (add_arguments).
+FLAGS = (
+    "db",
+    "initial_models",
+    "network",
+    "min_pairs",
+    "refit_every",
+    "tolerance_days",
+    "samples",
+    "seed",
 )
 
 
@@ -271,17 +282,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    configure_logging(args.log_level)
-    conf = config_from_args(args)
-    settings = settings_from(
-        conf.options(SERVICE, OPTIONS),
-        db=args.db,
-        initial_models=args.initial_models,
-        network=args.network,
-        min_pairs=args.min_pairs,
-        refit_every=args.refit_every,
-        tolerance_days=args.tolerance_days,
-        samples=args.samples,
-        seed=args.seed,
-    )
-    return main(conf, settings)
+    def with_flags(conf: RuntimeConfig) -> int:
+        return main(conf, settings_from(conf.options(SERVICE, OPTIONS), **flag_values(args, FLAGS)))
+
+    return run_command(args, with_flags)

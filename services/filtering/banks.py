@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from types import SimpleNamespace
 from typing import NamedTuple
 
 import numpy as np
@@ -87,6 +88,7 @@ class Banks:
         self.cusum = np.zeros(size)
         self.cusum_t0 = np.full(size, np.nan)
         self.cusum_t1 = np.full(size, np.nan)
+        self.trc_absent = np.zeros(size, dtype=np.int64)
         if have:  # one copy per field for all started rows (a backlog starts ~1,000)
             nan = float("nan")
             if len(have) < size:
@@ -94,6 +96,7 @@ class Banks:
             self.cusum[rows] = [state.cusum for state in have]
             self.cusum_t0[rows] = [state.cusum_t0 for state in have]
             self.cusum_t1[rows] = [state.cusum_t1 for state in have]
+            self.trc_absent[rows] = [state.trc_absent for state in have]
             self.t_s[rows] = [state.t_s for state in have]
             self.n_updates[rows] = [state.n_updates for state in have]
             self.last_trc_t[rows] = [
@@ -103,7 +106,10 @@ class Banks:
             self.started[rows] = True
         self._block = max(1, BLOCK_FILTERS // max(ns, 1))
 
-    SCALARS = ("t_s", "last_trc_t", "n_updates", "nis", "started", "cusum", "cusum_t0", "cusum_t1")
+    SCALARS = (
+        "t_s", "last_trc_t", "n_updates", "nis", "started", "cusum", "cusum_t0", "cusum_t1",
+        "trc_absent",
+    )  # fmt: skip
 
     def grow(self, size: int) -> None:
         """``size`` rows, the new ones zeros (unstarted); the arrays are reallocated in
@@ -127,6 +133,7 @@ class Banks:
         self.cusum[row] = state.cusum
         self.cusum_t0[row] = state.cusum_t0
         self.cusum_t1[row] = state.cusum_t1
+        self.trc_absent[row] = state.trc_absent
 
     def states(self, rows: Sequence[int], *, copy: bool = False) -> list[Filtered | None]:
         """Each of ``rows`` as a :class:`Filtered`, None if unstarted: views of the stacked
@@ -142,12 +149,13 @@ class Banks:
             self.cusum[rows].tolist(),
             self.cusum_t0[rows].tolist(),
             self.cusum_t1[rows].tolist(),
+            self.trc_absent[rows].tolist(),
             strict=True,
         )
         ns, n = self.ns, self.n
         at_p, at_w, _ = state_layout(ns, n)  # F's rows are of its width (__init__)
         make, F, isnan = Filtered._on_buffer, self.F, math.isnan
-        for row, (started, t_s, last_trc_t, n_updates, nis, cusum, t0, t1) in zip(
+        for row, (started, t_s, last_trc_t, n_updates, nis, cusum, t0, t1, absent) in zip(
             rows, fields, strict=True
         ):
             if not started:
@@ -156,9 +164,8 @@ class Banks:
             flat = F[row].copy() if copy else F[row]
             last_trc_t = None if isnan(last_trc_t) else last_trc_t
             nis = None if isnan(nis) else nis
-            out.append(
-                make(flat, ns, n, at_p, at_w, t_s, last_trc_t, n_updates, nis, cusum, t0, t1)
-            )
+            scalars = (t_s, last_trc_t, n_updates, nis, cusum, t0, t1, absent)
+            out.append(make(flat, ns, n, at_p, at_w, *scalars))
         return out
 
     def _blocks(self, rows: np.ndarray):
@@ -167,8 +174,14 @@ class Banks:
             part = slice(first, first + self._block)
             yield part, contiguous_rows(rows[part])
 
-    def restart(self, rows: np.ndarray, t_s: np.ndarray, z: np.ndarray) -> None:
-        """TRC record: every sample at ``z`` (k, n), ``P = 0``, equal weights, no NIS."""
+    def restart(self, rows: np.ndarray, t_s: np.ndarray, z: np.ndarray, params) -> None:
+        """TRC record: every sample at ``z`` (k, n), ``P = 0``, equal weights, no NIS.
+
+        A record of some indicators only (``z`` NaN at the others) is :meth:`restart_partial`."""
+        partial = np.isnan(z).any(axis=1)
+        if partial.any():
+            self.restart_partial(rows[partial], t_s[partial], z[partial], params)
+            rows, t_s, z = rows[~partial], t_s[~partial], z[~partial]
         self.z[rows] = z[:, None, :]
         self.P[rows] = 0.0
         self.log_w[rows] = 0.0
@@ -176,7 +189,56 @@ class Banks:
         self.n_updates[rows] = 0
         self.nis[rows] = np.nan
         self.started[rows] = True
+        self.trc_absent[rows] = 0
         self._cusum_reset(rows, t_s)
+
+    def restart_partial(self, rows: np.ndarray, t_s: np.ndarray, z: np.ndarray, params) -> None:
+        r"""TRC record of the indicators ``o`` where ``z`` (k, n) is finite, the others
+        not measured: predict to ``t_s`` (Eq. 7-8), then observe ``z_o`` exactly (R = 0),
+        per sample the conditional Gaussian
+
+        .. math::
+
+            \hat z \leftarrow \hat z + P_{:o} P_{oo}^{+} (z_{TRC,o} - \hat z_o), \qquad
+            P \leftarrow P - P_{:o} P_{oo}^{+} P_{o:}
+
+        (``P_oo`` pseudo-inverted: a row measured exactly at this same time has no variance
+        and moves nothing), with ``z_o`` set to the record and ``P``'s rows and columns
+        ``o`` to 0 exactly. A row without state is left so: a record of some indicators
+        gives the others no value to start from. The weights are kept (the indicators not
+        measured still carry the on-board data since the last full restart), and the
+        record is one more step of the CUSUM, scored like an index with no measurement
+        error (:func:`low_score` of ``z_o``): a record far below its prediction is the
+        sign of a tamping missed before it, which the indices of the indicators it did not
+        measure then confirm. The update count and NIS restart, as after any TRC record.
+        """
+        started = self.started[rows]
+        rows, t_s, z = rows[started], t_s[started], z[started]
+        observed = ~np.isnan(z)
+        for mask in np.unique(observed, axis=0):
+            pick = (observed == mask).all(axis=1)
+            sel, t_sel = rows[pick], t_s[pick]
+            o = np.flatnonzero(mask)
+            dt = (t_sel - self.t_s[sel]) / DAY_S
+            zp, P = transition_unchecked(self.z[sel], self.P[sel], params(sel), dt)
+            log_w = self.log_w[sel]
+            w = np.exp(log_w - log_w.max(-1, keepdims=True))
+            w /= w.sum(-1, keepdims=True)
+            exact = SimpleNamespace(H=np.eye(self.n)[o], b=np.zeros(len(o)), R=np.zeros(1))
+            self._cusum_step(sel, t_sel, low_score(zp, P, z[pick][:, o], exact, w))
+            P_oo = P[..., o[:, None], o]
+            gain = P[..., :, o] @ np.linalg.pinv(P_oo, hermitian=True)
+            zp = zp + (gain @ (z[pick][:, None, o, None] - zp[..., o, None]))[..., 0]
+            P = P - gain @ P[..., o, :]
+            P = 0.5 * (P + np.swapaxes(P, -1, -2))
+            zp[..., o] = z[pick][:, None, o]
+            P[..., o, :] = 0.0
+            P[..., :, o] = 0.0
+            self.z[sel], self.P[sel] = zp, P
+            self.t_s[sel] = self.last_trc_t[sel] = t_sel
+            self.n_updates[sel] = 0
+            self.nis[sel] = np.nan
+            self.trc_absent[sel] = int(sum(1 << i for i in np.flatnonzero(~mask)))
 
     def _cusum_step(self, rows: np.ndarray, t_s: np.ndarray, score: np.ndarray) -> None:
         r"""One index of the one-sided CUSUM of low readings (see :func:`detect`):
@@ -295,6 +357,24 @@ class Banks:
             self.log_w[sel] += loglik
             self.n_updates[sel] += 1
         self.t_s[rows] = t_s
+
+
+def index_partial(banks: Banks, rows, t_s, y, params, obs: ObservationModel) -> None:
+    r"""On-board index ``y`` (k, m) of some indices only (NaN at the others) on started
+    rows: :meth:`Banks.index_numpy` with the observed rows ``o`` of the model,
+
+    .. math:: y_o = H_{o:} z + b_o + e_o, \qquad e_o \sim N(0, R_{oo}),
+
+    the marginal of Eq. 3-4 (a vertical-only unit reads Top6 through its row of H). The
+    log weight adds the likelihood of ``y_o``; the NIS is of ``y_o``; the CUSUM scores the
+    sum of the observed indices against its prediction."""
+    observed = ~np.isnan(y)
+    for mask in np.unique(observed, axis=0):
+        pick = (observed == mask).all(axis=1)
+        o = np.flatnonzero(mask)
+        part = ObservationModel(obs.H[o], obs.b[o], obs.R[np.ix_(o, o)])
+        sub = np.ascontiguousarray(rows[pick])
+        banks.index_numpy(sub, t_s[pick], np.ascontiguousarray(y[pick][:, o]), params, part)
 
 
 def low_score(z, P, y, obs: ObservationModel, w) -> np.ndarray:

@@ -13,7 +13,14 @@ import msgspec
 import numpy as np
 
 from schemas import SCHEMA_VERSION, encode
-from services.filtering.events import INDEX, RESTART, Event, LogColumns, outlives_restart
+from services.filtering.events import (
+    INDEX,
+    RESTART,
+    Event,
+    LogColumns,
+    is_full_restart,
+    outlives_restart,
+)
 
 
 class _FoldedIndex(msgspec.Struct, frozen=True, kw_only=True, gc=False):
@@ -62,7 +69,7 @@ def log_columns(
     ):
         return None
     others = list(others)
-    restarts = [e.t_s for e in others if e.kind == RESTART]
+    restarts = [e.t_s for e in others if is_full_restart(e)]
     trc_t = max(restarts) if restarts else None
     times = np.array(list(map(_TIME, msgs)), dtype=np.float64)
     if trc_t is not None:  # canonical_log keeps the events at or after the latest TRC record

@@ -27,13 +27,13 @@ from schemas.keys import SegmentId
 from services.filtering.columns import columns_after, log_columns, pack_columns, unpack_columns
 from services.filtering.events import (
     KIND_NAMES,
-    RESTART,
     Event,
     EventMessage,
     LogColumns,
     ModelMessage,
     canonical_log,
     event_of,
+    is_full_restart,
 )
 from services.filtering.histories import Checkpoint, SegmentHistory
 from services.filtering.models import model_name, models_key
@@ -322,7 +322,7 @@ class PersistentTracker:
                     kind = KIND_NAMES[event.kind]
                     line, segment = msg.line, msg.segment
                     rows.append((line, segment, kind, key, event.identity, event.t_s, payload))
-                    if event.kind == RESTART:
+                    if is_full_restart(event):
                         self.store.add_events(rows)
                         rows = []
                         self.store.prune(line, segment, event.t_s)

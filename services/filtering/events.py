@@ -36,7 +36,8 @@ class Event(NamedTuple):
     kind: int  # RESTART, TAMPING or INDEX
     t_s: float  # epoch s of the event (a tamping's assumed time)
     identity: tuple[Any, ...]
-    # z of a restart (an array) or y of an index (a pair) in log mm, None for a tamping
+    # z of a restart (an array) or y of an index (a pair) in log mm, NaN at an indicator the
+    # record or index did not measure; None for a tamping
     value: np.ndarray | tuple[float, float] | None
     message: EventMessage
 
@@ -63,17 +64,36 @@ def event_of(msg: EventMessage) -> Event:
         case OnboardIndex():
             return index_event(msg)
         case TrcRecord():
-            z = np.log([msg.top6_mm, msg.align10_mm])
-            return Event(RESTART, msg.t, ("trc", msg.run_id, msg.t), z, msg)
+            if msg.top6_mm is not None and msg.align10_mm is not None:
+                z = np.log([msg.top6_mm, msg.align10_mm])
+                return Event(RESTART, msg.t, ("trc", msg.run_id, msg.t), z, msg)
+            # a partial record: NaN where it measured nothing; its identity names what it
+            # measured, so a level-only and an alignment-only record of one run are two
+            z = np.log([math.nan if v is None else v for v in msg.values_mm])
+            identity = ("trc", msg.run_id, msg.t, *msg.indicators)
+            return Event(RESTART, msg.t, identity, z, msg)
         case MaintenanceEvent():
             return Event(TAMPING, tamping_time(msg), ("maintenance", msg.event_id), None, msg)
     raise TypeError(f"not a segment event: {type(msg).__name__}")
 
 
+def is_full_restart(event: Event) -> bool:
+    """A TRC record of every indicator: the state after it depends on nothing before it,
+    so a segment's log starts at its latest one."""
+    return event.kind == RESTART and not np.isnan(event.value).any()
+
+
 def index_event(msg: Any) -> Event:
     """The core's event of an OnboardIndex, or of a stored one decoded without its checks
     (:func:`services.filtering.payloads.stored_events`): anything with its fields."""
-    y = (math.log(msg.top6_mm), math.log(msg.align10_mm))  # a tuple: an array each costs more
+    top, align = msg.top6_mm, msg.align10_mm
+    if top is None or align is None:  # a unit measuring some indices only: NaN at the others
+        y = (
+            math.nan if top is None else math.log(top),
+            math.nan if align is None else math.log(align),
+        )
+    else:
+        y = (math.log(top), math.log(align))  # a tuple: an array each costs more
     return Event(INDEX, msg.t, ("index", msg.train, msg.unit, msg.t), y, msg)
 
 
@@ -119,11 +139,12 @@ def outlives_restart(event: Event) -> bool:
 
 def canonical_log(events: Iterable[Event]) -> tuple[tuple[Event, ...], float | None]:
     """``(log, trc_t)`` of a segment's stored events (any order): the events at or after
-    the latest TRC record and the reported tampings before it (:func:`outlives_restart`),
-    in canonical order. The store holds exactly the accepted log (duplicates refused,
-    superseded tampings and the other events before a TRC record deleted)."""
+    the latest TRC record of every indicator (:func:`is_full_restart`) and the reported
+    tampings before it (:func:`outlives_restart`), in canonical order. The store holds
+    exactly the accepted log (duplicates refused, superseded tampings and the other events
+    before such a record deleted)."""
     events = list(events)
-    restarts = [e.t_s for e in events if e.kind == RESTART]
+    restarts = [e.t_s for e in events if is_full_restart(e)]
     trc_t = max(restarts) if restarts else None
     kept = [e for e in events if trc_t is None or e.t_s >= trc_t or outlives_restart(e)]
     kept.sort(key=lambda e: e.order)

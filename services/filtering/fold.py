@@ -19,6 +19,7 @@ from services.filtering.banks import (
     RestingBank,
     RowParams,
     Scratch,
+    index_partial,
 )
 from services.filtering.degradation import DegradationParams
 from services.filtering.events import INDEX, RESTART, TAMPING, Event, LogColumns
@@ -26,6 +27,10 @@ from services.filtering.kalman import ObservationModel
 from services.filtering.kernel import index_runs
 from services.filtering.models import Models
 from services.filtering.state import Filtered
+
+# In a fold's grid only: an index of some indices (its y NaN at the others), stepped with
+# numpy (:func:`banks.index_partial`) outside the compiled runs, which stop at it.
+PARTIAL_INDEX = 3
 
 
 def fold_many(
@@ -81,7 +86,8 @@ def fold_many_counted(
     order = sorted(range(size), key=lambda i: -len(logs[i]))
     grid = _grid(logs, order, n, obs)
     runs = n == 2 and all(model.H.shape == (2, 2) for model in grid.observations)
-    if into is not None and not runs:  # (no model of the system's shape) from copies
+    partial = bool((grid.kinds == PARTIAL_INDEX).any())
+    if into is not None and (partial or not runs):  # (not indices of every kind) from copies
         starts, into = [start.state() for start in starts], None
     if into is not None:
         banks, homes = _into_free_rows(into, [starts[i] for i in order], grid.kinds)
@@ -165,6 +171,7 @@ def _grid(logs, order: list[int], n: int, obs: ObservationModel | Models | None)
     if per_unit is None and shared is not None:
         grid.observations.append(shared)
         grid.obs_ids[grid.kinds == INDEX] = 0
+    grid.kinds[(grid.kinds == INDEX) & np.isnan(grid.values).any(axis=-1)] = PARTIAL_INDEX
     return grid
 
 
@@ -229,14 +236,14 @@ def _fold_steps(
     for k in range(depth):
         active = int(np.count_nonzero(lengths > k))
         kind = kinds[:active, k]
-        for code in (RESTART, TAMPING, INDEX):
+        for code in (RESTART, TAMPING, INDEX, PARTIAL_INDEX):
             rows = np.flatnonzero(kind == code)
-            if code == INDEX:
+            if code in (INDEX, PARTIAL_INDEX):
                 rows = rows[banks.started[rows]]  # an index before any start is skipped
             if len(rows) == 0:
                 continue
             if code == RESTART:
-                banks.restart(rows, times[rows, k], values[rows, k])
+                banks.restart(rows, times[rows, k], values[rows, k], rows_params)
             elif code == TAMPING:
                 banks.tamping(rows, times[rows, k], rows_params)
             else:
@@ -245,9 +252,11 @@ def _fold_steps(
                 for j in np.unique(ids):  # the rows whose index is read by model j
                     sub = rows if len(observations) == 1 else rows[ids == j]
                     last = None if halt_cusum is not None else last_index[sub] == k
-                    banks.index(
-                        sub, times[sub, k], values[sub, k], rows_params, observations[j], last
-                    )
+                    at = (sub, times[sub, k], values[sub, k], rows_params, observations[j])
+                    if code == PARTIAL_INDEX:
+                        index_partial(banks, *at)
+                    else:
+                        banks.index(*at, last)
                     if halt_cusum is not None:
                         halted = sub[banks.cusum[sub] >= halt_cusum]
                         kinds[halted, k + 1 :] = -1  # nothing more is folded on these rows
@@ -276,14 +285,17 @@ def _fold_runs(
             live = np.flatnonzero(pos < stop)
             kind = kinds[live, pos[live]]
             moved = False
-            for code in (RESTART, TAMPING):
+            for code in (RESTART, TAMPING, PARTIAL_INDEX):
                 rows = live[kind == code]
                 if len(rows):
                     at = pos[rows]
                     if code == RESTART:
-                        banks.restart(rows, times[rows, at], values[rows, at])
-                    else:
+                        banks.restart(rows, times[rows, at], values[rows, at], params)
+                    elif code == TAMPING:
                         banks.tamping(rows, times[rows, at], params)
+                    else:
+                        _partial_indices(banks, rows, pos, stop, times, values, obs_ids,
+                                         observations, params, folded, halt)  # fmt: skip
                     pos[rows] += 1
                     moved = True
         rows = np.flatnonzero(pos < stop)  # each at an index
@@ -298,6 +310,24 @@ def _fold_runs(
         )  # fmt: skip
         if missing.any():
             raise AssertionError("an index on a started state without an observation model")
+
+
+def _partial_indices(banks, rows, pos, stop, times, values, obs_ids, observations, params,
+                     folded, halt) -> None:  # fmt: skip
+    """:func:`_fold_runs`' step of the indices of some indices at ``rows``' positions
+    (:func:`banks.index_partial`); an index before any start is skipped, and a row whose
+    CUSUM reaches ``halt`` stops after it, as in the compiled runs."""
+    rows = rows[banks.started[rows]]
+    at = pos[rows]
+    ids = obs_ids[rows, at]
+    if (ids < 0).any():
+        raise AssertionError("an index on a started state without an observation model")
+    for j in np.unique(ids):
+        sub, k = rows[ids == j], at[ids == j]
+        index_partial(banks, sub, times[sub, k], values[sub, k], params, observations[j])
+        if halt is not None:
+            halted = sub[banks.cusum[sub] >= halt]
+            stop[halted] = folded[halted] = pos[halted] + 1
 
 
 def apply_event(

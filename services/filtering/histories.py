@@ -11,7 +11,7 @@ from typing import Any, TypeVar
 
 from schemas.keys import SegmentId
 from services.filtering.banks import BankRow, Banks, RestingBank, as_filtered
-from services.filtering.events import RESTART, Event, Log, LogColumns, log_units
+from services.filtering.events import Event, Log, LogColumns, is_full_restart, log_units
 from services.filtering.state import Filtered
 
 
@@ -272,7 +272,7 @@ def rested(ckpt: Checkpoint, state, group, tail: Sequence[Event]) -> Checkpoint:
     """``ckpt`` folded on over ``tail`` (in canonical order, after its last event)."""
     trc_t = ckpt.trc_t
     for event in tail:
-        if event.kind == RESTART and (trc_t is None or event.t_s > trc_t):
+        if is_full_restart(event) and (trc_t is None or event.t_s > trc_t):
             trc_t = event.t_s
     units = ckpt.units
     if units is not None:  # a superset is safe

@@ -27,7 +27,8 @@ from services.filtering.events import Event, EventMessage, ModelMessage, event_o
 log = logging.getLogger(__name__)
 
 
-_EVENT_TYPES = {"index": OnboardIndex, "trc": TrcRecord, "maintenance": MaintenanceEvent}
+# The message type of each event kind (the kind chunk of its key).
+EVENT_TYPES = {"index": OnboardIndex, "trc": TrcRecord, "maintenance": MaintenanceEvent}
 _MODEL_TYPES = {"calibration": Calibration, "degradation": DegradationPosterior}
 
 
@@ -38,8 +39,8 @@ def decode_keyed(key: str, payload: bytes) -> EventMessage | ModelMessage | None
     """
     kind = keys.kind(key)
     message_type: type[EventMessage | ModelMessage]
-    if kind in _EVENT_TYPES:
-        message_type = _EVENT_TYPES[kind]
+    if kind in EVENT_TYPES:
+        message_type = EVENT_TYPES[kind]
     elif kind != "model":
         raise SchemaError(f"key {key}: not an index, trc, maintenance or model key")
     elif keys.model_kind(key) in _MODEL_TYPES:
@@ -89,7 +90,7 @@ def _unchecked(message_type: type) -> type:
 
 
 StoredIndex = _unchecked(OnboardIndex)
-_STORED = {kind: msgspec.msgpack.Decoder(t) for kind, t in _EVENT_TYPES.items()}
+_STORED = {kind: msgspec.msgpack.Decoder(t) for kind, t in EVENT_TYPES.items()}
 _STORED_INDEX = msgspec.msgpack.Decoder(StoredIndex)
 
 
@@ -101,17 +102,20 @@ def stored_events(rows: Iterable[tuple[str, str, bytes]]) -> Iterator[Event]:
     re-run decodes every stored event, and those checks cost more than the fold. An index
     (nearly every row) is decoded into :data:`StoredIndex`, the same fields without the
     message's checks (nearly half of a re-run's decoding), and only what the fold
-    needs is checked again: the schema version and two positive finite indices. TRC records
+    needs is checked again: the schema version and positive finite indices (one may be
+    left out: a unit measuring some indices only). TRC records
     and tampings run their checks. A row failing a check is skipped with a warning.
     """
     for kind, key, payload in rows:
         try:
             if kind == "index":
                 msg = _STORED_INDEX.decode(payload)
+                top, align = msg.top6_mm, msg.align10_mm
                 if msg.v != SCHEMA_VERSION or not (
-                    0.0 < msg.top6_mm < math.inf and 0.0 < msg.align10_mm < math.inf
+                    (0.0 < top < math.inf if top is not None else align is not None)
+                    and (align is None or 0.0 < align < math.inf)
                 ):
-                    raise SchemaError(f"v {msg.v}, indices {msg.top6_mm}, {msg.align10_mm}")
+                    raise SchemaError(f"v {msg.v}, indices {top}, {align}")
                 yield index_event(msg)
                 continue
             msg = _STORED[kind].decode(payload)

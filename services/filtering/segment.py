@@ -20,6 +20,7 @@ from services.filtering.events import (
     Event,
     LogColumns,
     event_of,
+    is_full_restart,
     outlives_restart,
     tamping_time,
 )
@@ -121,7 +122,7 @@ def add_event(hist: SegmentHistory, event: Event) -> tuple[SegmentHistory, str]:
         log = tuple(e for e in log if e is not held)
     elif trc_t is not None and event.t_s < trc_t and not outlives_restart(event):
         return hist, "older than the latest TRC record"
-    if event.kind == RESTART:  # a restart forgets what precedes it, but for the reports
+    if is_full_restart(event):  # a restart forgets what precedes it, but for the reports
         log = tuple(e for e in log if e.t_s >= event.t_s or outlives_restart(e))
         trc_t = event.t_s if trc_t is None else max(trc_t, event.t_s)
     at = bisect.bisect([e.order for e in log], event.order)

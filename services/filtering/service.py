@@ -67,6 +67,7 @@ from pathlib import Path
 
 from schemas import SegmentState, encode, keys
 from schemas.keys import SegmentId
+from services.defaults import add_network_argument
 from services.filtering.coordinator import PersistentTracker
 from services.filtering.store import Store
 from services.filtering.tracker import Tracker
@@ -76,12 +77,12 @@ from services.runtime.config import (
     RuntimeConfig,
     add_db_argument,
     add_zenoh_arguments,
-    config_from_args,
     default_db,
+    flag_values,
 )
 from services.runtime.inbox import Inbox
 from services.runtime.latest import LatestValues
-from services.runtime.service import ServiceRuntime, configure_logging
+from services.runtime.service import ServiceRuntime, run_command
 
 log = logging.getLogger(__name__)
 
@@ -387,10 +388,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the part of the network this instance owns, e.g. 'L1/**' "
         f"(default: {DEFAULT_SELECTOR})",
     )
-    parser.add_argument(
-        "--network",
-        metavar="FILE.geojson",
-        help="refuse events on segments this network does not have (default: accept any)",
+    add_network_argument(
+        parser, "refuse events on segments this network does not have", default="accept any"
     )
     add_db_argument(parser, SERVICE, "the accepted events and models")
     parser.add_argument(
@@ -408,12 +407,5 @@ def extend_start_timeout(events: int) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    configure_logging(args.log_level)
-    return main(
-        config_from_args(args),
-        selector=args.selector,
-        db=args.db,
-        limits=args.limits,
-        network=args.network,
-        freeze_gc=True,  # the process is this service's alone
-    )
+    # freeze_gc: the process is this service's alone
+    return run_command(args, main, **flag_values(args, OPTIONS), freeze_gc=True)

@@ -49,6 +49,8 @@ class Filtered:
     cusum: float = 0.0  # one-sided CUSUM of the indices reading lower than predicted
     cusum_t0: float = float("nan")  # the last index (or start) at which the CUSUM was 0
     cusum_t1: float = float("nan")  # the first index after it (NaN while the CUSUM is 0)
+    # bit i set: indicator i was not measured by the last TRC record (0: all were, or none yet)
+    trc_absent: int = 0
     flat: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def buffer(self) -> np.ndarray:
@@ -60,7 +62,7 @@ class Filtered:
     @staticmethod
     def of_buffer(flat: np.ndarray, ns: int, n: int, *scalars: Any) -> Filtered:
         """A state on ``flat`` (W,) contiguous (:func:`state_layout`); ``scalars``: ``t_s``
-        to ``cusum_t1`` in field order. Made without the frozen dataclass's ``__init__``
+        to ``trc_absent`` in field order. Made without the frozen dataclass's ``__init__``
         and its eleven guarded assignments (a fold makes one per segment); the same
         object."""
         at_p, at_w, width = state_layout(ns, n)
@@ -70,7 +72,7 @@ class Filtered:
 
     @staticmethod
     def _on_buffer(flat, ns, n, at_p, at_w, t_s, last_trc_t, n_updates, nis, cusum, cusum_t0,
-                   cusum_t1) -> Filtered:  # fmt: skip
+                   cusum_t1, trc_absent=0) -> Filtered:  # fmt: skip
         """:meth:`of_buffer` with ``flat``'s shape known and its layout given."""
         new = object.__new__(Filtered)
         new.__dict__.update(
@@ -84,6 +86,7 @@ class Filtered:
             cusum=cusum,
             cusum_t0=cusum_t0,
             cusum_t1=cusum_t1,
+            trc_absent=trc_absent,
             flat=flat,
         )
         return new
@@ -103,7 +106,8 @@ def stack_rows(arrays: Sequence[np.ndarray], out: np.ndarray | None = None) -> n
     return rows
 
 
-_STATE_HEAD = struct.Struct("<2I 4d q 3d")  # ns, n; t_s, last_trc_t, nis, cusum; n_updates; ...
+# ns, n; t_s, last_trc_t, nis, cusum; n_updates; cusum_t0, cusum_t1, trc_absent
+_STATE_HEAD = struct.Struct("<2I 4d q 3d")
 
 
 def pack_state(state: Filtered) -> bytes:
@@ -120,7 +124,7 @@ def pack_state(state: Filtered) -> bytes:
         state.n_updates,
         state.cusum_t0,
         state.cusum_t1,
-        0.0,
+        float(state.trc_absent),
     )
     return head + np.ascontiguousarray(state.buffer(), dtype="<f8").tobytes()
 
@@ -128,7 +132,7 @@ def pack_state(state: Filtered) -> bytes:
 def unpack_state(blob: bytes) -> Filtered:
     """:func:`pack_state` back; ValueError if the bytes are not one."""
     try:
-        ns, n, t_s, trc, nis, cusum, n_updates, t0, t1, _ = _STATE_HEAD.unpack_from(blob)
+        ns, n, t_s, trc, nis, cusum, n_updates, t0, t1, absent = _STATE_HEAD.unpack_from(blob)
     except struct.error as exc:
         raise ValueError(f"state: {exc}") from None
     sizes = (ns * n, ns * n * n, ns)
@@ -137,4 +141,5 @@ def unpack_state(blob: bytes) -> Filtered:
     flat = np.frombuffer(blob, dtype="<f8", offset=_STATE_HEAD.size).astype(np.float64)
     trc_t = None if math.isnan(trc) else trc
     nis_or_none = None if math.isnan(nis) else nis
-    return Filtered.of_buffer(flat, ns, n, t_s, trc_t, int(n_updates), nis_or_none, cusum, t0, t1)
+    scalars = (t_s, trc_t, int(n_updates), nis_or_none, cusum, t0, t1, int(absent))
+    return Filtered.of_buffer(flat, ns, n, *scalars)

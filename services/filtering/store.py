@@ -67,6 +67,18 @@ _EVENTS_COLUMNS = """(
     t        REAL NOT NULL,     -- epoch s of the event (a tamping's assumed time)
     payload  BLOB NOT NULL      -- the decoded message, re-encoded (unknown fields dropped)
 )"""
+
+
+def _dropped_with_events(table: str, suffix: str) -> str:
+    """The triggers ``events_deleted{suffix}`` and ``events_updated{suffix}``: an event
+    deleted or rewritten deletes its segment's rows of ``table``."""
+    return "".join(
+        f"CREATE TRIGGER IF NOT EXISTS events_{done}{suffix} AFTER {op} ON events BEGIN\n"
+        f"    DELETE FROM {table} WHERE line = OLD.line AND segment = OLD.segment;\nEND;\n"
+        for op, done in (("DELETE", "deleted"), ("UPDATE", "updated"))
+    )
+
+
 _SCHEMA = (
     "CREATE TABLE IF NOT EXISTS events "
     + _EVENTS_COLUMNS
@@ -110,13 +122,9 @@ CREATE TABLE IF NOT EXISTS checkpoint_meta (
 -- an event deleted or rewritten under a checkpoint (a TRC record pruning, a reported
 -- tamping superseding a detected one, a correction) makes it stale: the segment is then
 -- replayed from its log at restart
-CREATE TRIGGER IF NOT EXISTS events_deleted AFTER DELETE ON events BEGIN
-    DELETE FROM checkpoints WHERE line = OLD.line AND segment = OLD.segment;
-END;
-CREATE TRIGGER IF NOT EXISTS events_updated AFTER UPDATE ON events BEGIN
-    DELETE FROM checkpoints WHERE line = OLD.line AND segment = OLD.segment;
-END;
--- a segment's log as the columns a re-run folds (tracker.LogColumns, _ColumnsRow), as of
+"""
+    + _dropped_with_events("checkpoints", "")
+    + """-- a segment's log as the columns a re-run folds (tracker.LogColumns, _ColumnsRow), as of
 -- the newest events.seq it covers: a model change reads one row and the events after it
 -- instead of decoding every stored payload. A cache: any event deleted or rewritten drops
 -- it, and a segment without one is read from its events (and cached again)
@@ -127,13 +135,8 @@ CREATE TABLE IF NOT EXISTS log_columns (
     columns  BLOB NOT NULL,
     PRIMARY KEY (line, segment)
 );
-CREATE TRIGGER IF NOT EXISTS events_deleted_columns AFTER DELETE ON events BEGIN
-    DELETE FROM log_columns WHERE line = OLD.line AND segment = OLD.segment;
-END;
-CREATE TRIGGER IF NOT EXISTS events_updated_columns AFTER UPDATE ON events BEGIN
-    DELETE FROM log_columns WHERE line = OLD.line AND segment = OLD.segment;
-END;
 """
+    + _dropped_with_events("log_columns", "_columns")
 )
 
 

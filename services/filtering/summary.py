@@ -21,6 +21,13 @@ def state_weights(state: Filtered) -> np.ndarray:
     return weights_from_log(state.log_w)
 
 
+def trc_indicators(state: Filtered) -> list[str]:
+    """The indicators the state's last TRC record measured; empty before any."""
+    if state.last_trc_t is None:
+        return []
+    return [name for i, name in enumerate(INDICATORS) if not state.trc_absent >> i & 1]
+
+
 def _stacked(params: Sequence[DegradationParams]) -> DegradationParams:
     """Per-row parameters ``(S, 1, Ns, ...)`` (a horizon axis to broadcast), or the shared one."""
     first = params[0]
@@ -97,6 +104,7 @@ def summarize_states(
             "t": state.t_s,
             "width": float(both.width[row, 0]),
             "last_trc_t": state.last_trc_t,
+            "last_trc_indicators": trc_indicators(state),
             "n_updates": state.n_updates,
             "nis": state.nis,
             "posterior_version": posterior_versions[row],

@@ -27,6 +27,8 @@ change it:
 - **Events** (time in the maths is days, ``t_s / DAY_S``):
 
   * ``TrcRecord``: restart, ``z = ln [top6_mm, align10_mm]`` in every sample, ``P = 0``.
+    A record of some indicators only observes those exactly (``Banks.restart_partial``),
+    keeps the log before it, and does not start a segment without state.
   * ``MaintenanceEvent`` (tamping): at ``t_start`` if ``t_start == t_end``, else at the
     middle of the *reported* interval ``(t_start + t_end) / 2``. The paper (Eq. 2) assumes
     the middle of the filter interval ``(t_{k-1}, t_k]`` in which a tamping is known to
@@ -38,7 +40,8 @@ change it:
     A tamping also starts a state on a segment without any TRC record yet.
   * ``OnboardIndex``: predict to ``t`` and update with ``y = ln [top6_mm, align10_mm]``
     (Eq. 9-12, Joseph form), and add each sample's log-likelihood of ``y`` to its log
-    weight (below).
+    weight (below). An index of some indices only updates with its rows of H, b, R
+    (``banks.index_partial``).
 
 - **Mixture weights** (a departure from Eq. 13's equal weights ``1 / Ns``): the posterior
   samples ``j`` are the segment's line (or network) pooled degradation posterior, so a

@@ -13,7 +13,6 @@ missing) before the worker exits.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import logging
 import threading
@@ -23,11 +22,11 @@ from pathlib import Path
 import zenoh
 
 from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode, keys
-from services.defaults import add_network_argument, load_network
+from services.defaults import load_network
 from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore, Output, Rejection
-from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
-from services.runtime.service import ServiceRuntime, configure_logging
+from services.runtime.config import RuntimeConfig
+from services.runtime.service import ServiceRuntime, network_stage_command
 
 log = logging.getLogger(__name__)
 
@@ -123,16 +122,9 @@ def main(
         return rt.run()
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """``trackfusion ingestion``."""
-    parser.description = (
-        "Subscribe to {ns}/raw/** and {ns}/gps/*, publish PositionedChunks on "
-        "{ns}/accel/{train}/{unit}; thresholds in the config file's services.ingestion."
-    )
-    add_network_argument(parser, "the lines to map-match on")
-    add_zenoh_arguments(parser)
-
-
-def run(args: argparse.Namespace) -> int:
-    configure_logging(args.log_level)
-    return main(config_from_args(args), network_path=args.network)
+add_arguments, run = network_stage_command(
+    main,
+    "Subscribe to {ns}/raw/** and {ns}/gps/*, publish PositionedChunks on "
+    "{ns}/accel/{train}/{unit}; thresholds in the config file's services.ingestion.",
+    network="the lines to map-match on",
+)

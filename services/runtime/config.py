@@ -149,6 +149,12 @@ def config_from_args(
     )
 
 
+def flag_values(args: argparse.Namespace, names: Iterable[str]) -> dict[str, Any]:
+    """``{name: args.<name>}``: the flags that set the keywords (or override the config
+    file's keys) of the same names; None where a flag was not given."""
+    return {name: getattr(args, name) for name in names}
+
+
 def load_config(
     path: str | Path | None = None,
     *,

@@ -3,9 +3,9 @@
 Why it exists. A Zenoh callback runs on the session's receive thread. If it blocks (a full
 bounded queue waiting for a slow worker), the session stops reading its link; the router's
 queue towards it fills, the router waits ``wait_before_close`` (5 s by default) for room
-for a BLOCK message and then **closes the link**, dropping everything queued on it. That is
-how a filtering instance lost 90 % of a flood without a trace, and how it went deaf during
-`make run` (see README, "Reliability model"). So :meth:`Inbox.put` never waits on the
+for a BLOCK message and then **closes the link**, dropping everything queued on it: a flood
+would be lost without a trace and the service would go deaf (docs/architecture.md, "No
+callback blocks a session"). So :meth:`Inbox.put` never waits on the
 worker: it appends to memory while the backlog is small and, beyond ``memory_bytes``,
 appends to a spill file on local disk (an anonymous temporary file, gone with the
 process), which the worker reads back in order once memory has drained. Back-pressure is

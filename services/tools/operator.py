@@ -41,7 +41,8 @@ from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_f
 
 QUERY_TIMEOUT_S = 10.0  # `--timeout`: a service catching up on a backlog answers late
 PLAN_ROWS = 20  # `plan --limit`
-TRC_COLUMNS = ("line", "segment", "t", "top6_mm", "align10_mm", "run_id")
+TRC_COLUMNS = ("line", "segment", "t", "run_id")  # and one value column at least
+TRC_VALUE_COLUMNS = ("top6_mm", "align10_mm")  # in state order (INDICATORS)
 
 
 def ask(session: zenoh.Session, selector: str, timeout: float = QUERY_TIMEOUT_S):
@@ -104,9 +105,13 @@ def _alive_ids(tokens: Iterable[str]) -> Iterator[tuple[str, str]]:
 # --- state ----------------------------------------------------------------------------------
 
 
-def format_state(state: SegmentState) -> str:
-    """A segment's state as an engineer reads it: estimate, 95 % interval, risk, forecasts."""
-    lines = [f"{state.line}/{state.segment} at {_iso(state.t)} (last TRC {_iso(state.last_trc_t)})"]
+def format_state(state: SegmentState, line_name: str = "") -> str:
+    """A segment's state as an engineer reads it: estimate, 95 % interval, risk, forecasts;
+    ``line_name``: the line's name in the network file, shown after its id."""
+    measured = " ".join(state.last_trc_indicators)
+    last = _iso(state.last_trc_t) + (f", measured {measured}" if measured else "")
+    named = f" ({line_name})" if line_name and line_name != state.line else ""
+    lines = [f"{state.line}/{state.segment}{named} at {_iso(state.t)} (last TRC {last})"]
     mean_mm = [math.exp(v) for v in state.mean.array()]
     low, high = state.ci_low_mm.array(), state.ci_high_mm.array()
     p = state.p_exceed.array()
@@ -141,9 +146,17 @@ def query_states(
 
 
 def main_state(
-    conf: RuntimeConfig, segment: str, timeout: float = QUERY_TIMEOUT_S, out: TextIO = sys.stdout
+    conf: RuntimeConfig,
+    segment: str,
+    timeout: float = QUERY_TIMEOUT_S,
+    out: TextIO = sys.stdout,
+    network_path: str | None = None,
 ) -> int:
-    """`trackfusion state LINE/SEGMENT` (or `LINE/**` for a whole line)."""
+    """`trackfusion state LINE/SEGMENT` (or `LINE/**` for a whole line); the lines' names
+    from the network file ``network_path`` (the demo network without one)."""
+    from services.defaults import load_network
+
+    names = {line.id: line.name for line in load_network(network_path).lines.values()}
     if segment.count("/") != 1:
         raise SystemExit(f"state: {segment!r} is not LINE/SEGMENT (e.g. L1/s00042)")
     with open_session(conf) as session:
@@ -152,7 +165,7 @@ def main_state(
         print(f"no state for {segment} (unknown segment, or no TRC record and model yet)", file=out)
         return 1
     for state in sorted(states, key=lambda s: (s.line, s.segment)):
-        print(format_state(state), file=out)
+        print(format_state(state, names.get(state.line, "")), file=out)
     return 0
 
 
@@ -230,23 +243,34 @@ def parse_time(text: str) -> float:
 def parse_trc_csv(text: TextIO) -> Iterator[TrcRecord | RowError]:
     """TrcRecords of a TRC export, or a RowError (with its file line number) per bad row.
 
-    Columns: line, segment, t (epoch s or ISO 8601), top6_mm, align10_mm, run_id.
+    Columns: line, segment, t (epoch s or ISO 8601), run_id, and top6_mm, align10_mm or
+    both (a level-only or alignment-only export). An empty value cell: the record did not
+    measure that indicator; a row must measure one at least.
     """
     reader = csv.DictReader(text)
-    missing = set(TRC_COLUMNS) - set(reader.fieldnames or ())
-    if missing:
-        yield RowError(1, f"header lacks column(s) {sorted(missing)}; need {list(TRC_COLUMNS)}")
+    header = set(reader.fieldnames or ())
+    missing = set(TRC_COLUMNS) - header
+    values = [c for c in TRC_VALUE_COLUMNS if c in header]
+    if missing or not values:
+        need = f"{list(TRC_COLUMNS)} and one or both of {list(TRC_VALUE_COLUMNS)}"
+        lacks = sorted(missing) if missing else list(TRC_VALUE_COLUMNS)
+        yield RowError(1, f"header lacks column(s) {lacks}; need {need}")
         return
     for row in reader:
         line_no = reader.line_num
         try:
+            measured = {c: float(row[c]) for c in values if (row[c] or "").strip()}
+            if not measured:
+                raise ValueError(f"no value in {values}")
             yield TrcRecord(
                 line=row["line"].strip(),
                 segment=row["segment"].strip(),
                 t=parse_time(row["t"]),
-                top6_mm=float(row["top6_mm"]),
-                align10_mm=float(row["align10_mm"]),
                 run_id=row["run_id"].strip(),
+                indicators=[
+                    i for i, c in zip(INDICATORS, TRC_VALUE_COLUMNS, strict=True) if c in measured
+                ],
+                **measured,
             )
         except (SchemaError, ValueError, TypeError, AttributeError) as exc:
             yield RowError(line_no, str(exc))
@@ -278,7 +302,15 @@ def main_import_trc(conf: RuntimeConfig, path: str, out: TextIO = sys.stdout) ->
 
 # --- export ---------------------------------------------------------------------------------
 
-STATE_COLUMNS = ["line", "segment", "t", "last_trc_t", "n_updates", "width"] + [
+STATE_COLUMNS = [
+    "line",
+    "segment",
+    "t",
+    "last_trc_t",
+    "last_trc_indicators",
+    "n_updates",
+    "width",
+] + [
     f"{name}_{what}"
     for name in INDICATORS
     for what in ("mm", "ci_low_mm", "ci_high_mm", "p_exceed_intervention")
@@ -292,6 +324,7 @@ def state_row(state: SegmentState) -> dict:
         "segment": state.segment,
         "t": _iso(state.t),
         "last_trc_t": _iso(state.last_trc_t),
+        "last_trc_indicators": " ".join(state.last_trc_indicators),
         "n_updates": state.n_updates,
         "width": state.width,
     }
@@ -416,11 +449,12 @@ def state_add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "segment", metavar="LINE/SEGMENT", help="e.g. L1/s00042, or L1/** for a line"
     )
+    add_network_argument(parser, "the lines' names")
     add_query_arguments(parser)
 
 
 def state_run(args: argparse.Namespace) -> int:
-    return main_state(config_from_args(args), args.segment, args.timeout)
+    return main_state(config_from_args(args), args.segment, args.timeout, network_path=args.network)
 
 
 def alerts_run(args: argparse.Namespace) -> int:

@@ -71,6 +71,12 @@ class NetworkMap:
     polylines: dict[SegmentId, list[tuple[float, float]]] = field(default_factory=dict)
     chainage_m: dict[SegmentId, tuple[float, float]] = field(default_factory=dict)
     stations: list[Station] = field(default_factory=list)
+    line_names: dict[str, str] = field(default_factory=dict)  # id -> the name operators use
+
+    def label(self, line: str) -> str:
+        """A line as a planner knows it: ``id (name)``, or the id when it has no name."""
+        name = self.line_names.get(line)
+        return f"{line} ({name})" if name and name != line else line
 
 
 @dataclass(frozen=True)
@@ -179,7 +185,8 @@ def _header(data: ReportData, states: list[SegmentState], title: str) -> str:
         f"<h1>{escape(title)}</h1>"
         f'<p class="meta">Made {escape(iso(data.made_at, "seconds"))} (wall clock). '
         f"Newest state: {escape(iso(newest))} (event time). "
-        f"{len(states)} segments on {len(lines)} line(s) ({escape(', '.join(lines))}); "
+        f"{len(states)} segments on {len(lines)} line(s) "
+        f"({escape(', '.join(map(data.network.label, lines)))}); "
         f"{high} with P(exceed) ≥ 0.5.</p>"
         "<p>Each 200 m segment's track geometry is estimated from the last Track Recording "
         "Car (TRC) record and the on-board indices of in-service trains since then. Top6 and "
@@ -246,7 +253,7 @@ def _map(data: ReportData, states: list[SegmentState]) -> str:
         x, y = xy(*projected[first][0]).split(",")
         out.append(
             f'<text x="{x}" y="{float(y) - 8:.1f}" font-size="13" font-weight="bold" '
-            f'fill="#222">{escape(line)}</text>'
+            f'fill="#222">{escape(data.network.label(line))}</text>'
         )
     for st in stations:
         x, y = xy(*_project([(st.lon, st.lat)], lat0)[0]).split(",")
@@ -289,7 +296,7 @@ def _table(data: ReportData, states: list[SegmentState]) -> str:
         key = (s.line, s.segment)
         chain = data.network.chainage_m.get(key)
         chain_text = "–" if chain is None else f"{chain[0] / 1e3:.1f} – {chain[1] / 1e3:.1f}"
-        cells = [f'<td class="n">{rank}</td>', f"<td>{escape(s.line)}</td>"]
+        cells = [f'<td class="n">{rank}</td>', f"<td>{escape(data.network.label(s.line))}</td>"]
         cells.append(f"<td>{escape(s.segment)}</td><td>{chain_text}</td>")
         for name in ("top6", "align10"):
             text = _mm(s, s.indicators.index(name)) if name in s.indicators else "–"
@@ -298,7 +305,7 @@ def _table(data: ReportData, states: list[SegmentState]) -> str:
         forecast = p_forecast(s)
         cells += [_p_cell(forecast.get(h)) for h in horizons]
         plan = plan_rows.get(key)
-        cells.append(f"<td>{day(s.last_trc_t)}</td>")
+        cells.append(f"<td>{day(s.last_trc_t)}{_measured(s)}</td>")
         if plan is None:
             cells.append("<td>–</td><td>–</td>")
         else:
@@ -307,6 +314,14 @@ def _table(data: ReportData, states: list[SegmentState]) -> str:
         rows.append("<tr>" + "".join(cells) + "</tr>")
     rows.append("</tbody></table>")
     return "".join(rows)
+
+
+def _measured(state: SegmentState) -> str:
+    """What the last TRC record measured, when it was not every indicator."""
+    names = state.last_trc_indicators
+    if not names or len(names) == len(state.indicators):
+        return ""
+    return f"<br><small>{escape(' '.join(names))} only</small>"
 
 
 def _p_cell(p: float | None) -> str:
@@ -444,7 +459,8 @@ def network_map(network_path: str | None = None) -> NetworkMap:
             lon, lat = map(float, line.lonlat_at(c))
             label = str(names[k]) if k < len(names) else f"{line.id} km {c / 1e3:.1f}"
             stations.append(Station(line.id, lon, lat, label))
-    return NetworkMap(polylines, chainage, stations)
+    names = {line.id: line.name for line in network.lines.values() if line.name}
+    return NetworkMap(polylines, chainage, stations, names)
 
 
 # --- the running system ---------------------------------------------------------------------

@@ -34,7 +34,7 @@ from typing import TextIO
 import numpy as np
 import zenoh
 
-from schemas import SchemaError, TrcRecord, encode, keys
+from schemas import INDICATORS, SchemaError, TrcRecord, encode, keys
 from schemas.wire import check_time
 from services.defaults import add_network_argument, load_network
 from services.runtime.config import RuntimeConfig, config_from_args
@@ -47,6 +47,8 @@ from services.tools.operator import (
 from track.network import check_id
 from track.segments import SegmentTable
 from track.trc_profile import (
+    ALIGN_COLUMNS,
+    LEVEL_COLUMNS,
     MAX_OFFSET_M,
     WINDOW_M,
     GridProfile,
@@ -142,12 +144,37 @@ def trc_records(result: RunResult, line: str, run_id: str, t: float):
     """The TrcRecords of a run, and ``(segment, reason)`` for values no record can carry."""
     records, refused = [], []
     for v in result.values:
+        values = (v.top6_mm, v.align10_mm)
+        measured = [name for name, x in zip(INDICATORS, values, strict=True) if x is not None]
         try:
             records.append(TrcRecord(line=line, segment=v.segment, t=t, top6_mm=v.top6_mm,
-                                     align10_mm=v.align10_mm, run_id=run_id))  # fmt: skip
+                                     align10_mm=v.align10_mm, run_id=run_id,
+                                     indicators=measured))  # fmt: skip
         except SchemaError as exc:
             refused.append((v.segment, str(exc)))
     return records, refused
+
+
+def indicator_lines(profile: TrcProfile) -> list[str]:
+    """What the run's records measure, from which rails, and what they cannot, and why;
+    nothing when they measure every indicator on both rails."""
+    if set(LEVEL_COLUMNS + ALIGN_COLUMNS) <= set(profile.channels):
+        return []
+    out = []
+    for name, family, columns in (
+        ("top6", "longitudinal level", LEVEL_COLUMNS),
+        ("align10", "alignment", ALIGN_COLUMNS),
+    ):
+        rails = [c for c in columns if c in profile.channels]
+        if not rails:
+            out.append(
+                f"{name}: not measured, the file has no {family} column ({', '.join(columns)})"
+            )
+        elif len(rails) == 1:
+            out.append(f"{name}: from {rails[0]} alone (the file has one rail of {family})")
+        else:
+            out.append(f"{name}: the smaller of {rails[0]} and {rails[1]}")
+    return out
 
 
 def format_report(
@@ -160,7 +187,9 @@ def format_report(
     n_records: int,
     refused: list[tuple[str, str]],
 ) -> str:
-    """What the operator reads: the run, its alignment per window, the segments."""
+    """What the operator reads: the run (``line``: its id, and name), what its records
+    measure when not every indicator on both rails, its alignment per window, the
+    segments."""
     x0, x1 = profile.chainage_m[0], profile.chainage_m[-1]
     if profile.descending:
         x0, x1 = x1, x0
@@ -171,6 +200,7 @@ def format_report(
     ]
     if profile.ignored_columns:
         out.append(f"ignored columns: {', '.join(profile.ignored_columns)}")
+    out.extend(indicator_lines(profile))
     if reference is None:
         out.append(
             "alignment: no earlier run of this stretch of the line in the archive, taken as it is"
@@ -179,8 +209,9 @@ def format_report(
         out.append(f"alignment: skipped (--no-align); reference would be run {reference.run_id}")
     else:
         used = result.alignment.used
+        on = "" if result.alignment.signal == "level" else ", matched on alignment"
         out.append(
-            f"alignment to run {reference.run_id} (offset = its chainage - this run's): "
+            f"alignment to run {reference.run_id} (offset = its chainage - this run's{on}): "
             f"{len(used)} of {len(result.alignment.windows)} windows used"
         )
         out.append(f"  {'window start m':>14} {'offset m':>9} {'peak':>6}")
@@ -226,7 +257,8 @@ def main_import_trc_profile(
     """Parse, align, compute and (unless ``dry_run``) publish and archive one TRC run."""
     check_id("--line", line)
     check_id("--run-id", run_id)
-    table = SegmentTable.from_network(load_network(network_path))
+    network = load_network(network_path)
+    table = SegmentTable.from_network(network)
     if line not in table.lines:
         raise ValueError(f"--line {line}: not a line of the network ({', '.join(table.lines)})")
     try:
@@ -254,8 +286,10 @@ def main_import_trc_profile(
             max_offset_m=max_offset_m,
         )
         records, refused = trc_records(result, line, run_id, t)
+        name = network.lines[line].name
+        label = f"{line} ({name})" if name and name != line else line
         print(
-            format_report(path, profile, result, line, run_id, reference, len(records), refused),
+            format_report(path, profile, result, label, run_id, reference, len(records), refused),
             file=out,
         )
         if dry_run or archive is None:

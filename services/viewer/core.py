@@ -259,6 +259,7 @@ class ViewerCore:
         self.plot_flush_s = plot_flush_s
         self.live_flush_s = live_flush_s
         self.p_exceed: dict[SegmentId, float] = {}
+        self.last_trc: dict[SegmentId, tuple[str, ...]] = {}  # indicators the last TRC measured
         self.handled = 0  # messages taken (GPS fixes without a fix included)
         self.rows_written = 0  # rows of the plots' entities written
         self.blueprints_sent = 0
@@ -376,7 +377,7 @@ class ViewerCore:
         self._event_time(state.t)
 
     def _keep_onboard(self, index: OnboardIndex) -> None:
-        values = np.array([[index.top6_mm], [index.align10_mm]])
+        values = np.array([[index.top6_mm], [index.align10_mm]], dtype=float)  # None: NaN
         self._history_of((index.line, index.segment)).onboard.put(index.t, values)
         self._event_time(index.t)
 
@@ -386,6 +387,7 @@ class ViewerCore:
             return  # a late state: its day's row is kept, the ranking keeps the newest
         self._newest_t[key] = state.t
         self.p_exceed[key] = p = segment_exceedance(state)
+        self.last_trc[key] = tuple(state.last_trc_indicators)
         i = self._map.index.get(key) if self._map is not None else None
         if self._map is None or i is None:
             return  # not on the map
@@ -505,15 +507,17 @@ class ViewerCore:
         the newest event time, so it is written only when it changed."""
         if self._newest_event_t is None:
             return
-        lines = ["| row | segment | p |", "|---|---|---|"]
+        lines = ["| row | segment | p | last TRC measured |", "|---|---|---|---|"]
         for slot in self._slots:
             row = "selected" if slot.name == SELECTED else f"#{slot.name.split('/')[1]}"
             if slot.key is None:
-                lines.append(f"| {row} | - | |")
+                lines.append(f"| {row} | - | | |")
                 continue
             p = self.p_exceed.get(slot.key)
+            measured = " ".join(self.last_trc.get(slot.key, ())) or "-"
             lines.append(
-                f"| {row} | {slot.key[0]}/{slot.key[1]} | {'-' if p is None else f'{p:.2f}'} |"
+                f"| {row} | {slot.key[0]}/{slot.key[1]} | {'-' if p is None else f'{p:.2f}'} "
+                f"| {measured} |"
             )
         lines += [
             "",

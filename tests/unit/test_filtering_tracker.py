@@ -32,6 +32,7 @@ from services.filtering.mixture import (
 from services.filtering.segment import DERIVED
 from services.filtering.store import Store
 from services.filtering.summary import state_weights
+from services.filtering.testing import example_posterior, onboard_index
 from services.filtering.tracker import Tracker
 from services.limits import load_limits
 
@@ -60,23 +61,8 @@ def calibration(version: int = 1, scale: float = 1.0) -> Calibration:
 def posterior(
     group: str = "net", version: int = 1, seed: int = 0, ns: int = NS
 ) -> DegradationPosterior:
-    rng = np.random.default_rng(seed)
-    mu = rng.normal([7e-4, 4e-4], 2e-4, (ns, 2))
-    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((ns, 1)))
-    sigma = np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None, :]
-    z_plus = np.log([2.0, 1.8]) + rng.normal(0, 0.05, (ns, 2))
-    sigma_z_plus = np.broadcast_to(np.eye(2) * 0.01, (ns, 2, 2))
-    return DegradationPosterior(
-        group=group,
-        version=version,
-        t=T0,
-        indicators=["top6", "align10"],
-        mu=NDArray.of(mu),
-        sigma=NDArray.of(sigma),
-        z_plus=NDArray.of(z_plus),
-        sigma_z_plus=NDArray.of(sigma_z_plus),
-        n_increments=30,
-        n_levels=10,
+    return example_posterior(
+        ns, seed, group=group, version=version, z_plus_sd=0.05, n_increments=30, n_levels=10
     )
 
 
@@ -98,17 +84,7 @@ def trc(t_days: float, top6: float = 3.0, align10: float = 2.5, line="L1", segme
 
 
 def index(t_days: float, top6: float, align10: float, line="L1", segment="s1", train="T1"):
-    return OnboardIndex(
-        line=line,
-        segment=segment,
-        train=train,
-        unit="u1",
-        t=T0 + t_days * DAY_S,
-        top6_mm=top6,
-        align10_mm=align10,
-        speed_mps=30.0,
-        coverage=1.0,
-    )
+    return onboard_index(line, segment, T0 + t_days * DAY_S, top6, align10, train)
 
 
 def tamping(t_start_days: float, t_end_days: float | None = None, line="L1", segment="s1"):
@@ -455,16 +431,7 @@ def test_events_on_segments_the_network_lacks_are_refused_and_hold_nothing(tmp_p
 
 def keyed(msg) -> tuple[str, bytes]:
     """The key a message is published on (namespace "tf") and its payload."""
-    match msg:
-        case Calibration():
-            own = msg.train and keys.unit_calibration("tf", msg.train, msg.unit)
-            key = own or keys.calibration("tf")
-        case DegradationPosterior():
-            key = keys.degradation("tf", msg.group)
-        case _:
-            kind = {OnboardIndex: "index", TrcRecord: "trc", MaintenanceEvent: "maintenance"}
-            key = keys.segment_keys("tf", kind[type(msg)], f"{msg.line}/{msg.segment}")
-    return key, encode(msg)
+    return keys.key_of("tf", msg), encode(msg)
 
 
 # --- mixture weights: the likelihood of the segment's own on-board data -------------------

@@ -199,9 +199,14 @@ def test_plain_msgpack_defaults_may_be_left_out():
 
 
 def _required_only(message) -> bytes:
-    """A plain map of ``message`` without the fields that have a default (``v`` too)."""
+    """A plain map of ``message`` without the fields that have a default (``v`` too), but
+    those a valid message needs: a TrcRecord or an OnboardIndex measures one indicator at
+    least."""
     required = {f.name for f in msgspec.structs.fields(message) if f.required}
-    return msgpack.packb({k: v for k, v in _plain(message).items() if k in required})
+    fields = {k: v for k, v in _plain(message).items() if k in required}
+    if isinstance(message, TrcRecord | OnboardIndex):
+        fields.update(top6_mm=message.top6_mm, indicators=["top6"])
+    return msgpack.packb(fields)
 
 
 @pytest.mark.parametrize("message", examples(), ids=lambda m: type(m).__name__)
@@ -650,3 +655,41 @@ def test_decode_many_gives_what_decode_gives_or_none_where_decode_refuses_one():
         assert schemas.decode_many([*payloads, payload], OnboardIndex) is None
     with pytest.raises(SchemaError, match="top6_mm"):
         decode(out_of_range, OnboardIndex)
+
+
+def test_a_trc_record_may_measure_some_indicators():
+    """A level-only record is explicit; a plain map without ``indicators`` measures both."""
+    both = {"line": "L1", "segment": "s1", "t": T0, "run_id": "r1"}
+    record = decode(msgpack.packb({**both, "top6_mm": 2.0, "align10_mm": 1.5}), TrcRecord)
+    assert record.indicators == ["top6", "align10"] and record.values_mm == (2.0, 1.5)
+    level = decode(msgpack.packb({**both, "top6_mm": 2.0, "indicators": ["top6"]}), TrcRecord)
+    assert level.values_mm == (2.0, None)
+    assert decode(encode(level), TrcRecord) == level
+    bad = [
+        ({"top6_mm": 2.0}, "align10_mm: missing"),
+        ({"top6_mm": 2.0, "align10_mm": 1.0, "indicators": ["top6"]}, "align10_mm: given"),
+        ({"align10_mm": 1.0, "indicators": ["align10", "top6"]}, "indicators: "),
+        ({"indicators": []}, "indicators: "),
+        ({"top6_mm": 2.0, "indicators": ["top6", "top6"]}, "indicators: "),
+    ]
+    for fields, reason in bad:
+        with pytest.raises(SchemaError, match=f"TrcRecord: {reason}"):
+            decode(msgpack.packb({**both, **fields}), TrcRecord)
+
+
+def test_an_index_may_measure_some_indicators():
+    fields = {"line": "L1", "segment": "s1", "train": "T1", "unit": "u1", "t": T0,
+              "speed_mps": 20.0, "coverage": 1.0}  # fmt: skip
+    both = decode(msgpack.packb({**fields, "top6_mm": 2.0, "align10_mm": 1.5}), OnboardIndex)
+    assert both.indicators == ["top6", "align10"]
+    vertical = decode(msgpack.packb({**fields, "top6_mm": 2.0, "indicators": ["top6"]}),
+                      OnboardIndex)  # fmt: skip
+    assert vertical.values_mm == (2.0, None) and decode(encode(vertical), OnboardIndex) == vertical
+    for extra, reason in (
+        ({"top6_mm": 2.0}, "align10_mm: missing"),
+        ({"top6_mm": 2.0, "indicators": ["top6"], "speed_mps": -1.0}, "speed_mps"),
+        ({"top6_mm": 0.0, "indicators": ["top6"]}, "top6_mm"),
+        ({"top6_mm": 2.0, "align10_mm": 1.0, "indicators": ["align10"]}, "top6_mm: given"),
+    ):
+        with pytest.raises(SchemaError, match=f"OnboardIndex: {reason}"):
+            decode(msgpack.packb({**fields, **extra}), OnboardIndex)

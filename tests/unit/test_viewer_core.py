@@ -8,6 +8,7 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 import rerun as rr
@@ -340,3 +341,17 @@ def test_viewer_select_takes_line_slash_segment():
     from services.viewer.service import parse_segment
 
     assert parse_segment("L1/s00042") == ("L1", "s00042")
+
+
+def test_the_ranking_says_what_each_segments_last_trc_record_measured(recording):
+    rec, _ = recording
+    core = ViewerCore(rec, None, worst_n=2, plot_flush_s=5.0, live_flush_s=1.0)
+    core.start(now=0.0)
+    level_only = msgspec.structs.replace(
+        make_state(T0, segment="s1", p_exceed=p_top6(1, 0.7), last_trc_t=T0 - DAY_S),
+        last_trc_indicators=["top6"],
+    )
+    core.take([level_only, make_state(T0, segment="s2", p_exceed=p_top6(1, 0.2))])
+    core.flush(0.0)
+    rows = core._ranking_text.splitlines()
+    assert "| #1 | L1/s1 | 0.70 | top6 |" in rows and "| #2 | L1/s2 | 0.20 | - |" in rows
