@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench scale soak soak-demo soak-trains lint format clean
+.PHONY: run test bench scale soak soak-demo soak-trains soak-order lint format clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -32,16 +32,21 @@ scale: $(STAMP)
 
 # `make soak`: first what `make run` starts, left running for 30 minutes with a headless
 # browser on the web viewer (bench/demo_soak.py: alive, state gaps, q/state, memory, first
-# picture), then the whole stack under 100 raw trains for 10 minutes (bench/soak.py).
-# Each alone: `make soak-demo DEMO_SOAK_ARGS="--minutes 15"`, `make soak-trains
+# picture), then the whole stack under 100 raw trains for 10 minutes (bench/soak.py), then
+# filtering's order check (bench/order_check.py). Each alone: `make soak-demo DEMO_SOAK_ARGS="--minutes 15"`, `make soak-trains
 # SOAK_ARGS="--minutes 3 --trains 100,70,50"`.
-soak: soak-demo soak-trains
+soak: soak-demo soak-trains soak-order
 
 soak-demo: $(STAMP)
 	$(BIN)/python -m bench.demo_soak $(DEMO_SOAK_ARGS)
 
 soak-trains: $(STAMP)
 	$(BIN)/python -m bench.soak $(SOAK_ARGS)
+
+# 200 random event sequences, 3 deliveries each (shuffled, duplicated, late), through one
+# message at a time, batches and a restart: filtering must end as in canonical order.
+soak-order: $(STAMP)
+	$(BIN)/python -m bench.order_check $(ORDER_ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -1,6 +1,6 @@
 """`make bench`: each figure with a ratio against a baseline measured in the same process.
 
-Workloads (DESIGN "Performance targets"):
+Workloads (targets: docs/performance.md):
 
 1. replay: Ns = 200 posterior samples, 52 weekly on-board events on 500 segments, through
    ``FilterBank`` (all segments of a week in one call). Baseline: filterpy ``KalmanFilter``
@@ -29,7 +29,8 @@ Workloads (DESIGN "Performance targets"):
     resting: ``--history 60``), ten batches of 65,536 (``bench/backlog.py``).
 11. filtering restart and model change on a store of 2,000 segments x 60 days (first start
     without checkpoints, restart from them, after SIGKILL; a new calibration), against
-    ``fold_many`` alone (``bench/restart.py``; ``--segments 100000`` for issue 16's size).
+    ``fold_many`` alone (``bench/restart.py``; ``--segments 100000`` for a national
+    instance's size).
 12. the compiled index step alone, ns per sample-update on one core and on all, against the
     numpy filter bank on the same shapes (``bench/kernel.py``).
 13. a plain put beside 2,000 cached publishers of the same line and of other lines, against
@@ -52,8 +53,8 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from services.filtering import study
-from services.filtering.bank import FilterBank, ObservationModel
 from services.filtering.degradation import DegradationParams
+from services.filtering.kalman import FilterBank, ObservationModel
 from services.filtering.mixture import summarize
 
 NS, SEGMENTS, WEEKS = 200, 500, 52
@@ -214,7 +215,7 @@ def main() -> None:
     bench_siblings()
     bench_rerun()
     bench_backlog()
-    bench_backlog(10_000, 655_360, history=60)  # issue 16's figure: ten batches of 65,536
+    bench_backlog(10_000, 655_360, history=60)  # the backlog target's figure: ten batches of 65,536
     bench_study()
     bench_raw_generation()
     bench_ingestion()

@@ -1,5 +1,5 @@
-"""Backlog throughput of one filtering instance, in process (issue 16, DESIGN: >= 50,000
-events/s per instance with a backlog).
+"""Backlog throughput of one filtering instance, in process (target: >= 50,000
+events/s per instance with a backlog, docs/performance.md).
 
 Workload: ``SEGMENTS`` segments at Ns = 200, each with a TRC record, then ``EVENTS``
 OnboardIndex in time order on random segments (a backfill, a consumer catching up), as
@@ -43,10 +43,14 @@ import numpy as np
 
 from bench.restart import build_store
 from schemas import DAY_S, OnboardIndex, TrcRecord, encode, keys
+from services.filtering.banks import Scratch
+from services.filtering.coordinator import PersistentTracker
+from services.filtering.events import event_of
+from services.filtering.fold import fold_many
 from services.filtering.service import BATCH, FREEZE_S
-from services.filtering.store import PersistentTracker, Store
+from services.filtering.store import Store
 from services.filtering.testing import example_models
-from services.filtering.tracker import Scratch, Tracker, event_of, fold_many
+from services.filtering.tracker import Tracker
 from services.limits import load_limits
 
 NS_SAMPLES, SEGMENTS, EVENTS = 200, 20_000, 4 * BATCH  # four of the service's batches

@@ -1,4 +1,4 @@
-"""Model versions the calibration service publishes on the demo (issue 12, item 4).
+"""Model versions the calibration service publishes on the demo.
 
 Runs the demo world of ``services/defaults/stack.json5`` (the demo network, fast mode
 ``fidelity="index"``, 4 service passes per line and day, seed 1, one year from 2026-01-01)
@@ -27,16 +27,13 @@ from collections import Counter
 from datetime import UTC, datetime
 from pathlib import Path
 
-import json5
-
 from schemas import DAY_S, Calibration
 from services.calibration.calibrator import Calibrator
 from services.calibration.config import CalibratorConfig
-from services.calibration.initial import initial_models
-from services.defaults import default_file
+from services.calibration.service import load_initial_models
+from services.defaults import default_file, demo_network
 from simulators.truth import load_config
 from simulators.world import WorldSpec, world_events
-from track.network import demo_network
 
 START_T = 1_767_225_600.0  # 2026-01-01T00:00Z, the simulator's default start
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,9 +50,7 @@ def run(
     """Versions published per month: ``{"calibration": {month: n}, "posterior": {...}}``."""
     config = CalibratorConfig()
     core = Calibrator(config)
-    cal0, posts0 = initial_models(
-        json5.loads(INITIAL_MODELS.read_text()), samples=config.samples, seed=config.seed
-    )
+    cal0, posts0 = load_initial_models(INITIAL_MODELS, config)
     core.install_initial(cal0, posts0)
     spec = WorldSpec(demo_network(), load_config(), START_T, days, seed, trains, fidelity="index")
     every = None if flush in ("tick", "day") else int(flush)

@@ -1,4 +1,4 @@
-"""Correctness on simulated truth (issue 5, item 4): the estimation pipeline against the truth.
+"""Correctness on simulated truth: the estimation pipeline against the truth.
 
 Everything runs in-process on the pure cores (no Zenoh, no clock, deterministic for a seed),
 in the simulator's fast mode (``fidelity="index"``) on the demo network (295 segments):
@@ -76,23 +76,24 @@ from datetime import UTC, datetime
 from pathlib import Path
 from types import SimpleNamespace
 
-import json5
 import numpy as np
 
 from schemas import DAY_S, INDICATORS, MaintenanceEvent, OnboardIndex, TrcRecord
-from services.alerting.core import AlertingConfig, AlertingCore, Hysteresis
+from services.alerting.core import AlertingCore, Hysteresis
+from services.alerting.service import load_alerting_config
 from services.calibration.calibrator import Calibrator
 from services.calibration.config import CalibratorConfig
-from services.calibration.initial import initial_models
-from services.defaults import default_file
+from services.calibration.service import load_initial_models
+from services.defaults import default_file, demo_network
 from services.filtering.degradation import transition_unchecked
+from services.filtering.events import TAMPING, tamping_time
 from services.filtering.mixture import effective_sample_size, summarize
-from services.filtering.tracker import TAMPING, Tracker, state_weights, tamping_time
+from services.filtering.summary import state_weights
+from services.filtering.tracker import Tracker
 from services.limits import load_limits
 from simulators.fleet import MIXED
 from simulators.truth import Truth, load_config
 from simulators.world import WorldSpec, world_events
-from track.network import demo_network
 
 START_T = 1_767_225_600.0  # 2026-01-01T00:00Z
 ROOT = Path(__file__).resolve().parents[1]
@@ -135,7 +136,7 @@ class Settings:
 
 
 def world_config(st: Settings) -> dict:
-    """The simulator config with the run's unkind-world options (issue 18)."""
+    """The simulator config with the run's unkind-world options."""
     config = load_config()
     config["maintenance"].update(unreported_fraction=st.unreported, late_fraction=st.late)
     if st.fleet == "mixed":
@@ -255,10 +256,9 @@ def run_shard(settings: Settings, shard: int, n_shards: int) -> dict:
     cal_config = CalibratorConfig(samples=st.samples, seed=st.seed, unit_models=st.unit_models)
     tol_s = (cal_config.tolerance_days or 0.0) * DAY_S
     calibrator = Calibrator(cal_config)
-    spec_im = json5.loads(INITIAL_MODELS.read_text())
-    cal0, posts0 = initial_models(spec_im, samples=st.samples, seed=st.seed)
+    cal0, posts0 = load_initial_models(INITIAL_MODELS, cal_config)
     first_models = calibrator.install_initial(cal0, posts0)
-    alert_cfg = AlertingConfig.from_dict(json5.loads(ALERTING_CONFIG.read_text()))
+    alert_cfg = load_alerting_config(ALERTING_CONFIG)
     if st.predicted_raise is not None:  # clear at 0.6 x raise, the shipped thresholds' ratio
         clear = 0.6 * st.predicted_raise
         alert_cfg = replace(alert_cfg, predicted=Hysteresis(st.predicted_raise, clear))
@@ -669,7 +669,7 @@ def _false_alarms(merged: dict, alerts: list[tuple], st: Settings, within_days: 
 def figures(merged: dict, st: Settings) -> dict:
     since = START_T + st.ignore_before_days * DAY_S
     out: dict = {"settings": asdict(st)}
-    alert_cfg = AlertingConfig.from_dict(json5.loads(ALERTING_CONFIG.read_text()))
+    alert_cfg = load_alerting_config(ALERTING_CONFIG)
     for name in TRACKERS:
         ev = merged["evals"][name]
         bad = _unreported_tamping_mask(ev, merged["tampings"])

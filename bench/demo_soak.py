@@ -71,6 +71,20 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def start_up(stack: Path, out: Path) -> subprocess.Popen:
+    """`trackfusion up --stack stack` in its own process group, its output in
+    ``out/up.log``."""
+    with (out / "up.log").open("wb") as log:
+        return subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "up", "--stack", str(stack)],
+            cwd=REPO,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            env=users_env(),  # not this bench process's reserved rx threads
+        )
+
+
 def stack_copy(
     out: Path, *, endpoint: str, ns: str, web_port: int, grpc_port: int, viewer_args: str = ""
 ) -> Path:
@@ -138,15 +152,7 @@ def run(args: argparse.Namespace) -> dict:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     ns = f"soak{uuid.uuid4().hex[:8]}"
     stack = stack_copy(out, endpoint=endpoint, ns=ns, web_port=free_port(), grpc_port=free_port())
-    with (out / "up.log").open("wb") as log:
-        up = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "up", "--stack", str(stack)],
-            cwd=REPO,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-            env=users_env(),  # not this bench process's reserved rx threads
-        )
+    up = start_up(stack, out)
     print(f"demo soak: {args.minutes:g} min, ns {ns}, router {endpoint}, files in {out}")
     flows = Flows()
     health_path = out / "health.json"

@@ -4,8 +4,8 @@ Workload: 120 s of realistic 1 s PositionedChunks (simulated bogie physics on a 
 stand-in line, supply-corrected, knots from the true position) replayed through
 ``UNITS`` independent :class:`~services.extraction.pipeline.UnitPipeline` instances in
 round robin (as a service sees many trains), in-process, one thread. Raw samples count
-every accelerometer value (rows x 6 channels), like DESIGN's 12 M/s target
-(1,000 trains x 2,000 Hz x 6). Baselines measured in the same run: the DESIGN target, and
+every accelerometer value (rows x 6 channels), like the 12 M/s target
+(1,000 trains x 2,000 Hz x 6). Baselines measured in the same run: the target, and
 ``scipy.signal.sosfiltfilt`` (order-4 Butterworth band-pass at 2000 Hz, zero-phase, one
 block) over the same samples, i.e. the textbook offline processing without decimation.
 
@@ -19,15 +19,17 @@ import time
 import numpy as np
 from scipy import signal
 
-from schemas import ACCEL_CHANNELS, NDArray, PositionedChunk
+from schemas import PositionedChunk
 from services.extraction.pipeline import UnitPipeline
+from services.extraction.testing import line_table, positioned_chunk
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
-from track.segments import LineSegments, SegmentTable
+from track.segments import SegmentTable
 
-TARGET = 12e6  # raw samples / s / core, ingestion + extraction together (DESIGN)
+TARGET = 12e6  # raw samples / s / core, ingestion + extraction together (docs/performance.md)
 UNITS, SECONDS, REPEATS = 16, 120, 2
 G_MPS2 = 9.80665
+EPOCH = 1_767_225_600.0  # 2026-01-01: event times must lie in the schemas' window
 
 
 class _StandIn:
@@ -41,32 +43,15 @@ def make_chunks(seconds: int = SECONDS) -> tuple[list[PositionedChunk], SegmentT
     bounds = np.stack([np.arange(15) * 200.0, np.arange(1, 16) * 200.0], 1)
     profile = LineProfile("L1", bounds, seed=3)
     profile.update(np.log(np.random.default_rng(3).uniform(1, 4, (15, 2))), np.zeros(15, int))
-    sim = TrainSimulator("T1", _StandIn(), profile, seed=3, start_t=1000.0, phase_s=0.0)
+    sim = TrainSimulator("T1", _StandIn(), profile, seed=3, start_t=EPOCH + 1000.0, phase_s=0.0)
     chunks = []
     for k in range(seconds):
         t0, raw, _ = sim.chunk(k)
         acc = raw[:, :6] * (5.0 / raw[:, 6:7]) * np.float32(G_MPS2)
         kt = np.array([t0, t0 + 1.0])
         c, v, _, _ = sim.position(kt)
-        chunks.append(
-            PositionedChunk(
-                train="T1",
-                unit="u0",
-                seq=k,
-                t0=t0,
-                rate_hz=2000.0,
-                channels=list(ACCEL_CHANNELS),
-                samples=NDArray.of(acc, "f4"),
-                line="L1",
-                knot_t=NDArray.of(kt),
-                knot_chainage_m=NDArray.of(c),
-                knot_speed_mps=NDArray.of(v),
-                position_ok=True,
-            )  # fmt: skip
-        )
-    ids = tuple(f"s{i:05d}" for i in range(15))
-    table = SegmentTable({"L1": LineSegments("L1", ids, bounds[:, 0], bounds[:, 1])})
-    return chunks, table
+        chunks.append(positioned_chunk(acc, t0, kt, c, v, seq=k))
+    return chunks, line_table(15)
 
 
 def bench_extraction() -> dict:

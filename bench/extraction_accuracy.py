@@ -23,11 +23,12 @@ import numpy as np
 
 from schemas import ACCEL_CHANNELS, NDArray, OnboardIndex, PositionedChunk
 from services.calibration.regression import fit_observation
+from services.defaults import demo_network
 from services.extraction.pipeline import Extractor
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
 from simulators.truth import Truth, load_config
-from track.network import Network, demo_network
+from track.network import Network
 from track.segments import SegmentTable
 
 G_MPS2 = 9.80665

@@ -47,15 +47,14 @@ from schemas import (
     Calibration,
     DegradationPosterior,
     OnboardIndex,
-    SegmentState,
     TrcRecord,
-    decode,
     encode,
     keys,
 )
 from services.filtering import service
-from services.filtering.store import PersistentTracker, Store
-from services.filtering.testing import example_models
+from services.filtering.coordinator import PersistentTracker
+from services.filtering.store import Store
+from services.filtering.testing import example_models, onboard_index, sample_state
 from services.filtering.tracker import Tracker
 from services.limits import load_limits
 from services.runtime.config import RuntimeConfig, zenoh_config
@@ -80,18 +79,9 @@ def _trcs() -> list[TrcRecord]:
 
 def _indices(rng: np.random.Generator, n: int, first_hour: int) -> list[OnboardIndex]:
     y = np.exp(rng.normal([0.8, 0.5], 0.1, (n, 2))).tolist()
+    # t: unique per event, the latency table's key
     return [
-        OnboardIndex(
-            line="L1",
-            segment=f"s{i % SEGMENTS:05d}",
-            train="T1",
-            unit="u1",
-            t=T0 + (first_hour + i) * 3600.0,  # unique per event: the latency table's key
-            top6_mm=y[i][0],
-            align10_mm=y[i][1],
-            speed_mps=30.0,
-            coverage=1.0,
-        )
+        onboard_index("L1", f"s{i % SEGMENTS:05d}", T0 + (first_hour + i) * 3600.0, *y[i])
         for i in range(n)
     ]
 
@@ -161,7 +151,7 @@ def bench_filtering_service(own_process: bool = False) -> None:
 
     def on_state(sample: zenoh.Sample) -> None:
         now = time.perf_counter()
-        state = decode(sample.payload.to_bytes(), SegmentState)
+        state = sample_state(sample)
         with arrived:
             received.setdefault((state.segment, state.t), now)
             arrived.notify_all()
@@ -172,22 +162,14 @@ def bench_filtering_service(own_process: bool = False) -> None:
         if not ok:
             raise RuntimeError(f"states missing after {timeout} s")
 
-    model_replies = [
-        (keys.calibration(ns), encode(models[0])),
-        (keys.degradation(ns, "net"), encode(models[1])),
-    ]
+    model_replies = [(keys.key_of(ns, model), encode(model)) for model in models]
 
     def on_model_query(query: zenoh.Query) -> None:
         for key, payload in model_replies:
             query.reply(key, payload)
 
     def put(session: zenoh.Session, msg) -> None:
-        key = (
-            keys.trc(ns, msg.line, msg.segment)
-            if isinstance(msg, TrcRecord)
-            else keys.index(ns, msg.line, msg.segment)
-        )
-        payload = encode(msg)
+        key, payload = keys.key_of(ns, msg), encode(msg)
         sent[(msg.segment, msg.t)] = time.perf_counter()
         # BLOCK: a full queue on the way (router -> service) must slow us down, not drop.
         session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)

@@ -8,7 +8,7 @@ supply correction + map matching + encode of every PositionedChunk, i.e. what on
 ingestion worker does per payload minus Zenoh.
 
 A raw sample is one value of one accelerometer channel (a 1 s chunk is 2000 x 6), the
-unit of DESIGN's target: >= 12 M raw samples/s per core through ingestion AND extraction
+unit of the target: >= 12 M raw samples/s per core through ingestion AND extraction
 together, so ingestion alone has to be well above it. Baseline in the same run: msgspec
 decode + encode of the same payloads with nothing done in between (the floor a worker
 cannot beat), so the ratio is what the work itself costs.
@@ -23,13 +23,13 @@ import time
 import numpy as np
 
 from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode
+from services.defaults import demo_network
 from services.ingestion.core import IngestionCore
 from simulators.gateway import key_and_payload
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
-from track.network import demo_network
 
-TARGET_SAMPLES_PER_S = 12e6  # DESIGN: ingestion + extraction, per core
+TARGET_SAMPLES_PER_S = 12e6  # ingestion + extraction, per core (docs/performance.md)
 T0 = 1_767_225_600.0
 
 

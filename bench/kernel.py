@@ -13,14 +13,15 @@ Run: ``.venv/bin/python -m bench.kernel``.
 
 from __future__ import annotations
 
+import functools
 import time
 
 import numpy as np
 
 from services.filtering import kernel
-from services.filtering.bank import FilterBank, ObservationModel
 from services.filtering.degradation import DegradationParams
-from services.filtering.tracker import _state_views, state_layout
+from services.filtering.kalman import FilterBank, ObservationModel
+from services.filtering.state import state_layout, state_views
 
 NS, SEGMENTS, STEPS, REPEATS = 200, 2000, 20, 5
 DAY_S = 86_400.0
@@ -49,7 +50,7 @@ def bench_kernel() -> None:
         best = np.inf
         for _ in range(REPEATS):
             F = np.zeros((SEGMENTS, state_layout(NS, 2)[2]))  # z, P, log_w of each row
-            z = _state_views(F, NS, 2)[0]
+            z = state_views(F, NS, 2)[0]
             z[:] = z0[:, None, :]
             t_s = np.zeros(SEGMENTS)
             nis, score = np.zeros(SEGMENTS), np.zeros(SEGMENTS)
@@ -72,9 +73,10 @@ def bench_kernel() -> None:
             best = min(best, time.perf_counter() - started)
         return best / (SEGMENTS * STEPS * NS) * 1e9, bank.z
 
-    compiled(kernel._index_step_serial)  # compile or load the cache
-    serial_ns, z_serial = compiled(kernel._index_step_serial)
-    parallel_ns, z_parallel = compiled(kernel._index_step_parallel)
+    serial = functools.partial(kernel.index_step, parallel=False)
+    compiled(serial)  # compile or load the cache
+    serial_ns, z_serial = compiled(serial)
+    parallel_ns, z_parallel = compiled(functools.partial(kernel.index_step, parallel=True))
     bank_ns, z_bank = numpy_bank()
     same = np.array_equal(z_serial, z_parallel) and np.allclose(z_serial, z_bank, atol=1e-9)
     print(

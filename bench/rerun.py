@@ -1,7 +1,8 @@
 """Model-change re-run of the filtering core: events replayed per second, summaries included.
 
 A new Calibration re-runs every segment of :class:`services.filtering.tracker.Tracker` from
-its last TRC record (issue 12: calibration publishes often in the live demo). Workload:
+its last TRC record (calibration publishes a new version about twice a month of event
+time). Workload:
 ``SEGMENTS`` segments at Ns = 200, each a TRC record and ``EVENTS - 1`` on-board indices
 (a tamping on every tenth segment); the figure is events replayed per second by
 ``Tracker.update_models([calibration])``, which re-runs them in one batched pass and
@@ -25,9 +26,11 @@ import time
 import numpy as np
 
 from schemas import DAY_S, MaintenanceEvent, OnboardIndex, TrcRecord, encode
-from services.filtering.bank import FilterBank
+from services.filtering.events import INDEX, TAMPING
+from services.filtering.kalman import FilterBank
+from services.filtering.segment import replay
 from services.filtering.testing import example_models
-from services.filtering.tracker import INDEX, TAMPING, Tracker, replay
+from services.filtering.tracker import Tracker
 from services.limits import load_limits
 
 NS_SAMPLES, SEGMENTS, EVENTS, BASELINE_SEGMENTS = 200, 2000, 50, 100

@@ -1,4 +1,4 @@
-"""Restart and model change of a filtering instance holding many segments (issue 16).
+"""Restart and model change of a filtering instance holding many segments.
 
 A store of ``--segments`` segments (lines of ``LINE_SEGMENTS``), each with a TRC record and
 ``2 × --days`` OnboardIndex since (Ns = 200 posterior samples), is written directly with
@@ -18,7 +18,7 @@ router in this one on loopback) is started on it, four times:
 Ready is the service's liveliness token; *answering* is a ``q/state`` query here returning
 every segment. The time is from the process start (interpreter and imports included).
 RSS is the service process's, summed over the instances (``VmHWM``: peak; ``VmRSS`` once
-ready). Baseline in this process: :func:`services.filtering.tracker.fold_many` of the same
+ready). Baseline in this process: :func:`services.filtering.fold.fold_many` of the same
 events, alone, on a sample of segments, extrapolated per event.
 
 ``--shards S`` runs S instances instead of one, each on its own store and ``--selector``
@@ -58,15 +58,16 @@ from schemas import (
     DAY_S,
     Calibration,
     OnboardIndex,
-    SegmentState,
     TrcRecord,
-    decode,
     encode,
     keys,
 )
+from services.filtering.events import canonical_log
+from services.filtering.fold import fold_many
+from services.filtering.models import Models, parse_model
+from services.filtering.payloads import stored_events
 from services.filtering.store import Store
-from services.filtering.testing import example_models
-from services.filtering.tracker import Models, event_of, fold_many, parse_model
+from services.filtering.testing import example_models, onboard_index, sample_state
 from services.runtime.config import users_env, zenoh_config
 
 NS_SAMPLES = 200
@@ -114,17 +115,7 @@ def build_store(
             key = keys.index(ns, line, seg)
             for i, t in enumerate(times.tolist()):
                 train = _train(k, segments, i)
-                msg = OnboardIndex(
-                    line=line,
-                    segment=seg,
-                    train=train,
-                    unit="u1",
-                    t=t,
-                    top6_mm=y[i][0],
-                    align10_mm=y[i][1],
-                    speed_mps=30.0,
-                    coverage=1.0,
-                )
+                msg = onboard_index(line, seg, t, *y[i], train=train)
                 identity = json.dumps(["index", train, "u1", t])
                 rows.append((line, seg, "index", key, identity, t, encode(msg)))
         db_.execute("BEGIN")
@@ -161,18 +152,11 @@ def _train(segment: int, segments: int, i: int) -> str:
     return f"R{segment * REGIONS // segments}-{i % 2}"
 
 
-def fold_rate(db: Path, models, sample: int) -> float:
-    """Events/s of ``fold_many`` alone over the logs of ``sample`` segments of the store."""
-    from services.filtering.store import decode_keyed
-
+def fold_rate(db: Path, models, sids: list[tuple[str, str]]) -> float:
+    """Events/s of ``fold_many`` alone over the logs of the segments ``sids`` of the store,
+    read as the tracker's loader reads them."""
     with Store(db) as store:
-        rows = store._db.execute(
-            "SELECT segment, key, payload FROM events WHERE segment < ? ORDER BY segment, t",
-            (f"s{sample:06d}",),
-        ).fetchall()
-    logs: dict[str, list] = {}
-    for seg, key, payload in rows:
-        logs.setdefault(seg, []).append(event_of(decode_keyed(key, payload)))
+        logs = [canonical_log(stored_events(store.segment_events(*sid)))[0] for sid in sids]
     calibration, posterior = models
     tracker_models = Models(
         calibration=calibration,
@@ -182,8 +166,8 @@ def fold_rate(db: Path, models, sample: int) -> float:
     )
     params = tracker_models.params["net"]
     started = time.perf_counter()
-    fold_many([None] * len(logs), list(logs.values()), [params] * len(logs), tracker_models)
-    return len(rows) / (time.perf_counter() - started)
+    fold_many([None] * len(logs), logs, [params] * len(logs), tracker_models)
+    return sum(map(len, logs)) / (time.perf_counter() - started)
 
 
 class Watcher:
@@ -220,7 +204,7 @@ class Watcher:
             return self.cond.wait_for(lambda: len(self.tokens) >= instances, timeout)
 
     def _on_state(self, sample: zenoh.Sample) -> None:
-        state = decode(sample.payload.to_bytes(), SegmentState)
+        state = sample_state(sample)
         with self.cond:
             old = self.versions.get(state.segment)
             if old is not None:
@@ -368,7 +352,12 @@ def bench_restart(
             build_store(db, segments, days, ns, models, k, shards) for k, db in enumerate(dbs)
         )
         built = time.perf_counter() - started
-        rate = fold_rate(dbs[0], models, min(sample, segments // shards))
+        sampled = [
+            (line_of(k, segments, shards), f"s{k:06d}")
+            for k in range(min(sample, segments // shards))
+            if shard_of(k, segments, shards) == 0
+        ]
+        rate = fold_rate(dbs[0], models, sampled)
         argsets = [
             [
                 *("filtering", "--connect", endpoint, "--ns", ns),
@@ -490,17 +479,7 @@ def _progress(row: tuple) -> None:
 def _tail(segments: int, days: int, shards: int) -> list[OnboardIndex]:
     t = T0 + (days + 0.5) * DAY_S
     return [
-        OnboardIndex(
-            line=line_of(k, segments, shards),
-            segment=f"s{k:06d}",
-            train="T9",
-            unit="u1",
-            t=t,
-            top6_mm=2.5,
-            align10_mm=2.0,
-            speed_mps=30.0,
-            coverage=1.0,
-        )
+        onboard_index(line_of(k, segments, shards), f"s{k:06d}", t, 2.5, 2.0, train="T9")
         for k in range(0, segments, 10)
     ]
 

@@ -1,4 +1,4 @@
-"""Simulator benchmarks: raw-signal generation speed (issue 3, target >= 200 trains/core).
+"""Simulator benchmarks: raw-signal generation speed (target >= 200 trains/core).
 
 ``bench_raw_generation`` is called by ``bench/__main__.py``; run alone with
 ``python -m bench.simulator``.

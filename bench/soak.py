@@ -38,7 +38,7 @@ Figures:
   (b) **from the raw chunk that holds the first sample past the segment end**: ``w −`` the
       wall time that chunk arrived on the bus, i.e. from the earliest moment the system can
       know the train left, whichever end of the chunk the gateway publishes at. **This is the
-      figure compared with DESIGN's target (p99 < 500 ms)**. The index needs nothing past the
+      figure compared with the target (p99 < 500 ms)**. The index needs nothing past the
       segment's end: extraction completes it once the unit's samples reach the statistic's
       last chord, ``END_GUARD_M`` (1 m) short of the end, plus one 0.25 m grid step and the
       decimation FIR's 10 ms (``services/extraction/pipeline.py``). That sample is usually
@@ -91,9 +91,9 @@ import zenoh
 
 from schemas import DAY_S, NDArray, OnboardIndex, keys
 from schemas.keys import SegmentId
+from services.defaults import demo_network
 from services.extraction.pipeline import ExtractionConfig
 from services.runtime.config import users_env, zenoh_config
-from track.network import demo_network
 from track.versine import END_GUARD_M
 
 REPO = Path(__file__).resolve().parents[1]
@@ -105,7 +105,7 @@ MAX_SIM_LAG_S = 1.0  # p99: the simulator publishes within 1 s of the event time
 # p50: a backlog in ingestion or extraction would push the median lag up without bound; the
 # tail is no measure of keeping up (a chunk in a tunnel waits for the fix after it).
 MAX_PIPE_LAG_S = 2.0
-TARGET_P99_S = 0.5  # DESIGN: train leaves a segment -> state published, p99
+TARGET_P99_S = 0.5  # train leaves a segment -> state published, p99 (docs/performance.md)
 # An index needs the profile up to the far end of the statistic's last chord, END_GUARD_M
 # short of the segment's end, on the 0.25 m grid (one step more to interpolate it), and the
 # samples the decimation FIR (10 ms) and one decimated step (2 ms) later: what "the sample
@@ -475,7 +475,7 @@ def run(args: argparse.Namespace, trains: int, stop: threading.Event) -> dict:
                     "--fidelity",
                     "index",
                     "--trains",
-                    "1",  # 0 crashes: simulators/index_model.py:111 (uniform(0, < 0, 0))
+                    "1",  # 0 crashes: simulators.world.index_pass_events (uniform(0, < 0, 0))
                     "--days",
                     str(args.prime_days),
                     "--start",

@@ -16,16 +16,12 @@ import argparse
 import json
 import os
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-from bench.demo_soak import free_port, rss_mb, stack_copy
-from services.runtime.config import users_env
+from bench.demo_soak import free_port, rss_mb, stack_copy, start_up
 from tests.browser import first_picture, hue_pixels
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def viewer_pid(ns: str) -> int | None:
@@ -64,15 +60,7 @@ def main(argv: list[str] | None = None) -> int:
         viewer_args=args.viewer_args,
     )
     opens = sorted(float(m) for m in args.open.split(",") if m)
-    with (out / "up.log").open("wb") as log:
-        up = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "up", "--stack", str(stack)],
-            cwd=REPO,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-            env=users_env(),  # not this bench process's reserved rx threads
-        )
+    up = start_up(stack, out)
     t0 = time.monotonic()
     samples: list[tuple[float, float | None]] = []
     pictures: list[dict] = []

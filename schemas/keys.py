@@ -1,13 +1,18 @@
-"""Key expressions of DESIGN's key table: the only place they are spelled out or taken apart.
+"""Key expressions: each key's form is written once here, as a :class:`KeyForm`; its builder,
+its wildcard and its parser all come from that one definition, and nothing else in the
+system spells a key out or takes one apart.
 
-Every builder checks its id chunks, so a key never carries `/ * $ ? #` by accident.
-Wildcard variants (``*_all``, ``*_keys`` with a selector) are for subscribers and queryables.
-Each ``parse_*`` reverses its builder and raises :class:`~schemas.wire.SchemaError` (a
-``ValueError``) for a key of another form; :func:`check_key` says whether a message's ids are
-its key's.
+A key is ``{ns}/{fixed chunks}/{id chunks}``, e.g. ``tf/raw/{train}/{unit}``. A form is
+called to build a key (``raw(ns, train, unit)``) and checks its id chunks, so a key never
+carries `/ * $ ? #` by accident. Wildcards (``*_all``, ``*_keys`` with a selector) are for
+subscribers and queryables. Each ``parse_*`` reverses its builder and raises
+:class:`~schemas.wire.SchemaError` (a ``ValueError``) for a key of another form;
+:func:`check_key` says whether a message's ids are its key's.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 from schemas.messages import (
     Alert,
@@ -32,6 +37,7 @@ from schemas.wire import SchemaError, check_id
 
 DEFAULT_NS = "tf"
 SegmentId = tuple[str, str]  # (line, segment): a segment's ids, as its keys carry them
+SEGMENT = ("line", "segment")  # the id chunks of a per-segment key
 
 
 def _key(ns: str, *chunks: str) -> str:
@@ -41,56 +47,93 @@ def _key(ns: str, *chunks: str) -> str:
     return "/".join((ns, *chunks))
 
 
-def raw(ns: str, train: str, unit: str) -> str:
-    return _key(ns, "raw", train, unit)
+@dataclass(frozen=True)
+class KeyForm:
+    """The keys ``{ns}/{head...}/{ids...}``: fixed chunks, then one chunk per id name."""
+
+    head: tuple[str, ...]
+    ids: tuple[str, ...] = ()
+
+    def __call__(self, ns: str, *ids: str) -> str:
+        """The key of these ids."""
+        if len(ids) != len(self.ids):
+            raise TypeError(f"{self}: takes {len(self.ids)} id(s), got {len(ids)}")
+        return _key(ns, *self.head, *ids)
+
+    def keys(self, ns: str, selector: str = "**") -> str:
+        """The wildcard of this form's keys, narrowed by ``selector`` (e.g. ``"L1/**"``)."""
+        return f"{_key(ns, *self.head)}/{selector}"
+
+    def parse(self, key: str) -> tuple[str, ...]:
+        """The id chunks of ``key``; SchemaError when it is not of this form."""
+        parts = str(key).split("/")
+        n = 1 + len(self.head)
+        if len(parts) != n + len(self.ids) or tuple(parts[1:n]) != self.head or not all(parts):
+            raise SchemaError(f"key: {key!r} is not of the form {self}")
+        return tuple(parts[n:])
+
+    def parse_id(self, key: str) -> str:
+        """The one id chunk of ``key`` (a form with a single id)."""
+        (one,) = self.parse(key)
+        return one
+
+    def __str__(self) -> str:
+        return "/".join(("{ns}", *self.head, *(f"{{{name}}}" for name in self.ids)))
+
+
+raw = KeyForm(("raw",), ("train", "unit"))
+gps = KeyForm(("gps",), ("train",))
+accel = KeyForm(("accel",), ("train", "unit"))
+index = KeyForm(("index",), SEGMENT)
+trc = KeyForm(("trc",), SEGMENT)
+maintenance = KeyForm(("maintenance",), SEGMENT)
+state = KeyForm(("state",), SEGMENT)
+alert = KeyForm(("alert",), SEGMENT)
+calibration = KeyForm(("model", "calibration"))
+unit_calibration = KeyForm(("model", "calibration"), ("train", "unit"))  # a unit's own model
+degradation = KeyForm(("model", "degradation"), ("group",))
+deadletter = KeyForm(("deadletter",), ("service",))
+alive = KeyForm(("alive",), ("service", "instance"))
+q_state = KeyForm(("q", "state"), SEGMENT)
+q_alerts = KeyForm(("q", "alerts"))
+q_plan = KeyForm(("q", "plan"))
+maintenance_plan = KeyForm(("plan", "maintenance"))  # the planner's MaintenancePlan
+# The planner's queryable: the MaintenancePlan (``?weeks=N;budget=X`` plans anew).
+q_maintenance_plan = KeyForm(("q", "plan", "maintenance"))
+stack_health = KeyForm(("health", "stack"))  # `trackfusion up`'s StackHealth, once a second
+viewer_select = KeyForm(("viewer", "select"))  # the segment a viewer pins into its plots
+
+SEGMENT_KEYS = {form.head[0]: form for form in (index, trc, maintenance, state, alert)}
+SEGMENT_KINDS = tuple(SEGMENT_KEYS)  # {ns}/{kind}/{line}/{segment}
+
+parse_raw = raw.parse
+parse_gps = gps.parse_id
+parse_accel = accel.parse
+parse_degradation = degradation.parse_id
+parse_deadletter = deadletter.parse_id
+parse_alive = alive.parse
+parse_q_state = q_state.parse
+
+
+# --- wildcards -------------------------------------------------------------------------------
 
 
 def raw_all(ns: str) -> str:
-    return f"{_key(ns, 'raw')}/**"
+    return raw.keys(ns)
 
 
 def raw_of_train(ns: str, train: str) -> str:
     """The raw keys of every unit of one train."""
-    return f"{_key(ns, 'raw', train)}/**"
-
-
-def gps(ns: str, train: str) -> str:
-    return _key(ns, "gps", train)
+    check_id("train", train)
+    return raw.keys(ns, f"{train}/**")
 
 
 def gps_all(ns: str) -> str:
-    return f"{_key(ns, 'gps')}/*"
-
-
-def accel(ns: str, train: str, unit: str) -> str:
-    return _key(ns, "accel", train, unit)
+    return gps.keys(ns, "*")
 
 
 def accel_all(ns: str) -> str:
-    return f"{_key(ns, 'accel')}/**"
-
-
-def index(ns: str, line: str, segment: str) -> str:
-    return _key(ns, "index", line, segment)
-
-
-def trc(ns: str, line: str, segment: str) -> str:
-    return _key(ns, "trc", line, segment)
-
-
-def maintenance(ns: str, line: str, segment: str) -> str:
-    return _key(ns, "maintenance", line, segment)
-
-
-def state(ns: str, line: str, segment: str) -> str:
-    return _key(ns, "state", line, segment)
-
-
-def alert(ns: str, line: str, segment: str) -> str:
-    return _key(ns, "alert", line, segment)
-
-
-SEGMENT_KINDS = ("index", "trc", "maintenance", "state", "alert")  # {ns}/{kind}/{line}/{segment}
+    return accel.keys(ns)
 
 
 def segment_keys(ns: str, kind: str, selector: str = "**") -> str:
@@ -98,84 +141,31 @@ def segment_keys(ns: str, kind: str, selector: str = "**") -> str:
 
     ``selector`` narrows to part of the network, e.g. ``"L1/**"`` for one line.
     """
-    if kind not in SEGMENT_KINDS:
+    if kind not in SEGMENT_KEYS:
         raise ValueError(f"kind: {kind!r} is not a per-segment key kind")
-    return f"{_key(ns, kind)}/{selector}"
-
-
-def calibration(ns: str) -> str:
-    return _key(ns, "model", "calibration")
-
-
-def unit_calibration(ns: str, train: str, unit: str) -> str:
-    """The calibration of one on-board unit (a Calibration with ``train``, ``unit``)."""
-    return _key(ns, "model", "calibration", train, unit)
-
-
-def degradation(ns: str, group: str) -> str:
-    return _key(ns, "model", "degradation", group)
+    return SEGMENT_KEYS[kind].keys(ns, selector)
 
 
 def model_all(ns: str) -> str:
     return f"{_key(ns, 'model')}/**"
 
 
-def deadletter(ns: str, service: str) -> str:
-    return _key(ns, "deadletter", service)
-
-
 def deadletter_all(ns: str) -> str:
-    return f"{_key(ns, 'deadletter')}/**"
-
-
-def alive(ns: str, service: str, instance: str) -> str:
-    return _key(ns, "alive", service, instance)
+    return deadletter.keys(ns)
 
 
 def alive_all(ns: str) -> str:
-    return f"{_key(ns, 'alive')}/**"
-
-
-def q_state(ns: str, line: str, segment: str) -> str:
-    return _key(ns, "q", "state", line, segment)
+    return alive.keys(ns)
 
 
 def q_state_keys(ns: str, selector: str = "**") -> str:
     """Queryable key of the states of part of the network (``selector`` as in
     :func:`segment_keys`, e.g. ``"L1/**"``)."""
-    return f"{_key(ns, 'q', 'state')}/{selector}"
+    return q_state.keys(ns, selector)
 
 
 def q_state_all(ns: str) -> str:
-    return q_state_keys(ns)
-
-
-def q_alerts(ns: str) -> str:
-    return _key(ns, "q", "alerts")
-
-
-def q_plan(ns: str) -> str:
-    return _key(ns, "q", "plan")
-
-
-def maintenance_plan(ns: str) -> str:
-    """The planner's MaintenancePlan, published after every re-plan."""
-    return _key(ns, "plan", "maintenance")
-
-
-def q_maintenance_plan(ns: str) -> str:
-    """The planner's queryable: the MaintenancePlan (``?weeks=N;budget=X`` plans anew)."""
-    return _key(ns, "q", "plan", "maintenance")
-
-
-def stack_health(ns: str) -> str:
-    """``trackfusion up``'s StackHealth report, once a second."""
-    return _key(ns, "health", "stack")
-
-
-def viewer_select(ns: str) -> str:
-    """ViewerSelect: the segment a running viewer pins into its "selected" plots."""
-    return _key(ns, "viewer", "select")
+    return q_state.keys(ns)
 
 
 # --- taking keys apart --------------------------------------------------------------------
@@ -190,41 +180,11 @@ def kind(key: str) -> str:
     return parts[1]
 
 
-def _ids(key: str, head: tuple[str, ...], names: tuple[str, ...]) -> list[str]:
-    """The id chunks of ``{ns}/{head...}/{names...}``; SchemaError for another form."""
-    parts = str(key).split("/")
-    if (
-        len(parts) != 1 + len(head) + len(names)
-        or tuple(parts[1 : 1 + len(head)]) != head
-        or not all(parts)
-    ):
-        form = "/".join(("{ns}", *head, *(f"{{{n}}}" for n in names)))
-        raise SchemaError(f"key: {key!r} is not of the form {form}")
-    return parts[1 + len(head) :]
-
-
-def parse_raw(key: str) -> tuple[str, str]:
-    """``(train, unit)`` of ``{ns}/raw/{train}/{unit}``."""
-    train, unit = _ids(key, ("raw",), ("train", "unit"))
-    return train, unit
-
-
-def parse_gps(key: str) -> str:
-    """``train`` of ``{ns}/gps/{train}``."""
-    return _ids(key, ("gps",), ("train",))[0]
-
-
-def parse_accel(key: str) -> tuple[str, str]:
-    """``(train, unit)`` of ``{ns}/accel/{train}/{unit}``."""
-    train, unit = _ids(key, ("accel",), ("train", "unit"))
-    return train, unit
-
-
 def parse_segment_key(key: str) -> tuple[str, str, str, str]:
     """``(ns, kind, line, segment)`` of ``{ns}/{kind}/{line}/{segment}``, ``kind`` one of
     :data:`SEGMENT_KINDS`."""
     parts = str(key).split("/")
-    if len(parts) != 4 or parts[1] not in SEGMENT_KINDS or not all(parts):
+    if len(parts) != 4 or parts[1] not in SEGMENT_KEYS or not all(parts):
         raise SchemaError(
             f"key: {key!r} is not of the form {{ns}}/{{kind}}/{{line}}/{{segment}} "
             f"with kind one of {', '.join(SEGMENT_KINDS)}"
@@ -242,66 +202,43 @@ def model_kind(key: str) -> str:
     return parts[2]
 
 
-def parse_degradation(key: str) -> str:
-    """``group`` of ``{ns}/model/degradation/{group}``."""
-    return _ids(key, ("model", "degradation"), ("group",))[0]
-
-
-def parse_deadletter(key: str) -> str:
-    """``service`` of ``{ns}/deadletter/{service}``."""
-    return _ids(key, ("deadletter",), ("service",))[0]
-
-
-def parse_alive(key: str) -> tuple[str, str]:
-    """``(service, instance)`` of ``{ns}/alive/{service}/{instance}``."""
-    service, instance = _ids(key, ("alive",), ("service", "instance"))
-    return service, instance
-
-
-def parse_q_state(key: str) -> SegmentId:
-    """``(line, segment)`` of ``{ns}/q/state/{line}/{segment}``."""
-    line, segment = _ids(key, ("q", "state"), ("line", "segment"))
-    return line, segment
-
-
 # --- a message and its key -----------------------------------------------------------------
 
-# Each message type: the fixed chunks of its key after {ns}, and the fields its ids come from.
-_MESSAGE_KEYS: dict[type[Message], tuple[tuple[str, ...], tuple[str, ...]]] = {
-    RawChunk: (("raw",), ("train", "unit")),
-    GpsFix: (("gps",), ("train",)),
-    PositionedChunk: (("accel",), ("train", "unit")),
-    OnboardIndex: (("index",), ("line", "segment")),
-    TrcRecord: (("trc",), ("line", "segment")),
-    MaintenanceEvent: (("maintenance",), ("line", "segment")),
-    Calibration: (("model", "calibration"), ()),
-    DegradationPosterior: (("model", "degradation"), ("group",)),
-    SegmentState: (("state",), ("line", "segment")),
-    Alert: (("alert",), ("line", "segment")),
-    DeadLetter: (("deadletter",), ("service",)),
-    StackHealth: (("health", "stack"), ()),
-    ViewerSelect: (("viewer", "select"), ()),
-    RaisedAlerts: (("q", "alerts"), ()),  # replies of the alerting queryables
-    InspectionPlan: (("q", "plan"), ()),
-    MaintenancePlan: (("plan", "maintenance"), ()),
+# Each message type's key; its id chunks are the message's fields of the same names.
+_MESSAGE_KEYS: dict[type[Message], KeyForm] = {
+    RawChunk: raw,
+    GpsFix: gps,
+    PositionedChunk: accel,
+    OnboardIndex: index,
+    TrcRecord: trc,
+    MaintenanceEvent: maintenance,
+    Calibration: calibration,
+    DegradationPosterior: degradation,
+    SegmentState: state,
+    Alert: alert,
+    DeadLetter: deadletter,
+    StackHealth: stack_health,
+    ViewerSelect: viewer_select,
+    RaisedAlerts: q_alerts,  # replies of the alerting queryables
+    InspectionPlan: q_plan,
+    MaintenancePlan: maintenance_plan,
 }
 _ALSO = {  # also the reply of a queryable
-    SegmentState: (("q", "state"),),
-    MaintenancePlan: (("q", "plan", "maintenance"),),
+    SegmentState: (q_state,),
+    MaintenancePlan: (q_maintenance_plan,),
 }
 
 
-def _key_form(message: Message) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    head, fields = _MESSAGE_KEYS[type(message)]
-    if isinstance(message, Calibration) and message.train:  # a unit's own model
-        fields = ("train", "unit")
-    return head, fields
+def _form_of(message: Message) -> KeyForm:
+    if isinstance(message, Calibration) and message.train:
+        return unit_calibration
+    return _MESSAGE_KEYS[type(message)]
 
 
 def key_of(ns: str, message: Message) -> str:
     """The key ``message`` is published on: its kind and its own ids."""
-    head, fields = _key_form(message)
-    return _key(ns, *head, *(getattr(message, f) for f in fields))
+    form = _form_of(message)
+    return form(ns, *(getattr(message, name) for name in form.ids))
 
 
 def check_key(key: str, message: Message) -> None:
@@ -313,17 +250,17 @@ def check_key(key: str, message: Message) -> None:
     """
     message_type = type(message)
     name = message_type.__name__
-    head, fields = _key_form(message)
+    form = _form_of(message)
     parts = str(key).split("/")
-    for kind_chunks in (head, *_ALSO.get(message_type, ())):
-        if tuple(parts[1 : 1 + len(kind_chunks)]) == kind_chunks:
-            got = parts[1 + len(kind_chunks) :]
-            if len(got) == len(fields):
-                want = [str(getattr(message, f)) for f in fields]
+    for candidate in (form, *_ALSO.get(message_type, ())):
+        head = candidate.head
+        if tuple(parts[1 : 1 + len(head)]) == head:
+            got = parts[1 + len(head) :]
+            if len(got) == len(candidate.ids):
+                want = [str(getattr(message, field)) for field in candidate.ids]
                 if got != want:
                     raise SchemaError(
                         f"{name}: key says {'/'.join(got)}, message says {'/'.join(want)}"
                     )
                 return
-    form = "/".join(("{ns}", *head, *(f"{{{f}}}" for f in fields)))
     raise SchemaError(f"{name}: key {key} is not of the form {form}")

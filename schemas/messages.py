@@ -1,4 +1,5 @@
-"""Every message of the DESIGN key table as a versioned, validated msgspec Struct.
+"""Every message of the key table (docs/architecture.md#key-expressions) as a versioned,
+validated msgspec Struct.
 
 Times are event times in UTC epoch seconds (float64) taken from the data; geometry is in
 millimetres; the state ``mean``/``cov`` are in natural-log space z = [ln Top6_mm, ln Align10_mm].
@@ -17,6 +18,7 @@ from schemas.wire import (
     T_MAX,
     T_MIN,
     NDArray,
+    SchemaError,
     check,
     check_array,
     check_finite,
@@ -32,6 +34,7 @@ ONBOARD_INDICES = ("top6", "align10")  # on-board index order, m = 2
 ACCEL_CHANNELS = ("left_z", "left_y", "left_x", "right_z", "right_y", "right_x")
 SUPPLY_CHANNEL = "supply_v"
 DAY_S = 86_400.0  # seconds per day: degradation maths runs in days, epoch s / DAY_S
+_ALL = list(INDICATORS)  # a message's default ``indicators``: every one
 
 # Plausibility ranges (schemas/README.md, "Limits"): what a sender can be told at once.
 INDEX_MAX_MM = 100.0  # Top6, Align10: (0, 100] mm; intervention limits are ~10 mm
@@ -52,11 +55,15 @@ class Message(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
     """
 
     MAX_BYTES: ClassVar[int] = 4 * KIB  # payload size limit, checked before decoding
+    IDS: ClassVar[tuple[str, ...]] = ()  # the fields that are key chunks, checked first
 
     v: int = SCHEMA_VERSION
 
     def __post_init__(self) -> None:
-        check(self.v == SCHEMA_VERSION, f"v: unknown schema version {self.v}")
+        if self.v != SCHEMA_VERSION:  # the message formatted only when it fails
+            raise SchemaError(f"v: unknown schema version {self.v}")
+        for name in self.IDS:
+            check_id(name, getattr(self, name))
 
 
 def _check_samples(msg: RawChunk | PositionedChunk) -> None:
@@ -92,6 +99,7 @@ class RawChunk(Message, frozen=True, kw_only=True):
 class GpsFix(Message, frozen=True, kw_only=True):
     """One GPS fix of a train, 1 Hz."""
 
+    IDS: ClassVar[tuple[str, ...]] = ("train",)
     train: str
     t: float  # epoch s
     lat_deg: float  # WGS84
@@ -102,7 +110,6 @@ class GpsFix(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_id("train", self.train)
         check_time("t", self.t)
         check_finite("lat_deg", self.lat_deg)
         check_finite("lon_deg", self.lon_deg)
@@ -154,22 +161,36 @@ class PositionedChunk(Message, frozen=True, kw_only=True):
 
 
 class OnboardIndex(Message, frozen=True, kw_only=True):
-    """On-board Top6 and Align10 indices of one train pass over one segment."""
+    """On-board Top6 and Align10 indices of one train pass over one segment: both, or the
+    ``indicators`` listed only (a unit with a vertical sensor only measures Top6)."""
 
     line: str
     segment: str
     train: str
     unit: str
     t: float  # epoch s at which the unit passed the segment's middle
-    top6_mm: float  # > 0
-    align10_mm: float  # > 0
+    top6_mm: float | None = None  # > 0 when "top6" is listed, else None
+    align10_mm: float | None = None  # > 0 when "align10" is listed, else None
     speed_mps: float  # mean speed over the segment
     coverage: float  # fraction of the segment's length with valid samples, [0, 1]
     quality: float = 1.0  # [0, 1], position and sensor health
     run_id: str = ""  # a TRC run id when the unit rode the TRC (calibration campaign)
+    indicators: list[str] = msgspec.field(default_factory=lambda: list(INDICATORS))
+
+    @property
+    def values_mm(self) -> tuple[float | None, ...]:
+        """The indices in state order (:data:`INDICATORS`), None for one not measured."""
+        return (self.top6_mm, self.align10_mm)
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        if self.top6_mm is None or self.align10_mm is None or self.indicators != _ALL:
+            _check_measured(self)  # some indicators only: the values that are given
+            standing_in = [1.0 if v is None else v for v in self.values_mm]  # checked above
+            return self._check_fields(*standing_in)
+        self._check_fields(self.top6_mm, self.align10_mm)
+
+    def _check_fields(self, top6_mm: float, align10_mm: float) -> None:
         known = _VALID_IDS  # check_id's, inline: every index repeats ids that passed
         if not (
             self.line in known
@@ -183,16 +204,16 @@ class OnboardIndex(Message, frozen=True, kw_only=True):
             check_id("run_id", self.run_id)
         if (  # every number in range (so finite: NaN fails every comparison): done
             T_MIN <= self.t < T_MAX
-            and 0.0 < self.top6_mm <= INDEX_MAX_MM
-            and 0.0 < self.align10_mm <= INDEX_MAX_MM
+            and 0.0 < top6_mm <= INDEX_MAX_MM
+            and 0.0 < align10_mm <= INDEX_MAX_MM
             and 0.0 <= self.speed_mps <= SPEED_MAX_MPS
             and 0.0 <= self.coverage <= 1.0
             and 0.0 <= self.quality <= 1.0
         ):
             return
         check_time("t", self.t)  # which one is not, and why
-        _check_index("top6_mm", self.top6_mm)
-        _check_index("align10_mm", self.align10_mm)
+        _check_index("top6_mm", top6_mm)
+        _check_index("align10_mm", align10_mm)
         check_range("speed_mps", self.speed_mps, 0.0, SPEED_MAX_MPS)
         for name in ("coverage", "quality"):
             check_range(name, getattr(self, name), 0.0, 1.0)
@@ -210,27 +231,53 @@ def _check_model_time(name: str, value: float) -> None:
 
 
 class TrcRecord(Message, frozen=True, kw_only=True):
-    """A Track Recording Car's measurement of one segment on one run."""
+    """A Track Recording Car's measurement of one segment on one run: of every indicator,
+    or of the ``indicators`` listed only (a car that records longitudinal level and not
+    alignment). Exactly the listed indicators have a value."""
 
+    IDS: ClassVar[tuple[str, ...]] = ("line", "segment", "run_id")
     line: str
     segment: str
     t: float  # epoch s
-    top6_mm: float  # > 0
-    align10_mm: float  # > 0
+    top6_mm: float | None = None  # > 0 when "top6" is listed, else None
+    align10_mm: float | None = None  # > 0 when "align10" is listed, else None
     run_id: str
+    indicators: list[str] = msgspec.field(default_factory=lambda: list(INDICATORS))
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("line", "segment", "run_id"):
-            check_id(name, getattr(self, name))
         check_time("t", self.t)
-        _check_index("top6_mm", self.top6_mm)
-        _check_index("align10_mm", self.align10_mm)
+        _check_measured(self)
+
+    @property
+    def values_mm(self) -> tuple[float | None, ...]:
+        """The values in state order (:data:`INDICATORS`), None for an indicator not measured."""
+        return (self.top6_mm, self.align10_mm)
+
+
+def _check_measured(msg: TrcRecord | OnboardIndex) -> None:
+    """Exactly the ``indicators`` listed have a value, each in range."""
+    _check_indicators(msg.indicators)
+    for name, value in zip(INDICATORS, msg.values_mm, strict=True):
+        if name in msg.indicators:
+            check(value is not None, f"{name}_mm: missing, and {name} is in indicators")
+            _check_index(f"{name}_mm", value)
+        else:
+            check(value is None, f"{name}_mm: given, and {name} is not in indicators")
+
+
+def _check_indicators(indicators: list[str]) -> None:
+    """A non-empty list of state indicators in state order, each once."""
+    check(
+        bool(indicators) and indicators == [i for i in INDICATORS if i in indicators],
+        f"indicators: {indicators!r} is not a non-empty list of {list(INDICATORS)} in that order",
+    )
 
 
 class MaintenanceEvent(Message, frozen=True, kw_only=True):
     """Tamping of a segment at a known time (t_start == t_end) or within an interval."""
 
+    IDS: ClassVar[tuple[str, ...]] = ("line", "segment", "event_id")
     line: str
     segment: str
     event_id: str
@@ -242,8 +289,6 @@ class MaintenanceEvent(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("line", "segment", "event_id"):
-            check_id(name, getattr(self, name))
         check_time("t_start", self.t_start)
         check_time("t_end", self.t_end)
         check_int("revision", self.revision)
@@ -299,6 +344,7 @@ class DegradationPosterior(Message, frozen=True, kw_only=True):
 
     # Ns = 1000 samples of n = 2 indicators are 96 kB: room for Ns = 5000, or n = 5 at 1000
     MAX_BYTES: ClassVar[int] = 512 * KIB
+    IDS: ClassVar[tuple[str, ...]] = ("group",)
     group: str  # e.g. "class-fast", "line-L1", "L1.s0042"
     version: int
     t: float  # event time of the newest TRC record used
@@ -312,7 +358,6 @@ class DegradationPosterior(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_id("group", self.group)
         check_int("version", self.version, 1, INT_MAX)
         _check_model_time("t", self.t)
         check_int("n_increments", self.n_increments)
@@ -354,6 +399,9 @@ class SegmentState(Message, frozen=True, kw_only=True):
     calibration_version: int = 0
     posterior_version: int = 0
     posterior_group: str = ""  # the DegradationPosterior group in use
+    # the indicators the last TRC record measured (the others evolved from their own state);
+    # empty before any TRC record
+    last_trc_indicators: list[str] = []
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -390,12 +438,15 @@ class SegmentState(Message, frozen=True, kw_only=True):
         check_int("n_updates", self.n_updates)
         check_int("calibration_version", self.calibration_version)
         check_int("posterior_version", self.posterior_version)
+        if self.last_trc_indicators:
+            _check_indicators(self.last_trc_indicators)
 
 
 class Alert(Message, frozen=True, kw_only=True):
     """An alert raised or cleared for one segment."""
 
     MAX_BYTES: ClassVar[int] = 16 * KIB
+    IDS: ClassVar[tuple[str, ...]] = ("line", "segment")
     line: str
     segment: str
     t: float  # event time
@@ -411,8 +462,6 @@ class Alert(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_id("line", self.line)
-        check_id("segment", self.segment)
         check_time("t", self.t)
         check_range("probability", self.probability, 0.0, 1.0)
         check_range("horizon_days", self.horizon_days, 0.0, HORIZON_MAX_DAYS)
@@ -422,6 +471,7 @@ class DeadLetter(Message, frozen=True, kw_only=True):
     """A rejected payload: where it came from and why it was refused."""
 
     MAX_BYTES: ClassVar[int] = 64 * KIB
+    IDS: ClassVar[tuple[str, ...]] = ("service",)
     service: str
     key: str
     reason: str
@@ -430,7 +480,6 @@ class DeadLetter(Message, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_id("service", self.service)
         check(bool(self.reason), "reason: must not be empty")
         check_finite("received_at", self.received_at)
 
@@ -472,13 +521,9 @@ class StackHealth(Message, frozen=True, kw_only=True):
 class ViewerSelect(Message, frozen=True, kw_only=True):
     """Pin one segment into the viewer's "selected segment" plots."""
 
+    IDS: ClassVar[tuple[str, ...]] = ("line", "segment")
     line: str
     segment: str
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_id("line", self.line)
-        check_id("segment", self.segment)
 
 
 class RaisedAlerts(Message, frozen=True, kw_only=True):

@@ -88,7 +88,7 @@ def check_id(name: str, value: str) -> None:
     control characters, no leading `@` (Zenoh's verbatim chunks, never delivered to ``**``).
 
     An id that passed once passes again without the checks (every event repeats its line,
-    segment, train and unit ids; the checks were a fifth of a backlog's decode)."""
+    segment, train and unit ids; checking them each time is a large share of a backlog's decode)."""
     if value in _VALID_IDS:
         return
     if not value:
@@ -176,7 +176,7 @@ def unchecked_copy(message: T, **changes: Any) -> T:
     Only for a producer of many messages of one shape that checks them otherwise: a copy of
     a message that was checked, whose array fields keep their dtype and shape and whose new
     values the producer checked as the message would (the filter's summaries:
-    :func:`services.filtering.tracker.summarize_states`). Anything else builds its
+    :func:`services.filtering.summary.summarize_states`). Anything else builds its
     messages the checked way.
     """
     out = message.__copy__()  # type: ignore[attr-defined]
@@ -236,8 +236,8 @@ def _shallow(buf: bytes, limit: int) -> bool:
 
 def decode_many(payloads: Sequence[bytes], message_type: type[T]) -> list[T] | None:
     """:func:`decode` of every payload, each as ``message_type``, with the same checks,
-    in one call (a backlog decodes thousands: the per-payload calls were a tenth of its
-    time); None if any of them would raise (:func:`decode` of each then says which and
+    in one call (a backlog decodes thousands: one call per payload is a noticeable share of
+    its time); None if any of them would raise (:func:`decode` of each then says which and
     why). Plain ``bytes`` only."""
     limit = getattr(message_type, "MAX_BYTES", None)
     decoder = _decoder(message_type)

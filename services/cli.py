@@ -70,7 +70,7 @@ COMMANDS = (
             "maintenance`: the tamping plan",
             "services.tools.operator:plan_"),
     Command("import-trc", "publish a TRC export (CSV: line,segment,t,top6_mm,align10_mm,run_id)",
-            "services.tools.operator:import_trc_"),
+            "services.tools.trc_import"),
     Command("export", "export states or raised alerts as CSV or GeoJSON",
             "services.tools.operator:export_"),
     Command("report", "a self-contained HTML report for maintenance planners",

@@ -10,10 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import json5
 import numpy as np
 
 from services.defaults import default_file
+from services.runtime.config import read_json5
 
 DEFAULT_LIMITS_FILE = default_file("limits.json5")
 
@@ -36,8 +36,8 @@ class Limits:
 
 def load_limits(path: str | Path = DEFAULT_LIMITS_FILE) -> Limits:
     """Read and check a limits file; ValueError says what to fix."""
+    raw = read_json5(path)
     try:
-        raw = json5.loads(Path(path).read_text())
         levels = tuple(raw["levels"])
         classes = {
             name: np.array([values[level] for level in levels], dtype=float)
@@ -61,8 +61,9 @@ def load_limits(path: str | Path = DEFAULT_LIMITS_FILE) -> Limits:
 def load_immediate_action(path: str | Path, limits: Limits) -> dict[str, np.ndarray]:
     """The ``immediate_action`` limits (mm, one per indicator) of every speed class of a
     limits file, each at or above the class's highest level; ValueError says what to fix."""
+    raw = read_json5(path)
     try:
-        raw = json5.loads(Path(path).read_text())["immediate_action"]
+        raw = raw["immediate_action"]
         table = {name: np.asarray(raw[name], dtype=float) for name in limits.speed_classes}
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ValueError(

@@ -47,7 +47,7 @@ def plain_map(message: msgspec.Struct) -> dict:
 
 
 def key_and_payload(ns: str, message: Message) -> tuple[str, bytes]:
-    """The DESIGN key of a simulated message and its MessagePack bytes."""
+    """The wire key of a simulated message and its MessagePack bytes."""
     match message:
         case RawChunk():
             return keys.raw(ns, message.train, message.unit), msgpack.packb(plain_map(message))

@@ -12,14 +12,14 @@ from datetime import datetime
 from pathlib import Path
 
 from schemas import DAY_S
-from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
-from services.runtime.service import configure_logging
+from services.defaults import add_network_argument, load_network
+from services.runtime.config import RuntimeConfig, add_zenoh_arguments, flag_values
+from services.runtime.service import run_command
 from simulators.gateway import publish
 from simulators.groundtruth import GroundTruthWriter
 from simulators.network import generate_network
 from simulators.truth import load_config
 from simulators.world import WorldSpec, message_count, world_events
-from track.network import load_network
 
 log = logging.getLogger(__name__)
 DEFAULT_START = "2026-01-01T00:00:00+00:00"
@@ -138,7 +138,7 @@ def simulate_add_arguments(parser: argparse.ArgumentParser) -> None:
         "Run the fleet simulator on a network and publish its gateways' raw data "
         "(--fidelity raw) or on-board indices (--fidelity index), TRC records and tamping."
     )
-    parser.add_argument("--network", metavar="FILE.geojson", help="network (default: the demo)")
+    add_network_argument(parser, "the lines the trains run on")
     parser.add_argument(
         "--trains", type=int, default=6, help="raw: trains; index: passes per line per day"
     )
@@ -172,27 +172,24 @@ def simulate_add_arguments(parser: argparse.ArgumentParser) -> None:
     add_zenoh_arguments(parser)
 
 
+# The flags of `trackfusion simulate` named after main_simulate's keywords.
+SIMULATE_FLAGS = ("trains", "days", "speedup", "fidelity", "seed", "units", "from_day", "to_day")
+
+
 def simulate_run(args: argparse.Namespace) -> int:
-    configure_logging(args.log_level)
     try:
         start_t = datetime.fromisoformat(args.start).timestamp()
     except ValueError:
         raise ValueError(f"--start {args.start!r}: not an ISO date, e.g. 2026-01-01") from None
-    return main_simulate(
-        config_from_args(args),
+    return run_command(
+        args,
+        main_simulate,
+        **flag_values(args, SIMULATE_FLAGS),
         network_path=args.network,
-        trains=args.trains,
-        days=args.days,
-        speedup=args.speedup,
-        fidelity=args.fidelity,
-        seed=args.seed,
         start_t=start_t,
         truth_path=args.truth,
         config_path=args.sim_config,
-        units=args.units,
         progress=not args.no_progress and sys.stderr.isatty(),
-        from_day=args.from_day,
-        to_day=args.to_day,
         linger_s=args.linger,
     )
 
@@ -207,10 +204,5 @@ def network_generate_add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def network_generate_run(args: argparse.Namespace) -> int:
-    return main_network_generate(
-        lines=args.lines,
-        length_km=args.length_km,
-        seed=args.seed,
-        segment_length_m=args.segment_m,
-        out=args.out,
-    )
+    flags = flag_values(args, ("lines", "length_km", "seed", "out"))
+    return main_network_generate(**flags, segment_length_m=args.segment_m)

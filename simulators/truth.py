@@ -52,11 +52,11 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-import json5
 import numpy as np
 
 from schemas import DAY_S, MaintenanceEvent
 from services.defaults import default_file
+from services.runtime.config import read_json5
 from simulators.network import stable_rng
 from track.network import Network
 
@@ -65,7 +65,7 @@ DEFAULT_CONFIG = default_file("simulator.json5")
 
 def load_config(path: str | Path | None = None) -> dict:
     """The simulator config (JSON5) as a dict; every module parses its own section."""
-    return json5.loads(Path(path or DEFAULT_CONFIG).read_text())
+    return read_json5(path or DEFAULT_CONFIG)
 
 
 def _cov(sd, corr: float, name: str) -> np.ndarray:

@@ -6,7 +6,7 @@ started, so Chromium runs with ``--remote-debugging-pipe`` (fd 3 in, fd 4 out, N
 JSON; stdlib only): navigate, wait until the page's ``window._handle`` exists (the viewer's
 "app started" hook), then screenshot until the map's exceedance colours are on it.
 Rendering is WebGL on SwiftShader (``renderer=webgl`` is appended to the URL);
-services/viewer/README.md has what was tried. Used by tests/e2e/test_viewer_browser.py and
+services/viewer/README.md, "Headless browser check". Used by tests/e2e/test_viewer_browser.py and
 ``python -m bench.viewer_soak``; ``python tests/browser.py URL OUT.png`` times one opening.
 """
 

@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 import zenoh
 from linkproxy import LinkProxy
-from support import TIMEOUT_S, Process, ServiceThread, cli
+from support import TIMEOUT_S, Process, ServiceThread, cli, closed_at_exit
 
 from services.runtime.config import RuntimeConfig, reserve_rx_threads, zenoh_config
 
@@ -82,18 +82,12 @@ def router(free_port: int) -> Iterator[str]:
 @pytest.fixture
 def open_session(router: str) -> Iterator[Callable[..., zenoh.Session]]:
     """``open_session(mode="client")``: a session connected to ``router``, closed at teardown."""
-    sessions: list[zenoh.Session] = []
 
     def open_(mode: str = "client") -> zenoh.Session:
-        session = zenoh.open(zenoh_config({"mode": mode, "connect": {"endpoints": [router]}}))
-        sessions.append(session)
-        return session
+        return zenoh.open(zenoh_config({"mode": mode, "connect": {"endpoints": [router]}}))
 
-    try:
-        yield open_
-    finally:
-        for session in reversed(sessions):
-            session.close()
+    with closed_at_exit(open_) as opened:
+        yield opened
 
 
 @pytest.fixture

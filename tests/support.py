@@ -16,8 +16,9 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 TIMEOUT_S = 5.0  # upper bound of a wait in-process; tests normally go on in milliseconds
 STOP_S = 10.0  # a stopped service thread must have returned within this
@@ -232,3 +233,21 @@ class ServiceThread:
             error, self._error = self._error, None
             raise error
         return self.exit_code
+
+
+@contextlib.contextmanager
+def closed_at_exit(open_: Callable[..., Any]) -> Iterator[Callable[..., Any]]:
+    """``open_`` whose sessions (anything with ``close()``) are all closed, newest first,
+    when the block ends."""
+    sessions: list[Any] = []
+
+    def opened(*args, **kwargs) -> Any:
+        session = open_(*args, **kwargs)
+        sessions.append(session)
+        return session
+
+    try:
+        yield opened
+    finally:
+        for session in reversed(sessions):
+            session.close()

@@ -29,10 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.defaults import default_file
-
 EARTH_RADIUS_M = 6_371_008.8  # mean radius (IUGG)
-DEMO_NETWORK = default_file("demo-network.geojson")
 _ID_FORBIDDEN = set("/*$?# ")
 RUNNING = ("increasing", "decreasing", "both")  # Line.running: normal direction of chainage
 
@@ -414,19 +411,3 @@ def _feature(lonlat: np.ndarray, props: dict) -> dict:
         "geometry": {"type": "LineString", "coordinates": lonlat.tolist()},
         "properties": props,
     }
-
-
-def demo_network(segment_length_m: float | None = None) -> Network:
-    """The demo network of ``services/defaults/demo-network.geojson`` (3 lines, ~60 km,
-    Brisbane)."""
-    return Network.from_geojson(DEMO_NETWORK, segment_length_m)
-
-
-def load_network(path: str | None, segment_length_m: float | None = None) -> Network:
-    """The demo network, or a GeoJSON file; ValueError saying what to fix when it is bad."""
-    if path is None:
-        return demo_network(segment_length_m)
-    try:
-        return Network.from_geojson(Path(path), segment_length_m=segment_length_m)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"--network {path}: {exc}") from None

@@ -1,10 +1,7 @@
 """A network from an OpenStreetMap railway extract: ways joined into running lines.
 
-Input is what the usual tools export (``osmium export``, ``ogr2ogr``, overpass-turbo's
-GeoJSON, or Overpass JSON with ``out geom``): ways as LineStrings with their tags, and
-station points. Tags may be flat in ``properties``, nested under ``properties.tags``, or in
-ogr2ogr's ``other_tags`` string; the OSM id comes from ``@id``/``id`` (``"way/123"``,
-``"w123"`` or a number, with ``@type``).
+Input is what the usual tools export, read by :mod:`track.osm_read`: ways with their tags,
+and station points.
 
 The rules, in order:
 
@@ -26,8 +23,13 @@ The rules, in order:
 4. **Too short.** A joined line shorter than ``min_length_m`` (100 m) is dropped.
 5. **Ids.** ``slug(ref or name)``, then ``-t{track_ref}`` if tagged, then ``-2``, ``-3``
    ... for further lines with the same id; ``way{n}`` when the way has neither ref nor
-   name. Ids are safe key chunks and, for the same input, the same. The human name is kept
-   as the line's ``name`` (the ``name`` of most of its length).
+   name. Ids are safe key chunks and, for the same input, the same.
+   **Names** (the line's ``name``, what the viewer, the report and the CLI show) are the
+   operators' (:func:`line_name`): the name (else ref) of the ``route=railway`` relation
+   of most of the line's length, else its ways' ``name``, else a ``route=train``
+   relation's (a service, which may run over several lines), else the ways' ``ref``, else
+   the first and last station along it ("Sanremo – Albenga"); then ", track
+   {railway:track_ref}" when tagged.
 6. **Tunnels and bridges.** The chainage ranges of ways with ``tunnel`` (``bridge``) other
    than ``no``, merged where they touch: tunnels are GNSS outages; bridges are a property.
 7. **Stations.** Points with ``railway=station|halt|stop``, or ``public_transport=
@@ -73,6 +75,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from track.network import Line, Network, lonlat_to_xy
+from track.osm_read import OsmPoint, OsmWay, read_osm
 
 MIN_LENGTH_M = 100.0  # a joined line shorter than this is dropped
 STATION_SNAP_M = 150.0  # a station this far from every line is dropped
@@ -88,25 +91,6 @@ COORD_DIGITS = 7  # end nodes with coordinates equal at this many decimals are o
 KMH = 1 / 3.6
 MPH = 1609.344 / 3600
 KNOT = 1852 / 3600
-
-
-@dataclass(frozen=True)
-class OsmWay:
-    """One way: its id (``"way/123"``), vertices (lon, lat), end node ids if known, tags."""
-
-    id: str
-    lonlat: np.ndarray  # (k, 2) degrees
-    tags: Mapping[str, str]
-    end_nodes: tuple[str, str] | None = None
-
-
-@dataclass(frozen=True)
-class OsmPoint:
-    """One node: its id, position (lon, lat) and tags."""
-
-    id: str
-    lonlat: tuple[float, float]
-    tags: Mapping[str, str]
 
 
 @dataclass
@@ -165,136 +149,6 @@ class ImportReport:
                 out.append(f"  {len(ids):5d}  {reason}: {' '.join(ids[:max_ids])}{more}")
         out += [f"warning: {w}" for w in self.warnings]
         return "\n".join(out)
-
-
-# --- reading ------------------------------------------------------------------------------
-
-_OTHER_TAGS = re.compile(r'"((?:[^"\\]|\\.)*)"=>"((?:[^"\\]|\\.)*)"')
-
-
-def _tags(props: Mapping) -> dict[str, str]:
-    """Tags of a feature's properties: flat, nested under ``tags``, or ogr2ogr's
-    ``other_tags`` hstore string."""
-    tags = {
-        str(k): str(v)
-        for k, v in props.items()
-        if v is not None and not isinstance(v, Mapping | list) and not str(k).startswith("@")
-    }
-    nested = props.get("tags")
-    if isinstance(nested, Mapping):
-        tags |= {str(k): str(v) for k, v in nested.items() if v is not None}
-    other = props.get("other_tags")
-    if isinstance(other, str):
-        tags.pop("other_tags", None)
-        tags |= {k: v for k, v in _OTHER_TAGS.findall(other)}
-    return tags
-
-
-def _osm_id(feature: Mapping, props: Mapping, kind: str, n: int) -> str:
-    """``way/123`` from ``@id``/``id``/``osm_id`` as ``way/123``, ``w123`` or ``123``."""
-    if props.get("@type") in ("node", "way", "relation"):  # osmium export -a type,id
-        kind = props["@type"]
-    for raw in (props.get("@id"), props.get("id"), props.get("osm_id"), feature.get("id")):
-        if raw is None or raw == "":
-            continue
-        text = str(raw)
-        if "/" in text:
-            return text
-        if text[:1] in "wnr" and text[1:].lstrip("-").isdigit():
-            return {"w": "way", "n": "node", "r": "relation"}[text[0]] + "/" + text[1:]
-        return f"{kind}/{text}"
-    return f"feature{n}"
-
-
-def _coords(where: str, raw) -> np.ndarray:
-    try:
-        ll = np.asarray(raw, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{where}: coordinates must be a list of [lon, lat] numbers") from None
-    if ll.ndim != 2 or ll.shape[1] < 2 or not np.isfinite(ll).all():
-        raise ValueError(f"{where}: coordinates must be a list of finite [lon, lat] pairs")
-    ll = ll[:, :2]
-    if (np.abs(ll[:, 0]) > 180).any() or (np.abs(ll[:, 1]) > 90).any():
-        raise ValueError(f"{where}: coordinates must be [lon, lat] in degrees")
-    return ll
-
-
-def read_osm(obj) -> tuple[list[OsmWay], list[OsmPoint], list[tuple[str, str]]]:
-    """Ways and points of a parsed GeoJSON FeatureCollection or Overpass JSON document.
-
-    Returns the ways, the points and the features that are neither (``(reason, id)``:
-    areas, relations, points without tags). ValueError naming the feature when one is
-    malformed.
-    """
-    if isinstance(obj, Mapping) and isinstance(obj.get("elements"), list):
-        return _read_overpass(obj["elements"])
-    if not isinstance(obj, Mapping) or obj.get("type") != "FeatureCollection":
-        raise ValueError(
-            "expected a GeoJSON FeatureCollection (osmium export, ogr2ogr, overpass-turbo) "
-            'or Overpass JSON ({"elements": [...]})'
-        )
-    features = obj.get("features")
-    if not isinstance(features, list):
-        raise ValueError('"features" must be a list of Feature objects')
-    ways, points, other = [], [], []
-    for n, f in enumerate(features):
-        if not isinstance(f, Mapping) or f.get("type") != "Feature":
-            raise ValueError(f'feature {n}: must be an object with "type": "Feature"')
-        props = f.get("properties") or {}
-        if not isinstance(props, Mapping):
-            raise ValueError(f"feature {n}: properties must be an object")
-        geom = f.get("geometry")
-        gtype = geom.get("type") if isinstance(geom, Mapping) else None
-        osm_id = _osm_id(f, props, "node" if gtype == "Point" else "way", n)
-        where = f"feature {n} ({osm_id})"
-        tags = _tags(props)
-        if gtype == "LineString":
-            ways.append(OsmWay(osm_id, _coords(where, geom.get("coordinates")), tags))
-        elif gtype == "MultiLineString":
-            parts = geom.get("coordinates")
-            if not isinstance(parts, list):
-                raise ValueError(f"{where}: MultiLineString coordinates must be a list")
-            for k, part in enumerate(parts):
-                ways.append(OsmWay(f"{osm_id}#{k}", _coords(where, part), tags))
-        elif gtype == "Point":
-            ll = _coords(where, [geom.get("coordinates")])[0]
-            points.append(OsmPoint(osm_id, (float(ll[0]), float(ll[1])), tags))
-        elif gtype is None:
-            raise ValueError(f"{where}: has no geometry object with a type")
-        else:
-            other.append((f"geometry {gtype}", osm_id))
-    return ways, points, other
-
-
-def _read_overpass(elements: list) -> tuple[list[OsmWay], list[OsmPoint], list[tuple[str, str]]]:
-    ways, points, other = [], [], []
-    for n, e in enumerate(elements):
-        if not isinstance(e, Mapping) or "type" not in e:
-            raise ValueError(f'element {n}: must be an object with a "type"')
-        osm_id = f"{e['type']}/{e.get('id', n)}"
-        where = f"element {n} ({osm_id})"
-        tags = {str(k): str(v) for k, v in (e.get("tags") or {}).items()}
-        if e["type"] == "way":
-            geometry = e.get("geometry")
-            if not isinstance(geometry, list):
-                raise ValueError(f'{where}: needs "geometry" (query with "out geom;")')
-            try:
-                ll = [[float(p["lon"]), float(p["lat"])] for p in geometry]
-            except (TypeError, KeyError, ValueError):
-                raise ValueError(f"{where}: geometry must be a list of {{lat, lon}}") from None
-            nodes = e.get("nodes")
-            ends = (str(nodes[0]), str(nodes[-1])) if isinstance(nodes, list) and nodes else None
-            ways.append(OsmWay(osm_id, _coords(where, ll), tags, ends))
-        elif e["type"] == "node":
-            if tags:  # untagged nodes are a way's vertices (out body; >; out skel;)
-                try:
-                    ll = _coords(where, [[float(e["lon"]), float(e["lat"])]])[0]
-                except (KeyError, TypeError, ValueError):
-                    raise ValueError(f"{where}: a node needs numbers lat and lon") from None
-                points.append(OsmPoint(osm_id, (float(ll[0]), float(ll[1])), tags))
-        else:
-            other.append((f"element {e['type']}", osm_id))
-    return ways, points, other
 
 
 # --- tags ---------------------------------------------------------------------------------
@@ -501,6 +355,64 @@ def import_osm(
     report.ways_read, report.points_read = len(ways), len(points)
     for reason, osm_id in other:
         report.drop(reason, osm_id)
+    chains = join_ways(_railway_ways(ways, keep_service, railway_values, report))
+    if not chains:
+        kept_text = "|".join(railway_values)
+        raise ValueError(
+            f"no railway={kept_text} way to make a line of (is it an OSM railway export?)"
+        )
+    origin = _origin(chains, report)
+    made = _named_chains(chains, origin, min_length_m, report)
+    probes = {m[0]: Line(m[0], m[2], origin, segment_length_m=segment_length_m) for m in made}
+    on_line = _snap_stations(points, probes, origin, station_snap_m, report)
+    route_of_line, running_of_line = _routes(made, probes, running)
+    lines, extra = {}, {}
+    for line_id, chain, ll, bounds in sorted(made, key=lambda m: m[0]):
+        line, extra[line_id], known = _line(
+            line_id,
+            chain,
+            ll,
+            bounds,
+            probes[line_id].length_m,
+            _stations(on_line[line_id], station_snap_m, probes[line_id].length_m),
+            default_speed_mps,
+            origin_lonlat=origin,
+            segment_length_m=segment_length_m,
+            route=route_of_line.get(line_id, ""),
+            running=running_of_line.get(line_id, "both"),
+        )
+        lines[line_id] = line
+        ways_of_line = [w.id for w, _ in chain.pieces]
+        report.lines.append(
+            ImportedLine(
+                line_id,
+                line.name,
+                ways_of_line,
+                line.length_m,
+                len(line.segments),
+                len(line.tunnels),
+                len(line.stations),
+                line.line_speed_mps,
+                known,
+            )
+        )
+        if not known:
+            report.warnings.append(
+                f"line {line_id}: no maxspeed on any of its ways; "
+                f"{default_speed_mps * 3.6:.0f} km/h assumed"
+            )
+    if not lines:
+        raise ValueError(
+            f"no line of at least {min_length_m:g} m could be joined from the railway=rail ways"
+        )
+    report.warnings += close_tracks_warnings(lines)
+    return Network(lines, segment_length_m, origin), extra, report
+
+
+def _railway_ways(
+    ways: list[OsmWay], keep_service: bool, railway_values, report: ImportReport
+) -> list[OsmWay]:
+    """The ways lines are made of; the others dropped into ``report`` with the reason."""
     kept = []
     for w in ways:
         reason = _why_dropped(w.tags, keep_service, railway_values)
@@ -510,12 +422,12 @@ def import_osm(
             report.drop(reason, w.id)
         else:
             kept.append(w)
-    chains = join_ways(kept)
-    if not chains:
-        kept_text = "|".join(railway_values)
-        raise ValueError(
-            f"no railway={kept_text} way to make a line of (is it an OSM railway export?)"
-        )
+    return kept
+
+
+def _origin(chains: list[_Chain], report: ImportReport) -> tuple[float, float]:
+    """The centre of the extract, the network's origin; a warning when the extract reaches
+    farther from it than the local metric plane is good for."""
     all_ll = np.concatenate([c.lonlat() for c in chains])
     origin = tuple(0.5 * (all_ll.min(axis=0) + all_ll.max(axis=0)))
     reach_m = float(np.hypot(*lonlat_to_xy(all_ll, origin).T).max())
@@ -525,18 +437,24 @@ def import_osm(
             f"metric plane is good within about {PLANE_RADIUS_M / 1e3:.0f} km of it (track/"
             f"network.py): distances farther out are off; import a smaller region"
         )
+    return origin
 
-    made: list[tuple[str, _Chain, np.ndarray, np.ndarray]] = []  # id, chain, lonlat, way ends
+
+def _named_chains(
+    chains: list[_Chain], origin, min_length_m: float, report: ImportReport
+) -> list[tuple[str, _Chain, np.ndarray, np.ndarray]]:
+    """``(line id, chain, lon/lat, chainage of its ways' ends)`` of every chain long enough
+    to be a line; ids from the chain's name or ref (and track ref), unique."""
+    made = []
     taken: set[str] = set()
     for chain in sorted(chains, key=lambda c: (c.key, c.pieces[0][0].id)):
         ll = chain.lonlat()
         xy = lonlat_to_xy(ll, origin)
         length = float(np.hypot(*np.diff(xy, axis=0).T).sum())
-        ids = [w.id for w, _ in chain.pieces]
         if length < min_length_m or length == 0:
             short = f"shorter than {min_length_m:g} m after joining" if length else "zero length"
-            for i in ids:
-                report.drop(short, i)
+            for w, _ in chain.pieces:
+                report.drop(short, w.id)
             continue
         name_or_ref, track_ref = chain.key
         base = slug(name_or_ref) or "way" + re.sub(r"\D", "", chain.pieces[0][0].id)
@@ -552,8 +470,14 @@ def import_osm(
             for w, _ in chain.pieces
         ]
         made.append((line_id, chain, ll, np.r_[0.0, np.cumsum(way_lengths)]))
+    return made
 
-    lines, extra = {}, {}
+
+def _snap_stations(
+    points: list[OsmPoint], probes: Mapping[str, Line], origin, snap_m: float, report
+) -> dict[str, list[tuple[float, OsmPoint]]]:
+    """The stations within ``snap_m`` of each line, ``(chainage, point)`` by line id; the
+    other points dropped into ``report``."""
     station_points = []
     for p in points:
         reason = _station_reason(p.tags)
@@ -561,25 +485,30 @@ def import_osm(
             station_points.append(p)
         else:
             report.drop(reason, p.id)
-    snapped: dict[str, list[tuple[float, str, OsmPoint]]] = defaultdict(list)
-    probes = {m[0]: Line(m[0], m[2], origin, segment_length_m=segment_length_m) for m in made}
+    on_line: dict[str, list[tuple[float, OsmPoint]]] = defaultdict(list)
+    snapped: set[str] = set()
     station_xy = lonlat_to_xy(np.array([p.lonlat for p in station_points]).reshape(-1, 2), origin)
     for line_id, probe in probes.items():
-        lo, hi = probe.xy.min(axis=0) - station_snap_m, probe.xy.max(axis=0) + station_snap_m
+        lo, hi = probe.xy.min(axis=0) - snap_m, probe.xy.max(axis=0) + snap_m
         near = np.flatnonzero(((station_xy >= lo) & (station_xy <= hi)).all(axis=1))
         if not len(near):
             continue
         chainage, lateral = probe.project(station_xy[near])
         for k, c, off in zip(near, chainage, lateral, strict=True):
-            if abs(float(off)) <= station_snap_m:
-                snapped[station_points[k].id].append((float(c), line_id, station_points[k]))
-    on_line: dict[str, list[tuple[float, OsmPoint]]] = defaultdict(list)
-    for hits in snapped.values():
-        for c, line_id, p in hits:
-            on_line[line_id].append((c, p))
+            if abs(float(off)) <= snap_m:
+                on_line[line_id].append((float(c), station_points[k]))
+                snapped.add(station_points[k].id)
     for p in station_points:
-        if not snapped[p.id]:
-            report.drop(f"station farther than {station_snap_m:g} m from every line", p.id)
+        if p.id not in snapped:
+            report.drop(f"station farther than {snap_m:g} m from every line", p.id)
+    return on_line
+
+
+def _routes(
+    made, probes: Mapping[str, Line], running: str | None
+) -> tuple[dict[str, str], dict[str, str]]:
+    """The route of each line that shares its name with another, and the ``running`` of the
+    two tracks of a route drawn side by side (with ``running``, the side trains keep to)."""
     by_route: dict[tuple[str, str], list[str]] = defaultdict(list)
     for line_id, chain, _, _ in made:
         by_route[chain.key[0], slug(chain.key[0]) or line_id].append(line_id)
@@ -593,73 +522,89 @@ def import_osm(
             pair = running_of_pair(probes[ids[0]], probes[ids[1]], running)
             if pair is not None:
                 running_of_line |= dict(zip(ids, pair, strict=True))
-    for line_id, chain, ll, bounds in sorted(made, key=lambda m: m[0]):
-        first = chain.pieces[0][0]
-        pieces = list(zip(chain.pieces, bounds[:-1], bounds[1:], strict=True))
-        # scale the ways' chainages to the line's (the same projection: equal up to rounding)
-        probe_len = probes[line_id].length_m
-        scale = probe_len / bounds[-1] if bounds[-1] > 0 else 1.0
-        tunnels = _ranges([(a * scale, b * scale) for (w, _), a, b in pieces if _tunnel(w)])
-        bridges = _ranges(
-            [(a * scale, b * scale) for (w, _), a, b in pieces if _yes(w.tags.get("bridge"))]
-        )
-        tunnels = [(round(a, 1), min(round(b, 1), probe_len)) for a, b in tunnels]
-        tunnels = [(a, b) for a, b in tunnels if b > a]  # none of under 0.1 m
-        speeds = [(parse_maxspeed(w.tags.get("maxspeed")), b - a) for (w, _), a, b in pieces]
-        known = [(s, length) for s, length in speeds if s is not None]
-        speed = _weighted_median(*zip(*known, strict=True)) if known else default_speed_mps
-        speed = round(speed, 3)
-        stations, station_names = _stations(on_line[line_id], station_snap_m, probe_len)
-        # the name of most of its length (a bridge's own name on one way does not win)
+    return route_of_line, running_of_line
+
+
+def _line(
+    line_id: str,
+    chain: _Chain,
+    ll: np.ndarray,
+    bounds: np.ndarray,
+    length_m: float,
+    stations: tuple[list, list],
+    default_speed_mps: float,
+    **line_args,
+) -> tuple[Line, dict, bool]:
+    """The line of a chain, its feature's further properties, and whether any of its ways
+    had a maxspeed."""
+    pieces = list(zip(chain.pieces, bounds[:-1], bounds[1:], strict=True))
+    # scale the ways' chainages to the line's (the same projection: equal up to rounding)
+    scale = length_m / bounds[-1] if bounds[-1] > 0 else 1.0
+    tunnels = _ranges([(a * scale, b * scale) for (w, _), a, b in pieces if _tunnel(w)])
+    bridges = _ranges(
+        [(a * scale, b * scale) for (w, _), a, b in pieces if _yes(w.tags.get("bridge"))]
+    )
+    tunnels = [(round(a, 1), min(round(b, 1), length_m)) for a, b in tunnels]
+    tunnels = [(a, b) for a, b in tunnels if b > a]  # none of under 0.1 m
+    speeds = [(parse_maxspeed(w.tags.get("maxspeed")), b - a) for (w, _), a, b in pieces]
+    known = [(s, length) for s, length in speeds if s is not None]
+    speed = _weighted_median(*zip(*known, strict=True)) if known else default_speed_mps
+    lengths = [((w, rev), b - a) for (w, rev), a, b in pieces]
+    line = Line(
+        line_id,
+        ll,
+        tunnels=tunnels,
+        stations=stations[0],
+        station_names=stations[1],
+        line_speed_mps=round(speed, 3),
+        name=line_name(lengths, chain.key[1], stations[1], line_id),
+        **line_args,
+    )
+    extra = {
+        "ref": chain.pieces[0][0].tags.get("ref", ""),
+        "track_ref": chain.key[1],
+        "bridges": [[round(float(a), 1), round(float(b), 1)] for a, b in bridges],
+        "osm_ways": [w.id for w, _ in chain.pieces],
+    }
+    return line, extra, bool(known)
+
+
+def line_name(
+    pieces: list[tuple[tuple[OsmWay, bool], float]],
+    track_ref: str,
+    station_names: list[str],
+    line_id: str,
+) -> str:
+    """The name operators give a line of ``pieces`` (``((way, reversed), length)``, in
+    order along it), its stations' names in chainage order (rule 5): each candidate of the
+    most of the line's length, so a bridge's or a station's own name on one way does not
+    win."""
+
+    def most(name_of) -> str:
         named: dict[str, float] = defaultdict(float)
-        for (w, _), a, b in pieces:
-            if w.tags.get("name"):
-                named[w.tags["name"]] += b - a
-        name = max(named, key=lambda n: named[n]) if named else chain.key[0]
-        line = Line(
-            line_id,
-            ll,
-            origin,
-            segment_length_m=segment_length_m,
-            tunnels=tunnels,
-            stations=stations,
-            station_names=station_names,
-            line_speed_mps=speed,
-            name=name,
-            route=route_of_line.get(line_id, ""),
-            running=running_of_line.get(line_id, "both"),
-        )
-        lines[line_id] = line
-        extra[line_id] = {
-            "ref": first.tags.get("ref", ""),
-            "track_ref": chain.key[1],
-            "bridges": [[round(float(a), 1), round(float(b), 1)] for a, b in bridges],
-            "osm_ways": [w.id for w, _ in chain.pieces],
-        }
-        report.lines.append(
-            ImportedLine(
-                line_id,
-                name,
-                [w.id for w, _ in chain.pieces],
-                line.length_m,
-                len(line.segments),
-                len(line.tunnels),
-                len(line.stations),
-                speed,
-                bool(known),
-            )
-        )
-        if not known:
-            report.warnings.append(
-                f"line {line_id}: no maxspeed on any of its ways; "
-                f"{default_speed_mps * 3.6:.0f} km/h assumed"
-            )
-    if not lines:
-        raise ValueError(
-            f"no line of at least {min_length_m:g} m could be joined from the railway=rail ways"
-        )
-    report.warnings += close_tracks_warnings(lines)
-    return Network(lines, segment_length_m, origin), extra, report
+        for (w, _), length in pieces:
+            for name in name_of(w):
+                if name:
+                    named[name] += length
+        return max(named, key=lambda n: (named[n], n)) if named else ""
+
+    def route(kind: str):
+        return lambda w: [
+            r.get("name") or r.get("ref") or "" for r in w.relations if r.get("route") == kind
+        ]
+
+    name = (
+        most(route("railway"))
+        or most(lambda w: [w.tags.get("name", "")])
+        or most(route("train"))
+        or most(lambda w: [w.tags.get("ref", "")])
+    )
+    if not name:
+        named = [n for n in station_names if not re.fullmatch(r"node/-?\d+", n)]
+        name = f"{named[0]} – {named[-1]}" if len(set(named)) > 1 else line_id
+    if track_ref and name != line_id:
+        name += f", track {track_ref}"
+    return name
 
 
 def running_of_pair(a: Line, b: Line, side: str) -> tuple[str, str] | None:

@@ -16,9 +16,11 @@ File format (CSV, UTF-8)
     sample every 0.25 m: each step must be 0.25 m within ``SPACING_TOLERANCE_M`` (jitter
     of the position encoder, rounding); a gap, a duplicate or a step back is refused.
   - ``level_left_mm``, ``level_right_mm``: longitudinal level (vertical profile) of each
-    rail in mm; at least one of them.
-  - ``align_left_mm``, ``align_right_mm``: alignment (lateral profile) of each rail in
-    mm; at least one of them. (A TrcRecord carries both Top6 and Align10.)
+    rail in mm.
+  - ``align_left_mm``, ``align_right_mm``: alignment (lateral profile) of each rail in mm.
+  - One of these four at least: a car that records longitudinal level only gives records
+    of Top6 only (TrcRecord ``indicators``), one that records alignment only of Align10;
+    one rail is enough for either.
   - ``lat``, ``lon`` (optional, both or neither): WGS84 degrees. Checked, not used: the
     chainage is the position.
   - any other column is ignored (and named in the report, so a misspelt one is seen).
@@ -43,7 +45,8 @@ TRC value (``simulators/profile.py``), both built on :mod:`track.versine`:
 
 with ``v_L`` the mid-chord versine of chord ``L`` and ``s`` the segment statistic (the
 standard deviation over the chord centres in ``[start + L/2 + 1 m, end - L/2 - 1 m)``),
-the minimum over the rails the file gives. The simulator scales each rail so that both
+the minimum over the rails the file gives (of a single rail, that rail's); an indicator
+whose profile the file does not have gets no value. The simulator scales each rail so that both
 give ``exp(z)``; the on-board chain takes ``min(left, right)``: the same rule. The
 profile is first interpolated (cubic spline) onto the on-board chain's grid ``x_j = j *
 0.25 m`` from chainage 0, so the chord centres are the same points. A segment whose
@@ -67,7 +70,7 @@ from track.versine import (
     chord_versine,
     half_chord_samples,
     segment_statistic,
-    statistic_inset_m,
+    statistic_centres,
 )
 
 SPACING_M = 0.25  # the export's sampling step and the on-board chain's grid
@@ -131,7 +134,6 @@ def parse_profile_csv(text: str, spacing_m: float = SPACING_M) -> TrcProfile:
         Listing up to ``MAX_PROBLEMS`` problems with their line numbers (1-based, as an
         editor shows them).
     """
-    problems: list[tuple[int, str]] = []
     rows = [
         (n, line)
         for n, line in enumerate(text.splitlines(), 1)
@@ -142,22 +144,14 @@ def parse_profile_csv(text: str, spacing_m: float = SPACING_M) -> TrcProfile:
     header_no, header_line = rows[0]
     header = [h.strip() for h in next(csv.reader([header_line]))]
     wanted = [CHAINAGE_COLUMN, *PROFILE_COLUMNS, *POSITION_COLUMNS]
-    duplicated = sorted({h for h in header if header.count(h) > 1 and h in wanted})
-    if duplicated:
-        problems.append((header_no, f"header repeats column(s) {duplicated}"))
-    if CHAINAGE_COLUMN not in header:
-        problems.append((header_no, f"header lacks column {CHAINAGE_COLUMN!r}"))
-    for family, names in (("level", LEVEL_COLUMNS), ("alignment", ALIGN_COLUMNS)):
-        if not set(names) & set(header):
-            problems.append((header_no, f"header has no {family} column: need one of {names}"))
-    if (POSITION_COLUMNS[0] in header) != (POSITION_COLUMNS[1] in header):
-        problems.append((header_no, "header has one of lat, lon: give both or neither"))
+    problems = [(header_no, why) for why in _header_problems(header, wanted)]
     if problems:
         raise ProfileFileError(problems)
     used = [h for h in wanted if h in header]
     index = {h: header.index(h) for h in used}
     ignored = tuple(h for h in header if h not in wanted)
 
+    problems: list[tuple[int, str]] = []
     values = np.full((len(rows) - 1, len(used)), np.nan)
     line_nos = np.array([n for n, _ in rows[1:]], dtype=np.int64)
     for i, (n, line) in enumerate(rows[1:]):
@@ -180,22 +174,8 @@ def parse_profile_csv(text: str, spacing_m: float = SPACING_M) -> TrcProfile:
         raise ProfileFileError(problems[:MAX_PROBLEMS], max(0, len(problems) - MAX_PROBLEMS))
 
     x = values[:, 0]
-    step = np.diff(x)
     sign = 1.0 if x[-1] >= x[0] else -1.0  # the run's direction, whatever a bad row does
-    for k in np.flatnonzero(np.abs(step * sign - spacing_m) > SPACING_TOLERANCE_M):
-        d, n = step[k] * sign, int(line_nos[k + 1])
-        if step[k] == 0:
-            reason = f"chainage {x[k + 1]:g} repeats the previous row's (a duplicate)"
-        elif d < 0:
-            reason = (
-                f"chainage {x[k + 1]:g} goes back after {x[k]:g}: a run is monotone "
-                f"({'descending' if sign < 0 else 'ascending'} from its first to its last row)"
-            )
-        elif d > spacing_m:
-            reason = f"gap of {d:g} m after chainage {x[k]:g} (samples every {spacing_m:g} m)"
-        else:
-            reason = f"step of {d:g} m after chainage {x[k]:g}, expected {spacing_m:g} m"
-        problems.append((n, reason))
+    problems = [(int(line_nos[k + 1]), why) for k, why in _spacing_problems(x, sign, spacing_m)]
     if problems:
         raise ProfileFileError(problems[:MAX_PROBLEMS], max(0, len(problems) - MAX_PROBLEMS))
 
@@ -224,6 +204,43 @@ def parse_profile_csv(text: str, spacing_m: float = SPACING_M) -> TrcProfile:
         ),
         ignored_columns=ignored,
     )
+
+
+def _header_problems(header: list[str], wanted: list[str]) -> list[str]:
+    """What is wrong with a profile file's header (nothing: [])."""
+    problems = []
+    duplicated = sorted({h for h in header if header.count(h) > 1 and h in wanted})
+    if duplicated:
+        problems.append(f"header repeats column(s) {duplicated}")
+    if CHAINAGE_COLUMN not in header:
+        problems.append(f"header lacks column {CHAINAGE_COLUMN!r}")
+    if not set(PROFILE_COLUMNS) & set(header):
+        problems.append(f"header has no profile column: need one of {PROFILE_COLUMNS}")
+    if (POSITION_COLUMNS[0] in header) != (POSITION_COLUMNS[1] in header):
+        problems.append("header has one of lat, lon: give both or neither")
+    return problems
+
+
+def _spacing_problems(x: np.ndarray, sign: float, spacing_m: float) -> list[tuple[int, str]]:
+    """``(k, why)`` for every step ``x[k] -> x[k + 1]`` of the chainage that is not one
+    sample spacing in the run's direction ``sign``."""
+    step = np.diff(x)
+    problems = []
+    for k in np.flatnonzero(np.abs(step * sign - spacing_m) > SPACING_TOLERANCE_M):
+        d = step[k] * sign
+        if step[k] == 0:
+            reason = f"chainage {x[k + 1]:g} repeats the previous row's (a duplicate)"
+        elif d < 0:
+            reason = (
+                f"chainage {x[k + 1]:g} goes back after {x[k]:g}: a run is monotone "
+                f"({'descending' if sign < 0 else 'ascending'} from its first to its last row)"
+            )
+        elif d > spacing_m:
+            reason = f"gap of {d:g} m after chainage {x[k]:g} (samples every {spacing_m:g} m)"
+        else:
+            reason = f"step of {d:g} m after chainage {x[k]:g}, expected {spacing_m:g} m"
+        problems.append((int(k), reason))
+    return problems
 
 
 # --- the grid ---------------------------------------------------------------------------------
@@ -278,8 +295,29 @@ def to_grid(chainage_m, channels: dict[str, np.ndarray], spacing_m: float = SPAC
 # --- alignment --------------------------------------------------------------------------------
 
 
-def alignment_signal(grid: GridProfile) -> tuple[int, np.ndarray]:
-    """The signal two runs are matched on: the 6 m versine of the mean level of the rails.
+SIGNALS = {"level": (LEVEL_COLUMNS, TOP_CHORD_M), "alignment": (ALIGN_COLUMNS, ALIGN_CHORD_M)}
+
+
+def common_signal(new: GridProfile, reference: GridProfile) -> tuple[str, tuple[str, ...]]:
+    """What two runs are matched on: ``(family, rails)``, their level when both have it,
+    else their alignment; of the rails both runs have (empty: each run's own rails, when
+    they have none in common). ValueError when they share neither family."""
+    for family, (names, _) in SIGNALS.items():
+        if all(set(names) & set(grid.channels) for grid in (new, reference)):
+            shared = tuple(n for n in names if n in new.channels and n in reference.channels)
+            return family, shared
+    raise ValueError(
+        "the run and the previous run of the line share no profile (one has level only, "
+        "the other alignment only): give --no-align to take the run as it is"
+    )
+
+
+def alignment_signal(
+    grid: GridProfile, family: str = "level", rails: tuple[str, ...] = ()
+) -> tuple[int, np.ndarray]:
+    """The signal two runs are matched on: the 6 m versine of the mean level of the rails
+    (``family`` "level"), or the 10 m versine of their mean alignment ("alignment"); of
+    the ``rails`` named, else of every rail the run has.
 
     .. math::
 
@@ -287,18 +325,20 @@ def alignment_signal(grid: GridProfile) -> tuple[int, np.ndarray]:
 
     The versine is a band-pass (it removes the long wavelengths that dominate the profile
     and would make a broad peak), the mean of the rails does not change when a run calls
-    the other rail left, and the vertical does not change sign with the car's direction.
+    the other rail left, and the vertical does not change sign with the car's direction
+    (the lateral may: :func:`align_runs` matches alignment on the correlation's size).
 
     Returns
     -------
     first_index, signal
         ``signal[i]`` is at grid index ``first_index + i``.
     """
-    levels = [grid.channels[n] for n in LEVEL_COLUMNS if n in grid.channels]
-    if not levels:
-        raise ValueError("no level channel to align on")
-    h = half_chord_samples(grid.spacing_m, TOP_CHORD_M)
-    return grid.first_index + h, chord_versine(np.mean(levels, axis=0), grid.spacing_m, TOP_CHORD_M)
+    names, chord = SIGNALS[family]
+    profiles = [grid.channels[n] for n in rails or names if n in grid.channels]
+    if not profiles:
+        raise ValueError(f"no {family} channel to align on")
+    h = half_chord_samples(grid.spacing_m, chord)
+    return grid.first_index + h, chord_versine(np.mean(profiles, axis=0), grid.spacing_m, chord)
 
 
 @dataclass(frozen=True)
@@ -323,6 +363,7 @@ class Alignment:
 
     windows: tuple[WindowOffset, ...] = ()
     identity: bool = False  # no reference: the run is taken as it is
+    signal: str = "level"  # the profiles matched: "level" or "alignment" (SIGNALS)
 
     @property
     def used(self) -> list[WindowOffset]:
@@ -392,8 +433,9 @@ def align_runs(
     if new.spacing_m != reference.spacing_m:
         raise ValueError("the two runs must be on the same grid spacing")
     dx = new.spacing_m
-    n0, a = alignment_signal(new)
-    r0, r = alignment_signal(reference)
+    family, rails = common_signal(new, reference)
+    n0, a = alignment_signal(new, family, rails)
+    r0, r = alignment_signal(reference, family, rails)
     width = round(window_m / dx)
     stride = round(step_m / dx)
     max_lag = round(max_offset_m / dx)
@@ -413,6 +455,8 @@ def align_runs(
             found.append(WindowOffset(*span, math.nan, math.nan, False, "no reference here"))
             continue
         rho = _pearson(seg, sliding_window_view(r[first + lo : first + hi + width], width))
+        if family == "alignment":  # a run recorded the other way may see it mirrored
+            rho = np.abs(rho)
         k = int(np.argmax(rho))
         peak = float(rho[k])
         if k == 0 or k == len(rho) - 1:
@@ -427,7 +471,7 @@ def align_runs(
             found.append(WindowOffset(*span, offset, peak, False, f"peak < {min_peak:g}"))
             continue
         found.append(WindowOffset(*span, offset, peak, True))
-    return Alignment(tuple(_reject_outliers(found, outlier_m)))
+    return Alignment(tuple(_reject_outliers(found, outlier_m)), signal=family)
 
 
 def _pearson(seg: np.ndarray, windows: np.ndarray) -> np.ndarray:
@@ -457,13 +501,14 @@ def _reject_outliers(windows: list[WindowOffset], outlier_m: float) -> list[Wind
 
 @dataclass(frozen=True)
 class SegmentValue:
-    """A segment's TRC value from the run: min over the rails of each statistic."""
+    """A segment's TRC value from the run: min over the rails of each statistic (None for
+    an indicator whose profile the run does not have)."""
 
     segment: str
     start_m: float
     end_m: float
-    top6_mm: float
-    align10_mm: float
+    top6_mm: float | None
+    align10_mm: float | None
     top6_by_rail_mm: dict[str, float] = field(default_factory=dict)
     align10_by_rail_mm: dict[str, float] = field(default_factory=dict)
 
@@ -471,11 +516,12 @@ class SegmentValue:
 def segment_values(
     grid: GridProfile, segments: LineSegments
 ) -> tuple[list[SegmentValue], list[str], list[str]]:
-    """Top6 and Align10 of every segment the run covers entirely.
+    """Top6 and Align10 (those the run has a profile for) of every segment it covers
+    entirely.
 
     A segment is covered when every chord centre of the statistic (``[start + L/2 + g,
-    end - L/2 - g)`` on the grid, :func:`track.versine.statistic_inset_m`) and both ends
-    of its chord are inside the run, for both chords.
+    end - L/2 - g)`` on the grid, :func:`track.versine.statistic_centres`) and both ends
+    of its chord are inside the run, for each chord it has a profile for.
 
     Returns
     -------
@@ -489,10 +535,10 @@ def segment_values(
         (TOP_CHORD_M, [n for n in LEVEL_COLUMNS if n in grid.channels]),
         (ALIGN_CHORD_M, [n for n in ALIGN_COLUMNS if n in grid.channels]),
     )
+    if not any(names for _, names in families):
+        raise ValueError("no level or alignment channel")
     versines = {}
     for chord, names in families:
-        if not names:
-            raise ValueError(f"no channel for the {chord:g} m chord")
         h = half_chord_samples(dx, chord)
         for name in names:
             versines[name] = (h, chord_versine(grid.channels[name], dx, chord))
@@ -504,9 +550,10 @@ def segment_values(
             continue
         stats: list[dict[str, float]] = []
         for chord, names in families:
-            inset = statistic_inset_m(chord)
-            j_lo = math.ceil((start + inset) / dx - 1e-9)
-            j_hi = math.ceil((end - inset) / dx - 1e-9)  # exclusive, as the on-board chain
+            if not names:
+                stats.append({})
+                continue
+            j_lo, j_hi = statistic_centres(start, end, dx, chord)  # as the on-board chain
             by_rail = {}
             for name in names:
                 h, v = versines[name]
@@ -520,9 +567,9 @@ def segment_values(
             partial.append(seg)
             continue
         top, align = stats
-        values.append(
-            SegmentValue(seg, start, end, min(top.values()), min(align.values()), top, align)
-        )
+        top6 = min(top.values()) if top else None
+        align10 = min(align.values()) if align else None
+        values.append(SegmentValue(seg, start, end, top6, align10, top, align))
     return values, partial, outside
 
 

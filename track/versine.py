@@ -10,6 +10,8 @@ Profiles are in millimetres, sampled uniformly in distance along the track.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 TOP_CHORD_M = 6.0  # Top6: longitudinal level, vertical profile, 6 m chord
@@ -25,6 +27,18 @@ END_GUARD_M = 1.0
 def statistic_inset_m(chord_m: float) -> float:
     """How far inside each segment end the statistic's chord centres start: ``L/2 + guard``."""
     return chord_m / 2.0 + END_GUARD_M
+
+
+def statistic_centres(start_m: float, end_m: float, spacing_m: float, chord_m: float):
+    """``(j_lo, j_hi)``: the grid points ``x_j = j dx`` that are the statistic's chord centres
+    on the segment ``[start_m, end_m)``, ``j_lo <= j < j_hi``: those in ``[start + L/2 + g,
+    end - L/2 - g)`` (:func:`statistic_inset_m`), a point on a bound to 1e-9 steps counted
+    on the bound."""
+    inset = statistic_inset_m(chord_m)
+    return (
+        math.ceil((start_m + inset) / spacing_m - 1e-9),
+        math.ceil((end_m - inset) / spacing_m - 1e-9),
+    )
 
 
 def half_chord_samples(spacing_m: float, chord_m: float) -> int:

@@ -1,4 +1,4 @@
-"""Write the two example TRC profile exports of README.md (TRC profiles), reproducibly.
+"""Write the two example TRC profile exports of README.md, "TRC profiles", reproducibly.
 
 Two runs of the Track Recording Car over 1.3 km of the demo network's line L1 (true
 chainage 2950-4250 m), on the same track with fresh measurement noise (0.15 mm):
@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from services.defaults import demo_network
 from simulators.profile import LineProfile
-from track.network import demo_network
 
 HERE = Path(__file__).resolve().parent
 SEED = 7

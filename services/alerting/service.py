@@ -1,8 +1,9 @@
 """`trackfusion alerting`: the thin adapter around :mod:`services.alerting.core`.
 
-Subscribes ``{ns}/state/**`` (SegmentState) and ``{ns}/trc/**`` (TrcRecord, to learn each
-line's TRC schedule); both subscriptions feed ONE bounded queue drained by ONE worker, so
-the core sees one ordered stream and needs no lock of its own (the queryables take the
+Subscribes ``{ns}/state/**`` (SegmentState), ``{ns}/trc/**`` (TrcRecord, to learn each
+line's TRC schedule) and ``{ns}/maintenance/**`` (MaintenanceEvent: detected tampings and
+the reports that confirm them); the subscriptions feed the runtime's inbox drained by ONE
+worker, so the core sees one ordered stream and needs no lock of its own (the queryables take the
 adapter's lock to read it). Alerts go out with ``session.put`` on ``{ns}/alert/{line}/{segment}``;
 ``{ns}/q/alerts`` and ``{ns}/q/plan`` answer from the core with a RaisedAlerts and an
 InspectionPlan (schemas/README.md). At start it also asks ``{ns}/q/state/**`` for every
@@ -19,7 +20,6 @@ import logging
 import threading
 from pathlib import Path
 
-import json5
 import zenoh
 
 from schemas import (
@@ -41,10 +41,10 @@ from services.runtime.config import (
     RuntimeConfig,
     add_db_argument,
     add_zenoh_arguments,
-    config_from_args,
     default_db,
+    read_json5,
 )
-from services.runtime.service import ServiceRuntime, configure_logging
+from services.runtime.service import ServiceRuntime, run_command
 
 log = logging.getLogger(__name__)
 
@@ -55,12 +55,10 @@ STATE_QUERY_TIMEOUT_S = 10.0  # the start-up q/state query (ends sooner when all
 
 def load_alerting_config(path: str | Path = DEFAULT_ALERTING_FILE) -> AlertingConfig:
     """Read ``services/defaults/alerting.json5`` (or ``path``); ValueError says what to fix."""
+    raw = read_json5(path)
     try:
-        raw = json5.loads(Path(path).read_text(encoding="utf-8"))
-        if not isinstance(raw, dict):
-            raise ValueError("must hold a JSON5 object {...}")
         return AlertingConfig.from_dict(raw)
-    except (OSError, ValueError) as exc:
+    except ValueError as exc:
         raise ValueError(f"alerting config {path}: {exc}") from None
 
 
@@ -215,10 +213,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    configure_logging(args.log_level)
-    return main(
-        config_from_args(args),
-        alerting_config=args.config_alerting,
-        limits=args.limits,
-        db=args.db,
+    return run_command(
+        args, main, alerting_config=args.config_alerting, limits=args.limits, db=args.db
     )

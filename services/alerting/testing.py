@@ -1,11 +1,11 @@
-"""Test doubles of the alerting core: SegmentStates built from given probabilities, and plan
-rows for the consumers of ``q/plan``."""
+"""Test doubles of the alerting core: SegmentStates built from given probabilities, the
+alerts and on-board indices beside them, and plan rows for the consumers of ``q/plan``."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from schemas import DAY_S, INDICATORS, NDArray, PlanRow, SegmentState
+from schemas import DAY_S, INDICATORS, Alert, NDArray, OnboardIndex, PlanRow, SegmentState
 from services.limits import Limits
 
 T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
@@ -66,6 +66,28 @@ def make_state(
         last_trc_t=last_trc_t,
         nis=nis,
     )
+
+
+def make_alert(
+    t: float = T0,
+    *,
+    line: str = "L1",
+    segment: str = "s1",
+    status: str = "raised",
+    level: str = "intervention",
+    probability: float = 0.9,
+) -> Alert:
+    """An exceedance Alert of Top6."""
+    return Alert(
+        line=line, segment=segment, t=t, kind="exceedance", status=status,
+        indicator="top6", level=level, probability=probability,
+    )  # fmt: skip
+
+
+def make_index(t: float = T0, *, line: str = "L1", segment: str = "s1", **kw) -> OnboardIndex:
+    """An OnboardIndex of train T1, unit u1 (``kw`` overrides its other fields)."""
+    fields = dict(train="T1", unit="u1", top6_mm=5.0, align10_mm=3.5, speed_mps=20.0, coverage=1.0)
+    return OnboardIndex(line=line, segment=segment, t=t, **{**fields, **kw})
 
 
 def p_top6(level: int, p: float) -> np.ndarray:

@@ -17,7 +17,7 @@ outlying pairs), :mod:`.units` (per-unit models), :mod:`.groups` (posterior grou
 what a store persists. This module keeps the state, the bookkeeping of events and pairs, and
 the publication rule.
 
-Publication rule (issue 12: model updates without storms)
+Publication rule (model updates without storms)
     Every new version makes the filtering service re-run the segments it applies to, so an
     accepted fit or a rebuilt posterior (a *candidate*) is **held**, and replaces the model in
     force (is published, version in force + 1) only when both hold:
@@ -48,7 +48,7 @@ Publication rule (issue 12: model updates without storms)
     ``publications_delayed``, ``calibrations_published``, ``posteriors_published``. The held
     candidates, the publication time of each model in force and event time are persisted.
 
-Robustness (issue 14)
+Robustness (one outlier cannot blow up a model)
     Every model is checked (:func:`robust.check_model`: finite, SPD covariances) before it is
     held and again before it is published; TRC records that the data blame (a spike, a newest
     record beyond the physical rate bound, a post-tamping level far off the network's, a
@@ -56,7 +56,8 @@ Robustness (issue 14)
     (:func:`robust.screen_segment`); a pooled posterior moved beyond ``max_move_sd`` by one
     segment alone is held; a few wild pairs are quarantined before the swap rule judges a
     refit. What is left out is logged, counted and returned by
-    :meth:`Calibrator.drain_quarantined` (the adapter's dead letters). See the README.
+    :meth:`Calibrator.drain_quarantined` (the adapter's dead letters). See
+    services/calibration/README.md.
 """
 
 from __future__ import annotations
@@ -95,7 +96,7 @@ from services.calibration.moves import Move, calibration_change, posterior_chang
 from services.calibration.pairing import ln_mm, match_record, oldest_waiting
 from services.calibration.posterior import SegmentIncrements, history_to_increments
 from services.calibration.refit import outlying_pairs, worse
-from services.calibration.regression import CalibrationError, fit_observation
+from services.calibration.regression import fit_observation
 from services.calibration.robust import Rules, check_model, raw_pieces, reference, screen_segment
 from services.calibration.state import (
     CALIBRATION_KEY,
@@ -113,6 +114,7 @@ from services.calibration.state import (
     unit_key,
 )
 from services.calibration.units import pair_design, unit_calibration, units_due
+from services.drift_diffusion import CalibrationError
 
 log = logging.getLogger(__name__)
 
@@ -138,6 +140,7 @@ class Calibrator:
         self._maint: dict[SegmentId, dict[str, MaintenanceEvent]] = {}
         self._pending: dict[SegmentId, dict[str, OnboardIndex]] = {}
         self._pairs: list[Pair] = []
+        self._partial_pairs: list[Pair] = []  # of indices of some indices (units' fits only)
         self._quarantined: list[Pair] = []
         self._paired: set[str] = set()
         self._models: dict[str, ModelEntry] = {}  # in force: published
@@ -179,6 +182,9 @@ class Calibrator:
             self._paired.add(pair.index_id)
         for pair in state.quarantined:
             self._quarantined.append(pair)
+            self._paired.add(pair.index_id)
+        for pair in state.partial_pairs:
+            self._partial_pairs.append(pair)
             self._paired.add(pair.index_id)
         for entry in state.models:
             self._models[entry.key] = entry
@@ -340,6 +346,9 @@ class Calibrator:
 
     def _ingest_trc(self, rec: TrcRecord) -> bool:
         seg = (rec.line, rec.segment)
+        if len(rec.indicators) < _N:  # a pair (Eq. 5-6) and an increment need the whole z
+            self.stats["trc_partial"] += 1
+            return False
         known = self._trc.get(seg, {})
         if rec.run_id in known:
             self.stats["trc_duplicates"] += 1
@@ -385,6 +394,12 @@ class Calibrator:
 
     def _add_pair(self, idx: OnboardIndex, iid: str, rec: TrcRecord) -> None:
         pair = Pair(idx.line, idx.segment, rec.run_id, iid, idx.t, ln_mm(rec), ln_mm(idx))
+        if len(idx.indicators) < len(ONBOARD_INDICES):  # for its unit's model only
+            self._partial_pairs.append(pair)
+            self._paired.add(iid)
+            self._changes.partial_pairs.append(pair)
+            self.stats["pairs_partial"] += 1
+            return
         self._pairs.append(pair)
         self._paired.add(iid)
         self._changes.pairs.append(pair)
@@ -601,12 +616,12 @@ class Calibrator:
         cfg = self.config
         fleet = self._current(CALIBRATION_KEY)
         pairs = self._pairs + self._quarantined
-        if not cfg.unit_models or fleet is None or not pairs:
+        if not cfg.unit_models or fleet is None or not (pairs or self._partial_pairs):
             return
-        due = units_due(pairs, self._unit_fit_at, cfg)
+        due = units_due(pairs + self._partial_pairs, self._unit_fit_at, cfg)
         if not due:
             return
-        design = pair_design(pairs)
+        design = pair_design(pairs or self._partial_pairs)
         base: Calibration = fleet.message  # type: ignore[assignment]
         for (train, unit), ps in sorted(due.items()):
             self._unit_fit_at[(train, unit)] = len(ps)

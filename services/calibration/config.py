@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from schemas import INDICATORS
-from services.calibration.posterior import NIWPrior
+from services.drift_diffusion import NIWPrior
 
 _N = len(INDICATORS)
 
@@ -32,7 +32,7 @@ class CalibratorConfig:
     seed: int = 0
     material_se: float = 1.0  # publication rule: a change is material beyond this many SEs
     min_publish_interval_days: float = 1.0  # event time between two versions of one model
-    # robustness (issue 14; robust.py)
+    # robustness (robust.py)
     max_rate_per_day: float = 1.0 / 30.0  # hard bound on |dz|/dt between records, ln mm/day
     max_jump: float = 0.5  # ... plus this much, ln mm (diffusion and TRC noise over short dt)
     robust_k: float = 8.0  # outliers: beyond this many robust sd (1.4826 MAD)
@@ -40,7 +40,7 @@ class CalibratorConfig:
     max_move_sd: float = 8.0  # a pooled posterior moved beyond this (sd of the one in force)
     event_time_quorum: int = 3  # event time: the newest time this many segments have reached
     max_ahead_days: float = 180.0  # TRC records later than event time + this: left out for now
-    # per-unit observation models (issue 18): shrunk towards the fleet's by this many pairs
+    # per-unit observation models (units.py): shrunk towards the fleet's by this many pairs
     unit_models: bool = True
     unit_min_pairs: int = 5  # a unit's pairs before its first own model
     unit_shrink_pairs: float = 20.0

@@ -35,15 +35,13 @@ from schemas.keys import SegmentId
 from services.calibration.config import CalibratorConfig
 from services.calibration.moves import Move, largest_move
 from services.calibration.posterior import (
-    NIWPrior,
     SegmentIncrements,
     group_rng,
-    posterior_drift_diffusion,
     sample_degradation_posterior,
     sample_prior,
 )
-from services.calibration.regression import CalibrationError
 from services.calibration.state import ModelEntry
+from services.drift_diffusion import CalibrationError, NIWPrior, posterior_drift_diffusion
 
 _N = len(INDICATORS)
 

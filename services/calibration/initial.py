@@ -9,7 +9,8 @@ from typing import Any
 import numpy as np
 
 from schemas import INDICATORS, ONBOARD_INDICES, Calibration, DegradationPosterior, NDArray
-from services.calibration.posterior import NIWPrior, group_rng, sample_prior
+from services.calibration.posterior import group_rng, sample_prior
+from services.drift_diffusion import NIWPrior
 
 _N = len(INDICATORS)
 

@@ -35,9 +35,9 @@ from collections.abc import Mapping
 from schemas import DAY_S, OnboardIndex, TrcRecord
 
 
-def ln_mm(msg: TrcRecord | OnboardIndex) -> tuple[float, float]:
-    """``ln`` of a record's or an index's two values (``z`` or ``y``)."""
-    return (math.log(msg.top6_mm), math.log(msg.align10_mm))
+def ln_mm(msg: TrcRecord | OnboardIndex) -> tuple[float, ...]:
+    """``ln`` of a record's or an index's values (``z`` or ``y``), NaN for one not measured."""
+    return tuple(math.nan if v is None else math.log(v) for v in msg.values_mm)
 
 
 def match_record(

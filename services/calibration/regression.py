@@ -9,28 +9,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["CalibrationError", "ObservationFit", "fit_observation"]
+from services.drift_diffusion import CalibrationError, as_finite
 
-
-class CalibrationError(ValueError):
-    """The data cannot support the requested estimate; the message says what is missing."""
-
-
-def as_finite(name: str, x, ndim: int) -> np.ndarray:
-    """Return ``x`` as a finite float64 array of ``ndim`` dims or raise ValueError naming it.
-
-    A 1-D array where 2-D is expected is taken as a single column (n = 1).
-    """
-    a = np.asarray(x, dtype=np.float64)
-    if ndim == 2 and a.ndim == 1:
-        a = a[:, None]
-    if a.ndim != ndim:
-        raise ValueError(f"{name}: expected a {ndim}-D array, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(
-            f"{name}: contains NaN or inf at {np.argwhere(~np.isfinite(a))[:3].tolist()}"
-        )
-    return a
+__all__ = ["ObservationFit", "fit_observation"]
 
 
 @dataclass(frozen=True)
@@ -151,15 +132,37 @@ def fit_observation(
         )
     zbar, ybar = Z.mean(axis=0), Y.mean(axis=0)
     Zc, Yc = Z - zbar, Y - ybar
+    cond = _condition(Zc, zbar, max_condition, rel_tol)
+    Ht, *_ = np.linalg.lstsq(Zc, Yc, rcond=None)  # (n, m) = H^T
+    H = Ht.T
+    b = ybar - zbar @ Ht
+    E = Yc - Zc @ Ht
+    R = E.T @ E / N
+    R = 0.5 * (R + R.T)
+    var_y = (Yc**2).mean(axis=0)
+    _check_residuals(R, var_y, rel_tol)
+    r2 = 1.0 - np.diag(R) / var_y
+    dof = N - n - 1
+    s_ii = np.diag(E.T @ E) / dof
+    _, sv_c, vt = np.linalg.svd(Zc, full_matrices=False)
+    G = (vt.T / sv_c**2) @ vt  # (Zc^T Zc)^-1 without forming it
+    se_H = np.sqrt(np.outer(s_ii, np.diag(G)))
+    se_b = np.sqrt(s_ii * (1.0 / N + zbar @ G @ zbar))
+    se_R = _se_R(R, dof)
+    return _observation_fit(Z, H, b, R, r2, cond, (se_H, se_b, se_R))
+
+
+def _condition(Zc: np.ndarray, zbar: np.ndarray, max_condition: float, rel_tol: float) -> float:
+    """Condition number of the standardised centred indicators ``Zc``; CalibrationError when
+    an indicator is constant or they are collinear (H could not be told apart per indicator).
+    It measures collinearity between indicators only: centring handles the intercept."""
     zsd = np.sqrt((Zc**2).mean(axis=0))
     const = np.flatnonzero(zsd <= rel_tol * np.maximum(1.0, np.abs(zbar)))
     if const.size:
         raise CalibrationError(
-            f"TRC indicator column(s) {const.tolist()} are constant over the {N} pairs; "
+            f"TRC indicator column(s) {const.tolist()} are constant over the {len(Zc)} pairs; "
             "H cannot be identified: need pairs spanning a range of each indicator"
         )
-    # Condition of the standardised design measures collinearity between indicators only;
-    # the intercept is handled exactly by centring.
     sv = np.linalg.svd(Zc / zsd, compute_uv=False)
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else np.inf
     if cond > max_condition:
@@ -168,16 +171,14 @@ def fit_observation(
             f"{max_condition:.3g}; H cannot be separated per indicator: need pairs where "
             "the indicators vary independently, or fit fewer indicators"
         )
-    Ht, *_ = np.linalg.lstsq(Zc, Yc, rcond=None)  # (n, m) = H^T
-    H = Ht.T
-    b = ybar - zbar @ Ht
-    E = Yc - Zc @ Ht
-    R = E.T @ E / N
-    R = 0.5 * (R + R.T)
-    # Judge R against the spread of Y itself: an exact fit leaves round-off residuals whose
-    # own eigenvalue ratio can look harmless.
+    return cond
+
+
+def _check_residuals(R: np.ndarray, var_y: np.ndarray, rel_tol: float) -> None:
+    """CalibrationError when ``R`` is not positive definite, judged against the spread of Y
+    itself (``var_y``): an exact fit leaves round-off residuals whose own eigenvalue ratio
+    can look harmless."""
     tiny = np.finfo(float).tiny
-    var_y = (Yc**2).mean(axis=0)
     ev = np.linalg.eigvalsh(R)
     if ev[0] <= rel_tol * max(var_y.max(), tiny):
         exact = np.flatnonzero(np.diag(R) <= rel_tol * np.maximum(var_y, tiny))
@@ -190,22 +191,19 @@ def fit_observation(
             f"residual covariance R is not positive definite (eigenvalues {ev.tolist()}): "
             f"{what}; need noisy, non-duplicated on-board indices"
         )
-    r2 = 1.0 - np.diag(R) / var_y
-    dof = N - n - 1
-    s_ii = np.diag(E.T @ E) / dof
-    _, sv_c, vt = np.linalg.svd(Zc, full_matrices=False)
-    G = (vt.T / sv_c**2) @ vt  # (Zc^T Zc)^-1 without forming it
-    se_H = np.sqrt(np.outer(s_ii, np.diag(G)))
-    se_b = np.sqrt(s_ii * (1.0 / N + zbar @ G @ zbar))
-    se_R = _se_R(R, dof)
+
+
+def _observation_fit(Z, H, b, R, r2, condition: float, se: tuple) -> ObservationFit:
+    """The fit of ``H``, ``b``, ``R`` on the pairs of ``Z``; ``se``: those of H, b, R."""
+    se_H, se_b, se_R = se
     return ObservationFit(
         H=H,
         b=b,
         R=R,
-        n_pairs=N,
+        n_pairs=len(Z),
         r2=r2,
         resid_std=np.sqrt(np.diag(R)),
-        condition=cond,
+        condition=condition,
         z_min=Z.min(axis=0),
         z_max=Z.max(axis=0),
         se_H=se_H,
@@ -240,8 +238,19 @@ def fit_unit_observation(Z, Y, *, H0, b0, R0, design, shrink_pairs: float) -> Ob
     (\theta_{ij}) = \sqrt{R_{ii} [(\tilde{\mathbf Z}^T\tilde{\mathbf Z} + k\mathbf D)^{-1}]
     _{jj}}`; ``se_R`` as in :func:`fit_observation` with :math:`N + k` pairs. ``r2`` is on the
     unit's own pairs (can be negative for a unit that reads little of the track's changes).
+
+    ``Y`` may be NaN where a unit did not measure an index (a vertical-only sensor): each
+    row of H, b is then fitted on the pairs that have its index (the fleet's row when none
+    has it), and each element of R on the pairs that have both of its indices, with the
+    same prior (:func:`_fit_unit_rows`).
     """
     Z = as_finite("Z", Z, 2)
+    Y = np.asarray(Y, dtype=np.float64)
+    missing = np.isnan(Y)
+    if missing.any():
+        if Y.ndim != 2 or not np.isfinite(Y[~missing]).all():
+            raise ValueError("Y: must be (N, m) of finite numbers, or NaN where not measured")
+        return _fit_unit_rows(Z, Y, H0, b0, R0, design, shrink_pairs)
     Y = as_finite("Y", Y, 2)
     if Z.shape[0] != Y.shape[0] or Z.shape[0] < 1:
         raise ValueError(f"Z and Y: need the same number >= 1 of rows, got {len(Z)}, {len(Y)}")
@@ -265,17 +274,52 @@ def fit_unit_observation(Z, Y, *, H0, b0, R0, design, shrink_pairs: float) -> Ob
     se = np.sqrt(np.outer(np.diag(R), np.diag(A_inv)))  # (m, n + 1)
     sst = ((Y - Y.mean(axis=0)) ** 2).sum(axis=0)
     r2 = 1.0 - (E**2).sum(axis=0) / np.where(sst > 0, sst, np.inf)
-    return ObservationFit(
-        H=H,
-        b=b,
-        R=R,
-        n_pairs=N,
-        r2=r2,
-        resid_std=np.sqrt(np.diag(R)),
-        condition=float(np.linalg.cond(A)),
-        z_min=Z.min(axis=0),
-        z_max=Z.max(axis=0),
-        se_H=se[:, :n],
-        se_b=se[:, n],
-        se_R=_se_R(R, dof),
-    )
+    cond = float(np.linalg.cond(A))
+    return _observation_fit(Z, H, b, R, r2, cond, (se[:, :n], se[:, n], _se_R(R, dof)))
+
+
+def _fit_unit_rows(Z, Y, H0, b0, R0, design, shrink_pairs: float) -> ObservationFit:
+    r""":func:`fit_unit_observation` of pairs with indices missing (``Y`` NaN there): row
+    :math:`i` on the pairs :math:`P_i` that have index :math:`i`,
+
+    .. math::
+
+        \theta_i = (\tilde{\mathbf Z}_{P_i}^T\tilde{\mathbf Z}_{P_i} + k\mathbf D)^{-1}
+                   (\tilde{\mathbf Z}_{P_i}^T \mathbf y_{P_i,i} + k\mathbf D\,\theta_{0,i}),
+        \qquad
+        R_{ij} = \frac{\sum_{P_i \cap P_j} e_i e_j + k R_{0,ij}}{|P_i \cap P_j| + k}.
+    """
+    if Z.shape[0] != Y.shape[0] or Z.shape[0] < 1:
+        raise ValueError(f"Z and Y: need the same number >= 1 of rows, got {len(Z)}, {len(Y)}")
+    if not shrink_pairs > 0:
+        raise ValueError(f"shrink_pairs: must be > 0, got {shrink_pairs}")
+    k = shrink_pairs
+    N, n = Z.shape
+    m = Y.shape[1]
+    have = ~np.isnan(Y)
+    X = np.hstack([Z, np.ones((N, 1))])
+    theta0 = np.hstack([np.asarray(H0, float), np.asarray(b0, float)[:, None]])
+    D = np.asarray(design, dtype=np.float64)
+    theta, se_theta, conds = np.empty((m, n + 1)), np.empty((m, n + 1)), []
+    for i in range(m):
+        Xi, yi = X[have[:, i]], Y[have[:, i], i]
+        A = Xi.T @ Xi + k * D
+        try:
+            A_inv = np.linalg.inv(A)
+        except np.linalg.LinAlgError as exc:
+            raise CalibrationError(f"unit fit: singular design ({exc})") from None
+        theta[i] = A_inv @ (Xi.T @ yi + k * D @ theta0[i])
+        se_theta[i] = np.diag(A_inv)
+        conds.append(float(np.linalg.cond(A)))
+    H, b = theta[:, :n], theta[:, n]
+    E = np.where(have, Y - X @ theta.T, 0.0)
+    both = have.T.astype(float) @ have.astype(float)  # pairs with indices i and j
+    R = (E.T @ E + k * np.asarray(R0, float)) / (both + k)
+    R = 0.5 * (R + R.T)
+    se = np.sqrt(np.diag(R)[:, None] * se_theta)
+    dof = max(float(have.sum(axis=0).min()) + k - n - 1, 1.0)
+    counts = have.sum(axis=0)
+    means = np.where(have, Y, 0.0).sum(axis=0) / np.maximum(counts, 1)
+    sst = (np.where(have, Y - means, 0.0) ** 2).sum(axis=0)
+    r2 = 1.0 - (E**2).sum(axis=0) / np.where(sst > 0, sst, np.inf)
+    return _observation_fit(Z, H, b, R, r2, max(conds), (se[:, :n], se[:, n], _se_R(R, dof)))

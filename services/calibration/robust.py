@@ -1,4 +1,4 @@
-r"""Robustness rules of the calibration core (issue 14): which TRC records, increments and
+r"""Robustness rules of the calibration core: which TRC records, increments and
 pairs are implausible, and whether a model may be published at all. Pure: numpy only.
 
 Conventions as in :mod:`services.calibration.posterior`: ``z`` in ln mm, time in days.

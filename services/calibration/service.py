@@ -9,7 +9,7 @@ those the core's publication rule lets out (a material change, at most one versi
 per day of event time; ``calibrator.py``), checked at every batch, so a version held by the
 rate limit goes out with the first batch whose events pass the limit.
 A queryable on ``{ns}/model/**`` answers late joiners with the latest of each model.
-What the core leaves out (a TRC record, a pair, a posterior held by the move bound; issue 14)
+What the core leaves out (a TRC record, a pair, a posterior held by the move bound; ``robust.py``)
 is published as a dead letter on ``{ns}/deadletter/calibration`` with the reason, keyed by the
 record's own key (``{ns}/trc/{line}/{segment}`` or ``{ns}/index/{line}/{segment}``), the
 record as payload when the core kept it. With ``network`` (a network GeoJSON file), events on
@@ -30,8 +30,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
-import json5
-
 from schemas import (
     MaintenanceEvent,
     OnboardIndex,
@@ -47,15 +45,17 @@ from services.calibration.config import CalibratorConfig
 from services.calibration.initial import initial_models
 from services.calibration.state import Event, Model, Quarantine
 from services.calibration.store import SqliteStore
+from services.defaults import add_network_argument
 from services.runtime.config import (
     RuntimeConfig,
     add_db_argument,
     add_zenoh_arguments,
-    config_from_args,
     default_db,
+    flag_values,
+    read_json5,
 )
 from services.runtime.latest import LatestValues
-from services.runtime.service import ServiceRuntime, configure_logging
+from services.runtime.service import ServiceRuntime, run_command
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +85,17 @@ OPTIONS = (
     "network",
     *sorted(set(CalibratorConfig.__dataclass_fields__) - {"drift_prior", "level_prior"}),
 )
+# The options a flag of the same name overrides (add_arguments).
+FLAGS = (
+    "db",
+    "initial_models",
+    "network",
+    "min_pairs",
+    "refit_every",
+    "tolerance_days",
+    "samples",
+    "seed",
+)
 
 
 def settings_from(options: Mapping[str, Any], **overrides: Any) -> Settings:
@@ -113,10 +124,10 @@ def settings_from(options: Mapping[str, Any], **overrides: Any) -> Settings:
 
 def load_initial_models(path: Path, core: CalibratorConfig):
     """The initial models of the JSON5 file at ``path``; ValueError saying what is wrong."""
+    spec = read_json5(path)
     try:
-        spec = json5.loads(path.read_text(encoding="utf-8"))
         return initial_models(spec, samples=core.samples, seed=core.seed)
-    except (OSError, ValueError) as e:
+    except ValueError as e:
         raise ValueError(f"initial models {path}: {e}") from None
 
 
@@ -246,11 +257,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="prior models published as version 1 until data gives better ones "
         "(e.g. services/defaults/initial-models.json5; default: none)",
     )
-    parser.add_argument(
-        "--network",
-        type=Path,
-        metavar="FILE.geojson",
-        help="refuse events on segments this network does not have (default: accept any)",
+    add_network_argument(
+        parser, "refuse events on segments this network does not have", default="accept any"
     )
     parser.add_argument(
         "--min-pairs", type=int, help=f"pairs before the first fit (default: {core.min_pairs})"
@@ -274,17 +282,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    configure_logging(args.log_level)
-    conf = config_from_args(args)
-    settings = settings_from(
-        conf.options(SERVICE, OPTIONS),
-        db=args.db,
-        initial_models=args.initial_models,
-        network=args.network,
-        min_pairs=args.min_pairs,
-        refit_every=args.refit_every,
-        tolerance_days=args.tolerance_days,
-        samples=args.samples,
-        seed=args.seed,
-    )
-    return main(conf, settings)
+    def with_flags(conf: RuntimeConfig) -> int:
+        return main(conf, settings_from(conf.options(SERVICE, OPTIONS), **flag_values(args, FLAGS)))
+
+    return run_command(args, with_flags)

@@ -81,6 +81,8 @@ class StoredState:
     pending: list[OnboardIndex] = field(default_factory=list)  # unpaired, in arrival order
     pairs: list[Pair] = field(default_factory=list)  # in arrival order
     quarantined: list[Pair] = field(default_factory=list)  # left out of fits
+    # pairs of indices of some indices only (y NaN at the others): for their unit's model
+    partial_pairs: list[Pair] = field(default_factory=list)
     models: list[ModelEntry] = field(default_factory=list)  # in force (published)
     held: list[ModelEntry] = field(default_factory=list)  # accepted, not (yet) published
     meta: dict[str, Any] = field(default_factory=dict)
@@ -95,6 +97,7 @@ class Changes:
     pending_added: list[OnboardIndex] = field(default_factory=list)
     pending_removed: list[str] = field(default_factory=list)  # index ids
     pairs: list[Pair] = field(default_factory=list)
+    partial_pairs: list[Pair] = field(default_factory=list)
     quarantined: list[str] = field(default_factory=list)  # index ids of pairs set aside
     models: list[ModelEntry] = field(default_factory=list)  # published, in order
     held: dict[str, ModelEntry | None] = field(default_factory=dict)  # key -> held now, or None
@@ -107,6 +110,7 @@ class Changes:
             or self.pending_added
             or self.pending_removed
             or self.pairs
+            or self.partial_pairs
             or self.quarantined
             or self.models
             or self.held

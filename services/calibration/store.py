@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import sqlite3
 from pathlib import Path
 
@@ -47,6 +48,11 @@ CREATE TABLE IF NOT EXISTS pairs (
     z0 REAL NOT NULL, z1 REAL NOT NULL, y0 REAL NOT NULL, y1 REAL NOT NULL,
     quarantined INTEGER NOT NULL DEFAULT 0
 );
+CREATE TABLE IF NOT EXISTS partial_pairs (
+    seq INTEGER PRIMARY KEY, line TEXT NOT NULL, segment TEXT NOT NULL, run_id TEXT NOT NULL,
+    index_id TEXT NOT NULL UNIQUE, t REAL NOT NULL,
+    z0 REAL NOT NULL, z1 REAL NOT NULL, y0 REAL, y1 REAL  -- NULL: an index not measured
+);
 CREATE TABLE IF NOT EXISTS models (
     key TEXT PRIMARY KEY, payload BLOB NOT NULL, fingerprint TEXT NOT NULL, prior INTEGER NOT NULL,
     published_at REAL
@@ -72,6 +78,7 @@ class MemoryStore:
         removed = set(changes.pending_removed)
         s.pending = [i for i in s.pending if index_id(i) not in removed]
         s.pairs.extend(changes.pairs)
+        s.partial_pairs.extend(changes.partial_pairs)
         out = set(changes.quarantined)
         s.quarantined.extend(p for p in s.pairs if p.index_id in out)
         s.pairs = [p for p in s.pairs if p.index_id not in out]
@@ -133,6 +140,15 @@ class SqliteStore:
                 [(p.line, p.segment, p.run_id, p.index_id, p.t, *p.z, *p.y) for p in changes.pairs],
             )
             db.executemany(
+                "INSERT INTO partial_pairs (line, segment, run_id, index_id, t, z0, z1, y0, y1) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                [
+                    (p.line, p.segment, p.run_id, p.index_id, p.t, *p.z,
+                     *(None if math.isnan(y) else y for y in p.y))
+                    for p in changes.partial_pairs
+                ],
+            )  # fmt: skip
+            db.executemany(
                 "UPDATE pairs SET quarantined = 1 WHERE index_id = ?",
                 [(i,) for i in changes.quarantined],
             )
@@ -184,6 +200,12 @@ class SqliteStore:
         ):
             pair = Pair(line, segment, run_id, iid, t, (z0, z1), (y0, y1))
             (state.quarantined if out else state.pairs).append(pair)
+        for line, segment, run_id, iid, t, z0, z1, *y in db.execute(
+            "SELECT line, segment, run_id, index_id, t, z0, z1, y0, y1 FROM partial_pairs "
+            "ORDER BY seq"
+        ):
+            y = tuple(math.nan if v is None else v for v in y)
+            state.partial_pairs.append(Pair(line, segment, run_id, iid, t, (z0, z1), y))
         for key, payload, fingerprint, prior, at in db.execute(
             "SELECT key, payload, fingerprint, prior, published_at FROM models ORDER BY key"
         ):

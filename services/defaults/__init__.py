@@ -6,12 +6,17 @@
 installed ``trackfusion`` (``pip install .``, run from any directory) reads the same files as
 the repository. ``deploy/`` holds what operators adapt and ship: the Dockerfile, compose
 file, systemd units and the TLS profiles.
+
+The track register (:mod:`track`) ships no files: the demo network is found here and
+handed to it.
 """
 
 from __future__ import annotations
 
 from importlib.resources import files
 from pathlib import Path
+
+from track.network import Network
 
 
 def default_file(name: str) -> Path:
@@ -22,3 +27,30 @@ def default_file(name: str) -> Path:
     if not resource.is_file():
         raise ValueError(f"{name}: not a default file of {__name__}")
     return resource
+
+
+DEMO_NETWORK = default_file("demo-network.geojson")
+
+
+def demo_network(segment_length_m: float | None = None) -> Network:
+    """The demo network (3 lines, ~60 km, around Brisbane)."""
+    return Network.from_geojson(DEMO_NETWORK, segment_length_m)
+
+
+def add_network_argument(parser, what: str, *, default: str = "the demo network") -> None:
+    """``--network FILE.geojson``: the network file ``what`` is about (a parser or an
+    argument group); read it with :func:`load_network`."""
+    parser.add_argument(
+        "--network", metavar="FILE.geojson", type=Path, help=f"{what} (default: {default})"
+    )
+
+
+def load_network(path: str | Path | None, segment_length_m: float | None = None) -> Network:
+    """The network of a command's ``--network``: the GeoJSON file ``path``, the demo network
+    without one; ValueError saying what to fix when the file is bad."""
+    if path is None:
+        return demo_network(segment_length_m)
+    try:
+        return Network.from_geojson(Path(path), segment_length_m=segment_length_m)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"--network {path}: {exc}") from None

@@ -91,6 +91,7 @@ from track.versine import (
     chord_versine,
     half_chord_samples,
     segment_statistic,
+    statistic_centres,
     statistic_inset_m,
 )
 
@@ -113,7 +114,8 @@ _CHUNK_FLAGS = ("clipping", "supply")  # chunk-wide findings: lower the quality 
 
 @dataclass(frozen=True)
 class ExtractionConfig:
-    """Signal-chain constants (paper 3.2); the defaults are the contract of DESIGN item 7."""
+    """Signal-chain constants (paper 3.2); the defaults are the signal chain of
+    docs/science.md#signal-chain-paper-section-3."""
 
     rate_hz: float = 2000.0  # input sample rate
     decimation: int = 4  # 2000 -> 500 Hz
@@ -438,11 +440,11 @@ class _IndicatorChain:
         acc, self.acc = self.acc, None
         if acc is None:
             return []
-        cfg, dx = self.cfg, self.cfg.spacing_m
-        inset = self.inset_m
-        n_expected = math.ceil((line.ends[acc.k] - inset) / dx - 1e-9) - math.ceil(
-            (line.starts[acc.k] + inset) / dx - 1e-9
+        cfg = self.cfg
+        j_lo, j_hi = statistic_centres(
+            line.starts[acc.k], line.ends[acc.k], cfg.spacing_m, self.chord_m
         )
+        n_expected = j_hi - j_lo
         values = np.concatenate(acc.values, axis=1)
         valid = np.concatenate(acc.valid, axis=1)
         x, t, v = (np.concatenate(a) for a in (acc.x, acc.t, acc.v))

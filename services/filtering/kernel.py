@@ -9,8 +9,7 @@ update, log-likelihood, NIS) over ``rows x Ns`` filters. Written with numpy that
 contiguous scratch rows and stepped by one loop without calls or sums, which the compiler
 turns into vector instructions (8 samples at a time with AVX-512; ``exp`` and ``log`` are
 :mod:`.vecmath`'s, written out for that), then the weighted sums run in one sequential
-pass. 14 ns a sample-update on one core here, 28 ns as one scalar loop with the C
-library's ``exp``/``log`` (``error_model="numpy"``: no zero-division checks in the loop).
+pass (``error_model="numpy"``: no zero-division checks in the loop).
 
 Per segment row ``r`` (time step :math:`\Delta t` days since its last event, observation
 :math:`y`, model :math:`H, b, R`, weights :math:`w_j \propto e^{\log w_j}` before the update)
@@ -30,7 +29,7 @@ and sample :math:`j` (drift :math:`\mu_j`, diffusion :math:`\Sigma_j`), paper Eq
     \log w_j \mathrel{+}= -\tfrac12 (\mathrm{nis}_j + \ln |S_j| + 2 \ln 2\pi),
 
 the NIS of the row :math:`\sum_j w_j \mathrm{nis}_j`, and the CUSUM score of
-:func:`services.filtering.tracker.low_score` on the prediction,
+:func:`services.filtering.banks.low_score` on the prediction,
 
 .. math::
 
@@ -229,12 +228,13 @@ RUN_PARALLEL_ROWS = 64  # and runs of indices (index_runs: a re-run's are ~120 i
 _PARALLEL_LOCK = threading.Lock()  # numba's default thread pool takes one caller at a time
 
 
-def index_step(F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score):
+def index_step(F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score, *,
+               parallel: bool | None = None):  # fmt: skip
     """Apply one on-board index to each listed row, in place (see the module docstring).
 
     ``F`` (S, 7 Ns) C-contiguous, ``t_s`` (S,): the bank, a row of ``F`` being a
     segment's ``z`` (Ns, 2), ``P`` (Ns, 2, 2) and ``log_w`` (Ns), each row-major, one after
-    the other (:func:`services.filtering.tracker.state_layout`); ``rows`` (k,) the rows to
+    the other (:func:`services.filtering.state.state_layout`); ``rows`` (k,) the rows to
     step, ``t_new`` (k,) epoch s, ``y`` (k, 2) log indices;
     ``mu`` (G, Ns, 2), ``sigma`` (G, Ns, 2, 2) and ``group`` (k,) the degradation
     parameters of each row; ``H``, ``b``, ``R`` the observation model (2 x 2);
@@ -242,11 +242,12 @@ def index_step(F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis,
     out: the CUSUM score of each row.
 
     Compiled: on all cores from ``PARALLEL_ROWS`` rows (a re-run, a backlog), else on the
-    calling thread (the live step). The rows are independent and each is computed by the
-    same inlined code either way, so the bits do not depend on which.
+    calling thread (the live step); ``parallel`` True or False chooses instead. The rows
+    are independent and each is computed by the same inlined code either way, so the bits
+    do not depend on which.
     """
     args = (F, t_s, rows, t_new, y, mu, sigma, group, H, b, R, nis_rows, nis, score)
-    if len(rows) < PARALLEL_ROWS:
+    if not (len(rows) >= PARALLEL_ROWS if parallel is None else parallel):
         _index_step_serial(*args)
         return
     with _PARALLEL_LOCK:
@@ -348,9 +349,9 @@ def index_runs(rows, F, t_s, pos, stop, kinds, times, values, obs_ids, Hs, bs, R
     parameter set in ``mu``, ``sigma``; ``nis`` gets each update's NIS (the last one
     stays). A row whose CUSUM reaches ``halt`` stops after that index (``folded[row]``,
     ``stop[row]``: how many of its events that was); ``missing[row]`` is set, and the row
-    stopped, at an index of a started row without a model. A row's 121 updates run with its
-    state in the cache: 20 % faster than a step of every row per event, and no interpreter
-    between the steps. The same bits as :func:`index_step` and ``_cusum_step``.
+    stopped, at an index of a started row without a model. A row's updates run one after
+    the other with its state in the cache, and no interpreter between the steps. The same
+    bits as :func:`index_step` and ``_cusum_step``.
 
     ``homes``: ``(srcs, ats)`` (S,) each, the rows of ``F`` and of the state's fields
     (``t_s`` to ``cusum_t1``) that row ``i`` of the logs folds from and into: its samples

@@ -13,9 +13,8 @@ once), then the events in arrival order, all accepted inputs committed to SQLite
 transaction → ``put`` the newest SegmentState of the changed segments on
 ``{ns}/state/{line}/{segment}``.
 
-Publication rule (a SegmentState summary costs ~0.3 ms a segment in batches, ~0.6 ms alone,
-at Ns = 200: far more than folding an event, so a backlog cannot summarise every changed
-segment per batch):
+Publication rule (a SegmentState summary costs far more than folding an event, so a
+backlog cannot summarise every changed segment per batch):
 
 - a batch's events are committed before any state that depends on them is summarised or
   published (the summary is taken after the transaction, from the tracker); a batch of
@@ -40,7 +39,7 @@ Model updates publish their re-run states at once. The queryable
 ``{ns}/q/state/{line}/{segment}``.
 
 At start the tracker is restored from the store's checkpoints and the events after them
-(:meth:`PersistentTracker.restore`, see :mod:`services.filtering.store`); every restored
+(:meth:`PersistentTracker.restore`, see :mod:`services.filtering.coordinator`); every restored
 state answers ``q/state`` at once, and is published again in the background, before any
 newer one (a state committed but not yet published when the process died is then not
 lost; a repeated state is harmless).
@@ -68,7 +67,9 @@ from pathlib import Path
 
 from schemas import SegmentState, encode, keys
 from schemas.keys import SegmentId
-from services.filtering.store import PersistentTracker, Store
+from services.defaults import add_network_argument
+from services.filtering.coordinator import PersistentTracker
+from services.filtering.store import Store
 from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_limits
 from services.runtime import systemd
@@ -76,20 +77,20 @@ from services.runtime.config import (
     RuntimeConfig,
     add_db_argument,
     add_zenoh_arguments,
-    config_from_args,
     default_db,
+    flag_values,
 )
 from services.runtime.inbox import Inbox
 from services.runtime.latest import LatestValues
-from services.runtime.service import ServiceRuntime, configure_logging
+from services.runtime.service import ServiceRuntime, run_command
 
 log = logging.getLogger(__name__)
 
 SERVICE = "filtering"
-BATCH = 65_536  # queued messages handled in one store transaction (when there is a backlog;
-# a segment's work per batch is most of it: 16,384 was 19 % slower at 10,000 segments and
-# 8 % at 30,000 (python -m bench.backlog 10000 655360 --history 60, alternating), 4,096
-# 8-13 % slower than 16,384, 1,024 10-20 % slower than 4,096; ~30 MB more held than 16,384)
+# Queued messages handled in one store transaction when there is a backlog: the larger the
+# batch, the more events a segment's per-batch work (reading its state, one fold, one
+# commit) is shared by.
+BATCH = 65_536
 EXIT_STORE_FAILED = 74  # EX_IOERR
 EXIT_SOFTWARE = 70  # EX_SOFTWARE: a bug escaped a batch
 STATE_CACHE = 16  # states kept per segment for a returning consumer (alerting, viewer)
@@ -104,7 +105,7 @@ SUMMARY_CHUNK = 8  # dirty segments summarised together (Tracker.segment_states'
 FREEZE_S = 5.0  # worker time between two moves of what survived into the GC's permanent generation
 STOP_PUBLISH_S = 0.4  # at a stop: dirty segments published for at most this long (the
 # worker drains for up to DRAIN_S = 1.5 s first and is joined within JOIN_TIMEOUT_S = 2 s)
-MIGRATE_S_PER_EVENT = 25e-6  # a store's migration at open: 7.2 µs an event measured, 3x margin
+MIGRATE_S_PER_EVENT = 25e-6  # start time allowed per stored event for a store's migration
 
 
 def main(
@@ -262,6 +263,14 @@ class FilteringAdapter:
                 found.t_start,
                 found.t_end,
             )
+        for gone in done.withdrawn:  # not in the log any more, deleted with the batch
+            log.info(
+                "withdrew the detected tamping %s on %s/%s: %s",
+                gone.event_id,
+                gone.line,
+                gone.segment,
+                "the segment's events no longer show it",
+            )
 
     def _store_failed(self, e: Exception) -> None:
         """The store failed (disk full, file removed; now or in a batch's commit in the
@@ -278,15 +287,14 @@ class FilteringAdapter:
         object into the garbage collector's permanent generation (``gc.freeze``).
 
         The tracker holds a few hundred thousand long-lived objects (the segments' logs
-        and states); a full collection walks them all, ~120 ms at 2,000 segments and
-        growing with the network, and CPython runs one every few seconds of live traffic:
-        the live latency's worst spikes. Frozen objects are skipped by every collection;
+        and states); a full collection walks them all, a pause that grows with the network,
+        and CPython runs one every few seconds of live traffic: the live latency's worst
+        spikes. Frozen objects are skipped by every collection;
         acyclic ones are still freed by reference counting when dropped (the logs, states
         and messages here hold no reference cycles), so only a cycle alive at a freeze
         that dies later would stay, which this worker does not make. In between, the
-        automatic collections are off (``gc.disable`` at the first call): they walked every
-        young object a batch makes (states, checkpoints, events, ~10 a message), 10–18 %
-        of a backlog's time (``python -m bench.backlog 10000 40000 --history 60``); the
+        automatic collections are off (``gc.disable`` at the first call): they would walk
+        every young object a batch makes (states, checkpoints, events, ~10 a message); the
         young ones are collected here instead, after a batch or when idle (so that what
         the other threads make is collected too). Only with ``freeze_gc`` (the service's
         own process, not a test or a host that embeds it)."""
@@ -380,10 +388,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the part of the network this instance owns, e.g. 'L1/**' "
         f"(default: {DEFAULT_SELECTOR})",
     )
-    parser.add_argument(
-        "--network",
-        metavar="FILE.geojson",
-        help="refuse events on segments this network does not have (default: accept any)",
+    add_network_argument(
+        parser, "refuse events on segments this network does not have", default="accept any"
     )
     add_db_argument(parser, SERVICE, "the accepted events and models")
     parser.add_argument(
@@ -401,12 +407,5 @@ def extend_start_timeout(events: int) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    configure_logging(args.log_level)
-    return main(
-        config_from_args(args),
-        selector=args.selector,
-        db=args.db,
-        limits=args.limits,
-        network=args.network,
-        freeze_gc=True,  # the process is this service's alone
-    )
+    # freeze_gc: the process is this service's alone
+    return run_command(args, main, **flag_values(args, OPTIONS), freeze_gc=True)

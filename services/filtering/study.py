@@ -27,14 +27,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import json5
 import numpy as np
 
-from services.calibration.posterior import posterior_drift_diffusion
 from services.defaults import default_file
-from services.filtering.bank import update_unchecked
+from services.drift_diffusion import posterior_drift_diffusion
 from services.filtering.degradation import DegradationParams, transition_unchecked
+from services.filtering.kalman import update_unchecked
 from services.filtering.mixture import summarize
+from services.runtime.config import read_json5
 
 INDICATOR_NAMES = ("Top", "Align")
 DEFAULT_CONFIG = default_file("study.json5")
@@ -72,7 +72,7 @@ class StudyConfig:
 def load_study_config(path: str | Path = DEFAULT_CONFIG, **overrides) -> StudyConfig:
     """Read a study config (JSON5); keyword overrides replace top-level entries."""
     given = {key: value for key, value in overrides.items() if value is not None}
-    raw = {**json5.loads(Path(path).read_text()), **given}
+    raw = {**read_json5(path), **given}
     scenarios = []
     for name, s in raw["scenarios"].items():
         sd = np.asarray(s["sigma_sd"], float)

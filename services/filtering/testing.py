@@ -1,5 +1,6 @@
 """Test doubles that ship with the filtering service: plausible models to start it with,
-and probes of running instances (the newest events on the bus, every instance's states)."""
+on-board indices to feed it, and probes of running instances (the newest events on the bus,
+every instance's states)."""
 
 from __future__ import annotations
 
@@ -12,18 +13,17 @@ from schemas import (
     INDICATORS,
     Calibration,
     DegradationPosterior,
-    MaintenanceEvent,
     NDArray,
     OnboardIndex,
-    TrcRecord,
+    SegmentState,
     decode,
     keys,
 )
 from schemas.keys import SegmentId
-from services.filtering.tracker import event_of
+from services.filtering.events import event_of
+from services.filtering.payloads import EVENT_TYPES
 
 T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
-EVENT_TYPES = {"index": OnboardIndex, "trc": TrcRecord, "maintenance": MaintenanceEvent}
 
 
 def example_models(
@@ -31,13 +31,6 @@ def example_models(
 ) -> list[Calibration | DegradationPosterior]:
     """A Calibration (the study's H, b, R) and a ``net`` DegradationPosterior of ``samples``
     draws around the typical scenario (services/defaults/study.json5), both version 1."""
-    rng = np.random.default_rng(seed)
-    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((samples, 1)))
-    sigma = np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None]
-    mu = rng.normal([7e-4, 4e-4], 2e-4, (samples, 2))
-    z_plus = np.log([2.0, 1.8]) + (
-        rng.normal(0.0, z_plus_sd, (samples, 2)) if z_plus_sd else np.zeros((samples, 2))
-    )
     names = list(INDICATORS)
     return [
         Calibration(
@@ -51,19 +44,65 @@ def example_models(
             n_pairs=40,
             r2=NDArray.of([0.8, 0.7]),
         ),
-        DegradationPosterior(
-            group="net",
-            version=1,
-            t=t,
-            indicators=names,
-            mu=NDArray.of(mu),
-            sigma=NDArray.of(sigma),
-            z_plus=NDArray.of(z_plus),
-            sigma_z_plus=NDArray.of(np.broadcast_to(np.eye(2) * 0.01, (samples, 2, 2))),
-            n_increments=20,
-            n_levels=5,
-        ),
+        example_posterior(samples, seed, z_plus_sd=z_plus_sd, t=t),
     ]
+
+
+def example_posterior(
+    samples: int,
+    seed: int,
+    *,
+    group: str = "net",
+    version: int = 1,
+    z_plus_sd: float = 0.0,
+    t: float = T0,
+    n_increments: int = 20,
+    n_levels: int = 5,
+) -> DegradationPosterior:
+    """A DegradationPosterior of ``samples`` draws around the typical scenario: drifts of
+    0.07 %/day and 0.04 %/day, post-tamping levels of 2.0 and 1.8 mm (``z_plus_sd``: the
+    spread of those levels between draws)."""
+    rng = np.random.default_rng(seed)
+    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((samples, 1)))
+    sigma = np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None]
+    mu = rng.normal([7e-4, 4e-4], 2e-4, (samples, 2))
+    z_plus = np.log([2.0, 1.8]) + (
+        rng.normal(0.0, z_plus_sd, (samples, 2)) if z_plus_sd else np.zeros((samples, 2))
+    )
+    return DegradationPosterior(
+        group=group,
+        version=version,
+        t=t,
+        indicators=list(INDICATORS),
+        mu=NDArray.of(mu),
+        sigma=NDArray.of(sigma),
+        z_plus=NDArray.of(z_plus),
+        sigma_z_plus=NDArray.of(np.broadcast_to(np.eye(2) * 0.01, (samples, 2, 2))),
+        n_increments=n_increments,
+        n_levels=n_levels,
+    )
+
+
+def onboard_index(
+    line: str, segment: str, t: float, top6_mm: float, align10_mm: float, train: str = "T1"
+) -> OnboardIndex:
+    """An index of ``train``'s unit ``u1`` over the whole segment (coverage 1) at 30 m/s."""
+    return OnboardIndex(
+        line=line,
+        segment=segment,
+        train=train,
+        unit="u1",
+        t=t,
+        top6_mm=top6_mm,
+        align10_mm=align10_mm,
+        speed_mps=30.0,
+        coverage=1.0,
+    )
+
+
+def sample_state(sample: zenoh.Sample) -> SegmentState:
+    """The SegmentState a sample of ``{ns}/state/**`` carries."""
+    return decode(sample.payload.to_bytes(), SegmentState)
 
 
 class LastEvents:

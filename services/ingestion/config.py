@@ -47,12 +47,14 @@ class IngestionConfig:
     reacquire_s: float = 60.0
     knot_keep_s: float = 60.0  # knots kept behind the train's event time
     # Time plausibility ("the train's clock", module docstring): event times outside
-    # [valid_t_min, valid_t_max) are refused; a fix or chunk more than max_ahead_s ahead of
-    # the train's last fix and of the fleet's median is refused as a clock jump, and
-    # rebase_fixes consecutive fixes at the new time (each within rebase_gap_s of the one
-    # before) re-base the train there.
+    # [valid_t_min, valid_t_max) are refused, and so are those more than future_s ahead of
+    # the receiving machine's clock; a fix or chunk more than max_ahead_s ahead of the
+    # train's last fix and more than max_ahead_s behind the receiving clock is refused as a
+    # clock jump, and rebase_fixes consecutive fixes at the new time (each within
+    # rebase_gap_s of the one before) re-base the train there.
     valid_t_min: float = 946_684_800.0  # 2000-01-01T00:00:00Z
     valid_t_max: float = 4_102_444_800.0  # 2100-01-01T00:00:00Z
+    future_s: float = 60.0  # a time this far ahead of the receiving clock is in the future
     max_ahead_s: float = 300.0
     rebase_fixes: int = 5
     rebase_gap_s: float = 10.0

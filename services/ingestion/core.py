@@ -1,8 +1,9 @@
 """Ingestion core: RawChunk + GpsFix in, PositionedChunk + rejections out. Pure.
 
-No Zenoh, no clock, no I/O: time is the data's event time. The adapter
-(``services/ingestion/service.py``) feeds one ordered stream of decoded messages through
-:meth:`IngestionCore.step` and publishes what comes out; tests do the same with lists.
+No Zenoh, no clock, no I/O: time is the data's event time, bounded by the receiving
+machine's clock that the adapter passes in. The adapter (``services/ingestion/service.py``)
+feeds one ordered stream of decoded messages through :meth:`IngestionCore.step` and
+publishes what comes out; tests do the same with lists.
 
 The chain, per message:
 
@@ -11,19 +12,23 @@ The chain, per message:
    a reason.
 
    **The train's clock.** Event time is the gateway's, so one wrong time must not become
-   "now". A fix's ``t`` and a chunk's ``t0`` outside ``[valid_t_min, valid_t_max)``
-   (2000..2100) are refused. A fix or chunk more than ``max_ahead_s`` (300 s) ahead of the
-   train's last accepted fix *and* of the fleet's clock (the median of the other trains'
-   last fixes; when there are none, of the train's alone) is refused as a clock jump, as is
-   a fix more than ``max_ahead_s`` behind the train's last fix: neither moves the train's
-   event time, its reorder windows or its knot horizon. A train whose gateway clock really
-   moved is **re-based**: ``rebase_fixes`` (5) consecutive refused fixes, each 0 <
-   Δt <= ``rebase_gap_s`` (10 s) after the one before, make the last of them the train's
-   new timeline (what is held is released first; the units' sequencing starts over with
-   ``gap_before``; a warning is logged; :attr:`TrainStats.rebases`). A fix far behind the
-   train that agrees with the fleet's clock re-bases it at once (a train whose timeline
-   was wrong). One fix on the train's timeline ends a run of refused fixes, so a single
-   outlier, or outliers among good fixes, never re-base anything.
+   "now", and what senders say must not define the future: the receiving machine's clock
+   does. The adapter passes its clock at each message (``received_t``, epoch s); the core
+   keeps none. A fix's ``t`` and a chunk's ``t0`` outside ``[valid_t_min, valid_t_max)``
+   (2000..2100) are refused, and so is one more than ``future_s`` (60 s) ahead of
+   ``received_t``, always (no re-base). A fix or chunk more than ``max_ahead_s`` (300 s)
+   ahead of the train's last accepted fix is refused as a clock jump unless it is within
+   ``max_ahead_s`` of ``received_t`` (a live train back from an outage or a depot night;
+   without ``received_t``, as when recorded data is replayed, it is refused), as is a fix
+   more than ``max_ahead_s`` behind the train's last fix: neither moves the train's event
+   time, its reorder windows or its knot horizon. Other trains' times never enter: a burst
+   of old-dated messages from many trains changes nothing for a live one. A train whose
+   gateway clock really moved is **re-based**: ``rebase_fixes`` (5) consecutive refused
+   fixes, each 0 < Δt <= ``rebase_gap_s`` (10 s) after the one before, make the last of
+   them the train's new timeline (what is held is released first; the units' sequencing
+   starts over with ``gap_before``; a warning is logged; :attr:`TrainStats.rebases`). One
+   fix on the train's timeline ends a run of refused fixes, so a single outlier, or
+   outliers among good fixes, never re-base anything.
 2. **Sequencing** per (train, unit) (:mod:`.sequencing`): reorder, duplicates, gaps.
 3. **Positioning** per train (:func:`step_train`): every fix with ``fix_quality > 0`` is
    projected onto the network lines and becomes a knot ``(t, line, chainage, speed, ok)``;
@@ -59,10 +64,9 @@ and visible, never silently lost).
 from __future__ import annotations
 
 import logging
-import math
 from bisect import bisect_left, bisect_right
 from collections.abc import Iterable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -76,8 +80,9 @@ from services.ingestion.health import (
     inspect_chunk,
     time_range_reason,
 )
-from services.ingestion.matching import Knot, Positioner
+from services.ingestion.matching import Positioner
 from services.ingestion.sequencing import UnitState, release_unit, step_unit
+from services.ingestion.train import TrainState, TrainStats
 from services.ingestion.trajectory import can_extrapolate, publish_trajectory
 
 log = logging.getLogger(__name__)
@@ -92,55 +97,6 @@ class Rejection:
 
 
 Output = PositionedChunk | Rejection
-
-
-@dataclass
-class TrainStats:
-    """Positioning counters of one train."""
-
-    fixes: int = 0
-    no_fix: int = 0  # fix_quality 0
-    matched: int = 0  # knots from a good match
-    poor: int = 0  # knots marked not ok
-    switches: int = 0  # line changes
-    duplicates: int = 0
-    unpositioned: int = 0
-    extrapolated: int = 0  # chunks whose tail was dead-reckoned past the last knot
-    held: int = 0  # chunks that had to wait for a knot (none close enough before them)
-    max_correction_m: float = 0.0  # largest later correction of a dead-reckoned position
-    clock_jumps: int = 0  # fixes and chunks refused as ahead of (or far behind) the clock
-    rebases: int = 0  # times the train's clock was re-based to a new timeline
-
-
-@dataclass
-class TrainState:
-    """Map-matching state and the chunks of one train waiting for their knots."""
-
-    stats: TrainStats = field(default_factory=TrainStats)
-    line: str | None = None
-    direction: int = 0  # +1 / -1 along the chainage, 0 not known yet
-    extreme_m: float = 0.0  # farthest chainage reached in ``direction`` (or the start)
-    off_count: int = 0
-    # on a route of close tracks: the track was chosen by the running direction (until then
-    # the train is not positioned on either)
-    track_known: bool = False
-    matched_fix_t: float | None = None  # the previous fix map matching saw
-    last_fix_t: float | None = None
-    last_good_t: float | None = None
-    now: float = -math.inf  # newest event time of the train
-    knots: list[Knot] = field(default_factory=list)  # from the fixes (map matching)
-    knot_t: list[float] = field(default_factory=list)
-    # the published trajectory: what PositionedChunks carried, never changed afterwards
-    pub: list[Knot] = field(default_factory=list)
-    pub_t: list[float] = field(default_factory=list)
-    # corrections of the published trajectory being spread: (from t, offset m, until t)
-    corrections: list[tuple[float, float, float]] = field(default_factory=list)
-    poor_until: float = -math.inf  # published knots before this follow a large correction
-    pending: list[tuple[Inspected, bool]] = field(default_factory=list)
-    units: list[UnitState] = field(default_factory=list)  # the train's units, for windows
-    # times of the current run of consecutive fixes refused as a clock jump (a re-base
-    # candidate); cleared by a fix on the train's timeline
-    suspects: list[float] = field(default_factory=list)
 
 
 def step_train(
@@ -267,20 +223,29 @@ class IngestionCore:
         self.units: dict[tuple[str, str], UnitState] = {}
         self.trains: dict[str, TrainState] = {}
 
-    def step(self, event: RawChunk | GpsFix) -> list[Output]:
-        """One decoded message in arrival order; what it releases comes out."""
+    def step(self, event: RawChunk | GpsFix, received_t: float | None = None) -> list[Output]:
+        """One decoded message in arrival order; what it releases comes out.
+
+        ``received_t``: the receiving machine's clock (epoch s) when the message arrived,
+        the bound on future times (module docstring); None: no bound (recorded data)."""
         match event:
             case RawChunk():
-                return self._on_chunk(event)
+                return self._on_chunk(event, received_t)
             case GpsFix():
-                return self._on_fix(event)
+                return self._on_fix(event, received_t)
         raise TypeError(f"ingestion takes RawChunk or GpsFix, not {type(event).__name__}")
 
-    def run(self, events: Iterable[RawChunk | GpsFix], *, flush: bool = True) -> list[Output]:
+    def run(
+        self,
+        events: Iterable[RawChunk | GpsFix],
+        *,
+        flush: bool = True,
+        received_t: float | None = None,
+    ) -> list[Output]:
         """Every event through :meth:`step` (then :meth:`flush`): lists in, lists out."""
         out: list[Output] = []
         for event in events:
-            out += self.step(event)
+            out += self.step(event, received_t)
         if flush:
             out += self.flush()
         return out
@@ -317,44 +282,32 @@ class IngestionCore:
             st = self.trains[train] = TrainState()
         return st
 
-    def fleet_t(self, train: str) -> float | None:
-        """The fleet's clock: the median of the other trains' last accepted fix times."""
-        times = [
-            st.last_fix_t
-            for name, st in self.trains.items()
-            if name != train and st.last_fix_t is not None
-        ]
-        return float(np.median(times)) if times else None
-
-    def _ahead(self, train: str, st: TrainState, name: str, t: float) -> str | None:
-        """Why ``t`` is too far ahead of the train's clock and of the fleet's, or None."""
+    def _ahead(self, st: TrainState, name: str, t: float, received_t: float | None):
+        """``(reason, future)``: why ``t`` is too far ahead (None: it is not), and whether it
+        is ahead of the receiving machine's clock (never re-bases)."""
         cfg, last = self.cfg, st.last_fix_t
-        if last is not None and t - last <= cfg.max_ahead_s:
-            return None
-        fleet = self.fleet_t(train)
-        if fleet is not None and t - fleet <= cfg.max_ahead_s:
-            return None  # the train was away (an outage, a depot night): the fleet agrees
-        if last is None and fleet is None:
-            return None  # nothing to compare with
-        against = []
-        if last is not None:
-            against.append(f"{t - last:.0f} s ahead of the train's last fix {last:.3f}")
-        if fleet is not None:
-            against.append(f"{t - fleet:.0f} s ahead of the fleet's clock {fleet:.3f}")
+        if received_t is not None and t - received_t > cfg.future_s:
+            return (
+                f"{name}: {t:.3f} is {t - received_t:.0f} s ahead of the receiving clock "
+                f"{received_t:.3f} (more than {cfg.future_s:g} s): refused as a clock jump"
+            ), True
+        if last is None or t - last <= cfg.max_ahead_s:
+            return None, False
+        if received_t is not None and received_t - t <= cfg.max_ahead_s:
+            return None, False  # live again after an outage or a depot night
         return (
-            f"{name}: {t:.3f} is {' and '.join(against)} (more than {cfg.max_ahead_s:g} s): "
-            "refused as a clock jump"
-        )
+            f"{name}: {t:.3f} is {t - last:.0f} s ahead of the train's last fix {last:.3f} "
+            f"(more than {cfg.max_ahead_s:g} s): refused as a clock jump"
+        ), False
 
-    def _clock_check(self, fix: GpsFix, st: TrainState) -> tuple[str | None, bool]:
+    def _clock_check(self, fix: GpsFix, st: TrainState, received_t: float | None):
         """``(reason, rebase)``: why a fix is off the train's timeline (None: on it) and
         whether the train re-bases to it now (the rule in the module docstring)."""
         cfg, last, t = self.cfg, st.last_fix_t, fix.t
-        reason = self._ahead(fix.train, st, "t", t)
+        reason, future = self._ahead(st, "t", t, received_t)
+        if future:
+            return reason, False
         if reason is None and last is not None and last - t > cfg.max_ahead_s:
-            fleet = self.fleet_t(fix.train)
-            if fleet is not None and abs(t - fleet) <= cfg.max_ahead_s:
-                return None, True  # back on the fleet's clock: re-base at once
             reason = (
                 f"t: {t:.3f} is {last - t:.0f} s behind the train's last fix {last:.3f} "
                 f"(more than {cfg.max_ahead_s:g} s): refused as a clock jump"
@@ -397,7 +350,7 @@ class IngestionCore:
         self.trains[fix.train] = fresh
         return out
 
-    def _on_chunk(self, chunk: RawChunk) -> list[Output]:
+    def _on_chunk(self, chunk: RawChunk, received_t: float | None) -> list[Output]:
         key = (chunk.train, chunk.unit)
         st = self._train(chunk.train)
         unit = self.units.get(key)
@@ -408,7 +361,7 @@ class IngestionCore:
         if isinstance(inspected, str):
             unit.health.rejected += 1
             return [Rejection(f"RawChunk: {inspected}", chunk)]
-        jump = self._ahead(chunk.train, st, "t0", chunk.t0)
+        jump, _ = self._ahead(st, "t0", chunk.t0, received_t)
         if jump is not None:
             unit.health.rejected += 1
             st.stats.clock_jumps += 1
@@ -423,13 +376,13 @@ class IngestionCore:
             out += self._count(step_train(st, None, self.positioner)[1])
         return out
 
-    def _on_fix(self, fix: GpsFix) -> list[Output]:
+    def _on_fix(self, fix: GpsFix, received_t: float | None) -> list[Output]:
         st = self._train(fix.train)
         out: list[Output] = []
         bad = time_range_reason("t", fix.t, self.cfg)
         if bad is not None:
             return [Rejection(f"GpsFix: {bad}", fix)]
-        reason, rebase = self._clock_check(fix, st)
+        reason, rebase = self._clock_check(fix, st, received_t)
         if reason is not None:
             st.stats.clock_jumps += 1
             return [Rejection(f"GpsFix: {reason}", fix)]

@@ -26,24 +26,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from schemas import GpsFix
 from services.ingestion.config import IngestionConfig
-
-if TYPE_CHECKING:
-    from services.ingestion.core import TrainState
-
-
-@dataclass(frozen=True)
-class Knot:
-    t: float
-    line: str
-    chainage_m: float
-    speed_mps: float
-    ok: bool
+from services.ingestion.train import Knot, TrainState
 
 
 @dataclass(frozen=True)

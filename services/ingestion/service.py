@@ -1,7 +1,8 @@
 """`trackfusion ingestion`: the thin adapter around :mod:`services.ingestion.core`.
 
 Subscribes ``{ns}/raw/**`` (RawChunk) and ``{ns}/gps/*`` (GpsFix); both subscriptions feed
-ONE bounded queue drained by ONE worker (order kept per key), so the core is single-threaded.
+the runtime's inbox, drained by ONE worker (order kept per key), so the core is
+single-threaded and no Zenoh callback waits for it.
 Payloads are decoded with ``schemas.decode`` (a malformed one is a dead letter with the
 decoder's reason); PositionedChunks go out with ``session.put`` on
 ``{ns}/accel/{train}/{unit}`` (congestion control BLOCK: extraction must not lose samples);
@@ -12,26 +13,24 @@ missing) before the worker exits.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import logging
 import threading
+import time
 from pathlib import Path
 
 import zenoh
 
 from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode, keys
-from services.defaults import default_file
+from services.defaults import load_network
 from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore, Output, Rejection
-from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
-from services.runtime.service import ServiceRuntime, configure_logging
-from track.network import load_network
+from services.runtime.config import RuntimeConfig
+from services.runtime.service import ServiceRuntime, network_stage_command
 
 log = logging.getLogger(__name__)
 
 SERVICE = "ingestion"
-DEFAULT_NETWORK = default_file("demo-network.geojson")
 
 
 def decode_gateway(kind: str, key: str, payload: bytes) -> RawChunk | GpsFix:
@@ -69,8 +68,9 @@ class IngestionAdapter:
         )
 
     def handle(self, kind: str, key: str, payload: bytes) -> list[Output]:
-        """One payload through the core; raises SchemaError for a malformed one."""
-        return self.core.step(decode_gateway(kind, key, payload))
+        """One payload through the core, with this machine's clock as the bound on future
+        times (event time stays the data's); raises SchemaError for a malformed one."""
+        return self.core.step(decode_gateway(kind, key, payload), time.time())
 
     def publish(self, outputs: list[Output]) -> None:
         ns, session = self.rt.ns, self.rt.session
@@ -122,22 +122,9 @@ def main(
         return rt.run()
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """``trackfusion ingestion``."""
-    parser.description = (
-        "Subscribe to {ns}/raw/** and {ns}/gps/*, publish PositionedChunks on "
-        "{ns}/accel/{train}/{unit}; thresholds in the config file's services.ingestion."
-    )
-    parser.add_argument(
-        "--network",
-        metavar="FILE.geojson",
-        type=Path,
-        default=DEFAULT_NETWORK,
-        help="network to map-match on (default: %(default)s)",
-    )
-    add_zenoh_arguments(parser)
-
-
-def run(args: argparse.Namespace) -> int:
-    configure_logging(args.log_level)
-    return main(config_from_args(args), network_path=args.network)
+add_arguments, run = network_stage_command(
+    main,
+    "Subscribe to {ns}/raw/** and {ns}/gps/*, publish PositionedChunks on "
+    "{ns}/accel/{train}/{unit}; thresholds in the config file's services.ingestion.",
+    network="the lines to map-match on",
+)

@@ -14,13 +14,9 @@ from __future__ import annotations
 
 import math
 from bisect import bisect_left, bisect_right
-from typing import TYPE_CHECKING
 
-from services.ingestion.matching import Knot, Positioner
-
-if TYPE_CHECKING:
-    from services.ingestion.core import TrainState
-
+from services.ingestion.matching import Positioner
+from services.ingestion.train import Knot, TrainState
 
 STANDING_MPS = 0.5  # slower than this, a train of unknown direction is taken as standing
 _DR_STEP_S = 0.5  # knot spacing of a dead-reckoned stretch with acceleration (a parabola)

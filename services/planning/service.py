@@ -23,7 +23,6 @@ import threading
 import time
 from pathlib import Path
 
-import json5
 import zenoh
 
 from schemas import (
@@ -41,7 +40,12 @@ from schemas import (
 from services.defaults import default_file
 from services.limits import DEFAULT_LIMITS_FILE, load_immediate_action, load_limits
 from services.planning.core import Plan, PlanningConfig, PlanningCore, SegmentRef
-from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
+from services.runtime.config import (
+    RuntimeConfig,
+    add_zenoh_arguments,
+    config_from_args,
+    read_json5,
+)
 from services.runtime.service import ServiceRuntime, configure_logging
 
 log = logging.getLogger(__name__)
@@ -57,10 +61,7 @@ QUORUM = 3  # segments whose newest state times must agree on "now" (one far-fut
 def load_planning_config(path: str | Path = DEFAULT_PLANNING_FILE) -> PlanningConfig:
     """Read ``services/defaults/planning.json5`` (or ``path``); ValueError says what to fix."""
     try:
-        raw = json5.loads(Path(path).read_text(encoding="utf-8"))
-        if not isinstance(raw, dict):
-            raise ValueError("must hold a JSON5 object {...}")
-        return PlanningConfig.from_dict(raw)
+        return PlanningConfig.from_dict(read_json5(path))
     except (OSError, ValueError) as exc:
         raise ValueError(f"planning config {path}: {exc}") from None
 

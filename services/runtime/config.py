@@ -149,6 +149,12 @@ def config_from_args(
     )
 
 
+def flag_values(args: argparse.Namespace, names: Iterable[str]) -> dict[str, Any]:
+    """``{name: args.<name>}``: the flags that set the keywords (or override the config
+    file's keys) of the same names; None where a flag was not given."""
+    return {name: getattr(args, name) for name in names}
+
+
 def load_config(
     path: str | Path | None = None,
     *,
@@ -164,7 +170,10 @@ def load_config(
     with a message saying what to fix when the file or a value is unusable.
     """
     source = Path(path) if path is not None else None
-    data = read_config_file(source) if source is not None else {}
+    try:
+        data = read_json5(source) if source is not None else {}
+    except ValueError as e:
+        raise ValueError(f"config file {e}") from None
     where = _where(source)
 
     ns = ns if ns is not None else data.pop("ns", DEFAULT_NS)
@@ -199,25 +208,24 @@ def load_config(
     return conf
 
 
-def read_config_file(path: Path) -> dict[str, Any]:
-    """The JSON5 object in ``path``; ``ValueError`` with the reason if it is not one."""
+def read_json5(path: str | Path) -> dict[str, Any]:
+    """The JSON5 object in the file ``path``: every configuration file is read with this.
+    ``ValueError`` naming the file (and the line, for a syntax error) and what is wrong."""
+    path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as e:
-        raise ValueError(
-            f"cannot read config file {path}: {e.strerror or e}; "
-            "check the --config path (or leave --config out for the defaults)"
-        ) from None
+        raise ValueError(f"{path}: cannot read: {e.strerror or e}") from None
     except UnicodeDecodeError as e:
-        raise ValueError(f"config file {path} is not UTF-8 text: {e}") from None
+        raise ValueError(f"{path}: not UTF-8 text: {e}") from None
     try:
         data = json5.loads(text)
-    except ValueError as e:
-        raise ValueError(f"config file {path} is not valid JSON5: {e}") from None
+    except ValueError as e:  # json5 says "<string>:LINE what"
+        found = re.match(r"<string>:(\d+) (.*)", str(e), re.DOTALL)
+        where, what = (f"{path}:{found[1]}", found[2]) if found else (str(path), str(e))
+        raise ValueError(f"{where}: not valid JSON5: {what}") from None
     if not isinstance(data, dict):
-        raise ValueError(
-            f"config file {path} must hold a JSON5 object {{...}}, got {type(data).__name__}"
-        )
+        raise ValueError(f"{path}: must hold a JSON5 object {{...}}, got {type(data).__name__}")
     return data
 
 

@@ -3,9 +3,9 @@
 Why it exists. A Zenoh callback runs on the session's receive thread. If it blocks (a full
 bounded queue waiting for a slow worker), the session stops reading its link; the router's
 queue towards it fills, the router waits ``wait_before_close`` (5 s by default) for room
-for a BLOCK message and then **closes the link**, dropping everything queued on it. That is
-how a filtering instance lost 90 % of a flood without a trace, and how it went deaf during
-`make run` (see README, "Reliability model"). So :meth:`Inbox.put` never waits on the
+for a BLOCK message and then **closes the link**, dropping everything queued on it: a flood
+would be lost without a trace and the service would go deaf (docs/architecture.md, "No
+callback blocks a session"). So :meth:`Inbox.put` never waits on the
 worker: it appends to memory while the backlog is small and, beyond ``memory_bytes``,
 appends to a spill file on local disk (an anonymous temporary file, gone with the
 process), which the worker reads back in order once memory has drained. Back-pressure is
@@ -15,6 +15,10 @@ the at-least-once streams recover it from their publishers' caches.
 
 Order: FIFO over every ``put``; Zenoh calls each subscription's callback on its own thread,
 so order holds per key, not across keys.
+
+:class:`LatestInbox` is the variant for a consumer that needs only the newest item of a key
+(the viewer draws the latest state of a segment): it holds one item per key, in memory,
+bounded, and still never waits in ``put``.
 """
 
 from __future__ import annotations
@@ -26,11 +30,14 @@ import tempfile
 import threading
 import time
 from collections import deque
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 log = logging.getLogger(__name__)
 
 Item = tuple[str, str, bytes]  # (kind, key, payload)
+T = TypeVar("T")
 
 DEFAULT_MEMORY_BYTES = 64 << 20  # backlog held in memory before it spills to disk
 _HEADER = struct.Struct("<III")  # lengths of kind, key, payload
@@ -220,3 +227,72 @@ class Inbox:
         if self._spill_fd is not None:
             os.close(self._spill_fd)
             self._spill_fd = None
+
+
+class LatestInbox(Generic[T]):
+    """What callbacks hand to one worker when only the newest item of a key matters.
+
+    An item whose ``key(item)`` is not None replaces the held item of that key unless that
+    one has the larger ``version`` (an older item arriving late is not written over a newer
+    one); items whose key is None queue in order. Both parts hold at most ``capacity``
+    items; when full, the oldest entry goes (counted in ``dropped``). :meth:`put` never
+    waits on the worker.
+    """
+
+    def __init__(
+        self,
+        capacity: int,
+        *,
+        key: Callable[[T], Hashable | None],
+        version: Callable[[T], float],
+    ) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {capacity}")
+        self._key = key
+        self._version = version
+        self._keyed: dict[Hashable, T] = {}  # insertion order = age
+        self._queued: deque[T] = deque(maxlen=capacity)
+        self._capacity = capacity
+        self._cond = threading.Condition()
+        self._closed = False
+        self.dropped = 0  # items lost to a full inbox
+        self.superseded = 0  # items replaced by a newer one of their key before being taken
+
+    def put(self, item: T) -> None:
+        key = self._key(item)
+        with self._cond:
+            if self._closed:
+                return
+            if key is None:
+                if len(self._queued) == self._capacity:
+                    self.dropped += 1
+                self._queued.append(item)
+            else:
+                held = self._keyed.pop(key, None)  # re-inserted last: the newest entry
+                if held is not None:
+                    self.superseded += 1
+                    if self._version(held) > self._version(item):
+                        item = held
+                elif len(self._keyed) >= self._capacity:
+                    del self._keyed[next(iter(self._keyed))]
+                    self.dropped += 1
+                self._keyed[key] = item
+            self._cond.notify()
+
+    def take(self, timeout: float | None) -> list[T] | None:
+        """Everything held, the keyed items first ([] after ``timeout``); None once closed
+        and empty."""
+        with self._cond:
+            self._cond.wait_for(lambda: self._keyed or self._queued or self._closed, timeout)
+            if not self._keyed and not self._queued and self._closed:
+                return None
+            items = [*self._keyed.values(), *self._queued]
+            self._keyed.clear()
+            self._queued.clear()
+            return items
+
+    def close(self) -> None:
+        """No more items; the worker takes what is left, then :meth:`take` returns None."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()

@@ -15,6 +15,7 @@ session. Tests use the same object in-process and call :meth:`ServiceRuntime.sto
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import logging
 import signal
@@ -27,8 +28,16 @@ from typing import Any, Protocol, Self, TypeVar
 import zenoh
 
 from schemas import SchemaError, keys
+from services.defaults import add_network_argument
 from services.runtime import systemd
-from services.runtime.config import RuntimeConfig, default_instance, endpoints, zenoh_config
+from services.runtime.config import (
+    RuntimeConfig,
+    add_zenoh_arguments,
+    config_from_args,
+    default_instance,
+    endpoints,
+    zenoh_config,
+)
 from services.runtime.deadletter_publisher import DeadLetterPublisher
 from services.runtime.delivery import (
     DeliverySettings,
@@ -555,6 +564,31 @@ def run_service(
     with ServiceRuntime(service, conf, handle_signals=handle_signals, stop_event=stop_event) as rt:
         setup(rt)
         return rt.run()
+
+
+def run_command(args: argparse.Namespace, main: Callable[..., int], **options: Any) -> int:
+    """What ``trackfusion <service>`` runs: log lines at ``--log-level``, then
+    ``main(conf, **options)`` with the configuration of the Zenoh flags
+    (:func:`~services.runtime.config.config_from_args`)."""
+    configure_logging(args.log_level)
+    return main(config_from_args(args), **options)
+
+
+def network_stage_command(
+    main: Callable[..., int], description: str, network: str
+) -> tuple[Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]:
+    """``(add_arguments, run)`` of a stage whose only flags are ``--network`` (``network``
+    says what it is for) and the Zenoh flags: ``run`` calls ``main(conf, network_path=…)``."""
+
+    def add_arguments(parser: argparse.ArgumentParser) -> None:
+        parser.description = description
+        add_network_argument(parser, network)
+        add_zenoh_arguments(parser)
+
+    def run(args: argparse.Namespace) -> int:
+        return run_command(args, main, network_path=args.network)
+
+    return add_arguments, run
 
 
 def _undeclare(entity: _Undeclarable) -> None:

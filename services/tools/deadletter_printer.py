@@ -13,8 +13,8 @@ import threading
 from typing import TextIO
 
 from schemas import DeadLetter, SchemaError, decode, keys
-from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
-from services.runtime.service import ServiceRuntime, configure_logging
+from services.runtime.config import RuntimeConfig, add_zenoh_arguments
+from services.runtime.service import ServiceRuntime, run_command
 
 log = logging.getLogger(__name__)
 
@@ -58,5 +58,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    configure_logging(args.log_level)
-    return main(config_from_args(args))
+    return run_command(args, main)

@@ -46,8 +46,8 @@ from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore, Rejection
 from services.ingestion.service import SERVICE as INGESTION
 from services.ingestion.service import decode_gateway, ingestion_config
-from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
-from services.runtime.service import configure_logging
+from services.runtime.config import RuntimeConfig, add_zenoh_arguments
+from services.runtime.service import run_command
 
 EXIT_CLEAN, EXIT_DEVIATIONS, EXIT_NOTHING = 0, 1, 2
 
@@ -123,7 +123,7 @@ class GatewayCheck:
             self._measure_chunk(message, arrived)
         else:
             self._measure_fix(message, arrived)
-        for out in self.core.step(message):
+        for out in self.core.step(message, arrived):
             if isinstance(out, Rejection) and "unpositioned" not in out.reason:
                 self._deviation(out.reason)
 
@@ -309,5 +309,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    configure_logging(args.log_level)
-    return main(config_from_args(args), args.train, args.seconds)
+    return run_command(args, main, train=args.train, seconds=args.seconds)

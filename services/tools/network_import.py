@@ -37,7 +37,7 @@ def main(
     except (OSError, UnicodeDecodeError) as exc:
         raise ValueError(
             f"{in_path}: cannot read it as text ({exc}); for a .osm.pbf, convert it first "
-            "with `osmium export` (README: Real inputs)"
+            "with `osmium export` (README.md: A network from OpenStreetMap)"
         ) from None
     try:
         doc = json.loads(text)

@@ -1,6 +1,7 @@
 """Questions an engineer asks the running system: `trackfusion status|state|alerts|plan|
-import-trc|export`. Each opens a short-lived Zenoh session, asks, prints, and closes
-(``import-trc --profile`` is in :mod:`services.tools.trc_import`).
+export`. Each opens a short-lived Zenoh session, asks, prints, and closes. The publishing
+part of `trackfusion import-trc FILE.csv` is here too; the command itself, with its
+``--profile`` form, is :mod:`services.tools.trc_import`.
 
 Pure parts (CSV parsing, formatting, GeoJSON building) are plain functions, tested without
 Zenoh; the thin part is ``ask`` (a ``session.get`` on a queryable) and ``main_*``.
@@ -35,11 +36,13 @@ from schemas import (
     keys,
 )
 from schemas.keys import SegmentId
+from services.defaults import add_network_argument
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 
 QUERY_TIMEOUT_S = 10.0  # `--timeout`: a service catching up on a backlog answers late
 PLAN_ROWS = 20  # `plan --limit`
-TRC_COLUMNS = ("line", "segment", "t", "top6_mm", "align10_mm", "run_id")
+TRC_COLUMNS = ("line", "segment", "t", "run_id")  # and one value column at least
+TRC_VALUE_COLUMNS = ("top6_mm", "align10_mm")  # in state order (INDICATORS)
 
 
 def ask(session: zenoh.Session, selector: str, timeout: float = QUERY_TIMEOUT_S):
@@ -59,7 +62,8 @@ def ask(session: zenoh.Session, selector: str, timeout: float = QUERY_TIMEOUT_S)
         yield str(reply.ok.key_expr), reply.ok.payload.to_bytes()
 
 
-def _session(conf: RuntimeConfig) -> zenoh.Session:
+def open_session(conf: RuntimeConfig) -> zenoh.Session:
+    """A session of a command; SystemExit saying what to check when the router is not there."""
     try:
         return zenoh.open(conf.zenoh_config())
     except zenoh.ZError as exc:
@@ -73,7 +77,7 @@ def main_status(
     conf: RuntimeConfig, timeout: float = QUERY_TIMEOUT_S, out: TextIO = sys.stdout
 ) -> int:
     """Every live service instance (liveliness tokens under ``{ns}/alive/**``)."""
-    with _session(conf) as session:
+    with open_session(conf) as session:
         tokens = [
             str(reply.ok.key_expr)
             for reply in session.liveliness().get(keys.alive_all(conf.ns), timeout=timeout)
@@ -101,9 +105,13 @@ def _alive_ids(tokens: Iterable[str]) -> Iterator[tuple[str, str]]:
 # --- state ----------------------------------------------------------------------------------
 
 
-def format_state(state: SegmentState) -> str:
-    """A segment's state as an engineer reads it: estimate, 95 % interval, risk, forecasts."""
-    lines = [f"{state.line}/{state.segment} at {_iso(state.t)} (last TRC {_iso(state.last_trc_t)})"]
+def format_state(state: SegmentState, line_name: str = "") -> str:
+    """A segment's state as an engineer reads it: estimate, 95 % interval, risk, forecasts;
+    ``line_name``: the line's name in the network file, shown after its id."""
+    measured = " ".join(state.last_trc_indicators)
+    last = _iso(state.last_trc_t) + (f", measured {measured}" if measured else "")
+    named = f" ({line_name})" if line_name and line_name != state.line else ""
+    lines = [f"{state.line}/{state.segment}{named} at {_iso(state.t)} (last TRC {last})"]
     mean_mm = [math.exp(v) for v in state.mean.array()]
     low, high = state.ci_low_mm.array(), state.ci_high_mm.array()
     p = state.p_exceed.array()
@@ -138,18 +146,26 @@ def query_states(
 
 
 def main_state(
-    conf: RuntimeConfig, segment: str, timeout: float = QUERY_TIMEOUT_S, out: TextIO = sys.stdout
+    conf: RuntimeConfig,
+    segment: str,
+    timeout: float = QUERY_TIMEOUT_S,
+    out: TextIO = sys.stdout,
+    network_path: str | None = None,
 ) -> int:
-    """`trackfusion state LINE/SEGMENT` (or `LINE/**` for a whole line)."""
+    """`trackfusion state LINE/SEGMENT` (or `LINE/**` for a whole line); the lines' names
+    from the network file ``network_path`` (the demo network without one)."""
+    from services.defaults import load_network
+
+    names = {line.id: line.name for line in load_network(network_path).lines.values()}
     if segment.count("/") != 1:
         raise SystemExit(f"state: {segment!r} is not LINE/SEGMENT (e.g. L1/s00042)")
-    with _session(conf) as session:
+    with open_session(conf) as session:
         states = query_states(session, conf.ns, segment, timeout)
     if not states:
         print(f"no state for {segment} (unknown segment, or no TRC record and model yet)", file=out)
         return 1
     for state in sorted(states, key=lambda s: (s.line, s.segment)):
-        print(format_state(state), file=out)
+        print(format_state(state, names.get(state.line, "")), file=out)
     return 0
 
 
@@ -166,7 +182,7 @@ def query_alerts(session: zenoh.Session, ns: str, timeout: float = QUERY_TIMEOUT
 def main_alerts(
     conf: RuntimeConfig, timeout: float = QUERY_TIMEOUT_S, out: TextIO = sys.stdout
 ) -> int:
-    with _session(conf) as session:
+    with open_session(conf) as session:
         alerts = query_alerts(session, conf.ns, timeout)
     if not alerts:
         print("no alert raised", file=out)
@@ -187,7 +203,7 @@ def main_plan(
     out: TextIO = sys.stdout,
 ) -> int:
     """The TRC inspection plan: segments ranked by P(exceeding before the next TRC run)."""
-    with _session(conf) as session:
+    with open_session(conf) as session:
         replies = list(ask(session, keys.q_plan(conf.ns), timeout))
     if not replies:
         raise SystemExit("plan: no answer from the alerting service (is it running?)")
@@ -227,23 +243,34 @@ def parse_time(text: str) -> float:
 def parse_trc_csv(text: TextIO) -> Iterator[TrcRecord | RowError]:
     """TrcRecords of a TRC export, or a RowError (with its file line number) per bad row.
 
-    Columns: line, segment, t (epoch s or ISO 8601), top6_mm, align10_mm, run_id.
+    Columns: line, segment, t (epoch s or ISO 8601), run_id, and top6_mm, align10_mm or
+    both (a level-only or alignment-only export). An empty value cell: the record did not
+    measure that indicator; a row must measure one at least.
     """
     reader = csv.DictReader(text)
-    missing = set(TRC_COLUMNS) - set(reader.fieldnames or ())
-    if missing:
-        yield RowError(1, f"header lacks column(s) {sorted(missing)}; need {list(TRC_COLUMNS)}")
+    header = set(reader.fieldnames or ())
+    missing = set(TRC_COLUMNS) - header
+    values = [c for c in TRC_VALUE_COLUMNS if c in header]
+    if missing or not values:
+        need = f"{list(TRC_COLUMNS)} and one or both of {list(TRC_VALUE_COLUMNS)}"
+        lacks = sorted(missing) if missing else list(TRC_VALUE_COLUMNS)
+        yield RowError(1, f"header lacks column(s) {lacks}; need {need}")
         return
     for row in reader:
         line_no = reader.line_num
         try:
+            measured = {c: float(row[c]) for c in values if (row[c] or "").strip()}
+            if not measured:
+                raise ValueError(f"no value in {values}")
             yield TrcRecord(
                 line=row["line"].strip(),
                 segment=row["segment"].strip(),
                 t=parse_time(row["t"]),
-                top6_mm=float(row["top6_mm"]),
-                align10_mm=float(row["align10_mm"]),
                 run_id=row["run_id"].strip(),
+                indicators=[
+                    i for i, c in zip(INDICATORS, TRC_VALUE_COLUMNS, strict=True) if c in measured
+                ],
+                **measured,
             )
         except (SchemaError, ValueError, TypeError, AttributeError) as exc:
             yield RowError(line_no, str(exc))
@@ -256,7 +283,7 @@ def main_import_trc(conf: RuntimeConfig, path: str, out: TextIO = sys.stdout) ->
     except (OSError, UnicodeDecodeError) as exc:
         raise SystemExit(f"import-trc: cannot read {path}: {exc}") from None
     published, errors = 0, []
-    with _session(conf) as session:
+    with open_session(conf) as session:
         for item in parse_trc_csv(io.StringIO(text, newline="")):
             if isinstance(item, RowError):
                 errors.append(item)
@@ -275,7 +302,15 @@ def main_import_trc(conf: RuntimeConfig, path: str, out: TextIO = sys.stdout) ->
 
 # --- export ---------------------------------------------------------------------------------
 
-STATE_COLUMNS = ["line", "segment", "t", "last_trc_t", "n_updates", "width"] + [
+STATE_COLUMNS = [
+    "line",
+    "segment",
+    "t",
+    "last_trc_t",
+    "last_trc_indicators",
+    "n_updates",
+    "width",
+] + [
     f"{name}_{what}"
     for name in INDICATORS
     for what in ("mm", "ci_low_mm", "ci_high_mm", "p_exceed_intervention")
@@ -289,6 +324,7 @@ def state_row(state: SegmentState) -> dict:
         "segment": state.segment,
         "t": _iso(state.t),
         "last_trc_t": _iso(state.last_trc_t),
+        "last_trc_indicators": " ".join(state.last_trc_indicators),
         "n_updates": state.n_updates,
         "width": state.width,
     }
@@ -335,7 +371,7 @@ def to_geojson(rows: Iterable[dict], geometry: dict[SegmentId, list]) -> dict:
 
 
 def segment_geometry(network_path: str | None) -> dict[SegmentId, list]:
-    from track.network import load_network
+    from services.defaults import load_network
 
     network = load_network(network_path)
     return {
@@ -353,7 +389,7 @@ def main_export(
     timeout: float = QUERY_TIMEOUT_S,
     out: TextIO = sys.stdout,
 ) -> int:
-    with _session(conf) as session:
+    with open_session(conf) as session:
         if what == "states":
             states = query_states(session, conf.ns, timeout=timeout)
             rows, columns = [state_row(s) for s in states], STATE_COLUMNS
@@ -402,8 +438,7 @@ def add_query_arguments(parser: argparse.ArgumentParser, *, timeout: bool = True
         )
 
 
-def status_add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_query_arguments(parser)
+status_add_arguments = alerts_add_arguments = add_query_arguments
 
 
 def status_run(args: argparse.Namespace) -> int:
@@ -414,15 +449,12 @@ def state_add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "segment", metavar="LINE/SEGMENT", help="e.g. L1/s00042, or L1/** for a line"
     )
+    add_network_argument(parser, "the lines' names")
     add_query_arguments(parser)
 
 
 def state_run(args: argparse.Namespace) -> int:
-    return main_state(config_from_args(args), args.segment, args.timeout)
-
-
-def alerts_add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_query_arguments(parser)
+    return main_state(config_from_args(args), args.segment, args.timeout, network_path=args.network)
 
 
 def alerts_run(args: argparse.Namespace) -> int:
@@ -465,34 +497,10 @@ def plan_run(args: argparse.Namespace) -> int:
     return main_plan(config_from_args(args), args.limit, args.timeout)
 
 
-def import_trc_add_arguments(parser: argparse.ArgumentParser) -> None:
-    from services.tools.trc_import import add_profile_arguments
-
-    parser.description = (
-        "Publish every good row of a TRC CSV export as a TrcRecord; bad rows are reported "
-        "with their line numbers (exit code 1 when there were any). With --profile, a "
-        "sampled TRC run instead: aligned to the line's previous run, Top6/Align10 computed "
-        "per segment, published and archived."
-    )
-    parser.add_argument("file", metavar="FILE.csv", nargs="?", help="per-segment TRC export")
-    add_profile_arguments(parser)
-    add_query_arguments(parser, timeout=False)
-
-
-def import_trc_run(args: argparse.Namespace) -> int:
-    if (args.file is None) == (args.profile is None):
-        raise ValueError("give either FILE.csv (per-segment values) or --profile FILE.csv")
-    if args.profile is not None:
-        from services.tools.trc_import import run_profile
-
-        return run_profile(args, config_from_args(args))
-    return main_import_trc(config_from_args(args), args.file)
-
-
 def export_add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("what", choices=["states", "alerts"])
     parser.add_argument("--format", choices=["csv", "geojson"], default="csv")
-    parser.add_argument("--network", metavar="FILE.geojson", help="geometry (default: the demo)")
+    add_network_argument(parser, "the geometry")
     add_query_arguments(parser)
 
 

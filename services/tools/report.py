@@ -32,6 +32,7 @@ from schemas import (
     keys,
 )
 from schemas.keys import SegmentId
+from services.defaults import add_network_argument
 from services.runtime.config import RuntimeConfig, config_from_args
 from services.tools import operator
 
@@ -70,6 +71,12 @@ class NetworkMap:
     polylines: dict[SegmentId, list[tuple[float, float]]] = field(default_factory=dict)
     chainage_m: dict[SegmentId, tuple[float, float]] = field(default_factory=dict)
     stations: list[Station] = field(default_factory=list)
+    line_names: dict[str, str] = field(default_factory=dict)  # id -> the name operators use
+
+    def label(self, line: str) -> str:
+        """A line as a planner knows it: ``id (name)``, or the id when it has no name."""
+        name = self.line_names.get(line)
+        return f"{line} ({name})" if name and name != line else line
 
 
 @dataclass(frozen=True)
@@ -178,7 +185,8 @@ def _header(data: ReportData, states: list[SegmentState], title: str) -> str:
         f"<h1>{escape(title)}</h1>"
         f'<p class="meta">Made {escape(iso(data.made_at, "seconds"))} (wall clock). '
         f"Newest state: {escape(iso(newest))} (event time). "
-        f"{len(states)} segments on {len(lines)} line(s) ({escape(', '.join(lines))}); "
+        f"{len(states)} segments on {len(lines)} line(s) "
+        f"({escape(', '.join(map(data.network.label, lines)))}); "
         f"{high} with P(exceed) ≥ 0.5.</p>"
         "<p>Each 200 m segment's track geometry is estimated from the last Track Recording "
         "Car (TRC) record and the on-board indices of in-service trains since then. Top6 and "
@@ -245,7 +253,7 @@ def _map(data: ReportData, states: list[SegmentState]) -> str:
         x, y = xy(*projected[first][0]).split(",")
         out.append(
             f'<text x="{x}" y="{float(y) - 8:.1f}" font-size="13" font-weight="bold" '
-            f'fill="#222">{escape(line)}</text>'
+            f'fill="#222">{escape(data.network.label(line))}</text>'
         )
     for st in stations:
         x, y = xy(*_project([(st.lon, st.lat)], lat0)[0]).split(",")
@@ -288,7 +296,7 @@ def _table(data: ReportData, states: list[SegmentState]) -> str:
         key = (s.line, s.segment)
         chain = data.network.chainage_m.get(key)
         chain_text = "–" if chain is None else f"{chain[0] / 1e3:.1f} – {chain[1] / 1e3:.1f}"
-        cells = [f'<td class="n">{rank}</td>', f"<td>{escape(s.line)}</td>"]
+        cells = [f'<td class="n">{rank}</td>', f"<td>{escape(data.network.label(s.line))}</td>"]
         cells.append(f"<td>{escape(s.segment)}</td><td>{chain_text}</td>")
         for name in ("top6", "align10"):
             text = _mm(s, s.indicators.index(name)) if name in s.indicators else "–"
@@ -297,7 +305,7 @@ def _table(data: ReportData, states: list[SegmentState]) -> str:
         forecast = p_forecast(s)
         cells += [_p_cell(forecast.get(h)) for h in horizons]
         plan = plan_rows.get(key)
-        cells.append(f"<td>{day(s.last_trc_t)}</td>")
+        cells.append(f"<td>{day(s.last_trc_t)}{_measured(s)}</td>")
         if plan is None:
             cells.append("<td>–</td><td>–</td>")
         else:
@@ -306,6 +314,14 @@ def _table(data: ReportData, states: list[SegmentState]) -> str:
         rows.append("<tr>" + "".join(cells) + "</tr>")
     rows.append("</tbody></table>")
     return "".join(rows)
+
+
+def _measured(state: SegmentState) -> str:
+    """What the last TRC record measured, when it was not every indicator."""
+    names = state.last_trc_indicators
+    if not names or len(names) == len(state.indicators):
+        return ""
+    return f"<br><small>{escape(' '.join(names))} only</small>"
 
 
 def _p_cell(p: float | None) -> str:
@@ -419,7 +435,8 @@ def network_map(network_path: str | None = None) -> NetworkMap:
     A line feature may name its stations with ``station_names`` (one per ``stations``
     chainage); without names a station is labelled with its chainage in km.
     """
-    from track.network import DEMO_NETWORK, Network
+    from services.defaults import DEMO_NETWORK
+    from track.network import Network
 
     path = Path(network_path or DEMO_NETWORK)
     try:
@@ -442,7 +459,8 @@ def network_map(network_path: str | None = None) -> NetworkMap:
             lon, lat = map(float, line.lonlat_at(c))
             label = str(names[k]) if k < len(names) else f"{line.id} km {c / 1e3:.1f}"
             stations.append(Station(line.id, lon, lat, label))
-    return NetworkMap(polylines, chainage, stations)
+    names = {line.id: line.name for line in network.lines.values() if line.name}
+    return NetworkMap(polylines, chainage, stations, names)
 
 
 # --- the running system ---------------------------------------------------------------------
@@ -485,7 +503,7 @@ def main(
 ) -> int:
     """Ask the running system and write the report; SystemExit (1) without any state."""
     network = network_map(network_path)
-    with operator._session(conf) as session:
+    with operator.open_session(conf) as session:
         states = operator.query_states(session, conf.ns, f"{line}/**" if line else "**", timeout)
         if not states:
             what = f"line {line}" if line else f"namespace {conf.ns!r}"
@@ -519,7 +537,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--line", help="one line (default: all lines)")
     parser.add_argument("--out", default=DEFAULT_OUT, metavar="FILE.html", help="(%(default)s)")
-    parser.add_argument("--network", metavar="FILE.geojson", help="geometry (default: the demo)")
+    add_network_argument(parser, "the geometry")
     parser.add_argument(
         "--worst", type=int, default=WORST_N, metavar="N", help="fans drawn (%(default)s)"
     )

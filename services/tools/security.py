@@ -98,7 +98,8 @@ def _service(
     )
 
 
-#: Certificate common name -> what that remote may do. Keys as in DESIGN's key table.
+#: Certificate common name -> what that remote may do. Keys as in
+#: docs/architecture.md#key-expressions.
 ROLES: Mapping[str, Grant] = {
     "ingestion": _service(
         "ingestion",

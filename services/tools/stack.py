@@ -34,12 +34,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, TextIO
 
-import json5
 import zenoh
 
 from schemas import Alert, SchemaError, ServiceHealth, StackHealth, decode, encode, keys
 from services.defaults import default_file
-from services.runtime.config import default_instance, zenoh_config
+from services.runtime.config import default_instance, read_json5, zenoh_config
 from services.runtime.service import configure_logging
 
 log = logging.getLogger(__name__)
@@ -49,7 +48,7 @@ DEFAULT_STACK = default_file("stack.json5")
 DEFAULTS = "{defaults}"
 # In a stack file's args: the network file, `up --network FILE` or the demo network.
 NETWORK = "{network}"
-DEMO_NETWORK = f"{DEFAULTS}/demo-network.geojson"
+DEMO_NETWORK_ARG = f"{DEFAULTS}/demo-network.geojson"
 WATCHED = ("state", "index", "alert", "gps", "trc", "maintenance", "deadletter")
 RESTART_POLICIES = ("always", "on-failure", "never")
 TICK_S = 0.5  # supervision step
@@ -134,9 +133,9 @@ def load_stack(
     ``{network}`` in its args becomes ``network`` (absolute), by default the demo network;
     a ``network`` given to a stack file that has no ``{network}`` is an error, not ignored.
     """
-    network_arg = str(Path(network).absolute()) if network is not None else DEMO_NETWORK
+    network_arg = str(Path(network).absolute()) if network is not None else DEMO_NETWORK_ARG
+    raw = read_json5(path)
     try:
-        raw = json5.loads(Path(path).read_text())
         stack = Stack(
             ns=ns or raw.get("ns", keys.DEFAULT_NS),
             listen=listen or raw["router"]["listen"],
@@ -144,7 +143,7 @@ def load_stack(
             processes=tuple(_process_spec(p, network_arg) for p in raw["processes"]),
             supervision=_supervision(raw.get("supervision", {})),
         )
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{path}: not a valid stack file ({type(exc).__name__}: {exc})") from None
     names = [p.name for p in stack.processes]
     if len(set(names)) != len(names):
@@ -510,7 +509,7 @@ class Supervisor:
         return [flow.text(now) for flow in self.flows if flow.stalled(now)]
 
     def health(self, now: float, *, running: bool = True) -> dict[str, Any]:
-        """The machine-readable board (README, "Health file")."""
+        """The machine-readable board (docs/operating.md#varhealthjson)."""
         alive = self.board.alive_instances()
         processes = {name: c.health(now, alive) for name, c in self.children.items()}
         stalled = self.stalled(now)
@@ -607,7 +606,7 @@ class Supervisor:
 
 def main(stack_path: str | Path = DEFAULT_STACK, *, out: TextIO = sys.stdout, **overrides) -> int:
     if overrides.get("network") is not None:  # a bad file stops `up` now, not each child
-        from track.network import load_network
+        from services.defaults import load_network
 
         load_network(str(overrides["network"]))
     stack = load_stack(stack_path, **overrides)

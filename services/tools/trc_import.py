@@ -1,4 +1,6 @@
-"""`trackfusion import-trc --profile FILE.csv --line L --run-id R --t ISO`: a sampled TRC run.
+"""`trackfusion import-trc`: TRC records onto the bus, from a per-segment CSV export
+(:func:`services.tools.operator.main_import_trc`) or, with ``--profile FILE.csv --line L
+--run-id R --t ISO``, from a sampled TRC run.
 
 The thin part around :mod:`track.trc_profile` (parse, align, statistic per segment): read
 the file, take the reference run from the archive, publish one TrcRecord per covered
@@ -32,13 +34,21 @@ from typing import TextIO
 import numpy as np
 import zenoh
 
-from schemas import SchemaError, TrcRecord, encode, keys
+from schemas import INDICATORS, SchemaError, TrcRecord, encode, keys
 from schemas.wire import check_time
-from services.runtime.config import RuntimeConfig
-from services.tools.operator import _session, parse_time
-from track.network import check_id, load_network
+from services.defaults import add_network_argument, load_network
+from services.runtime.config import RuntimeConfig, config_from_args
+from services.tools.operator import (
+    add_query_arguments,
+    main_import_trc,
+    open_session,
+    parse_time,
+)
+from track.network import check_id
 from track.segments import SegmentTable
 from track.trc_profile import (
+    ALIGN_COLUMNS,
+    LEVEL_COLUMNS,
     MAX_OFFSET_M,
     WINDOW_M,
     GridProfile,
@@ -134,12 +144,37 @@ def trc_records(result: RunResult, line: str, run_id: str, t: float):
     """The TrcRecords of a run, and ``(segment, reason)`` for values no record can carry."""
     records, refused = [], []
     for v in result.values:
+        values = (v.top6_mm, v.align10_mm)
+        measured = [name for name, x in zip(INDICATORS, values, strict=True) if x is not None]
         try:
             records.append(TrcRecord(line=line, segment=v.segment, t=t, top6_mm=v.top6_mm,
-                                     align10_mm=v.align10_mm, run_id=run_id))  # fmt: skip
+                                     align10_mm=v.align10_mm, run_id=run_id,
+                                     indicators=measured))  # fmt: skip
         except SchemaError as exc:
             refused.append((v.segment, str(exc)))
     return records, refused
+
+
+def indicator_lines(profile: TrcProfile) -> list[str]:
+    """What the run's records measure, from which rails, and what they cannot, and why;
+    nothing when they measure every indicator on both rails."""
+    if set(LEVEL_COLUMNS + ALIGN_COLUMNS) <= set(profile.channels):
+        return []
+    out = []
+    for name, family, columns in (
+        ("top6", "longitudinal level", LEVEL_COLUMNS),
+        ("align10", "alignment", ALIGN_COLUMNS),
+    ):
+        rails = [c for c in columns if c in profile.channels]
+        if not rails:
+            out.append(
+                f"{name}: not measured, the file has no {family} column ({', '.join(columns)})"
+            )
+        elif len(rails) == 1:
+            out.append(f"{name}: from {rails[0]} alone (the file has one rail of {family})")
+        else:
+            out.append(f"{name}: the smaller of {rails[0]} and {rails[1]}")
+    return out
 
 
 def format_report(
@@ -152,7 +187,9 @@ def format_report(
     n_records: int,
     refused: list[tuple[str, str]],
 ) -> str:
-    """What the operator reads: the run, its alignment per window, the segments."""
+    """What the operator reads: the run (``line``: its id, and name), what its records
+    measure when not every indicator on both rails, its alignment per window, the
+    segments."""
     x0, x1 = profile.chainage_m[0], profile.chainage_m[-1]
     if profile.descending:
         x0, x1 = x1, x0
@@ -163,6 +200,7 @@ def format_report(
     ]
     if profile.ignored_columns:
         out.append(f"ignored columns: {', '.join(profile.ignored_columns)}")
+    out.extend(indicator_lines(profile))
     if reference is None:
         out.append(
             "alignment: no earlier run of this stretch of the line in the archive, taken as it is"
@@ -171,8 +209,9 @@ def format_report(
         out.append(f"alignment: skipped (--no-align); reference would be run {reference.run_id}")
     else:
         used = result.alignment.used
+        on = "" if result.alignment.signal == "level" else ", matched on alignment"
         out.append(
-            f"alignment to run {reference.run_id} (offset = its chainage - this run's): "
+            f"alignment to run {reference.run_id} (offset = its chainage - this run's{on}): "
             f"{len(used)} of {len(result.alignment.windows)} windows used"
         )
         out.append(f"  {'window start m':>14} {'offset m':>9} {'peak':>6}")
@@ -218,7 +257,8 @@ def main_import_trc_profile(
     """Parse, align, compute and (unless ``dry_run``) publish and archive one TRC run."""
     check_id("--line", line)
     check_id("--run-id", run_id)
-    table = SegmentTable.from_network(load_network(network_path))
+    network = load_network(network_path)
+    table = SegmentTable.from_network(network)
     if line not in table.lines:
         raise ValueError(f"--line {line}: not a line of the network ({', '.join(table.lines)})")
     try:
@@ -246,14 +286,16 @@ def main_import_trc_profile(
             max_offset_m=max_offset_m,
         )
         records, refused = trc_records(result, line, run_id, t)
+        name = network.lines[line].name
+        label = f"{line} ({name})" if name and name != line else line
         print(
-            format_report(path, profile, result, line, run_id, reference, len(records), refused),
+            format_report(path, profile, result, label, run_id, reference, len(records), refused),
             file=out,
         )
         if dry_run or archive is None:
             print("dry run: nothing published, nothing archived", file=out)
             return 0
-        with _session(conf) as session:
+        with open_session(conf) as session:
             for record in records:
                 session.put(
                     keys.trc(conf.ns, line, record.segment),
@@ -273,13 +315,13 @@ def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
     """The flags of the ``--profile`` form of ``import-trc``."""
     group = parser.add_argument_group(
         "a sampled TRC run (--profile): aligned to the line's previous run, Top6/Align10 "
-        "computed per segment; the CSV format is in README.md (TRC profiles)"
+        "computed per segment; the CSV format is in README.md, section TRC profiles"
     )
     group.add_argument("--profile", metavar="FILE.csv", help="the run's profile export")
     group.add_argument("--line", help="line id of the run (of --network)")
     group.add_argument("--run-id", help="id of the run, carried by its TrcRecords")
     group.add_argument("--t", metavar="ISO", help="time of the run: ISO 8601 or epoch s")
-    group.add_argument("--network", metavar="FILE.geojson", help="segments (default: the demo)")
+    add_network_argument(group, "the segments")
     group.add_argument(
         "--archive",
         metavar="FILE",
@@ -325,3 +367,23 @@ def run_profile(args: argparse.Namespace, conf: RuntimeConfig) -> int:
         max_offset_m=args.max_offset,
         dry_run=args.dry_run,
     )
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Publish every good row of a TRC CSV export as a TrcRecord; bad rows are reported "
+        "with their line numbers (exit code 1 when there were any). With --profile, a "
+        "sampled TRC run instead: aligned to the line's previous run, Top6/Align10 computed "
+        "per segment, published and archived."
+    )
+    parser.add_argument("file", metavar="FILE.csv", nargs="?", help="per-segment TRC export")
+    add_profile_arguments(parser)
+    add_query_arguments(parser, timeout=False)
+
+
+def run(args: argparse.Namespace) -> int:
+    if (args.file is None) == (args.profile is None):
+        raise ValueError("give either FILE.csv (per-segment values) or --profile FILE.csv")
+    if args.profile is not None:
+        return run_profile(args, config_from_args(args))
+    return main_import_trc(config_from_args(args), args.file)

@@ -23,44 +23,18 @@ every ``plot_flush_s`` wall seconds (one chunk per entity) and the map colours, 
 alerts and health every ``live_flush_s``. Segments not in a slot are not written: an
 operator pins one with ``trackfusion viewer select`` (services/viewer/README.md).
 
-Entity paths (values in mm; ``{ind}`` is ``top6`` or ``align10``):
-
-================================================  ==========================================
-``{slot}/{ind}/g{n}/state``                       Scalars, one instance per series: estimate
-                                                  (exp of the mixture mean of ln mm), 95 %
-                                                  band low and high, then one per limit level
-``{slot}/{ind}/g{n}/onboard``                     raw on-board index (points; not de-biased)
-``{slot}/{ind}/g{n}/trc``                         TRC record (points)
-``worst/ranking``                                 TextDocument: which segment each slot shows
-``map/segments``                                  one line strip per segment of the network
-                                                  (labelled ``{line}/{segment}``), coloured
-                                                  by exceedance probability (green → red)
-``map/tunnels``, ``map/stations``, ``map/lines``  static: tunnels (dark strips under the
-                                                  segments), stations and line names
-``map/legend``                                    static colour scale of the map
-``map/trains``                                    last GPS fix of every train (fix_quality > 0)
-``alerts``                                        TextLog: raised = WARN, cleared = INFO
-``health``                                        TextDocument: services alive, restarts,
-                                                  stalled flows
-================================================  ==========================================
-
-Map frame: local metres of :meth:`simulators.network.Network.to_xy` (x east, y north)
-with y negated on logging, because Rerun's 2D view draws y downwards (rerun#1387): north
-is up on screen.
+Entity paths, styles, the blueprint and the static map: :mod:`services.viewer.scene`.
 """
 
 from __future__ import annotations
 
 import heapq
 import math
-import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
-from rerun.encodings import TimeRange
 
 from schemas import (
     DAY_S,
@@ -75,51 +49,31 @@ from schemas import (
     ViewerSelect,
 )
 from schemas.keys import SegmentId
+from services.viewer.scene import (
+    DRAW_ORDER,
+    HEALTH_PATH,
+    MAP_PATH,
+    RANKING_PATH,
+    SELECTED,
+    TIMELINE,
+    UNKNOWN_RGB,
+    build_blueprint,
+    exceedance_color,
+    health_markdown,
+    log_static_map,
+    screen_xy,
+    slot_names,
+    style_columns,
+)
 from track.network import Network
 
-TIMELINE = "event_time"  # timestamp timeline of the messages' event time t (epoch s)
-MAP_PATH = "map/segments"  # every segment of the network, one line strip each
-RANKING_PATH = "worst/ranking"
-HEALTH_PATH = "health"
-SELECTED = "selected"
 INTERVENTION = "intervention"  # the limit level the map colour and the worst ranking use
 DEFAULT_WORST_N = 3
 WORST_MARGIN = 0.25  # a segment replaces a plotted one if its p is higher by more than this
 DEFAULT_PLOT_FLUSH_S = 30.0  # wall seconds between two writes of the slots' rows
 DEFAULT_LIVE_FLUSH_S = 5.0  # wall seconds between two writes of map colours, alerts, trains
 HISTORY_DAYS = 365  # event days of states and on-board indices kept per segment
-PLOT_WINDOW_DAYS = 90.0  # event days before the time cursor that the plots show
 STACK_REPORT_STALE_S = 5.0  # wall s without a StackHealth: `up` is taken as gone
-
-UNKNOWN_RGB = (128, 128, 128)  # a segment without a state yet
-_STOPS_P = np.array([0.0, 0.5, 1.0])
-_STOPS_RGB = np.array([(40, 170, 60), (240, 200, 30), (220, 40, 40)], dtype=float)  # green→red
-LEGEND_P = (0.0, 0.25, 0.5, 0.75, 1.0)
-
-
-_BAND_RGBA = (80, 160, 255, 110)
-_POINT_STYLE = {
-    "onboard": {"colors": (255, 150, 40), "markers": "circle", "marker_sizes": 2.5},
-    "trc": {"colors": (230, 80, 230), "markers": "diamond", "marker_sizes": 5.0},
-}
-_POINT_NAMES = {"onboard": "on-board", "trc": "TRC"}
-_SECONDS = re.compile(r" (after|for) \d+ s$")  # "… after 12 s": changes every second
-_LIMIT_RGB = {"alert": (255, 190, 0), "intervention": (230, 40, 40)}
-# draw order on the map, bottom to top
-_ORDER = {"tunnels": 10.0, "segments": 20.0, "stations": 30.0, "trains": 40.0, "labels": 50.0}
-
-
-def exceedance_color(p: float | np.ndarray) -> np.ndarray:
-    """RGB (uint8) of exceedance probabilities: green at 0, yellow at 0.5, red at 1.
-
-    Values are clipped to [0, 1]; NaN (no state yet) is grey. Shape ``p.shape + (3,)``.
-    """
-    p = np.asarray(p, dtype=float)
-    rgb = np.stack(
-        [np.interp(np.clip(p, 0.0, 1.0), _STOPS_P, _STOPS_RGB[:, c]) for c in range(3)], -1
-    )
-    rgb[np.isnan(p)] = UNKNOWN_RGB
-    return np.rint(rgb).astype(np.uint8)
 
 
 def segment_exceedance(state: SegmentState) -> float:
@@ -184,156 +138,6 @@ def coalesce_key(msg: Message) -> tuple[str, ...] | None:
         case ViewerSelect():
             return ("select",)
     return None
-
-
-def state_series(levels: Sequence[str]) -> list[str]:
-    """Instance names of a ``…/state`` row: estimate, the band, then one per limit."""
-    return ["estimate", "95% low", "95% high", *(f"{level} limit" for level in levels)]
-
-
-def state_style(levels: Sequence[str], prefix: str = "") -> rr.SeriesLines:
-    """One line style per instance of a ``…/state`` row (see :func:`state_series`), the
-    names prefixed with ``prefix`` (the segment, shown when hovering a line)."""
-    colors, widths, names = _state_style_lists(levels, prefix)
-    return rr.SeriesLines(colors=colors, widths=widths, names=names)
-
-
-def _state_style_lists(
-    levels: Sequence[str], prefix: str
-) -> tuple[list[tuple[int, ...]], list[float], list[str]]:
-    colors = [(80, 160, 255, 255), _BAND_RGBA, _BAND_RGBA]
-    colors += [(*_LIMIT_RGB.get(level, (200, 200, 200)), 255) for level in levels]
-    widths = [2.0, 1.0, 1.0, *([1.5] * len(levels))]
-    return colors, widths, [f"{prefix}{name}" for name in state_series(levels)]
-
-
-def point_style(kind: str, prefix: str = "") -> rr.SeriesPoints:
-    """The style of an ``onboard`` or ``trc`` entity."""
-    return rr.SeriesPoints(**_POINT_STYLE[kind], names=f"{prefix}{_POINT_NAMES[kind]}")
-
-
-def _style_columns(kind: str, levels: Sequence[str], prefix: str, rows: int) -> list[object]:
-    """:func:`state_style` or :func:`point_style` as columns repeated on ``rows`` rows (a plot
-    takes a row's style from that row: a style on the first row only would fall out of the
-    plot's window once that row is older than the window)."""
-    if kind == "state":
-        colors, widths, names = _state_style_lists(levels, prefix)
-        return list(
-            rr.SeriesLines.columns(
-                colors=colors * rows, widths=widths * rows, names=names * rows
-            ).partition([len(names)] * rows)
-        )
-    spec = _POINT_STYLE[kind]
-    return list(
-        rr.SeriesPoints.columns(
-            colors=[spec["colors"]] * rows,
-            markers=[spec["markers"]] * rows,
-            marker_sizes=[spec["marker_sizes"]] * rows,
-            names=[f"{prefix}{_POINT_NAMES[kind]}"] * rows,
-        )
-    )
-
-
-def slot_names(worst_n: int) -> list[str]:
-    """The plot rows of the blueprint, top to bottom: ``worst/1`` … ``worst/N``, ``selected``."""
-    return [*(f"worst/{rank}" for rank in range(1, worst_n + 1)), SELECTED]
-
-
-def build_blueprint(worst_n: int, bounds: np.ndarray | None = None) -> rrb.Blueprint:
-    """The map with the alert log, which segment each plot row shows, and the health board
-    below it; on the right one plot row per worst rank and one for the selected segment (a
-    plot per indicator). Sent once: the rows are slots the core fills.
-
-    ``bounds``: ``[[x_min, y_min], [x_max, y_max]]`` of the map in logged coordinates, so
-    that the map opens on the whole network and its legend.
-    """
-    map_view = rrb.Spatial2DView(
-        origin="map",
-        contents="$origin/**",
-        name="Network: P(exceed intervention limit)",
-        visual_bounds=None
-        if bounds is None
-        else rrb.VisualBounds2D(x_range=bounds[:, 0], y_range=bounds[:, 1]),
-    )
-    # an explicit window ending at the cursor: the plot's automatic x range is fitted to the
-    # first rows it draws, which for a browser that connects late (newest first) are the
-    # last few and so too narrow to show the rest when it arrives
-    window = TimeRange(
-        start=rrb.TimeRangeBoundary.cursor_relative(seconds=-PLOT_WINDOW_DAYS * DAY_S),
-        end=rrb.TimeRangeBoundary.cursor_relative(seconds=DAY_S),
-    )
-    rows = [
-        rrb.Horizontal(
-            *(
-                rrb.TimeSeriesView(
-                    origin=f"{slot}/{indicator}",
-                    contents="$origin/**",
-                    name=f"{'selected' if slot == SELECTED else '#' + slot.split('/')[1]} "
-                    f"{indicator} mm",
-                    plot_legend=rrb.PlotLegend(visible=False),  # small plots: hover for names
-                    axis_x=rrb.TimeAxis(view_range=window),
-                )
-                for indicator in INDICATORS
-            )
-        )
-        for slot in slot_names(worst_n)
-    ]
-    left = rrb.Vertical(
-        map_view,
-        rrb.Horizontal(
-            rrb.TextLogView(origin="alerts", name="Alerts"),
-            rrb.TextDocumentView(origin=RANKING_PATH, name="Plotted segments"),
-            rrb.TextDocumentView(origin=HEALTH_PATH, name="Health"),
-            column_shares=[5, 3, 4],
-        ),
-        row_shares=[5, 2],
-    )
-    right = rrb.Vertical(*rows)
-    return rrb.Blueprint(
-        rrb.Horizontal(left, right, column_shares=[3, 2]),
-        rrb.BlueprintPanel(state="collapsed"),
-        rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(timeline=TIMELINE),
-        auto_views=False,
-        auto_layout=False,
-    )
-
-
-def health_markdown(
-    stack: StackHealth | None,
-    alive: Mapping[tuple[str, str], bool],
-) -> str:
-    """The health board: ``up``'s report (a table of its processes, stalled flows in bold)
-    when ``stack`` is given, else the liveliness tokens seen (``alive``: (service,
-    instance) → present now). Seconds are left out, so that the text changes only when the
-    health does."""
-    lines: list[str] = []
-    if stack is not None:
-        verdict = "healthy" if stack.healthy else "**not healthy**"
-        lines += [
-            f"**trackfusion up**: {verdict}",
-            "",
-            "| service | state | alive | restarts | last restart reason |",
-            "|---|---|---|---|---|",
-        ]
-        for p in stack.processes:
-            alive_text = "yes" if p.alive else "**no**"
-            reason = _SECONDS.sub("", p.last_restart_reason)
-            lines.append(f"| {p.name} | {p.state} | {alive_text} | {p.restarts} | {reason} |")
-        for text in stack.stalled:
-            lines += ["", f"**STALLED: {_SECONDS.sub('', text)}**"]
-    else:
-        lines += [
-            "No report from `trackfusion up`: liveliness tokens seen",
-            "",
-            "| service | instance | alive |",
-            "|---|---|---|",
-        ]
-        for (service, instance), present in sorted(alive.items()):
-            lines.append(f"| {service} | {instance} | {'yes' if present else '**no**'} |")
-        if not alive:
-            lines += ["", "none yet"]
-    return "\n".join(lines)
 
 
 @dataclass
@@ -455,6 +259,7 @@ class ViewerCore:
         self.plot_flush_s = plot_flush_s
         self.live_flush_s = live_flush_s
         self.p_exceed: dict[SegmentId, float] = {}
+        self.last_trc: dict[SegmentId, tuple[str, ...]] = {}  # indicators the last TRC measured
         self.handled = 0  # messages taken (GPS fixes without a fix included)
         self.rows_written = 0  # rows of the plots' entities written
         self.blueprints_sent = 0
@@ -489,135 +294,17 @@ class ViewerCore:
         """Log the static map (segments, tunnels, stations, line names, legend) and send
         the one blueprint."""
         if self.network is not None:
-            self._log_static_map(self.network)
+            keys, self._bounds = log_static_map(self.rec, self.network)
+            self._map = _Map(
+                keys,
+                {key: i for i, key in enumerate(keys)},
+                np.full((len(keys), 3), UNKNOWN_RGB, np.uint8),
+            )
         self.rec.send_blueprint(
             build_blueprint(self.worst_n, self._bounds), make_active=True, make_default=True
         )
         self.blueprints_sent += 1
         self._log_health()
-
-    def _log_static_map(self, network: Network) -> None:
-        lines = list(network.lines.values())
-        xy = _screen(np.concatenate([ln.xy for ln in lines]))
-        lo, hi = xy.min(axis=0), xy.max(axis=0)
-        span = float((hi - lo).max())
-        keys = [(line.id, seg.id) for line in lines for seg in line.segments]
-        strips = [
-            _screen(network.to_xy(line.segment_lonlat(seg)))
-            for line in lines
-            for seg in line.segments
-        ]
-        # one entity for the whole network: one chunk per colour change, not one per segment
-        self.rec.log(
-            MAP_PATH,
-            rr.LineStrips2D(
-                strips,
-                radii=rr.Radius.ui_points(3.5),
-                labels=[f"{line}/{segment}" for line, segment in keys],
-                show_labels=False,
-                draw_order=_ORDER["segments"],
-            ),
-            static=True,
-        )
-        self._map = _Map(
-            keys,
-            {key: i for i, key in enumerate(keys)},
-            np.full((len(keys), 3), UNKNOWN_RGB, np.uint8),
-        )
-        tunnels, tunnel_labels = [], []
-        stations, station_labels = [], []
-        names, name_labels = [], []
-        for line in lines:
-            for a, b in line.tunnels:
-                chainage = np.r_[
-                    a, line.chainage_m[(line.chainage_m > a) & (line.chainage_m < b)], b
-                ]
-                tunnels.append(_screen(line.xy_at(chainage)))
-                tunnel_labels.append(f"{line.id} tunnel {a / 1e3:.1f}–{b / 1e3:.1f} km")
-            station_names = line.station_names or [""] * len(line.stations)
-            for c, station_name in zip(line.stations, station_names, strict=True):
-                stations.append(_screen(line.xy_at(c)))
-                where = f"{line.id} km {c / 1e3:.1f}"
-                station_labels.append(f"{station_name} ({where})" if station_name else where)
-            # the line's name beyond both of its ends
-            for end, inward in ((0.0, 1.0), (line.length_m, -1.0)):
-                ahead = line.xy_at(np.clip(end + inward * 0.02 * span, 0, line.length_m))
-                at = line.xy_at(end)
-                direction = (at - ahead) / max(1e-9, float(np.hypot(*(at - ahead))))
-                names.append(_screen(at + direction * 0.025 * span))
-                name_labels.append(f"{line.id} {line.name}" if line.name else line.id)
-        if tunnels:
-            self.rec.log(
-                "map/tunnels",
-                rr.LineStrips2D(
-                    tunnels,
-                    radii=rr.Radius.ui_points(8.0),
-                    colors=(35, 35, 45),
-                    labels=tunnel_labels,
-                    show_labels=False,
-                    draw_order=_ORDER["tunnels"],
-                ),
-                static=True,
-            )
-        if stations:
-            self.rec.log(
-                "map/stations",
-                rr.Points2D(
-                    np.array(stations),
-                    radii=rr.Radius.ui_points(4.0),
-                    colors=(70, 70, 80),
-                    labels=station_labels,
-                    show_labels=False,  # on hover: names on the map would hide the colours
-                    draw_order=_ORDER["stations"],
-                ),
-                static=True,
-            )
-        self.rec.log(
-            "map/lines",
-            rr.Points2D(
-                np.array(names),
-                radii=rr.Radius.ui_points(1.0),
-                colors=(20, 20, 30),
-                labels=name_labels,
-                show_labels=True,
-                draw_order=_ORDER["labels"],
-            ),
-            static=True,
-        )
-        # the colour scale below the network, at its left: small swatches, their labels in
-        # a neutral colour beside them (coloured text would add to the colours of the map)
-        step = 0.045 * span
-        legend_at = (
-            np.array([lo[0], hi[1] + 2 * step])
-            + np.array([0.0, step]) * np.arange(len(LEGEND_P) + 1)[:, None]
-        )
-        labels = [f"p = {p:g}" for p in LEGEND_P] + ["no state yet"]
-        colors = np.vstack([exceedance_color(np.array(LEGEND_P)), [UNKNOWN_RGB]])
-        self.rec.log(
-            "map/legend/colors",
-            rr.Points2D(
-                legend_at,
-                radii=rr.Radius.ui_points(4.0),
-                colors=colors,
-                draw_order=_ORDER["labels"],
-            ),
-            static=True,
-        )
-        self.rec.log(
-            "map/legend/labels",
-            rr.Points2D(
-                legend_at + [0.12 * span, -0.7 * step],  # a label is drawn below its point
-                radii=rr.Radius.ui_points(0.5),
-                colors=(20, 20, 30),
-                labels=labels,
-                show_labels=True,
-                draw_order=_ORDER["labels"],
-            ),
-            static=True,
-        )
-        everything = np.vstack([xy, legend_at, np.array(names)])
-        margin = 0.05 * span
-        self._bounds = np.stack([everything.min(axis=0) - margin, everything.max(axis=0) + margin])
 
     # --- messages ------------------------------------------------------------------------
 
@@ -690,7 +377,7 @@ class ViewerCore:
         self._event_time(state.t)
 
     def _keep_onboard(self, index: OnboardIndex) -> None:
-        values = np.array([[index.top6_mm], [index.align10_mm]])
+        values = np.array([[index.top6_mm], [index.align10_mm]], dtype=float)  # None: NaN
         self._history_of((index.line, index.segment)).onboard.put(index.t, values)
         self._event_time(index.t)
 
@@ -700,6 +387,7 @@ class ViewerCore:
             return  # a late state: its day's row is kept, the ranking keeps the newest
         self._newest_t[key] = state.t
         self.p_exceed[key] = p = segment_exceedance(state)
+        self.last_trc[key] = tuple(state.last_trc_indicators)
         i = self._map.index.get(key) if self._map is not None else None
         if self._map is None or i is None:
             return  # not on the map
@@ -797,7 +485,7 @@ class ViewerCore:
                     column = values[:, i]
                     keep = ~np.isnan(column).all(axis=-1) if column.ndim > 1 else ~np.isnan(column)
                     if keep.any():
-                        style = _style_columns(kind, levels, prefix, int(keep.sum()))
+                        style = style_columns(kind, levels, prefix, int(keep.sum()))
                         self._send(path, t[keep], column[keep], style)
 
     def _send(
@@ -819,15 +507,17 @@ class ViewerCore:
         the newest event time, so it is written only when it changed."""
         if self._newest_event_t is None:
             return
-        lines = ["| row | segment | p |", "|---|---|---|"]
+        lines = ["| row | segment | p | last TRC measured |", "|---|---|---|---|"]
         for slot in self._slots:
             row = "selected" if slot.name == SELECTED else f"#{slot.name.split('/')[1]}"
             if slot.key is None:
-                lines.append(f"| {row} | - | |")
+                lines.append(f"| {row} | - | | |")
                 continue
             p = self.p_exceed.get(slot.key)
+            measured = " ".join(self.last_trc.get(slot.key, ())) or "-"
             lines.append(
-                f"| {row} | {slot.key[0]}/{slot.key[1]} | {'-' if p is None else f'{p:.2f}'} |"
+                f"| {row} | {slot.key[0]}/{slot.key[1]} | {'-' if p is None else f'{p:.2f}'} "
+                f"| {measured} |"
             )
         lines += [
             "",
@@ -852,7 +542,7 @@ class ViewerCore:
             self._map.changed_t = None
         if self._fixes_new and self.network is not None:
             fixes = sorted(self._fixes.values(), key=lambda f: f.train)
-            xy = _screen(self.network.to_xy(np.array([[f.lon_deg, f.lat_deg] for f in fixes])))
+            xy = screen_xy(self.network.to_xy(np.array([[f.lon_deg, f.lat_deg] for f in fixes])))
             self.rec.set_time(TIMELINE, timestamp=max(f.t for f in fixes))
             self.rec.log(
                 "map/trains",
@@ -862,7 +552,7 @@ class ViewerCore:
                     colors=(0, 200, 255),
                     labels=[f.train for f in fixes],
                     show_labels=True,
-                    draw_order=_ORDER["trains"],
+                    draw_order=DRAW_ORDER["trains"],
                 ),
             )
         self._fixes_new = False
@@ -912,8 +602,3 @@ class ViewerCore:
             self.rec.set_time(TIMELINE, timestamp=t)
             grey = np.full((len(self._map.keys), 3), UNKNOWN_RGB, np.uint8)
             self.rec.log(MAP_PATH, rr.LineStrips2D.from_fields(colors=grey))
-
-
-def _screen(xy: np.ndarray) -> np.ndarray:
-    """Local (x east, y north) metres to Rerun's y-down 2D frame: north up on screen."""
-    return np.asarray(xy, dtype=float) * np.array([1.0, -1.0])

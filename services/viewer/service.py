@@ -5,12 +5,13 @@ Subscribes ``{ns}/state/**``, ``{ns}/index/**``, ``{ns}/trc/**``, ``{ns}/alert/*
 (``ServiceRuntime.subscribe``: a Zenoh ``RingChannel`` each: when the viewer falls behind,
 the oldest samples are dropped and the pipeline never waits for it). The runtime's
 per-subscription workers decode (errors become dead letters) and hand them to one bounded
-inbox in which a newer state or index of a segment and event-day, or a newer fix of a
-train, replaces the held one (alerts and TRC records queue); ONE worker thread takes
-everything held at once, hands it to the core and lets the core write what is due, so
-only that thread touches the recording. A slow browser makes Rerun's log calls wait; the
-inbox then coalesces and the Zenoh callbacks still never wait. The liveliness tokens
-(``{ns}/alive/**``) go to a set the worker hands to the core for the health board.
+inbox (:class:`~services.runtime.inbox.LatestInbox`) in which a newer state or index of a
+segment and event-day, or a newer fix of a train, replaces the held one (alerts and TRC
+records queue); ONE worker thread takes everything held at once, hands it to the core and
+lets the core write what is due, so only that thread touches the recording. A slow
+browser makes Rerun's log calls wait; the inbox then coalesces and the Zenoh callbacks
+still never wait. The liveliness tokens (``{ns}/alive/**``) go to a set the worker hands
+to the core for the health board.
 
 :func:`main_select` is ``trackfusion viewer select LINE/SEGMENT``: it publishes a
 ViewerSelect that a running viewer answers by plotting that segment in its "selected" row.
@@ -29,7 +30,6 @@ import sys
 import threading
 import time
 import uuid
-from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,12 +53,14 @@ from schemas import (
     encode,
     keys,
 )
+from services.defaults import add_network_argument, load_network
 from services.runtime.config import (
     RuntimeConfig,
     add_zenoh_arguments,
     config_from_args,
     zenoh_config,
 )
+from services.runtime.inbox import LatestInbox
 from services.runtime.service import ServiceRuntime, configure_logging
 from services.viewer.core import (
     DEFAULT_LIVE_FLUSH_S,
@@ -67,7 +69,6 @@ from services.viewer.core import (
     ViewerCore,
     coalesce_key,
 )
-from track.network import DEMO_NETWORK, load_network
 
 log = logging.getLogger(__name__)
 
@@ -141,62 +142,6 @@ def open_sink(rec: rr.RecordingStream, sink: Sink, out: TextIO) -> str | None:
     return None
 
 
-class _Inbox:
-    """What the subscriptions hand to the logging worker; never blocks a producer.
-
-    Messages with a :func:`~services.viewer.core.coalesce_key` (states and on-board indices
-    per segment and event-day, GPS fixes per train) replace the held one of their key: the
-    viewer writes only the newest of a key anyway. Alerts and TRC records queue in order.
-    Both parts are bounded; when full, the oldest entry goes (counted in ``dropped``).
-    """
-
-    def __init__(self, capacity: int) -> None:
-        self._keyed: dict[tuple[str, ...], Message] = {}
-        self._queued: deque[Message] = deque(maxlen=capacity)
-        self._capacity = capacity
-        self._cond = threading.Condition()
-        self._closed = False
-        self.dropped = 0
-        self.superseded = 0
-
-    def put(self, item: Message) -> None:
-        key = coalesce_key(item)
-        with self._cond:
-            if self._closed:
-                return
-            if key is None:
-                if len(self._queued) == self._queued.maxlen:
-                    self.dropped += 1
-                self._queued.append(item)
-            else:
-                held = self._keyed.pop(key, None)  # re-inserted last: dict order = age
-                if held is not None:
-                    self.superseded += 1
-                    if held.t > item.t:
-                        item = held
-                elif len(self._keyed) >= self._capacity:
-                    del self._keyed[next(iter(self._keyed))]
-                    self.dropped += 1
-                self._keyed[key] = item
-            self._cond.notify()
-
-    def take(self, timeout: float | None) -> list[Message] | None:
-        """Everything held (possibly nothing after ``timeout``); None once closed and empty."""
-        with self._cond:
-            self._cond.wait_for(lambda: self._keyed or self._queued or self._closed, timeout)
-            if not self._keyed and not self._queued and self._closed:
-                return None
-            items = [*self._keyed.values(), *self._queued]
-            self._keyed.clear()
-            self._queued.clear()
-            return items
-
-    def close(self) -> None:
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-
-
 _SUBSCRIPTIONS: dict[str, type[Message]] = {
     "state": SegmentState,
     "index": OnboardIndex,
@@ -222,7 +167,10 @@ class ViewerAdapter:
     ) -> None:
         self.rt = rt
         self.core = core
-        self.inbox = _Inbox(INBOX_CAPACITY)
+        # the viewer writes only the newest state, index, fix of a key (coalesce_key) anyway
+        self.inbox: LatestInbox[Message] = LatestInbox(
+            INBOX_CAPACITY, key=coalesce_key, version=lambda message: message.t
+        )
         self._on_logged = on_logged
         self._worker: threading.Thread | None = None
         self._alive_lock = threading.Lock()
@@ -428,13 +376,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "native viewer when DISPLAY/WAYLAND_DISPLAY is set, else the web viewer (its URL is "
         "printed on stdout)."
     )
-    parser.add_argument(
-        "--network",
-        metavar="FILE.geojson",
-        type=Path,
-        default=DEMO_NETWORK,
-        help="the map (default: %(default)s)",
-    )
+    add_network_argument(parser, "the map")
     sink = parser.add_mutually_exclusive_group()
     sink.add_argument(
         "--rrd", metavar="FILE", type=Path, help="save the recording to FILE (headless)"

@@ -33,6 +33,7 @@ from schemas import (
     keys,
 )
 from schemas.keys import SegmentId
+from services.defaults import load_network
 from services.filtering.testing import states_by_instance
 from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_limits
@@ -42,7 +43,6 @@ from simulators.network import generate_network
 from simulators.run import DEFAULT_START
 from simulators.truth import load_config
 from simulators.world import WorldSpec, world_events
-from track.network import load_network
 
 DAYS, TRAINS, SPEEDUP = 100, 2, 120_000.0  # ≈ 72 s of publishing
 WAIT_S = 120.0
@@ -257,7 +257,7 @@ def test_the_signal_chain_resumes_after_each_of_its_services_is_killed(
     """Raw data (1 train, 15 simulated minutes at 60×): SIGKILL ingestion, then extraction,
     each restarted at once; indices flow again after each restart with no other step.
     Raw chunks and positioned chunks in flight at a kill are not in the at-least-once
-    streams (README, reliability model): passes then are skipped, not wrong."""
+    streams (docs/operating.md#delivery-guarantees): passes then are skipped, not wrong."""
     session = open_session()
     indices = collector(lambda s: decode(s.payload.to_bytes(), OnboardIndex))
     session.declare_subscriber(keys.segment_keys(namespace, "index"), indices)

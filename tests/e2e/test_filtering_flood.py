@@ -1,12 +1,12 @@
 """Real processes: a flood of valid indices, faster than one filtering instance folds them.
 
-What makes a filtering instance go deaf (README, "Reliability model"): Zenoh callbacks
-that block on a full queue while the worker is busy stop the session reading its link, the
-router closes the link, and what was queued on it is lost without a trace; the instance
-comes back with its token withdrawn and re-declared (or not at all). Behind a blocking
-queue this test loses about three quarters of the flood (7,713 of 30,000 indices folded)
-and sees the token withdrawn 8 s in; with the inbox every index is folded and the token
-stays.
+What makes a filtering instance go deaf
+(docs/architecture.md#no-callback-blocks-a-session): Zenoh callbacks that block on a full
+queue while the worker is busy stop the session reading its link, the router closes the
+link, and what was queued on it is lost without a trace; the instance comes back with its
+token withdrawn and re-declared (or not at all). Behind a blocking queue this test loses
+about three quarters of the flood (7,713 of 30,000 indices folded) and sees the token
+withdrawn 8 s in; with the inbox every index is folded and the token stays.
 """
 
 from __future__ import annotations

@@ -17,14 +17,12 @@ from schemas import (
     Calibration,
     DegradationPosterior,
     MaintenanceEvent,
-    OnboardIndex,
     SegmentState,
     TrcRecord,
-    decode,
     encode,
     keys,
 )
-from services.filtering.testing import example_models
+from services.filtering.testing import example_models, onboard_index, sample_state
 from services.filtering.tracker import Tracker
 from services.limits import load_limits
 from services.runtime.config import zenoh_config
@@ -50,17 +48,7 @@ def history() -> tuple[list, list]:
         )
         for day in range(3, 60, 5):
             top6, align10 = np.exp(rng.normal([0.8, 0.5], 0.1)).tolist()
-            msg = OnboardIndex(
-                line="L1",
-                segment=seg,
-                train=f"T{day % 3}",
-                unit="u1",
-                t=T0 + day * DAY_S,
-                top6_mm=top6,
-                align10_mm=align10,
-                speed_mps=30.0,
-                coverage=1.0,
-            )
+            msg = onboard_index("L1", seg, T0 + day * DAY_S, top6, align10, train=f"T{day % 3}")
             (before if day < 30 else after).append(msg)
         after.append(
             MaintenanceEvent(
@@ -73,19 +61,6 @@ def history() -> tuple[list, list]:
         )
     late = after.pop(len(after) // 2)  # arrives after later events of its segment
     return before, [*after, late, before[2], after[0]]  # plus two duplicates
-
-
-def key_of(ns: str, msg) -> str:
-    match msg:
-        case Calibration():
-            return keys.calibration(ns)
-        case DegradationPosterior():
-            return keys.degradation(ns, msg.group)
-        case TrcRecord():
-            return keys.trc(ns, msg.line, msg.segment)
-        case MaintenanceEvent():
-            return keys.maintenance(ns, msg.line, msg.segment)
-    return keys.index(ns, msg.line, msg.segment)
 
 
 def test_sigkill_and_restart_give_the_uninterrupted_states(
@@ -102,7 +77,7 @@ def test_sigkill_and_restart_give_the_uninterrupted_states(
 
     # The test stands in for the calibration service: the latest models on a queryable.
     model_msgs = models()
-    latest = [(key_of(namespace, m), encode(m)) for m in model_msgs]
+    latest = [(keys.key_of(namespace, m), encode(m)) for m in model_msgs]
 
     def on_query(query: zenoh.Query) -> None:
         for key, payload in latest:
@@ -113,7 +88,7 @@ def test_sigkill_and_restart_give_the_uninterrupted_states(
     states: queue.Queue[SegmentState] = queue.Queue()
     subscriber = session.declare_subscriber(
         keys.segment_keys(namespace, "state"),
-        lambda s: states.put(decode(s.payload.to_bytes(), SegmentState)),
+        lambda s: states.put(sample_state(s)),
     )
     stack.callback(subscriber.undeclare)
     alive_key = keys.alive(namespace, "filtering", "e2e")
@@ -131,7 +106,7 @@ def test_sigkill_and_restart_give_the_uninterrupted_states(
         want = {seg: encode(reference.state_of("L1", seg)) for seg in SEGMENTS}
         publishers: dict[str, zenoh.Publisher] = {}
         for msg in messages:
-            key = key_of(namespace, msg)
+            key = keys.key_of(namespace, msg)
             if key not in publishers:
                 publishers[key] = session.declare_publisher(key)
                 until_matched(publishers[key], READY_S)

@@ -13,11 +13,11 @@ import numpy as np
 from support import run_cli
 
 from schemas import DAY_S, OnboardIndex, decode, keys
+from services.defaults import load_network
 from simulators.fleet import Fleet
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
 from simulators.truth import load_config
-from track.network import load_network
 
 OSM = Path(__file__).parents[1] / "fixtures" / "osm" / "lakeside.geojson"
 START = 1_767_225_600.0  # the simulator's default start, 2026-01-01T00:00:00Z
@@ -38,7 +38,7 @@ def at_speed_s(network, train_id: str, line_id: str) -> int:
 
 
 def test_raw_trains_on_double_track_give_indices_on_their_own_tracks(
-    router, namespace, open_session, collector, liveliness_events, spawn, tmp_path
+    router, namespace, open_session, collector, signal_chain, spawn, tmp_path
 ):
     network_file = tmp_path / "network.geojson"
     imported = run_cli(
@@ -56,15 +56,8 @@ def test_raw_trains_on_double_track_give_indices_on_their_own_tracks(
     session = open_session()
     indices = collector(lambda s: decode(s.payload.to_bytes(), OnboardIndex))
     session.declare_subscriber(keys.segment_keys(namespace, "index"), indices)
-    alive = liveliness_events(session, keys.alive_all(namespace))
     wiring = ["--connect", router, "--ns", namespace, "--network", str(network_file)]
-    ingestion = spawn("ingestion", "ingestion", "--instance", "ing", *wiring)
-    extraction = spawn("extraction", "extraction", "--instance", "ext", *wiring)
-    alive.until_alive(
-        keys.alive(namespace, "ingestion", "ing"),
-        keys.alive(namespace, "extraction", "ext"),
-        timeout=60,
-    )
+    ingestion, extraction = signal_chain(session, wiring)
     world = ["--fidelity", "raw", "--trains", "2", "--days", str(SECONDS / DAY_S)]
     simulate = spawn(
         "simulate", "simulate", *world, "--speedup", "60", "--seed", str(SEED), *wiring

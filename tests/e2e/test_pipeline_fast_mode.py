@@ -6,15 +6,13 @@ uninterrupted beside it. At the end both answer exactly the same states, byte fo
 
 from __future__ import annotations
 
-import json
 import signal
 
 import zenoh
 from support import wait_for
 
 from schemas import InspectionPlan, SegmentState, decode, keys
-from services.filtering.testing import EVENT_TYPES, LastEvents, states_by_instance
-from simulators.network import generate_network
+from services.filtering.testing import LastEvents, states_by_instance
 
 WAIT_S = 90.0  # a loaded 2-core machine replays the whole half-world within this
 DAYS, HALF = 100, 50
@@ -69,33 +67,13 @@ def drained(
     return replies
 
 
-def test_pipeline_survives_a_filtering_kill(
-    router, namespace, open_session, liveliness_events, spawn, tmp_path
-):
-    network = tmp_path / "net.geojson"
-    network.write_text(json.dumps(generate_network(1, 6.0, seed=3).to_geojson()))
-    wiring = ["--connect", router, "--ns", namespace]
-    session = open_session()
-    last = LastEvents()
-    for kind in EVENT_TYPES:
-        session.declare_subscriber(keys.segment_keys(namespace, kind), last)
-    alive = liveliness_events(session, keys.alive_all(namespace))
+def test_pipeline_survives_a_filtering_kill(namespace, fast_mode_world, spawn, tmp_path):
+    network, wiring, session, last, alive = fast_mode_world(1, 6.0, seed=3)
 
     def start_filtering(name: str):
         db = str(tmp_path / f"{name}.sqlite")
         return spawn(name, "filtering", "--db", db, "--instance", name, *wiring)
 
-    spawn(
-        "calibration",
-        "calibration",
-        "--db",
-        str(tmp_path / "calibration.sqlite"),
-        "--initial-models",
-        "services/defaults/initial-models.json5",
-        "--instance",
-        "cal",
-        *wiring,
-    )
     spawn("alerting", "alerting", "--db", str(tmp_path / "al.sqlite"), "--instance", "al", *wiring)
     killed, reference = start_filtering("A"), start_filtering("B")
     token_a = keys.alive(namespace, "filtering", "A")

@@ -8,15 +8,13 @@ for byte, and the split instances' key sets are disjoint.
 
 from __future__ import annotations
 
-import json
 import signal
 
 import zenoh
 from support import wait_for
 
 from schemas import SegmentState, decode, keys
-from services.filtering.testing import EVENT_TYPES, LastEvents, states_by_instance
-from simulators.network import generate_network
+from services.filtering.testing import LastEvents, states_by_instance
 
 WAIT_S = 45.0  # the whole run takes ~15 s on a loaded 2-core machine
 DAYS = 70
@@ -64,29 +62,8 @@ def settled(
     return found
 
 
-def test_split_instances_equal_one_instance(
-    router, namespace, open_session, liveliness_events, spawn, tmp_path
-):
-    network = tmp_path / "net.geojson"
-    network.write_text(json.dumps(generate_network(2, 3.0, seed=5).to_geojson()))
-    wiring = ["--connect", router, "--ns", namespace]
-    session = open_session()
-    last = LastEvents()
-    for kind in EVENT_TYPES:
-        session.declare_subscriber(keys.segment_keys(namespace, kind), last)
-    alive = liveliness_events(session, keys.alive_all(namespace))
-
-    spawn(
-        "calibration",
-        "calibration",
-        "--db",
-        str(tmp_path / "calibration.sqlite"),
-        "--initial-models",
-        "services/defaults/initial-models.json5",
-        "--instance",
-        "cal",
-        *wiring,
-    )
+def test_split_instances_equal_one_instance(namespace, fast_mode_world, spawn, tmp_path):
+    network, wiring, session, last, alive = fast_mode_world(2, 3.0, seed=5)
     filtering = {
         name: spawn(
             f"filtering-{name}",

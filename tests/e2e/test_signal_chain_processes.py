@@ -9,9 +9,9 @@ import signal
 import numpy as np
 
 from schemas import DAY_S, DeadLetter, OnboardIndex, decode, keys
+from services.defaults import demo_network
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
-from track.network import demo_network
 
 START = 1_767_225_600.0  # the simulator's default start, 2026-01-01T00:00:00Z
 SECONDS = 900
@@ -56,7 +56,7 @@ def passed_at_speed() -> set[str]:
 
 
 def test_every_segment_passed_at_speed_gets_an_index(
-    router, namespace, open_session, collector, liveliness_events, spawn
+    router, namespace, open_session, collector, signal_chain, spawn
 ):
     expected = passed_at_speed()
     assert len(expected) >= 20, "the scenario should pass many segments at speed"
@@ -65,15 +65,8 @@ def test_every_segment_passed_at_speed_gets_an_index(
     session.declare_subscriber(keys.segment_keys(namespace, "index"), indices)
     letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
     session.declare_subscriber(keys.deadletter_all(namespace), letters)
-    alive = liveliness_events(session, keys.alive_all(namespace))
     wiring = ["--connect", router, "--ns", namespace]
-    ingestion = spawn("ingestion", "ingestion", "--instance", "ing", *wiring)
-    extraction = spawn("extraction", "extraction", "--instance", "ext", *wiring)
-    alive.until_alive(
-        keys.alive(namespace, "ingestion", "ing"),
-        keys.alive(namespace, "extraction", "ext"),
-        timeout=30,
-    )
+    ingestion, extraction = signal_chain(session, wiring)
 
     world = ["--fidelity", "raw", "--trains", "1", "--days", str(SECONDS / DAY_S)]
     simulate = spawn(

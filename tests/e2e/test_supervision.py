@@ -7,72 +7,17 @@ has finished its world is left alone, and a stalled flow is flagged; all of it s
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import signal
 from collections.abc import Callable
-from pathlib import Path
-from typing import Any
 
-import json5
 import pytest
 import zenoh
 
 from schemas import StackHealth, decode, keys
-from services.runtime.config import zenoh_config
 
 START_S = 60.0  # upper bound for processes to start on two loaded cores
 POLL_S = 0.2
-
-
-class Up:
-    """A running `trackfusion up` on a stack of its own, and its health file."""
-
-    def __init__(self, process, state_dir: Path, endpoint: str, ns: str) -> None:
-        self.process, self.state_dir, self.endpoint, self.ns = process, state_dir, endpoint, ns
-
-    def health(self) -> dict[str, Any] | None:
-        try:
-            return json.loads((self.state_dir / "health.json").read_text())
-        except FileNotFoundError:
-            return None
-
-    def until(self, condition: Callable[[dict[str, Any]], bool], timeout: float = START_S) -> dict:
-        """Poll the health file until ``condition`` holds; its last content otherwise fails."""
-        health = None
-
-        def met() -> dict | None:
-            nonlocal health
-            health = self.health()
-            return health if health is not None and condition(health) else None
-
-        return self.process.until(met, timeout, lambda: f"health: {health}", poll_s=POLL_S)
-
-    def client(self) -> zenoh.Session:
-        conf = {"mode": "client", "connect": {"endpoints": [self.endpoint], "timeout_ms": 60000}}
-        return zenoh.open(zenoh_config(conf))
-
-
-@pytest.fixture
-def up(free_port, namespace, spawn, tmp_path) -> Callable[..., Up]:
-    """``up(processes, **supervision)``: `trackfusion up` on a stack file of those."""
-
-    def start(processes: list[dict], **supervision: float) -> Up:
-        endpoint = f"tcp/127.0.0.1:{free_port}"
-        state_dir = tmp_path / "var"
-        stack = {
-            "ns": namespace,
-            "router": {"listen": endpoint},
-            "state_dir": str(state_dir),
-            "supervision": supervision,
-            "processes": processes,
-        }
-        stack_file = tmp_path / "stack.json5"
-        stack_file.write_text(json5.dumps(stack))
-        process = spawn("up", "up", "--stack", str(stack_file), "--log-level", "info")
-        return Up(process, state_dir, endpoint, namespace)
-
-    return start
 
 
 def alive(name: str) -> Callable[[dict], bool]:

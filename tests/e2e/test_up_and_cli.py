@@ -8,24 +8,17 @@ import io
 import json
 import signal
 
-import json5
-import zenoh
 from support import run_cli
 
 from schemas import keys
-from services.runtime.config import zenoh_config
 
 
 def test_up_runs_the_stack_and_answers_every_command(
-    free_port, namespace, spawn, collector, liveliness_events, tmp_path
+    up, namespace, collector, liveliness_events, tmp_path
 ):
-    endpoint = f"tcp/127.0.0.1:{free_port}"
     state_dir = tmp_path / "var"
-    stack = {
-        "ns": namespace,
-        "router": {"listen": endpoint},
-        "state_dir": str(state_dir),
-        "processes": [
+    stack = up(
+        [
             {
                 "name": "calibration",
                 "args": [
@@ -42,13 +35,8 @@ def test_up_runs_the_stack_and_answers_every_command(
                          "--speedup", "200000", "--no-progress"],
             },
         ],
-    }  # fmt: skip
-    stack_file = tmp_path / "stack.json5"
-    stack_file.write_text(json5.dumps(stack))
-    up = spawn("up", "up", "--stack", str(stack_file))
-
-    client = {"mode": "client", "connect": {"endpoints": [endpoint], "timeout_ms": 60000}}
-    with zenoh.open(zenoh_config(client)) as s:  # waits for the router of `up`
+    )  # fmt: skip
+    with stack.client() as s:  # waits for the router of `up`
         alive = liveliness_events(s, keys.alive_all(namespace))
         services = set()
         while not {"calibration", "filtering", "alerting"} <= services:
@@ -61,7 +49,7 @@ def test_up_runs_the_stack_and_answers_every_command(
 
         # The simulator outruns filtering on purpose: a query waits behind the queued events
         # (under load, more than the default 10 s), so the commands get a longer bound.
-        wiring = ("--connect", endpoint, "--ns", namespace, "--timeout", "60")
+        wiring = ("--connect", stack.endpoint, "--ns", namespace, "--timeout", "60")
         status = run_cli("status", *wiring)
         assert status.returncode == 0 and "filtering" in status.stdout, status.stderr
         state = run_cli("state", f"{line}/{segment}", *wiring)
@@ -81,9 +69,9 @@ def test_up_runs_the_stack_and_answers_every_command(
         geo_alerts = run_cli("export", "alerts", "--format", "geojson", *wiring)
         assert json.loads(geo_alerts.stdout)["type"] == "FeatureCollection"
 
-    up.signal(signal.SIGINT)
-    assert up.wait(20) == 0, up.log()
-    assert "stack stopped" in up.log_path.read_text()
+    stack.process.signal(signal.SIGINT)
+    assert stack.process.wait(20) == 0, stack.process.log()
+    assert "stack stopped" in stack.process.log_path.read_text()
     for name in ("calibration", "filtering", "alerting", "simulator"):
         assert (state_dir / f"{name}.log").exists()
     health = json.loads((state_dir / "health.json").read_text())  # the last one, on stopping

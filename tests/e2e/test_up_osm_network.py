@@ -8,20 +8,17 @@ import json
 import signal
 from pathlib import Path
 
-import json5
-import zenoh
 from support import run_cli
 
 from schemas import SegmentState, decode, keys
-from services.runtime.config import zenoh_config
-from track.network import load_network
+from services.defaults import load_network
 
 OSM = Path(__file__).parents[1] / "fixtures" / "osm" / "lakeside.geojson"
 START_S = 60.0  # upper bound for a process to start or a first state on two loaded cores
 
 
 def test_up_runs_the_stack_on_an_imported_network(
-    free_port, namespace, spawn, collector, liveliness_events, tmp_path
+    up, namespace, collector, liveliness_events, tmp_path
 ):
     network_file = tmp_path / "network.geojson"
     imported = run_cli("network", "import-osm", str(OSM), "--out", str(network_file))
@@ -31,13 +28,9 @@ def test_up_runs_the_stack_on_an_imported_network(
     assert any(line.tunnels for line in network.lines.values())
     assert all(line.stations for line in network.lines.values())
 
-    endpoint = f"tcp/127.0.0.1:{free_port}"
     state_dir = tmp_path / "var"
-    stack = {
-        "ns": namespace,
-        "router": {"listen": endpoint},
-        "state_dir": str(state_dir),
-        "processes": [
+    stack = up(
+        [
             {"name": "calibration",
              "args": ["--db", str(state_dir / "cal.sqlite"), "--instance", "calibration",
                       "--initial-models", "{defaults}/initial-models.json5",
@@ -52,13 +45,10 @@ def test_up_runs_the_stack_on_an_imported_network(
                       "--speedup", "200000", "--no-progress", "--instance", "simulator",
                       "--network", "{network}"]},
         ],
-    }  # fmt: skip
-    stack_file = tmp_path / "stack.json5"
-    stack_file.write_text(json5.dumps(stack))
-    up = spawn("up", "up", "--stack", str(stack_file), "--network", str(network_file))
-
-    client = {"mode": "client", "connect": {"endpoints": [endpoint], "timeout_ms": 60000}}
-    with zenoh.open(zenoh_config(client)) as s:  # waits for the router of `up`
+        "--network",
+        str(network_file),
+    )  # fmt: skip
+    with stack.client() as s:  # waits for the router of `up`
         alive = liveliness_events(s, keys.alive_all(namespace))
         services: set[str] = set()
         while not {"calibration", "filtering", "ingestion", "extraction"} <= services:
@@ -74,8 +64,8 @@ def test_up_runs_the_stack_on_an_imported_network(
         known = {(line.id, seg.id) for line, seg in network.segments()}
         assert {(line, seg) for line, segs in seen.items() for seg in segs} <= known
 
-    up.signal(signal.SIGINT)
-    assert up.wait(20) == 0, up.log()
+    stack.process.signal(signal.SIGINT)
+    assert stack.process.wait(20) == 0, stack.process.log()
     health = json.loads((state_dir / "health.json").read_text())
     assert all(p["restarts"] == 0 for p in health["processes"].values()), health
     # extraction found the imported segment bounds, not the demo network's

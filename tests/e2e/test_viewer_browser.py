@@ -30,11 +30,11 @@ import pytest
 import zenoh
 from browser import CHROMIUM, first_picture, hue_pixels
 
-from schemas import DAY_S, Alert, GpsFix, StackHealth, decode, encode, keys
-from services.alerting.testing import T0, make_state, p_top6
+from schemas import DAY_S, GpsFix, StackHealth, decode, encode, keys
+from services.alerting.testing import T0, make_alert, make_state, p_top6
+from services.defaults import DEMO_NETWORK, demo_network
 from services.runtime.config import zenoh_config
 from services.viewer import service as viewer
-from track.network import DEMO_NETWORK, demo_network
 
 TIMEOUT_S = 5.0
 # Upper bounds only (each loop ends as soon as its condition holds). SwiftShader renders on
@@ -93,16 +93,7 @@ def test_headless_chromium_renders_the_web_viewer(
                 state = make_state(T0 + k * DAY_S, segment=segment, p_exceed=p)
                 client.put(keys.state(ns, "L1", segment), encode(state))
         client.put(keys.gps(ns, "T1"), encode(GpsFix(train="T1", t=T0, lat_deg=lat, lon_deg=lon)))
-        alert = Alert(
-            line="L1",
-            segment=segments[-1],
-            t=T0 + DAY_S,
-            kind="exceedance",
-            status="raised",
-            indicator="top6",
-            level="intervention",
-            probability=1.0,
-        )
+        alert = make_alert(T0 + DAY_S, segment=segments[-1], probability=1.0)
         client.put(keys.alert(ns, "L1", segments[-1]), encode(alert))
         assert logged.wait(TIMEOUT_S), "the viewer did not log the published messages"
 

@@ -57,6 +57,7 @@ TIME_FIELDS = ("t", "t0", "t_start", "t_end", "last_trc_t")
 ID_FIELDS = ("train", "unit", "line", "segment", "run_id", "event_id", "group", "posterior_group")
 FAR_TIMES = (0.0, -1e9, 32_503_680_000.0, 2.0**63, -(2.0**63), 2**63 - 1, -(2**63))  # 3000 AD
 BIG_INTS = (2**63, 2**64 - 1, 2**63 - 1, -(2**63), 2**53 + 1)  # MessagePack stops at 64 bits
+HUGE_FLOATS = (1e308, -1e308, 1.7976931348623157e308)  # near the largest float, and it
 BAD_IDS = ("@x", "@", "a/b", "L1/s1", "a b", "a\tb", "a\nb", "a\x00b", "x" * 65, "a*", "$a")
 HUGE_BYTES = 5_000_000  # an unknown field of 5 MB
 HUGE_BUDGET = 6  # payloads of megabytes per run: they cost the 2-core CI seconds each
@@ -177,14 +178,9 @@ class Fuzzer:
         return self.rng.choice(inp.wrong_keys), encode(inp.template)
 
     def _wrong_message_type(self, inp: Input) -> tuple[str, bytes] | None:
-        payload = encode(self.rng.choice(inp.others))
-        try:
-            decode(payload, type(inp.template))
-        except SchemaError:
-            return inp.key, payload
         # a payload of another type that decodes as this one (its fields are a superset):
         # nothing on the wire tells them apart, so it is not sent (see the report)
-        return None
+        return _if_refused(inp, encode(self.rng.choice(inp.others)))
 
     def _out_of_range(self, inp: Input) -> tuple[str, bytes] | None:
         m = plain(inp.template)
@@ -195,12 +191,7 @@ class Fuzzer:
 
     def _refused(self, inp: Input, m: dict[str, Any], *first: str) -> tuple[str, bytes] | None:
         """``m`` packed on the input's key if its type refuses it, else None (not sent)."""
-        payload = msgpack.packb(front(m, *first))
-        try:
-            decode(payload, type(inp.template))
-        except SchemaError:
-            return inp.key, payload
-        return None
+        return _if_refused(inp, msgpack.packb(front(m, *first)))
 
     def _deep_nesting(self, inp: Input) -> tuple[str, bytes] | None:
         # an unknown field holding a list in a list in ... (msgpack's packer refuses to
@@ -217,19 +208,18 @@ class Fuzzer:
         m = plain(inp.template)
         names = [k for k, v in m.items() if isinstance(v, int | float) and not isinstance(v, bool)]
         self.rng.shuffle(names)
-        value = self.rng.choice(BIG_INTS)
-        for name in names:
-            made = self._refused(inp, m | {name: value}, name)
-            if made is not None:
-                self.detail = f"{name}={value}"
-                return made
-        return None
+        return self._first_refused(inp, m, names, self.rng.choice(BIG_INTS))
 
     def _huge_float(self, inp: Input) -> tuple[str, bytes] | None:
         m = plain(inp.template)
         names = [k for k, v in m.items() if isinstance(v, float) or self._is_float(inp, k)]
         self.rng.shuffle(names)
-        value = self.rng.choice((1e308, -1e308, 1.7976931348623157e308))
+        return self._first_refused(inp, m, names, self.rng.choice(HUGE_FLOATS))
+
+    def _first_refused(
+        self, inp: Input, m: dict[str, Any], names: list[str], value
+    ) -> tuple[str, bytes] | None:
+        """``m`` with the first of ``names`` set to ``value`` whose type refuses it."""
         for name in names:
             made = self._refused(inp, m | {name: value}, name)
             if made is not None:
@@ -319,3 +309,12 @@ def wrong_values(value: Any, *, optional: bool) -> list[Any]:
     if value is None:
         return ["x", [1.0], {"a": 1}]
     return [None]
+
+
+def _if_refused(inp: Input, payload: bytes) -> tuple[str, bytes] | None:
+    """``payload`` on the input's key if the input's type refuses it, else None (not sent)."""
+    try:
+        decode(payload, type(inp.template))
+    except SchemaError:
+        return inp.key, payload
+    return None

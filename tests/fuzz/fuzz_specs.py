@@ -38,6 +38,7 @@ from services.alerting import service as alerting
 from services.alerting.testing import make_state, p_top6
 from services.calibration import service as calibration
 from services.calibration.config import CalibratorConfig
+from services.defaults import DEMO_NETWORK, demo_network
 from services.extraction import service as extraction
 from services.filtering import service as filtering
 from services.filtering.testing import example_models
@@ -49,7 +50,6 @@ from services.viewer.core import ViewerCore
 from simulators.gateway import key_and_payload
 from simulators.profile import LineProfile
 from simulators.train import RAW_CHANNELS, TrainSimulator
-from track.network import DEMO_NETWORK, demo_network
 
 T0 = 1_767_225_600.0  # 2026-01-01
 EXTRA = "fuzzchunk"  # an unexpected key chunk

@@ -1,4 +1,4 @@
-"""Bad-input fuzzing of every subscribing service, in-process on a real router (issue 7, item 1).
+"""Bad-input fuzzing of every subscribing service, in-process on a real router.
 
 For each service: a clean run of a fixed sequence of valid traffic, then a run of the same
 valid traffic interleaved with ``TF_FUZZ_N`` bad messages (default 10,000) on the service's

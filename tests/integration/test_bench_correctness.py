@@ -1,7 +1,7 @@
 """Smoke test of bench/correctness.py: the --quick run computes finite figures.
 
-No performance or target assertions (the real figures come from the default run, see the
-README); only that the machinery works end to end on the pure cores. An integration test:
+No performance or target assertions (the real figures come from the default run, see
+docs/science.md); only that the machinery works end to end on the pure cores. An integration test:
 it runs the simulator and every core over weeks of a world, as a process (tens of seconds).
 """
 

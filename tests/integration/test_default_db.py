@@ -1,6 +1,6 @@
 """Without ``--db`` and ``--instance`` every service with a store opens one stable file,
-``./var/{service}-default.sqlite``, so a restart finds what the previous run stored (issue 15:
-calibration named it after hostname-pid and started every restart on an empty store)."""
+``./var/{service}-default.sqlite``, so a restart finds what the previous run stored (a
+file named after hostname-pid would start every restart on an empty store)."""
 
 from __future__ import annotations
 

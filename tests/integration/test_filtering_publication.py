@@ -1,4 +1,4 @@
-"""The filtering service's publication rule (issue 16) on a real runtime, store and router:
+"""The filtering service's publication rule on a real runtime, store and router:
 under a backlog the changed segments wait as dirty (a batch's until its commit in the
 background is done) and the oldest are published first;
 once the backlog is gone every one is published with the state of its last event."""
@@ -11,7 +11,8 @@ import zenoh
 
 from schemas import DAY_S, OnboardIndex, SegmentState, TrcRecord, decode, encode, keys
 from services.filtering import service
-from services.filtering.store import PersistentTracker, Store
+from services.filtering.coordinator import PersistentTracker
+from services.filtering.store import Store
 from services.filtering.testing import example_models
 from services.filtering.tracker import Tracker
 from services.limits import load_limits

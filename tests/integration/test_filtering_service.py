@@ -24,7 +24,7 @@ from schemas import (
     keys,
 )
 from services.filtering import service
-from services.filtering.testing import example_models
+from services.filtering.testing import example_models, onboard_index, sample_state
 from services.filtering.tracker import Tracker
 from services.limits import load_limits
 
@@ -37,37 +37,13 @@ def models() -> list[Calibration | DegradationPosterior]:
     return example_models(NS, seed=0)
 
 
-def model_key(ns: str, msg: Calibration | DegradationPosterior) -> str:
-    if isinstance(msg, Calibration):
-        return keys.calibration(ns)
-    return keys.degradation(ns, msg.group)
-
-
 def events(line: str = "L1", segment: str = "s1") -> list[TrcRecord | OnboardIndex]:
     out: list[TrcRecord | OnboardIndex] = [
         TrcRecord(line=line, segment=segment, t=T0, top6_mm=3.0, align10_mm=2.5, run_id="r1")
     ]
     for k, (top6, align10) in enumerate([(2.4, 1.7), (2.6, 1.6), (2.5, 1.9)]):
-        out.append(
-            OnboardIndex(
-                line=line,
-                segment=segment,
-                train="T1",
-                unit="u1",
-                t=T0 + (k + 1) * 7 * DAY_S,
-                top6_mm=top6,
-                align10_mm=align10,
-                speed_mps=30.0,
-                coverage=1.0,
-            )
-        )
+        out.append(onboard_index(line, segment, T0 + (k + 1) * 7 * DAY_S, top6, align10))
     return out
-
-
-def event_key(ns: str, msg: TrcRecord | OnboardIndex) -> str:
-    if isinstance(msg, TrcRecord):
-        return keys.trc(ns, msg.line, msg.segment)
-    return keys.index(ns, msg.line, msg.segment)
 
 
 def expected(messages) -> SegmentState:
@@ -100,7 +76,7 @@ def start_filtering(service_config, tmp_path, service_thread) -> Callable[..., N
 def model_queryable(open_session, namespace) -> Iterator[zenoh.Session]:
     """Stands in for the calibration service: answers the latest models on model/**."""
     session = open_session()
-    latest = [(model_key(namespace, m), encode(m)) for m in models()]
+    latest = [(keys.key_of(namespace, m), encode(m)) for m in models()]
 
     def on_query(query: zenoh.Query) -> None:
         for key, payload in latest:
@@ -126,6 +102,15 @@ def put_all(session: zenoh.Session, until_matched, items) -> None:
             publisher.undeclare()
 
 
+def letters_and_states(session: zenoh.Session, collector, ns: str):
+    """Collectors of the service's dead letters and of the states it publishes."""
+    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
+    session.declare_subscriber(keys.deadletter(ns, service.SERVICE), letters)
+    states = collector(sample_state)
+    session.declare_subscriber(keys.segment_keys(ns, "state"), states)
+    return letters, states
+
+
 def query_states(session: zenoh.Session, selector: str) -> dict[str, bytes]:
     replies = session.get(selector, timeout=5)
     return {str(r.ok.key_expr): r.ok.payload.to_bytes() for r in replies if r.ok is not None}
@@ -135,7 +120,7 @@ def test_states_from_late_joined_models_and_events_equal_the_core(
     namespace, open_session, collector, until_matched, model_queryable, start_filtering
 ):
     session = open_session()
-    states = collector(lambda s: (str(s.key_expr), decode(s.payload.to_bytes(), SegmentState)))
+    states = collector(lambda s: (str(s.key_expr), sample_state(s)))
     session.declare_subscriber(keys.segment_keys(namespace, "state"), states)
     start_filtering()  # gets the models from the queryable at start
 
@@ -145,7 +130,7 @@ def test_states_from_late_joined_models_and_events_equal_the_core(
     # state. The final state does not depend on the order (see the tracker's tests).
     received = []
     for m in msgs:
-        put_all(session, until_matched, [(event_key(namespace, m), encode(m))])
+        put_all(session, until_matched, [(keys.key_of(namespace, m), encode(m))])
         received.append(states.get())
     key, last = received[-1]
     assert key == keys.state(namespace, "L1", "s1")
@@ -166,13 +151,10 @@ def test_malformed_payload_is_dead_lettered_and_the_service_goes_on(
     namespace, open_session, collector, until_matched, start_filtering
 ):
     session = open_session()
-    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
-    session.declare_subscriber(keys.deadletter(namespace, service.SERVICE), letters)
-    states = collector(lambda s: decode(s.payload.to_bytes(), SegmentState))
-    session.declare_subscriber(keys.segment_keys(namespace, "state"), states)
+    letters, states = letters_and_states(session, collector, namespace)
     start_filtering()
 
-    put_all(session, until_matched, [(model_key(namespace, m), encode(m)) for m in models()])
+    put_all(session, until_matched, [(keys.key_of(namespace, m), encode(m)) for m in models()])
     bad_key = keys.index(namespace, "L1", "s1")
     trc = events()[0]
     put_all(
@@ -195,15 +177,15 @@ def test_an_instance_owning_l1_ignores_l2(
     namespace, open_session, collector, until_matched, model_queryable, start_filtering
 ):
     session = open_session()
-    states = collector(lambda s: decode(s.payload.to_bytes(), SegmentState))
+    states = collector(sample_state)
     session.declare_subscriber(keys.segment_keys(namespace, "state"), states)
     start_filtering("L1/**")
 
     l2, l1 = events("L2", "s9")[0], events("L1", "s1")[0]
     for msg in (l2, l1):
         # The L2 put has no subscriber to match: put it straight from the session.
-        session.put(event_key(namespace, msg), encode(msg))
-    put_all(session, until_matched, [(event_key(namespace, l1), encode(l1))])  # a duplicate
+        session.put(keys.key_of(namespace, msg), encode(msg))
+    put_all(session, until_matched, [(keys.key_of(namespace, l1), encode(l1))])  # a duplicate
     assert states.get().line == "L1"
     assert set(query_states(session, keys.q_state_all(namespace))) == {
         keys.q_state(namespace, "L1", "s1")
@@ -213,17 +195,14 @@ def test_an_instance_owning_l1_ignores_l2(
 def test_a_refused_model_is_dead_lettered_and_the_one_in_force_stays(
     namespace, open_session, collector, until_matched, model_queryable, start_filtering
 ):
-    """Issue 12: a Calibration whose indices disagree with the filter's (m = 3 here) is a
+    """A Calibration whose indices disagree with the filter's (m = 3 here) is a
     dead letter and the good one stays in force: it must not make every later index fail
     until a restart."""
     session = open_session()
-    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
-    session.declare_subscriber(keys.deadletter(namespace, service.SERVICE), letters)
-    states = collector(lambda s: decode(s.payload.to_bytes(), SegmentState))
-    session.declare_subscriber(keys.segment_keys(namespace, "state"), states)
+    letters, states = letters_and_states(session, collector, namespace)
     start_filtering()
     trc, *indices = events()
-    put_all(session, until_matched, [(event_key(namespace, trc), encode(trc))])
+    put_all(session, until_matched, [(keys.key_of(namespace, trc), encode(trc))])
     assert states.get().n_updates == 0
 
     good = next(m for m in models() if isinstance(m, Calibration))
@@ -243,7 +222,7 @@ def test_a_refused_model_is_dead_lettered_and_the_one_in_force_stays(
     assert letter.key == keys.calibration(namespace)
     assert "indices" in letter.reason, letter.reason
 
-    put_all(session, until_matched, [(event_key(namespace, m), encode(m)) for m in indices])
+    put_all(session, until_matched, [(keys.key_of(namespace, m), encode(m)) for m in indices])
     last = states.get()
     while last.n_updates < len(indices):
         last = states.get()

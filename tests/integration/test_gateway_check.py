@@ -13,12 +13,12 @@ import zenoh
 from support import TIMEOUT_S
 
 from schemas import DAY_S, GpsFix, NDArray, RawChunk, keys
+from services.defaults import demo_network
 from services.ingestion.health import G_MPS2
 from services.tools import gateway_check
 from simulators.gateway import key_and_payload
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
-from track.network import demo_network
 
 T0 = 1_767_225_600.0
 

@@ -4,20 +4,22 @@ letters out."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 
 import msgpack
+import msgspec
 import numpy as np
 import pytest
 import zenoh
 from support import ServiceThread
 
 from schemas import DeadLetter, PositionedChunk, decode, keys
+from services.defaults import demo_network
 from services.ingestion import service as ingestion
 from simulators.gateway import key_and_payload
 from simulators.profile import LineProfile
 from simulators.train import RAW_CHANNELS, TrainSimulator
-from track.network import demo_network
 
 T0 = 1_767_225_600.0
 
@@ -111,3 +113,40 @@ def test_malformed_payload_and_invalid_chunk_go_to_dead_letters(
         assert letter.reason == "GpsFix: key says T8, message says T9"
         raw_pub.undeclare()
     assert np.isfinite(letter.received_at)
+
+
+def test_old_dated_trains_do_not_refuse_a_live_one_and_the_future_is_the_receivers(
+    open_session, service_config, running, collector, until_matched
+):
+    """Thirty trains' fixes dated an hour before the live train's arrive first; a fix dated
+    a day after the receiving machine's clock is refused; then the live train's chunks all
+    come out positioned, none of its messages a dead letter."""
+    ns = service_config.ns
+    client = open_session()
+    accel = collector(lambda s: decode(s.payload.to_bytes(), PositionedChunk))
+    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
+    client.declare_subscriber(keys.accel_all(ns), accel)
+    client.declare_subscriber(keys.deadletter(ns, ingestion.SERVICE), letters)
+    messages = simulated(4)
+    fix = next(m for m in messages if hasattr(m, "lat_deg"))
+    with running():
+        block = zenoh.CongestionControl.BLOCK
+        raw_pub = client.declare_publisher(keys.raw(ns, "T7", "u0"), congestion_control=block)
+        gps_pub = client.declare_publisher(keys.gps(ns, "T7"), congestion_control=block)
+        until_matched(raw_pub)
+        until_matched(gps_pub)
+        for k in range(30):
+            old = msgspec.structs.replace(fix, train=f"B{k}", t=fix.t - 3600.0)
+            client.put(*key_and_payload(ns, old), congestion_control=block)
+        future = msgspec.structs.replace(fix, train="F1", t=time.time() + 86_400.0)
+        client.put(*key_and_payload(ns, future), congestion_control=block)
+        letter = letters.get()
+        assert letter.key == keys.gps(ns, "F1") and "ahead of the receiving clock" in letter.reason
+        for message in messages:
+            key, payload = key_and_payload(ns, message)
+            (raw_pub if key == raw_pub.key_expr else gps_pub).put(payload)
+        got = [accel.get() for _ in range(3)]  # the 4th waits for a fix after it
+        raw_pub.undeclare()
+        gps_pub.undeclare()
+    assert [c.seq for c in got] == [0, 1, 2] and all(c.position_ok for c in got)
+    assert letters.empty()

@@ -133,4 +133,4 @@ def test_report_with_the_real_alerting_service(
     assert "missing" not in html
     assert "Top6 likely above intervention limit 8.0 mm (p=0.95)" in html
     row = html[html.index("<td>s00002</td>") :].split("</tr>")[0]
-    assert "2026-03-12" in row  # next TRC: the newest last-TRC stand-in + 70 days, per README
+    assert "2026-03-12" in row  # next TRC: the last-TRC stand-in + 70 days (alerting README)

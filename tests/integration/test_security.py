@@ -22,6 +22,7 @@ from pathlib import Path
 import json5
 import pytest
 import zenoh
+from support import closed_at_exit
 
 from services.cli import main as cli_main
 from services.runtime.config import RuntimeConfig, load_config, zenoh_config
@@ -125,19 +126,13 @@ def open_as(
     ca: CertificateAuthority, tls_router: dict[str, str]
 ) -> Iterator[Callable[[str], zenoh.Session]]:
     """``open_as(common_name)``: a client session with a certificate for that name."""
-    sessions: list[zenoh.Session] = []
 
     def open_(common_name: str) -> zenoh.Session:
         cert, key = ca.issue(common_name)
-        session = zenoh.open(zenoh_config(client_settings(tls_router, cert, key)))
-        sessions.append(session)
-        return session
+        return zenoh.open(zenoh_config(client_settings(tls_router, cert, key)))
 
-    try:
-        yield open_
-    finally:
-        for session in reversed(sessions):
-            session.close()
+    with closed_at_exit(open_) as opened:
+        yield opened
 
 
 class Keys:

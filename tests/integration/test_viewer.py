@@ -13,10 +13,8 @@ import zenoh
 
 from schemas import (
     DAY_S,
-    Alert,
     DeadLetter,
     GpsFix,
-    OnboardIndex,
     ServiceHealth,
     StackHealth,
     TrcRecord,
@@ -24,10 +22,10 @@ from schemas import (
     encode,
     keys,
 )
-from services.alerting.testing import T0, make_state, p_top6
+from services.alerting.testing import T0, make_alert, make_index, make_state, p_top6
+from services.defaults import DEMO_NETWORK, demo_network
 from services.viewer import service as viewer
 from services.viewer.testing import blueprint_views, rrd_contents, rrd_printout, verify_rrd
-from track.network import DEMO_NETWORK, demo_network
 
 PUT = zenoh.SampleKind.PUT
 TIMEOUT_S = 5.0
@@ -112,12 +110,11 @@ def test_viewer_records_published_messages(
                 for k in range(2)
             ],
             keys.index(ns, "L2", seg): [
-                OnboardIndex(
+                make_index(
+                    T0 + 0.5 * DAY_S,
                     line="L2",
                     segment=seg,
                     train="T7",
-                    unit="u1",
-                    t=T0 + 0.5 * DAY_S,
                     top6_mm=4.4,
                     align10_mm=3.2,
                     speed_mps=22.0,
@@ -128,16 +125,7 @@ def test_viewer_records_published_messages(
                 TrcRecord(line="L2", segment=seg, t=T0, top6_mm=4.0, align10_mm=3.0, run_id="r1")
             ],
             keys.alert(ns, "L2", hot): [
-                Alert(
-                    line="L2",
-                    segment=hot,
-                    t=T0 + 60,
-                    kind="exceedance",
-                    status=status,
-                    indicator="top6",
-                    level="intervention",
-                    probability=0.95,
-                )  # fmt: skip
+                make_alert(T0 + 60, line="L2", segment=hot, status=status, probability=0.95)
                 for status in ("raised", "cleared")
             ],
             keys.gps(ns, "T7"): [GpsFix(train="T7", t=T0 + 5, lat_deg=lat, lon_deg=lon)],

@@ -6,14 +6,17 @@ from scipy import stats
 
 from services.calibration.posterior import (
     DegradationSamples,
-    NIWPrior,
     history_to_increments,
-    posterior_drift_diffusion,
     sample_degradation_posterior,
-    sample_inverse_wishart,
     sample_post_tamping,
 )
-from services.calibration.regression import CalibrationError, fit_observation
+from services.calibration.regression import fit_observation
+from services.drift_diffusion import (
+    CalibrationError,
+    NIWPrior,
+    posterior_drift_diffusion,
+    sample_inverse_wishart,
+)
 
 H_TRUE = np.array([[0.9, 0.2], [0.1, 0.7]])
 B_TRUE = np.array([0.3, -0.2])

@@ -7,7 +7,6 @@ import functools
 import sqlite3
 from pathlib import Path
 
-import json5
 import msgspec
 import numpy as np
 import pytest
@@ -18,11 +17,11 @@ from schemas import (
     DegradationPosterior,
     MaintenanceEvent,
     NDArray,
-    OnboardIndex,
     TrcRecord,
     decode,
     encode,
 )
+from services.alerting.testing import make_index
 from services.calibration.calibrator import Calibrator
 from services.calibration.config import CalibratorConfig
 from services.calibration.initial import initial_models
@@ -34,6 +33,7 @@ from services.calibration.robust import check_model
 from services.calibration.state import Quarantine
 from services.calibration.store import MemoryStore, SqliteStore
 from services.defaults import default_file
+from services.runtime.config import read_json5
 
 T0 = 1_700_000_000.0
 H = np.array([[0.9, 0.05], [0.05, 0.75]])
@@ -56,19 +56,10 @@ def trc(line, seg, run, t, z):
 
 def index(line, seg, t, y, run="", train="T1", unit="u1", quality=1.0):
     top, align = (float(v) for v in np.exp(y))
-    return OnboardIndex(
-        line=line,
-        segment=seg,
-        train=train,
-        unit=unit,
-        t=t,
-        top6_mm=top,
-        align10_mm=align,
-        speed_mps=30.0,
-        coverage=1.0,
-        quality=quality,
-        run_id=run,
-    )
+    return make_index(
+        t, line=line, segment=seg, train=train, unit=unit, top6_mm=top, align10_mm=align,
+        speed_mps=30.0, quality=quality, run_id=run,
+    )  # fmt: skip
 
 
 def campaign(n_pairs, rng, *, line="L1", start=0, H=H, B=B, R=R, t0=T0):
@@ -222,7 +213,7 @@ def test_swap_rule_loglik_threshold():
 
 
 def test_initial_calibration_replaced_by_first_fit():
-    spec = json5.loads((default_file("initial-models.json5")).read_text())
+    spec = read_json5(default_file("initial-models.json5"))
     cal0, posts = initial_models(spec, samples=50, seed=4)
     assert cal0 is not None and cal0.version == 1 and [p.group for p in posts] == ["net"]
     assert posts[0].mu.shape == [50, 2]
@@ -508,7 +499,7 @@ def test_a_store_from_before_publication_times_opens(tmp_path):
     store.close()
 
 
-# ---------------------------------------------------------------- robustness (issue 14)
+# ---------------------------------------------------------------- robustness
 
 
 def seven_records(line, seg, t0, mm, *, outlier_at=3, outlier_mm=99.0, rng=None):
@@ -559,9 +550,9 @@ def test_a_99_mm_record_does_not_move_the_network_posterior(outlier_at):
 
 
 def test_the_incident_seven_records_on_one_segment_from_the_initial_models():
-    """Issue 14's case (1e308 then, 99 mm now): only the initial models and seven records of
-    one segment, one of them 99 mm."""
-    spec = json5.loads((default_file("initial-models.json5")).read_text())
+    """One outlier against the initial models: only the initial models and seven records of
+    one segment, one of them 99 mm (the largest value the wire accepts is 100 mm)."""
+    spec = read_json5(default_file("initial-models.json5"))
     cal0, posts = initial_models(spec, samples=200, seed=0)
     core = Calibrator(FleetOnly(samples=200))
     core.install_initial(cal0, posts)
@@ -704,3 +695,14 @@ def test_service_network_setting_and_dead_letter_keys():
     q = Quarantine("trc", "L1", "s00042", "why")
     assert service.quarantine_key("tf", q) == "tf/trc/L1/s00042"
     assert service.quarantine_key("tf", Quarantine("index", "L1", "s1", "")) == "tf/index/L1/s1"
+
+
+def test_a_partial_trc_record_makes_no_pair_and_no_increment():
+    core = Calibrator(CalibratorConfig(tolerance_days=1.0))
+    t = 1.77e9
+    record = TrcRecord(line="L1", segment="s1", t=t, top6_mm=2.0, run_id="r1",
+                       indicators=["top6"])  # fmt: skip
+    assert core.ingest(record) is False
+    assert core.stats["trc_partial"] == 1 and core.stats["trc"] == 0
+    core.ingest(make_index(t))
+    assert core.stats["pairs"] == 0

@@ -1,14 +1,19 @@
-"""Per-unit observation models (issue 18): each on-board unit's H, b, R, shrunk towards the
+"""Per-unit observation models: each on-board unit's H, b, R, shrunk towards the
 fleet's model while it has few pairs."""
 
 from __future__ import annotations
 
+import msgspec
 import numpy as np
 
 from schemas import DAY_S, Calibration, keys
 from services.calibration.calibrator import Calibrator
 from services.calibration.config import CalibratorConfig
-from services.calibration.regression import fit_observation, fit_unit_observation
+from services.calibration.regression import (
+    _fit_unit_rows,
+    fit_observation,
+    fit_unit_observation,
+)
 from services.calibration.state import unit_key
 from services.calibration.store import SqliteStore
 from tests.unit.test_calibration_service_core import T0, B, H, R, campaign, index, trc
@@ -121,3 +126,53 @@ def test_a_tamping_correction_replaces_the_report_in_calibration_whatever_the_or
         assert core._maint[("L1", "s0")] == {"L1/s0/m1": fixed}
         again = Calibrator(CalibratorConfig(), SqliteStore(store.path).load())
         assert again._maint[("L1", "s0")] == {"L1/s0/m1": fixed}
+
+
+def test_a_unit_measuring_one_index_fits_its_row_and_keeps_the_fleets_other():
+    """Pairs with Align10 missing (NaN): Top6's row of H, b from them, against a per-row
+    derivation straight from the formula; Align10's row, and R's elements of it, the
+    fleet's."""
+    rng = np.random.default_rng(3)
+    Z = rng.normal([1.1, 0.9], [0.35, 0.3], (200, 2))
+    Y = Z @ H.T + B + [0.2, 0.0] + rng.multivariate_normal([0, 0], R, len(Z))
+    D, k = design_of(Z), 20.0
+    vertical = Y.copy()
+    vertical[:, 1] = np.nan
+    fit = fit_unit_observation(Z, vertical, H0=H, b0=B, R0=R, design=D, shrink_pairs=k)
+    X = np.hstack([Z, np.ones((len(Z), 1))])
+    theta0 = np.hstack([H, B[:, None]])
+    want = np.linalg.solve(X.T @ X + k * D, X.T @ Y[:, 0] + k * D @ theta0[0])
+    np.testing.assert_allclose(np.r_[fit.H[0], fit.b[0]], want, rtol=1e-10)
+    np.testing.assert_allclose(fit.H[1], H[1]) and np.testing.assert_allclose(fit.b[1], B[1])
+    e = Y[:, 0] - X @ want
+    np.testing.assert_allclose(fit.R[0, 0], (e @ e + k * R[0, 0]) / (len(Z) + k), rtol=1e-12)
+    np.testing.assert_allclose([fit.R[0, 1], fit.R[1, 1]], [R[0, 1], R[1, 1]])
+    assert 0.15 < fit.b[0] - B[0] < 0.25  # the unit's own bias, learnt from its pairs
+    full = fit_unit_observation(Z, Y, H0=H, b0=B, R0=R, design=D, shrink_pairs=k)
+    rows = _fit_unit_rows(Z, Y, H, B, R, D, k)  # the row by row form, nothing missing
+    for name in ("H", "b", "R", "r2", "se_H", "se_b"):
+        np.testing.assert_allclose(getattr(rows, name), getattr(full, name), rtol=1e-9)
+
+
+def test_a_vertical_only_unit_gets_its_model_from_its_pairs_and_keeps_it(tmp_path):
+    rng = np.random.default_rng(4)
+    core = Calibrator(CalibratorConfig(min_pairs=30, refit_every=10, **ONE_AT_A_TIME))
+    events = campaign(40, rng)
+    for msg in unit_pairs(rng, 40, [0.2, 0.0], train="TV"):
+        if msg.__class__.__name__ == "OnboardIndex":
+            msg = msgspec.structs.replace(msg, align10_mm=None, indicators=["top6"])
+        events.append(msg)
+    store = SqliteStore(tmp_path / "cal.sqlite")
+    core.step(events)
+    store.apply(core.drain_changes())
+    cal = core.unit_calibrations[("TV", "u1")]
+    fleet = core.calibration
+    assert cal.n_pairs == 40 and core.stats["pairs_partial"] == 40
+    assert cal.b.array()[0] - fleet.b.array()[0] > 0.1  # its Top6 bias, its own
+    np.testing.assert_allclose(cal.H.array()[1], fleet.H.array()[1])  # Align10: the fleet's
+    assert all(p.unit != ("TV", "u1") for p in core.pairs)  # not in the fleet's fit
+    again = Calibrator(core.config, state=store.load())
+    assert [p.index_id for p in again._partial_pairs] == [p.index_id for p in core._partial_pairs]
+    assert np.isnan(again._partial_pairs[0].y[1])
+    assert again.ingest(events[-1]) is False  # a paired index is known after a restart
+    store.close()

@@ -7,46 +7,23 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from schemas import ACCEL_CHANNELS, NDArray, OnboardIndex, PositionedChunk
+from schemas import OnboardIndex, PositionedChunk
+from services.defaults import DEMO_NETWORK
 from services.extraction.pipeline import (
     ExtractionConfig,
     Extractor,
     UnitPipeline,
     displacement_sos,
 )
+from services.extraction.testing import line_table, positioned_chunk
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
-from track.network import DEMO_NETWORK
-from track.segments import LineSegments, SegmentTable
+from track.segments import SegmentTable
 from track.versine import ALIGN_CHORD_M, TOP_CHORD_M
 
 G = 9.80665
 FS = 2000
 EPOCH = 1_767_225_600.0  # 2026-01-01: event times must lie in the schemas' window
-
-
-def table(n_segments: int, length_m: float = 200.0) -> SegmentTable:
-    starts = np.arange(n_segments) * length_m
-    ids = tuple(f"s{i:05d}" for i in range(n_segments))
-    return SegmentTable({"L1": LineSegments("L1", ids, starts, starts + length_m)})
-
-
-def chunk(samples, t0, knot_t, knot_c, knot_v, seq=0, **kw) -> PositionedChunk:
-    return PositionedChunk(
-        train="T1",
-        unit="u0",
-        seq=seq,
-        t0=float(t0),
-        rate_hz=float(FS),
-        channels=list(ACCEL_CHANNELS),
-        samples=NDArray.of(samples, "f4"),
-        line="L1",
-        knot_t=NDArray.of(knot_t),
-        knot_chainage_m=NDArray.of(knot_c),
-        knot_speed_mps=NDArray.of(knot_v),
-        position_ok=kw.pop("position_ok", True),
-        **kw,
-    )
 
 
 def sine_run(v, lam_m=4.0, amp_mm=1.0, line_m=1200.0, direction=1, burst=None, **kw):
@@ -72,12 +49,12 @@ def sine_run(v, lam_m=4.0, amp_mm=1.0, line_m=1200.0, direction=1, burst=None, *
             s[m, 3 * side : 3 * side + 2] += rng.normal(0, G, (m.sum(), 2))
         kt = np.array([k, k + 1.0])
         kc = x0 + v * kt if direction > 0 else line_m - x0 - v * kt
-        out.append(chunk(s, EPOCH + k, EPOCH + kt, kc, [v, v], seq=k, **kw))
+        out.append(positioned_chunk(s, EPOCH + k, EPOCH + kt, kc, [v, v], seq=k, **kw))
     return out
 
 
 def run(chunks, pipeline=None) -> tuple[list[OnboardIndex], UnitPipeline]:
-    p = pipeline or UnitPipeline("T1", "u0", table(6))
+    p = pipeline or UnitPipeline("T1", "u0", line_table(6))
     out: list[OnboardIndex] = []
     for c in chunks:
         out += p.process(c)
@@ -144,7 +121,7 @@ def _both_rails_burst():
         s = a.samples.array().copy()
         s[:, 3:] = b.samples.array()[:, 3:]
         out.append(
-            chunk(
+            positioned_chunk(
                 s,
                 a.t0,
                 a.knot_t.array(),
@@ -212,12 +189,12 @@ def sim_chunks() -> list[PositionedChunk]:
         acc = raw[:, :6] * (5.0 / raw[:, 6:7]) * np.float32(G)  # supply correction, g -> m/s^2
         kt = np.array([t0, t0 + 1.0])
         c, v, _, _ = sim.position(kt)
-        out.append(chunk(acc, t0, kt, c, v, seq=k))
+        out.append(positioned_chunk(acc, t0, kt, c, v, seq=k))
     return out
 
 
 def sim_table() -> SegmentTable:
-    return table(15)
+    return line_table(15)
 
 
 def merged(chunks: list[PositionedChunk]) -> PositionedChunk:
@@ -225,7 +202,7 @@ def merged(chunks: list[PositionedChunk]) -> PositionedChunk:
     kt = np.concatenate([c.knot_t.array() for c in chunks])
     _, first = np.unique(kt, return_index=True)
     cat = lambda name: np.concatenate([getattr(c, name).array() for c in chunks])[first]  # noqa: E731
-    return chunk(
+    return positioned_chunk(
         np.concatenate([c.samples.array() for c in chunks]),
         chunks[0].t0, kt[first], cat("knot_chainage_m"), cat("knot_speed_mps"),
     )  # fmt: skip
@@ -241,7 +218,7 @@ def test_chunk_boundaries_do_not_change_the_indices(sim_chunks):
         for a in range(0, FS, 741):
             b = min(FS, a + 741)
             pieces.append(
-                chunk(
+                positioned_chunk(
                     s[a:b], c.t0 + a / FS, kt, c.knot_chainage_m.array(), c.knot_speed_mps.array()
                 )  # fmt: skip
             )

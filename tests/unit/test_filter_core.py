@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from services.filtering import bank as bank_module
-from services.filtering.bank import (
+from services.filtering import kalman as kalman_module
+from services.filtering.degradation import DegradationParams, mid_interval_age, transition
+from services.filtering.kalman import (
     FilterBank,
     ObservationModel,
     _update_2x2,
@@ -12,7 +13,6 @@ from services.filtering.bank import (
     predict,
     update,
 )
-from services.filtering.degradation import DegradationParams, mid_interval_age, transition
 from services.filtering.mixture import forecast
 
 
@@ -310,7 +310,7 @@ def test_bad_input_raises_naming_argument(name, call):
 
 @pytest.mark.parametrize("block_filters", [1, 7, 8192])
 def test_observe_equals_predict_then_update_in_any_block_size(monkeypatch, block_filters):
-    monkeypatch.setattr(bank_module, "BLOCK_FILTERS", block_filters)
+    monkeypatch.setattr(kalman_module, "BLOCK_FILTERS", block_filters)
     rng = np.random.default_rng(11)
     S, ns = 9, 5
     params = random_params(rng, (S,), ns, 2)

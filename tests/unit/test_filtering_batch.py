@@ -1,4 +1,4 @@
-"""Issue 16: a batch of events folded together equals its messages stepped one by one.
+"""A batch of events folded together equals its messages stepped one by one.
 
 ``Tracker.step_events`` folds the in-order indices of many segments in one vectorised pass
 and takes the exact path for everything else; these tests step one mixed stream both ways
@@ -13,15 +13,13 @@ import msgspec
 import numpy as np
 import pytest
 
-from schemas import DAY_S, SchemaError, encode, keys
+from schemas import DAY_S, Calibration, DegradationPosterior, SchemaError, encode, keys
 from services.filtering import store as store_module
-from services.filtering.store import PersistentTracker, Store, decode_keyed, index_identity
-from services.filtering.tracker import (
-    CUSUM_THRESHOLD,
-    Calibration,
-    DegradationPosterior,
-    event_of,
-)
+from services.filtering.banks import CUSUM_THRESHOLD
+from services.filtering.coordinator import PersistentTracker
+from services.filtering.events import event_of
+from services.filtering.payloads import decode_keyed
+from services.filtering.store import Store, index_identity
 from tests.unit.test_filtering_tracker import (
     MU,
     Z_PLUS,
@@ -133,7 +131,7 @@ def test_a_batch_folds_to_the_bits_of_its_messages_one_by_one(most):
             reasons.append("" if update.accepted else update.ignored[0][1])
             states = update.states
         else:
-            got, states, detected = batched.step_events(batch)
+            got, states, detected, _ = batched.step_events(batch)
             reasons.extend(got)
             found.extend(detected)
         for state in states:
@@ -164,7 +162,7 @@ def test_a_detection_inside_a_batch_stops_the_fold_there():
         found.extend(one.step(msg).detected)
     for msg in [calibration(), posterior(), record]:
         batched.step(msg)
-    reasons, _, detected = batched.step_events(passes)
+    reasons, _, detected, _ = batched.step_events(passes)
     assert not any(reasons) and len(found) == 1
     assert [encode(m) for m in detected] == [encode(m) for m in found]
     assert_same_states(one, batched)
@@ -177,8 +175,8 @@ def test_fold_events_defers_the_summaries_to_states_of():
     events = [m for m in messages if not isinstance(m, Calibration | DegradationPosterior)]
     for tracker in (eager, lazy):
         tracker.update_models([calibration(1), posterior(), posterior("line.L2", seed=4)])
-    _, states, _ = eager.step_events(events)
-    _, changed, _ = lazy.fold_events(events)
+    _, states, _, _ = eager.step_events(events)
+    _, changed, _, _ = lazy.fold_events(events)
     assert sorted(changed) == sorted(SEGMENTS)
     assert [encode(s) for s in lazy.states_of(changed)] == [
         encode(s) for s in sorted(states, key=lambda s: changed.index((s.line, s.segment)))
@@ -225,7 +223,7 @@ def test_an_index_identity_is_its_json(monkeypatch):
 def test_evolve_is_dataclasses_replace():
     from dataclasses import replace
 
-    import services.filtering.tracker as core
+    import services.filtering.histories as core
 
     messages = mixed_stream(2)
     tracker = new_tracker()
@@ -233,9 +231,9 @@ def test_evolve_is_dataclasses_replace():
         tracker.step(msg)
     hist = tracker.histories[SEGMENTS[0]]
     changes = {"log": hist.log[:3], "state": None, "group": "line.L9"}
-    assert core._evolve(hist, **changes) == replace(hist, **changes)
+    assert core.evolve(hist, **changes) == replace(hist, **changes)
     with pytest.raises(TypeError):
-        core._evolve(hist, stat=None)
+        core.evolve(hist, stat=None)
 
 
 def test_a_batch_refuses_its_bad_indices_with_the_reasons_of_one_at_a_time(tmp_path):

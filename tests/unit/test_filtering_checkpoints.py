@@ -16,22 +16,14 @@ from schemas import OnboardIndex, TrcRecord, encode
 from services.filtering import service as filtering_service
 from services.filtering import store as store_module
 from services.filtering import tracker as tracker_module
-from services.filtering.store import (
-    PersistentTracker,
-    Store,
-    StoredIndex,
-    log_columns,
-    pack_state,
-    unpack_state,
-)
-from services.filtering.tracker import (
-    Filtered,
-    _publishable,
-    canonical_log,
-    event_of,
-    fold_many,
-    log_units,
-)
+from services.filtering.columns import log_columns
+from services.filtering.coordinator import PersistentTracker
+from services.filtering.events import canonical_log, event_of, log_units
+from services.filtering.fold import fold_many
+from services.filtering.payloads import StoredIndex
+from services.filtering.segment import publishable
+from services.filtering.state import Filtered, pack_state, unpack_state
+from services.filtering.store import Store
 from tests.unit.test_filtering_tracker import (
     MODELS,
     MU,
@@ -326,7 +318,9 @@ def test_the_generation_goes_on_from_a_file_written_before_it_was_kept(tmp_path)
 
 
 @pytest.mark.parametrize("own_process", [False, True])
-def test_the_service_freezes_what_survives_only_in_its_own_process(own_process, tmp_path):
+def test_the_service_freezes_what_survives_only_in_its_own_process(
+    own_process, tmp_path, monkeypatch
+):
     """The worker moves what survived into the GC's permanent generation every FREEZE_S
     (no full collection walks the logs and states again) and collects the young objects
     itself (no automatic collection in between), only with ``freeze_gc``."""
@@ -334,6 +328,9 @@ def test_the_service_freezes_what_survives_only_in_its_own_process(own_process, 
 
     from services.filtering.service import FilteringAdapter
 
+    freezes = []  # the calls of gc.freeze (the frozen count also drops as frozen objects die)
+    freeze = gc.freeze
+    monkeypatch.setattr(gc, "freeze", lambda: (freezes.append(1), freeze())[1])
     node = node_on(tmp_path / "f.sqlite")
     adapter = FilteringAdapter(None, node, "**", freeze_gc=own_process)  # type: ignore[arg-type]
     before = gc.get_freeze_count()
@@ -341,9 +338,9 @@ def test_the_service_freezes_what_survives_only_in_its_own_process(own_process, 
         adapter._freeze()
         assert (gc.get_freeze_count() > before) == own_process
         assert gc.isenabled() != own_process
-        frozen = gc.get_freeze_count()
+        assert len(freezes) == own_process
         adapter._freeze()  # within FREEZE_S of the last: nothing more
-        assert gc.get_freeze_count() == frozen
+        assert len(freezes) == own_process
     finally:
         gc.unfreeze()  # this is pytest's process
         gc.enable()
@@ -355,10 +352,10 @@ def test_an_idle_instance_writes_its_due_checkpoint_without_waiting_for_a_batch(
 ):
     """Live, a due checkpoint goes a slice per batch; when traffic stops the worker's idle
     hook writes the rest, so a kill of an idle instance replays nothing."""
-    from services.filtering import store as store_module
+    from services.filtering import coordinator
     from services.filtering.service import FilteringAdapter
 
-    monkeypatch.setattr(store_module, "CHECKPOINT_SLICE", 1)
+    monkeypatch.setattr(coordinator, "CHECKPOINT_SLICE", 1)
 
     events = in_time_order(history(np.random.default_rng(6), SEGMENTS))
     db = tmp_path / "f.sqlite"
@@ -490,8 +487,8 @@ def test_a_log_read_as_columns_folds_to_the_bits_of_its_events(tmp_path):
         assert columns_trc_t == trc_t and len(columns) == len(log) == 12 + (seg != "s4")
         assert columns.last_order == log[-1].order
         assert log_units(columns) == log_units(log) == {("T1", "u1"), ("T2", "u1")}
-        assert _publishable(columns, models) and _publishable(log, models)
-        assert _publishable(columns, uncalibrated) == _publishable(log, uncalibrated) is False
+        assert publishable(columns, models) and publishable(log, models)
+        assert publishable(columns, uncalibrated) == publishable(log, uncalibrated) is False
         a, b = fold_many([None, None], [columns, log], [params, params], models)
         for name in ("z", "P", "log_w"):
             assert getattr(a, name).tobytes() == getattr(b, name).tobytes()

@@ -15,26 +15,15 @@ import numpy as np
 import pytest
 from test_filter_core import random_params
 
-from services.filtering import tracker as tracker_module
-from services.filtering.bank import ObservationModel
+from services.filtering import fold as fold_module
+from services.filtering.banks import CUSUM_THRESHOLD, Banks, RowParams, Scratch
 from services.filtering.degradation import DegradationParams
+from services.filtering.events import INDEX, RESTART, TAMPING, Event
+from services.filtering.fold import fold_many, fold_many_counted
+from services.filtering.kalman import ObservationModel
 from services.filtering.kernel import PARALLEL_ROWS
-from services.filtering.store import pack_state, unpack_state
-from services.filtering.tracker import (
-    CUSUM_THRESHOLD,
-    INDEX,
-    RESTART,
-    TAMPING,
-    Event,
-    Filtered,
-    Models,
-    Scratch,
-    _Banks,
-    _fold_many,
-    _RowParams,
-    fold_many,
-    state_layout,
-)
+from services.filtering.models import Models
+from services.filtering.state import Filtered, pack_state, state_layout, unpack_state
 
 FIELDS = ("mu", "sigma", "z_plus", "sigma_z_plus")
 
@@ -50,7 +39,7 @@ def banks_and_inputs(seed: int):
         P = A @ np.swapaxes(A, -1, -2) + 1e-4 * np.eye(2)
         starts.append(Filtered(z, P, 1e9, 1e9, 0, None, rng.normal(0, 2.0, NS)))
     groups = [random_params(rng, (), NS, 2) for _ in range(2)]
-    params = _RowParams([groups[k % 2] for k in range(SEGMENTS)])
+    params = RowParams([groups[k % 2] for k in range(SEGMENTS)])
     obs = ObservationModel(
         np.array([[0.9, 0.1], [0.05, 1.1]]),
         np.array([0.1, -0.05]),
@@ -65,7 +54,7 @@ def banks_and_inputs(seed: int):
 
 def test_the_compiled_step_is_the_numpy_step_to_rounding():
     starts, params, obs, rows, t_s, y, last = banks_and_inputs(1)
-    compiled, numpy_form = _Banks(starts, NS, 2), _Banks(starts, NS, 2)
+    compiled, numpy_form = Banks(starts, NS, 2), Banks(starts, NS, 2)
     compiled.index_compiled(rows, t_s, y, params, obs, last)
     numpy_form.index_numpy(rows, t_s, y, params, obs, last)
     for name in ("z", "P", "log_w", "t_s", "nis", "cusum", "cusum_t0", "cusum_t1"):
@@ -74,15 +63,15 @@ def test_the_compiled_step_is_the_numpy_step_to_rounding():
     assert np.isnan(compiled.nis[rows[~last]]).all()  # only the last update's NIS is written
     assert (compiled.n_updates == numpy_form.n_updates).all()
     assert np.array_equal(compiled.P[..., 0, 1], compiled.P[..., 1, 0])
-    assert not np.allclose(compiled.z, _Banks(starts, NS, 2).z)  # it did step
+    assert not np.allclose(compiled.z, Banks(starts, NS, 2).z)  # it did step
 
 
 def test_a_segment_gets_the_same_bits_alone_or_in_a_batch():
     starts, params, obs, rows, t_s, y, last = banks_and_inputs(2)
-    together = _Banks(starts, NS, 2)
+    together = Banks(starts, NS, 2)
     together.index_compiled(rows, t_s, y, params, obs, last)
     for r in range(0, SEGMENTS, 7):
-        alone = _Banks(starts, NS, 2)
+        alone = Banks(starts, NS, 2)
         one = rows[r : r + 1]
         alone.index_compiled(one, t_s[r : r + 1], y[r : r + 1], params, obs, last[r : r + 1])
         row = rows[r]
@@ -163,9 +152,9 @@ def test_the_fold_as_runs_is_the_fold_by_steps_bit_for_bit(monkeypatch, halt):
     logs = _mixed_logs(np.random.default_rng(6), 80)
     ps = [DegradationParams(*(getattr(params.stack, f)[k % 2] for f in FIELDS)) for k in range(80)]
     firsts = [None if k % 3 else starts[k] for k in range(80)]  # some started, some not
-    runs = _fold_many(firsts, logs, ps, models, halt)
-    monkeypatch.setattr(tracker_module, "_fold_runs", tracker_module._fold_steps)
-    steps = _fold_many(firsts, logs, ps, models, halt)
+    runs = fold_many_counted(firsts, logs, ps, models, halt)
+    monkeypatch.setattr(fold_module, "_fold_runs", fold_module._fold_steps)
+    steps = fold_many_counted(firsts, logs, ps, models, halt)
     assert runs[1] == steps[1]  # events folded per segment (fewer where halted)
     if halt is not None:
         assert any(count < len(log) for count, log in zip(runs[1], logs, strict=True))

@@ -19,8 +19,11 @@ from test_filtering_tracker import (  # tests/unit is on sys.path (rootdir conft
 )
 
 from schemas import NDArray, SchemaError, encode
+from services.filtering import banks as banks_module
 from services.filtering import tracker as tracker_module
-from services.filtering.tracker import SegmentHistory, Tracker, replay, replay_many
+from services.filtering.histories import SegmentHistory
+from services.filtering.segment import replay, replay_many
+from services.filtering.tracker import Tracker
 
 
 def assert_bit_identical(a: SegmentHistory, b: SegmentHistory, tracker: Tracker) -> None:
@@ -76,7 +79,7 @@ MODELS = [
 @pytest.mark.parametrize("block_filters", [8192, 100])
 @pytest.mark.parametrize("models", [MODELS, MODELS[1:]], ids=["calibrated", "uncalibrated"])
 def test_batched_rerun_equals_replaying_each_segment_alone(monkeypatch, block_filters, models):
-    monkeypatch.setattr(tracker_module, "BLOCK_FILTERS", block_filters)  # several blocks
+    monkeypatch.setattr(banks_module, "BLOCK_FILTERS", block_filters)  # several blocks
     rng = np.random.default_rng(21)
     events = mixed_events(rng)
     tracker = new_tracker()

@@ -1,4 +1,4 @@
-"""The store's commit in the background (issue 16: a backlog's batch commits while the
+"""The store's commit in the background (a backlog's batch commits while the
 next one folds): its rows land in order, with the checkpoint after them, and a failed
 commit stops everything that follows instead of being lost."""
 

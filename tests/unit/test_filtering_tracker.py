@@ -20,16 +20,20 @@ from schemas import (
     encode,
     keys,
 )
-from services.filtering.bank import FilterBank, ObservationModel, update
+from services.filtering.coordinator import PersistentTracker
 from services.filtering.degradation import DegradationParams
+from services.filtering.kalman import FilterBank, ObservationModel, update
 from services.filtering.mixture import (
     effective_sample_size,
     forecast,
     summarize,
     weights_from_log,
 )
-from services.filtering.store import PersistentTracker, Store
-from services.filtering.tracker import Tracker, state_weights
+from services.filtering.segment import DERIVED
+from services.filtering.store import Store
+from services.filtering.summary import state_weights
+from services.filtering.testing import example_posterior, onboard_index
+from services.filtering.tracker import Tracker
 from services.limits import load_limits
 
 T0 = 1_767_225_600.0  # 2026-01-01 UTC
@@ -57,23 +61,8 @@ def calibration(version: int = 1, scale: float = 1.0) -> Calibration:
 def posterior(
     group: str = "net", version: int = 1, seed: int = 0, ns: int = NS
 ) -> DegradationPosterior:
-    rng = np.random.default_rng(seed)
-    mu = rng.normal([7e-4, 4e-4], 2e-4, (ns, 2))
-    sd = np.array([1e-2, 7e-3]) * np.exp(0.3 * rng.standard_normal((ns, 1)))
-    sigma = np.array([[1.0, 0.4], [0.4, 1.0]]) * sd[:, :, None] * sd[:, None, :]
-    z_plus = np.log([2.0, 1.8]) + rng.normal(0, 0.05, (ns, 2))
-    sigma_z_plus = np.broadcast_to(np.eye(2) * 0.01, (ns, 2, 2))
-    return DegradationPosterior(
-        group=group,
-        version=version,
-        t=T0,
-        indicators=["top6", "align10"],
-        mu=NDArray.of(mu),
-        sigma=NDArray.of(sigma),
-        z_plus=NDArray.of(z_plus),
-        sigma_z_plus=NDArray.of(sigma_z_plus),
-        n_increments=30,
-        n_levels=10,
+    return example_posterior(
+        ns, seed, group=group, version=version, z_plus_sd=0.05, n_increments=30, n_levels=10
     )
 
 
@@ -95,17 +84,7 @@ def trc(t_days: float, top6: float = 3.0, align10: float = 2.5, line="L1", segme
 
 
 def index(t_days: float, top6: float, align10: float, line="L1", segment="s1", train="T1"):
-    return OnboardIndex(
-        line=line,
-        segment=segment,
-        train=train,
-        unit="u1",
-        t=T0 + t_days * DAY_S,
-        top6_mm=top6,
-        align10_mm=align10,
-        speed_mps=30.0,
-        coverage=1.0,
-    )
+    return onboard_index(line, segment, T0 + t_days * DAY_S, top6, align10, train)
 
 
 def tamping(t_start_days: float, t_end_days: float | None = None, line="L1", segment="s1"):
@@ -351,11 +330,12 @@ def test_store_rebuilds_identical_states_after_an_unclean_stop(tmp_path):
         first.tracker.step(msg)
         second.handle(*keyed(msg))
     assert_same_states(first.tracker, second.tracker)
-    # the TRC records at day 100 pruned everything before them: the store holds the logs
+    # the TRC records at day 100 pruned everything before them but the tamping reports:
+    # the store holds the logs
     rebuilt = PersistentTracker(new_tracker(), Store(db))
     rebuilt.rebuild()
     in_logs = sum(len(hist.log) for hist in first.tracker.histories.values())
-    assert rebuilt.store.count_events() == in_logs == 3 * 7
+    assert rebuilt.store.count_events() == in_logs == 3 * (7 + 1)
     assert_same_states(first.tracker, rebuilt.tracker)
     for node in (second, rebuilt):
         node.store.close()
@@ -390,8 +370,8 @@ def test_a_batch_equals_its_messages_one_by_one(tmp_path):
 
 
 def test_the_store_keeps_the_message_and_refuses_what_it_cannot_store(tmp_path):
-    """Issue 14: a valid message is stored re-encoded; a message with a large unknown field
-    (issue 15: every type refuses a field it does not have), a model version beyond SQLite's
+    """A valid message is stored re-encoded; a message with a large unknown field
+    (every type refuses a field it does not have), a model version beyond SQLite's
     INTEGER, or a payload nested 10,000 deep, is a dead letter naming the field, not an
     exception out of the batch."""
     node = PersistentTracker(new_tracker(), Store(tmp_path / "f.sqlite"))
@@ -451,16 +431,7 @@ def test_events_on_segments_the_network_lacks_are_refused_and_hold_nothing(tmp_p
 
 def keyed(msg) -> tuple[str, bytes]:
     """The key a message is published on (namespace "tf") and its payload."""
-    match msg:
-        case Calibration():
-            own = msg.train and keys.unit_calibration("tf", msg.train, msg.unit)
-            key = own or keys.calibration("tf")
-        case DegradationPosterior():
-            key = keys.degradation("tf", msg.group)
-        case _:
-            kind = {OnboardIndex: "index", TrcRecord: "trc", MaintenanceEvent: "maintenance"}
-            key = keys.segment_keys("tf", kind[type(msg)], f"{msg.line}/{msg.segment}")
-    return key, encode(msg)
+    return keys.key_of("tf", msg), encode(msg)
 
 
 # --- mixture weights: the likelihood of the segment's own on-board data -------------------
@@ -597,17 +568,26 @@ def test_a_tamping_correction_replaces_the_report_whatever_the_order(corrected):
         node.store.close()
 
 
-def test_a_correction_before_the_latest_trc_record_removes_the_report():
+def test_a_correction_before_the_latest_trc_record_takes_the_tamping_out_of_the_state():
     """The report put the tamping after the TRC record; the correction puts it before, where
-    the record already measured it: the tamping leaves the log."""
+    the record already measured it: the state is the one without the tamping, and the
+    correction stays in the log before the record, so that the report coming again (or
+    first) is outranked whatever the order."""
     report = tamping(15.0, 25.0)  # placed at day 20, after the record of day 18
+    fixed = correction(report, 16.0)
     base = [*MODELS, trc(0.0), trc(18.0, 2.5, 2.2), index(22.0, 2.4, 2.2)]
     tracker, _ = run([*base, report])
     assert report.event_id in {e.identity[1] for e in tracker.histories[("L1", "s1")].log}
-    step = tracker.step(correction(report, 16.0))
-    assert step.accepted
-    without, _ = run(base)
-    assert_same_states(tracker, without)
+    assert tracker.step(fixed).accepted
+    log = tracker.histories[("L1", "s1")].log
+    assert [e.identity[0] for e in log] == ["maintenance", "trc", "index"]
+    assert log[0].t_s == fixed.t_start
+    a, b = tracker.histories[("L1", "s1")].state, run(base)[0].histories[("L1", "s1")].state
+    for name in ("z", "P", "log_w", "t_s", "n_updates", "nis", "cusum"):
+        assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True)
+    assert tracker.step(report).reason == "duplicate"  # outranked by the correction
+    other_order, _ = run([*base, fixed, report])
+    assert_same_states(tracker, other_order)
 
 
 def test_an_interval_only_tamping_sits_at_the_middle_of_the_reported_interval():
@@ -683,7 +663,7 @@ def test_a_year_of_honest_indices_gives_no_detection():
     tracker = new_tracker()
     for msg in [*MODELS, trc(0.0, *np.exp(Z_PLUS).tolist())]:
         tracker.step(msg)
-    reasons, _, detected = tracker.step_events(onboard_days(rng, np.arange(1, 366), Z_PLUS, MU))
+    reasons, _, detected, _ = tracker.step_events(onboard_days(rng, np.arange(1, 366), Z_PLUS, MU))
     assert not any(reasons) and detected == []
 
 
@@ -705,8 +685,8 @@ def test_a_reported_tamping_supersedes_a_detected_one_whatever_the_order(tmp_pat
     rebuilt = PersistentTracker(new_tracker(), Store(db))
     rebuilt.rebuild()
     assert_same_states(rebuilt.tracker, truth)  # the detected row is gone from the store
-    # a detection arriving after the report (its own echo from the bus) is refused
-    assert node.handle(*keyed(detected[0])).reason == "a reported tamping is within 30 days"
+    # a detection coming back (its own echo from the bus) is no input
+    assert node.handle(*keyed(detected[0])).reason == DERIVED
     for n in (node, rebuilt):
         n.store.close()
 

@@ -7,10 +7,10 @@ import re
 from pathlib import Path
 
 from schemas import GpsFix, RawChunk
+from services.defaults import demo_network
 from services.ingestion.core import IngestionCore, Rejection
 from services.ingestion.service import decode_gateway
 from services.tools.gateway_check import GatewayCheck
-from track.network import demo_network
 
 README = Path(__file__).resolve().parents[2] / "schemas" / "README.md"
 
@@ -34,9 +34,9 @@ def test_the_worked_example_is_accepted():
     core = IngestionCore(demo_network())
     # held for its position (the fix is not on the demo network), never refused
     assert [o for o in core.step(chunk) + core.step(fix) if isinstance(o, Rejection)] == []
-    check = GatewayCheck("T17")
-    check.feed("raw", "tf/raw/T17/bogie1", example["chunk"], 1.0)
-    check.feed("gps", "tf/gps/T17", example["fix"], 1.1)
+    check = GatewayCheck("T17")  # arriving live: the receiver's clock just after the data
+    check.feed("raw", "tf/raw/T17/bogie1", example["chunk"], fix.t + 1.0)
+    check.feed("gps", "tf/gps/T17", example["fix"], fix.t + 1.1)
     report, code = check.report()
     assert code == 0, report
 

@@ -7,7 +7,7 @@ import threading
 import numpy as np
 import pytest
 
-from services.runtime.inbox import Inbox
+from services.runtime.inbox import Inbox, LatestInbox
 
 
 def items(n: int, seed: int = 0) -> list[tuple[str, str, bytes]]:
@@ -79,3 +79,34 @@ def test_take_times_out_empty_and_ends_once_closed_and_drained():
 def test_memory_budget_must_be_positive():
     with pytest.raises(ValueError, match="memory_bytes"):
         Inbox(memory_bytes=0)
+
+
+def test_the_latest_inbox_keeps_the_newest_of_a_key_and_every_unkeyed_item():
+    # items (key, version): key None queues in order
+    inbox = LatestInbox(2, key=lambda item: item[0], version=lambda item: item[1])
+    for item in (("a", 1), ("a", 3), ("a", 2)):  # a late older item does not win
+        inbox.put(item)
+    for item in (("b", 1), (None, 5), (None, 4)):
+        inbox.put(item)
+    assert inbox.take(timeout=0) == [("a", 3), ("b", 1), (None, 5), (None, 4)]
+    assert inbox.superseded == 2 and inbox.dropped == 0
+    for item in (("a", 1), ("b", 1), ("c", 1), (None, 1), (None, 2), (None, 3)):
+        inbox.put(item)  # capacity 2: the oldest key and the oldest queued item go
+    assert inbox.take(timeout=0) == [("b", 1), ("c", 1), (None, 2), (None, 3)]
+    assert inbox.dropped == 2
+    assert inbox.take(timeout=0) == []
+    inbox.put(("a", 9))
+    inbox.close()
+    inbox.put(("b", 9))  # after close: ignored
+    assert inbox.take(timeout=None) == [("a", 9)]
+    assert inbox.take(timeout=None) is None
+
+
+def test_the_latest_inbox_wakes_its_worker():
+    inbox = LatestInbox(4, key=lambda item: item, version=lambda item: 0.0)
+    got: list = []
+    worker = threading.Thread(target=lambda: got.append(inbox.take(timeout=None)))
+    worker.start()
+    inbox.put("x")
+    worker.join(timeout=10)
+    assert got == [["x"]]

@@ -1,5 +1,6 @@
-"""Issue 14: nothing a gateway sends locks a train out. Time plausibility (the train's clock,
-its re-base) and units (m/s², counts, integer samples) in the ingestion core."""
+"""Nothing a gateway sends locks a train out. Time plausibility (the receiving clock as the
+bound on the future, the train's clock, its re-base) and units (m/s², counts, integer
+samples) in the ingestion core."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import msgspec
 import numpy as np
 from test_ingestion_core import T0, N, chunk, network, positioned, rejections, train_on
 
-from schemas import DAY_S, NDArray
+from schemas import DAY_S, NDArray, encode
 from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore
 from services.ingestion.health import G_MPS2, time_range_reason
@@ -112,16 +113,82 @@ def test_interleaved_outliers_never_rebase():
     assert [c.seq for c in positioned(out)] == list(range(60))
 
 
-def test_a_new_train_far_ahead_of_the_fleet_is_refused():
-    _, events = train_on("L3", 10)
-    core = IngestionCore(network())
-    core.run(events, flush=False)
+def _arrival(event) -> float:
+    """The receiving machine's clock when ``event`` arrives live: half a second after it."""
+    return (event.t if hasattr(event, "lat_deg") else event.t0 + 1.0) + 0.5
+
+
+def _live(core: IngestionCore, events) -> list:
+    out = []
+    for event in events:
+        out += core.step(event, _arrival(event))
+    return out
+
+
+def test_old_dated_messages_of_many_trains_do_not_refuse_a_live_train():
+    """Fifty trains' fixes and chunks dated an hour back arrive first (a backlog coming
+    through); the live train's fixes and chunks are all taken, exactly as without them."""
+    _, events = train_on("L3", 60)
     fix = next(e for e in events if hasattr(e, "lat_deg"))
-    other = msgspec.structs.replace(fix, train="T2", t=fix.t + DAY_S)
-    [letter] = core.step(other)
-    assert "ahead of the fleet's clock" in letter.reason
-    ok = msgspec.structs.replace(fix, train="T2", t=fix.t + 60.0)
-    assert rejections(core.step(ok)) == []  # an hour late is no jump: the fleet agrees
+    hour = 3600.0
+    burst = []
+    for k in range(50):
+        burst.append(msgspec.structs.replace(fix, train=f"B{k}", t=fix.t - hour))
+        burst.append(chunk(0, train=f"B{k}", t0=T0 - hour))
+    core = IngestionCore(network())
+    for event in burst:
+        core.step(event, T0)
+    out = _live(core, events) + core.flush()
+    alone = IngestionCore(network())
+    expected = _live(alone, events) + alone.flush()
+    assert rejections(out) == []
+    assert [c.seq for c in positioned(out)] == list(range(60))
+    assert [encode(c) for c in positioned(out)] == [encode(c) for c in positioned(expected)]
+
+
+def test_a_time_ahead_of_the_receiving_clock_is_refused_and_never_rebases():
+    """A gateway an hour ahead of the receiver, however consistent: every fix and chunk is
+    refused as in the future, and the train is not re-based there."""
+    sim, events = train_on("L3", 30)
+    core = IngestionCore(network())
+    out = _live(core, events[:20])
+    ahead = []
+    for k in range(10, 30):
+        ahead.append(chunk(k, t0=T0 + k + 3600.0))
+        ahead += [
+            msgspec.structs.replace(f, t=f.t + 3600.0) for f in sim.gps_fixes(T0 + k, T0 + k + 1)
+        ]
+    refused = rejections([o for e in ahead for o in core.step(e, T0 + 30.0)])
+    assert len(refused) == len(ahead)
+    assert all("ahead of the receiving clock" in r.reason for r in refused)
+    assert core.train_stats("T1").rebases == 0 and core.trains["T1"].now < T0 + 31.0
+    out += core.flush()
+    assert all(c.t0 < T0 + 30.0 for c in positioned(out))
+
+
+def test_a_train_back_live_after_hours_away_is_no_clock_jump():
+    """Six hours after its last fix, a fix the receiving clock agrees with is taken; the
+    same fix replayed without the receiving clock is a jump of the train's clock."""
+    _, events = train_on("L3", 20)
+    fix = next(e for e in reversed(events) if hasattr(e, "lat_deg"))
+    back = msgspec.structs.replace(fix, t=fix.t + 6 * 3600.0)
+    live = IngestionCore(network())
+    _live(live, events)
+    assert rejections(live.step(back, back.t + 0.5)) == []
+    replayed = IngestionCore(network())
+    replayed.run(events, flush=False)
+    [letter] = rejections(replayed.step(back))
+    assert "ahead of the train's last fix" in letter.reason
+
+
+def test_a_new_train_ahead_of_the_receiving_clock_is_refused():
+    _, events = train_on("L3", 10)
+    fix = next(e for e in events if hasattr(e, "lat_deg"))
+    core = IngestionCore(network())
+    [letter] = core.step(msgspec.structs.replace(fix, train="T2", t=fix.t + DAY_S), fix.t)
+    assert "86400 s ahead of the receiving clock" in letter.reason
+    late = msgspec.structs.replace(fix, train="T2", t=fix.t - DAY_S)
+    assert rejections(core.step(late, fix.t)) == []  # a day late is no jump
 
 
 # --- units -----------------------------------------------------------------------------------

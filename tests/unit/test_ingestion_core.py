@@ -10,13 +10,14 @@ import numpy as np
 import pytest
 
 from schemas import ACCEL_CHANNELS, GpsFix, NDArray, PositionedChunk, RawChunk, encode
+from services.defaults import demo_network
 from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore, Rejection
 from services.ingestion.health import G_MPS2
 from services.ingestion.matching import _LineGeometry
 from simulators.profile import LineProfile
 from simulators.train import RAW_CHANNELS, TrainSimulator
-from track.network import demo_network
+from track.network import Network
 
 T0 = 1_767_225_600.0
 N = 2000  # samples per 1 s chunk at 2000 Hz
@@ -47,13 +48,17 @@ def chunk(seq: int, *, train="T1", unit="u0", t0=None, samples=None, **kw) -> Ra
     return RawChunk(**(fields | kw))
 
 
-def train_on(line_id: str, seconds: int, *, at_m: float = 0.0, direction: int = 1):
-    """A simulated train on ``line_id``, starting where it passes ``at_m`` in ``direction``;
-    returns ``(sim, events)``: one quiet chunk and one GPS fix per second."""
-    line = network().lines[line_id]
+def train_on(
+    line_id: str, seconds: int, *, at_m: float = 0.0, direction: int = 1, on: Network | None = None
+):
+    """A simulated train on ``line_id`` of ``on`` (the demo network), starting where it
+    passes ``at_m`` in ``direction``; returns ``(sim, events)``: one quiet chunk and one GPS
+    fix per second."""
+    line = (on or network()).lines[line_id]
     profile = LineProfile(line_id, [(s.start_m, s.end_m) for s in line.segments], 1)
     probe = TrainSimulator("T1", line, profile, 1, start_t=0.0, phase_s=0.0)
-    i = int(np.argmax((probe._x >= at_m) & (probe._dir == direction)))
+    passed = probe._x >= at_m if direction > 0 else probe._x <= at_m
+    i = int(np.argmax(passed & (probe._dir == direction)))
     sim = TrainSimulator("T1", line, profile, 1, start_t=T0, phase_s=float(probe._t[i]))
     events: list[RawChunk | GpsFix] = []
     for k in range(seconds):

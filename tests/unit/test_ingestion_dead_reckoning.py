@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 from schemas import GpsFix, NDArray, PositionedChunk, RawChunk
+from services.defaults import demo_network
 from services.extraction.pipeline import Extractor
 from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore
 from simulators.profile import LineProfile
 from simulators.train import RAW_CHANNELS, TrainSimulator
-from track.network import demo_network
 from track.segments import SegmentTable
 
 T0 = 1_767_225_600.0

@@ -16,7 +16,7 @@ from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore
 from simulators.profile import LineProfile
 from simulators.train import TrainSimulator
-from tests.unit.test_ingestion_core import T0, chunk, positioned, rejections
+from tests.unit.test_ingestion_core import T0, chunk, positioned, rejections, train_on
 from track.network import Network
 from track.osm import import_osm
 
@@ -28,23 +28,6 @@ def lakeside(running: str | None = "left") -> Network:
     """The fixture imported with left-hand running (it is in Switzerland): 650-t2, north of
     650-t1, runs east (increasing chainage), 650-t1 west."""
     return import_osm(json.loads(LAKESIDE.read_text()), running=running)[0]
-
-
-def train_on(network: Network, line_id: str, seconds: int, *, at_m: float, direction: int):
-    """``(sim, events)`` of a train on ``line_id`` passing ``at_m`` in ``direction``: one
-    quiet chunk and one GPS fix per second."""
-    line = network.lines[line_id]
-    profile = LineProfile(line_id, [(s.start_m, s.end_m) for s in line.segments], 1)
-    probe = TrainSimulator("T1", line, profile, 1, start_t=0.0, phase_s=0.0)
-    i = int(np.argmax((probe._x >= at_m) & (probe._dir == direction)))
-    if direction < 0:
-        i = int(np.argmax((probe._x <= at_m) & (probe._dir == direction)))
-    sim = TrainSimulator("T1", line, profile, 1, start_t=T0, phase_s=float(probe._t[i]))
-    events: list[RawChunk | GpsFix] = []
-    for k in range(seconds):
-        events.append(chunk(k))
-        events += sim.gps_fixes(T0 + k, T0 + k + 1)
-    return sim, events
 
 
 def test_the_fixture_tracks_are_closer_than_gps_can_tell_apart():
@@ -65,7 +48,7 @@ def test_the_fixture_tracks_are_closer_than_gps_can_tell_apart():
 )
 def test_a_train_on_either_track_is_positioned_on_it_all_along(track, direction, at_m):
     network = lakeside()
-    sim, events = train_on(network, track, 150, at_m=at_m, direction=direction)
+    sim, events = train_on(track, 150, at_m=at_m, direction=direction, on=network)
     out = IngestionCore(network).run(events)
     chunks = positioned(out)
     assert {c.line for c in chunks} == {track}
@@ -86,14 +69,14 @@ def test_the_track_is_chosen_by_direction_not_by_gps():
     """A train running east on the westbound track (wrong-line running) is put on the
     eastbound track: GPS cannot see the difference, the rule is the running direction."""
     network = lakeside()
-    _, events = train_on(network, "650-t1", 60, at_m=400.0, direction=1)
+    _, events = train_on("650-t1", 60, at_m=400.0, direction=1, on=network)
     assert {c.line for c in positioned(IngestionCore(network).run(events))} == {"650-t2"}
 
 
 def test_a_reversal_at_the_terminus_moves_the_train_to_the_track_running_back():
     network = lakeside()
     line = network.lines["650-t2"]
-    _, events = train_on(network, "650-t2", 400, at_m=line.length_m - 1_500.0, direction=1)
+    _, events = train_on("650-t2", 400, at_m=line.length_m - 1_500.0, direction=1, on=network)
     core = IngestionCore(network)
     chunks = positioned(core.run(events))
     lines = [c.line for c in chunks]
@@ -105,7 +88,7 @@ def test_a_reversal_at_the_terminus_moves_the_train_to_the_track_running_back():
 
 def test_without_running_the_tracks_stay_unpositioned():
     network = lakeside(None)
-    _, events = train_on(network, "650-t2", 40, at_m=400.0, direction=1)
+    _, events = train_on("650-t2", 40, at_m=400.0, direction=1, on=network)
     out = IngestionCore(network).run(events)
     assert positioned(out) == []
     assert len(rejections(out)) == 40
@@ -114,7 +97,7 @@ def test_without_running_the_tracks_stay_unpositioned():
 
 def test_the_single_track_branch_is_positioned_from_the_first_fix():
     network = lakeside()
-    _, events = train_on(network, "651", 60, at_m=300.0, direction=1)
+    _, events = train_on("651", 60, at_m=300.0, direction=1, on=network)
     out = IngestionCore(network).run(events)
     assert rejections(out) == []
     assert {c.line for c in positioned(out)} == {"651"}
@@ -136,8 +119,8 @@ def test_a_simulated_one_way_train_is_on_its_track_every_trip():
     for k in np.flatnonzero(sent):
         events.append(chunk(int(k)))
         events += sim.gps_fixes(T0 + k, T0 + k + 1)
-    # in a fleet the other trains' fixes show the silence is no clock jump; alone, the
-    # train's own clock would be doubted (max_ahead_s), which is not what is tested here
+    # live, the receiving clock shows the silence is no clock jump; replayed without it,
+    # the train's own clock would be doubted (max_ahead_s), which is not what is tested here
     cfg = IngestionConfig(max_ahead_s=1e9)
     out = IngestionCore(network, cfg).run(events)
     chunks = positioned(out)

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal, norm
 
-from services.filtering.bank import FilterBank, ObservationModel, update
 from services.filtering.degradation import DegradationParams
+from services.filtering.kalman import FilterBank, ObservationModel, update
 from services.filtering.mixture import (
     effective_sample_size,
     forecast,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 
+import msgspec
 import numpy as np
 
 from schemas import NDArray, SegmentState, TrcRecord
@@ -77,6 +78,25 @@ def test_bad_rows_are_reported_with_line_numbers_and_good_rows_kept():
 def test_missing_columns_are_named():
     (error,) = list(parse_trc_csv(io.StringIO("line,segment,t\nL1,s1,0\n")))
     assert isinstance(error, RowError) and "align10_mm" in error.reason
+
+
+def test_level_only_and_alignment_only_exports_are_records_of_what_they_measured():
+    level = "line,segment,t,top6_mm,run_id\nL1,s1,1767225600,4.1,r1\n"
+    (record,) = list(parse_trc_csv(io.StringIO(level)))
+    assert record.indicators == ["top6"] and record.values_mm == (4.1, None)
+    mixed = "line,segment,t,top6_mm,align10_mm,run_id\nL1,s1,0,,3.0,r1\nL1,s2,0,,,r1\n"
+    items = list(parse_trc_csv(io.StringIO(mixed.replace(",0,", ",1767225600,"))))
+    assert items[0].indicators == ["align10"] and items[0].align10_mm == 3.0
+    assert isinstance(items[1], RowError) and "no value" in items[1].reason
+    (error,) = list(parse_trc_csv(io.StringIO("line,segment,t,run_id\nL1,s1,0,r1\n")))
+    assert isinstance(error, RowError) and "one or both of" in error.reason
+
+
+def test_format_state_says_what_the_last_trc_record_measured():
+    state = msgspec.structs.replace(a_state(), last_trc_t=1_767_225_600.0,
+                                    last_trc_indicators=["top6"])  # fmt: skip
+    assert "(last TRC 2026-01-01T00:00+00:00, measured top6)" in format_state(state)
+    assert format_state(state, "Alassio – Albenga").startswith("L1/s00001 (Alassio – Albenga) at")
 
 
 def test_format_state_reads_like_an_engineer_would():

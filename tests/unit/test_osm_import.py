@@ -14,11 +14,12 @@ import rerun as rr
 
 from services.calibration.service import known_segments as calibration_segments
 from services.cli import main as cli_main
+from services.defaults import load_network
 from services.filtering.service import known_segments as filtering_segments
 from services.tools.report import network_map
 from services.viewer.core import ViewerCore
 from services.viewer.testing import rrd_printout
-from track.network import Line, Network, check_id, load_network, lonlat_to_xy
+from track.network import Line, Network, check_id, lonlat_to_xy
 from track.osm import import_osm, parse_maxspeed, running_of_pair, slug, to_geojson
 from track.segments import SegmentTable
 
@@ -65,7 +66,11 @@ def test_a_double_track_route_gives_one_line_per_track_and_the_branch_its_own(im
     assert extra["651"]["osm_ways"] == ["way/301", "way/302"]
     assert [extra[i]["track_ref"] for i in ("650-t1", "650-t2", "651")] == ["1", "2", ""]
     names = {line.id: line.name for line in network.lines.values()}
-    assert names == {"650-t1": "Lakeside Line", "650-t2": "Lakeside Line", "651": "Valley Branch"}
+    assert names == {
+        "650-t1": "Lakeside Line, track 1",
+        "650-t2": "Lakeside Line, track 2",
+        "651": "Valley Branch",
+    }
     assert [line.id for line in report.lines] == sorted(network.lines)
 
 
@@ -437,7 +442,9 @@ def test_the_viewer_map_shows_the_imported_names(imported, tmp_path):
     rec.disconnect()
     printed = rrd_printout(path)  # long cells are cut: the first labels of each
     first = network.lines["650-t1"]
-    assert f"[{first.id} Lakeside Line, {first.id} Lakeside Line, 650-t2 Lakeside" in printed
+    assert (
+        f"[{first.id} Lakeside Line, track 1, {first.id} Lakeside Line, track 1, 650-t2" in printed
+    )
     assert f"[Westbrook ({first.id} km {first.stations[0] / 1e3:.1f}), Lakeside Halt" in printed
 
 
@@ -553,5 +560,62 @@ def test_a_line_is_named_after_most_of_its_length():
     first = osm_feature(doc, "way/101")  # the first 1.5 km of 6 km
     first["properties"]["name"] = "Westbrook Viaduct"
     network, _, _ = import_osm(doc)
-    assert network.lines["650-t1"].name == "Lakeside Line"
+    assert network.lines["650-t1"].name == "Lakeside Line, track 1"
     assert network.lines["650-t1"].id == "650-t1"  # joined by ref all the same
+
+
+RIVIERA = FIXTURES / "riviera.json"
+
+
+def test_lines_without_name_or_ref_are_named_by_their_relations_or_stations():
+    """Ways with no name nor ref (ids stay ``way{n}[-t{track}]``): a route=railway
+    relation names its line; otherwise the first and last station along it do."""
+    doc = json.loads(RIVIERA.read_text())
+    network, _, report = import_osm(doc, running="left")
+    names = {line.id: line.name for line in network.lines.values()}
+    assert names == {
+        "way1024952344-t1": "Alassio – Albenga, track 1",
+        "way1024952346-t2": "Alassio – Albenga, track 2",
+        "way1100000001": "Albenga–Garessio",
+    }
+    assert "Alassio – Albenga, track 2" in report.text()
+    again, _, _ = import_osm(json.loads(RIVIERA.read_text()), running="left")
+    assert {i: line.name for i, line in again.lines.items()} == names  # same ids, same names
+    assert "element relation" not in report.dropped  # relations are read, not dropped
+
+
+def test_a_railway_relation_beats_the_ways_name_which_beats_a_train_relation():
+    doc = json.loads(RIVIERA.read_text())
+    branch = next(e for e in doc["elements"] if e.get("id") == 1100000001)
+    branch["tags"]["name"] = "Branch"
+    network, _, _ = import_osm(doc)
+    assert network.lines["Branch"].name == "Albenga–Garessio"
+    for e in doc["elements"]:
+        if e.get("id") == 5501:
+            e["tags"]["route"] = "disused"
+    network, _, _ = import_osm(doc)
+    assert network.lines["Branch"].name == "Branch"
+    del branch["tags"]["name"]
+    network, _, _ = import_osm(doc)
+    assert network.lines["way1100000001"].name == "Regionale Savona – Ventimiglia"
+
+
+def test_overpass_turbo_geojson_lists_relations_in_its_features():
+    doc = {
+        "type": "FeatureCollection",
+        "features": [
+            {
+                "type": "Feature",
+                "properties": {
+                    "@id": "way/77",
+                    "railway": "rail",
+                    "@relations": [
+                        {"role": "", "rel": 5, "reltags": {"route": "railway", "ref": "R5"}}
+                    ],
+                },
+                "geometry": {"type": "LineString", "coordinates": [[8.0, 44.0], [8.01, 44.0]]},
+            }
+        ],
+    }
+    network, _, _ = import_osm(doc)
+    assert network.lines["way77"].name == "R5"

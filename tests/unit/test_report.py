@@ -159,3 +159,27 @@ def test_station_names_from_the_network_file_and_a_bad_file(tmp_path):
     path.write_text("{")
     with pytest.raises(ValueError, match="--network"):
         network_map(str(path))
+
+
+def test_a_last_trc_record_of_one_indicator_is_said():
+    import msgspec
+
+    level_only = msgspec.structs.replace(
+        make_state(T0, segment="s1", last_trc_t=T0 - DAY_S), last_trc_indicators=["top6"]
+    )
+    html = render(ReportData(states=[level_only], network=a_network(), made_at=T0))
+    row = re.search(r"<tr><td class=\"n\">1</td>.*?</tr>", html).group(0)
+    assert "2025-12-31<br><small>top6 only</small>" in row
+    both = msgspec.structs.replace(level_only, last_trc_indicators=["top6", "align10"])
+    html = render(ReportData(states=[both], network=a_network(), made_at=T0))
+    assert "only</small>" not in html
+
+
+def test_lines_are_shown_with_the_names_operators_use():
+    network = a_network()
+    named = NetworkMap(network.polylines, network.chainage_m, network.stations,
+                       {"L1": "Alassio – Albenga, track 2"})  # fmt: skip
+    html = render(ReportData(states=some_states(), network=named, made_at=T0))
+    assert "1 line(s) (L1 (Alassio – Albenga, track 2))" in html
+    row = re.search(r"<tr><td class=\"n\">1</td>.*?</tr>", html).group(0)
+    assert "<td>L1 (Alassio – Albenga, track 2)</td>" in row

@@ -234,14 +234,19 @@ def test_plain_msgpack_defaults_may_be_left_out():
 
 
 def _required_only(message) -> bytes:
-    """A plain map of ``message`` without the fields that have a default (``v`` too)."""
+    """A plain map of ``message`` without the fields that have a default (``v`` too), but
+    those a valid message needs: a TrcRecord or an OnboardIndex measures one indicator at
+    least."""
     required = {f.name for f in msgspec.structs.fields(message) if f.required}
-    return msgpack.packb({k: v for k, v in _plain(message).items() if k in required})
+    fields = {k: v for k, v in _plain(message).items() if k in required}
+    if isinstance(message, TrcRecord | OnboardIndex):
+        fields.update(top6_mm=message.top6_mm, indicators=["top6"])
+    return msgpack.packb(fields)
 
 
 @pytest.mark.parametrize("message", examples(), ids=lambda m: type(m).__name__)
 def test_every_message_type_refuses_every_other_types_payload(message):
-    """Issue 15: an OnboardIndex carrying a run_id decoded as a TrcRecord; now no payload of
+    """An OnboardIndex carrying a run_id has every field of a TrcRecord; no payload of
     one type, complete or with only its required fields, decodes as another type."""
     complete, minimal = encode(message), _required_only(message)
     assert decode(minimal, type(message)) is not None  # valid as its own type
@@ -331,7 +336,7 @@ BAD_PAYLOADS = {
         Alert,
         "kind",
     ),
-    # issue 14: limits and plausibility
+    # limits and plausibility
     "version beyond int64": (
         _calibration(version=2**63),
         Calibration,
@@ -439,7 +444,7 @@ def test_a_prior_model_may_have_time_zero():
 # --- keys --------------------------------------------------------------------------------
 
 
-def test_keys_follow_the_design_table():
+def test_each_key_has_its_documented_form():
     ns = "tf"
     assert keys.raw(ns, "T1", "b1") == "tf/raw/T1/b1"
     assert keys.gps(ns, "T1") == "tf/gps/T1"
@@ -458,6 +463,9 @@ def test_keys_follow_the_design_table():
     assert keys.q_plan(ns) == "tf/q/plan"
     assert keys.stack_health(ns) == "tf/health/stack"
     assert keys.viewer_select(ns) == "tf/viewer/select"
+    assert str(keys.raw) == "{ns}/raw/{train}/{unit}"
+    with pytest.raises(TypeError, match="takes 2 id"):
+        keys.raw(ns, "T1")
 
 
 def test_wildcards_include_their_concrete_keys():
@@ -554,8 +562,8 @@ def test_selectors_narrow_the_queryable_and_the_subscriptions_alike():
 
 @pytest.mark.parametrize("kind", ["index", "trc", "maintenance", "state"])
 def test_a_region_selector_splits_a_network_by_line_prefix(kind):
-    # a national deployment (README "National deployment", bench/scale.py): line ids carry a
-    # region letter, and one selector per filtering instance takes a region's lines
+    # a national deployment (docs/operating.md#national-deployment, bench/scale.py): line
+    # ids carry a region letter, and one selector per filtering instance takes a region's lines
     ke = zenoh.KeyExpr
     shards = {r: ke(keys.segment_keys("tf", kind, f"{r}$*/**")) for r in "ABCD"}
     queryables = {r: ke(keys.q_state_keys("tf", f"{r}$*/**")) for r in "ABCD"}
@@ -683,3 +691,41 @@ def test_decode_many_gives_what_decode_gives_or_none_where_decode_refuses_one():
         assert schemas.decode_many([*payloads, payload], OnboardIndex) is None
     with pytest.raises(SchemaError, match="top6_mm"):
         decode(out_of_range, OnboardIndex)
+
+
+def test_a_trc_record_may_measure_some_indicators():
+    """A level-only record is explicit; a plain map without ``indicators`` measures both."""
+    both = {"line": "L1", "segment": "s1", "t": T0, "run_id": "r1"}
+    record = decode(msgpack.packb({**both, "top6_mm": 2.0, "align10_mm": 1.5}), TrcRecord)
+    assert record.indicators == ["top6", "align10"] and record.values_mm == (2.0, 1.5)
+    level = decode(msgpack.packb({**both, "top6_mm": 2.0, "indicators": ["top6"]}), TrcRecord)
+    assert level.values_mm == (2.0, None)
+    assert decode(encode(level), TrcRecord) == level
+    bad = [
+        ({"top6_mm": 2.0}, "align10_mm: missing"),
+        ({"top6_mm": 2.0, "align10_mm": 1.0, "indicators": ["top6"]}, "align10_mm: given"),
+        ({"align10_mm": 1.0, "indicators": ["align10", "top6"]}, "indicators: "),
+        ({"indicators": []}, "indicators: "),
+        ({"top6_mm": 2.0, "indicators": ["top6", "top6"]}, "indicators: "),
+    ]
+    for fields, reason in bad:
+        with pytest.raises(SchemaError, match=f"TrcRecord: {reason}"):
+            decode(msgpack.packb({**both, **fields}), TrcRecord)
+
+
+def test_an_index_may_measure_some_indicators():
+    fields = {"line": "L1", "segment": "s1", "train": "T1", "unit": "u1", "t": T0,
+              "speed_mps": 20.0, "coverage": 1.0}  # fmt: skip
+    both = decode(msgpack.packb({**fields, "top6_mm": 2.0, "align10_mm": 1.5}), OnboardIndex)
+    assert both.indicators == ["top6", "align10"]
+    vertical = decode(msgpack.packb({**fields, "top6_mm": 2.0, "indicators": ["top6"]}),
+                      OnboardIndex)  # fmt: skip
+    assert vertical.values_mm == (2.0, None) and decode(encode(vertical), OnboardIndex) == vertical
+    for extra, reason in (
+        ({"top6_mm": 2.0}, "align10_mm: missing"),
+        ({"top6_mm": 2.0, "indicators": ["top6"], "speed_mps": -1.0}, "speed_mps"),
+        ({"top6_mm": 0.0, "indicators": ["top6"]}, "top6_mm"),
+        ({"top6_mm": 2.0, "align10_mm": 1.0, "indicators": ["align10"]}, "top6_mm: given"),
+    ):
+        with pytest.raises(SchemaError, match=f"OnboardIndex: {reason}"):
+            decode(msgpack.packb({**fields, **extra}), OnboardIndex)

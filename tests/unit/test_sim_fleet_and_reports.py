@@ -1,4 +1,4 @@
-"""The simulator's unkind world: unreported and late maintenance, a mixed fleet (issue 18)."""
+"""The simulator's unkind world: unreported and late maintenance, a mixed fleet."""
 
 from __future__ import annotations
 
@@ -8,23 +8,13 @@ import numpy as np
 import pytest
 
 from schemas import DAY_S, OnboardIndex
+from services.defaults import demo_network
 from simulators.fleet import MIXED, Fleet
 from simulators.groundtruth import GroundTruthWriter, load_truth
-from simulators.index_model import index_pass_events
-from simulators.truth import Truth, load_config, truth_events
-from track.network import demo_network
+from simulators.truth import Truth, truth_events
+from simulators.world import index_pass_events
 
 T0 = 1767225600.0  # 2026-01-01T00:00:00Z
-
-
-@pytest.fixture(scope="module")
-def net():
-    return demo_network()
-
-
-@pytest.fixture(scope="module")
-def cfg():
-    return load_config()
 
 
 def unkind(cfg, unreported=0.3, late=0.4):
@@ -136,7 +126,6 @@ def test_raw_mode_units_read_with_their_gain_and_tilt_and_classes_change_the_bog
     from simulators.bogie import BogiePhysics
     from simulators.profile import LineProfile
     from simulators.train import TrainConfig, TrainSimulator
-    from track.network import demo_network
 
     line = demo_network().lines["L1"]
     profile = LineProfile(line.id, [(s.start_m, s.end_m) for s in line.segments], 3)

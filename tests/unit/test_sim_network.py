@@ -9,8 +9,9 @@ import pytest
 
 from schemas import keys
 from schemas.wire import check_id
+from services.defaults import demo_network
 from simulators.network import generate_network
-from track.network import Network, cut_segments, demo_network
+from track.network import Network, cut_segments
 
 
 @pytest.fixture(scope="module")

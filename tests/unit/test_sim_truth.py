@@ -11,22 +11,12 @@ import pytest
 
 from schemas import DAY_S, MaintenanceEvent, OnboardIndex, TrcRecord, decode, encode
 from simulators.groundtruth import GroundTruthWriter, load_truth
-from simulators.index_model import IndexSensorModel, index_pass_events
+from simulators.index_model import IndexSensorModel
 from simulators.trc import trc_events, trc_schedule
-from simulators.truth import Truth, TruthConfig, load_config, truth_events
-from track.network import demo_network
+from simulators.truth import Truth, TruthConfig, truth_events
+from simulators.world import index_pass_events
 
 T0 = 1767225600.0  # 2026-01-01T00:00:00Z
-
-
-@pytest.fixture(scope="module")
-def net():
-    return demo_network()
-
-
-@pytest.fixture(scope="module")
-def cfg():
-    return load_config()
 
 
 def _history(truth: Truth, days: int):

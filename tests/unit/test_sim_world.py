@@ -17,10 +17,10 @@ from schemas import (
     decode,
     keys,
 )
+from services.defaults import demo_network
 from simulators.gateway import key_and_payload
 from simulators.truth import load_config
 from simulators.world import WorldSpec, world_events
-from track.network import demo_network
 
 START = 1_767_225_600.0  # 2026-01-01T00:00:00Z
 KINDS = {
@@ -139,8 +139,8 @@ def test_raw_trains_on_a_one_way_track_send_only_while_running_its_way():
 
 
 def test_index_passes_on_a_one_way_track_all_run_its_way():
-    from simulators.index_model import index_pass_events
     from simulators.truth import Truth
+    from simulators.world import index_pass_events
 
     network = _lakeside("left")
     config = load_config()

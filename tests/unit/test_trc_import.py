@@ -3,6 +3,8 @@ kept once, profiles read back as written."""
 
 from __future__ import annotations
 
+from contextlib import closing
+
 import numpy as np
 
 from services.tools.trc_import import ProfileArchive
@@ -50,8 +52,21 @@ def test_a_run_imported_again_is_kept_once(tmp_path):
         assert archive.count("L1") == 2
     finally:
         archive.close()
-    reopened = ProfileArchive(path)
-    try:
+    with closing(ProfileArchive(path)) as reopened:
         assert reopened.count("L1") == 2
-    finally:
-        reopened.close()
+
+
+def test_the_report_says_what_the_records_measure_and_what_they_cannot():
+    from services.tools.trc_import import indicator_lines
+    from track.trc_profile import PROFILE_COLUMNS, TrcProfile
+
+    x = np.arange(0.0, 10.0, 0.25)
+
+    def profile(*names: str) -> TrcProfile:
+        return TrcProfile(x, {name: np.zeros_like(x) for name in names}, False)
+
+    assert indicator_lines(profile(*PROFILE_COLUMNS)) == []  # both indicators, both rails
+    assert indicator_lines(profile("level_right_mm")) == [
+        "top6: from level_right_mm alone (the file has one rail of longitudinal level)",
+        "align10: not measured, the file has no alignment column (align_left_mm, align_right_mm)",
+    ]

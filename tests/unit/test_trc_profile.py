@@ -110,8 +110,7 @@ HEADER = "chainage_m,level_left_mm,align_left_mm\n"
         (HEADER + "0,1,2\n0.25,nan,2\n", 3, "not a finite number"),
         (HEADER + "0,1,2\n0.25,1\n", 3, "2 cells, the header has 3"),
         ("# c\nlevel_left_mm,align_left_mm\n1,2\n", 2, "lacks column 'chainage_m'"),
-        ("chainage_m,align_left_mm\n0,2\n0.25,2\n", 1, "no level column"),
-        ("chainage_m,level_left_mm,lat\n0,2,1\n", 1, "no alignment column"),
+        ("chainage_m,lat,lon\n0,2,1\n0.25,2,1\n", 1, "no profile column"),
         (HEADER.replace("\n", ",lat\n") + "0,1,2,3\n0.25,1,2,3\n", 1, "lat, lon"),
         (HEADER + "0,1,2\n0.25,1,2\n0.75,1,2\n1.0,1,2\n", 4, "gap of 0.5 m after chainage 0.25"),
         (HEADER + "0,1,2\n0.25,1,2\n0.25,1,2\n0.5,1,2\n", 4, "repeats the previous row's"),
@@ -126,8 +125,7 @@ HEADER = "chainage_m,level_left_mm,align_left_mm\n"
         "nan",
         "short row",
         "no chainage",
-        "no level",
-        "no alignment",
+        "no profile",
         "lat without lon",
         "gap",
         "duplicate",
@@ -189,6 +187,34 @@ def test_the_value_is_the_smaller_rail_and_one_rail_is_enough(line):
         assert vb.align10_mm == pytest.approx(va.align10_by_rail_mm["align_right_mm"])
         assert vc.top6_mm == pytest.approx(va.top6_by_rail_mm["level_left_mm"])
         assert vc.align10_mm == pytest.approx(va.align10_by_rail_mm["align_right_mm"])
+
+
+def test_a_level_only_or_alignment_only_run_gives_values_of_what_it_measured(line):
+    sim = track(line, seed=6)
+    first = process_run(trc_run(sim, lambda x: 0 * x, seed=1), line, None)
+    second = trc_run(sim, lambda x: np.full_like(x, 5.0), seed=2)
+    level = {n: v for n, v in second.channels.items() if n.startswith("level")}
+    one_rail = {"level_right_mm": second.channels["level_right_mm"]}
+    align = {n: v for n, v in second.channels.items() if n.startswith("align")}
+    full = process_run(second, line, first.grid)
+    for channels, signal in ((level, "level"), (one_rail, "level"), (align, "alignment")):
+        run = TrcProfile(second.chainage_m, channels, False)
+        result = process_run(run, line, first.grid)
+        assert result.alignment.signal == signal
+        assert all(abs(w.offset_m - 5.0) < 0.05 for w in result.alignment.used)
+        assert len(result.alignment.used) >= 10
+        for got, want in zip(result.values, full.values, strict=True):
+            if signal == "alignment":
+                assert got.top6_mm is None
+                assert got.align10_mm == pytest.approx(want.align10_mm, rel=1e-3)
+            elif len(channels) == 2:  # aligned on the same signal: the same numbers
+                assert got.align10_mm is None and got.top6_mm == pytest.approx(want.top6_mm)
+            else:  # aligned on one rail: within the alignment's centimetres
+                rail = want.top6_by_rail_mm["level_right_mm"]
+                assert got.align10_mm is None and got.top6_mm == pytest.approx(rail, rel=1e-3)
+    level_first = process_run(TrcProfile(second.chainage_m, level, False), line, None)
+    with pytest.raises(ValueError, match="share no profile"):
+        process_run(TrcProfile(second.chainage_m, align, False), line, level_first.grid)
 
 
 def test_a_segment_the_run_does_not_cover_gets_no_value(line):

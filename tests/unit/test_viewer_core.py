@@ -8,33 +8,29 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 import rerun as rr
 
 from schemas import (
     DAY_S,
-    Alert,
     GpsFix,
-    OnboardIndex,
     ServiceHealth,
     StackHealth,
     TrcRecord,
     ViewerSelect,
 )
-from services.alerting.testing import T0, make_state, p_top6
+from services.alerting.testing import T0, make_alert, make_index, make_state, p_top6
+from services.defaults import demo_network
 from services.viewer.core import (
-    UNKNOWN_RGB,
     ViewerCore,
-    build_blueprint,
-    exceedance_color,
-    health_markdown,
     segment_exceedance,
     select_worst,
     select_worst_sticky,
 )
+from services.viewer.scene import UNKNOWN_RGB, build_blueprint, exceedance_color, health_markdown
 from services.viewer.testing import rrd_contents, verify_rrd
-from track.network import demo_network
 
 
 @pytest.mark.parametrize(
@@ -208,30 +204,11 @@ def test_core_writes_series_map_trains_and_alerts(recording):
     ]
     batch = [
         *states,  # three rows of one segment: one send_columns per series
-        OnboardIndex(
-            line="L1",
-            segment=seg,
-            train="T1",
-            unit="u1",
-            t=T0 + 0.5 * DAY_S,
-            top6_mm=5.0,
-            align10_mm=3.5,
-            speed_mps=20.0,
-            coverage=1.0,
-        ),  # fmt: skip
+        make_index(T0 + 0.5 * DAY_S, segment=seg),
         TrcRecord(line="L1", segment=seg, t=T0, top6_mm=4.1, align10_mm=3.1, run_id="r1"),
         GpsFix(train="T1", t=T0 + 10, lat_deg=lat, lon_deg=lon),
         GpsFix(train="T2", t=T0 + 10, lat_deg=lat, lon_deg=lon, fix_quality=0),  # skipped
-        Alert(
-            line="L1",
-            segment=seg,
-            t=T0 + DAY_S,
-            kind="exceedance",
-            status="raised",
-            indicator="top6",
-            level="intervention",
-            probability=0.6,
-        ),  # fmt: skip
+        make_alert(T0 + DAY_S, segment=seg, probability=0.6),
     ]
     assert core.log_batch(batch) == len(batch)
     assert core.shown()["worst/1"] == ("L1", seg)
@@ -287,37 +264,20 @@ def test_history_thinned_to_the_newest_per_segment_and_event_day(recording):
     assert rrd_contents(path)["worst/1/top6/g1/state"]["Scalars:scalars"] == 3
 
 
-def test_inbox_keeps_the_newest_per_key_and_every_alert():
-    from services.viewer.service import _Inbox
+def test_the_inbox_keeps_the_newest_state_of_a_segment_and_day_and_every_alert(recording):
+    from services.viewer.service import ViewerAdapter
 
-    inbox = _Inbox(capacity=2)
+    rec, _ = recording
+    inbox = ViewerAdapter(None, ViewerCore(rec, demo_network(), worst_n=2)).inbox  # type: ignore[arg-type]
     states = [make_state(T0 + k * 60.0, segment="s1") for k in range(3)]
     for state in (states[0], states[2], states[1]):  # s1, day 0: only the newest stays
         inbox.put(state)
-    other = make_state(T0, segment="s2")
-    alerts = [
-        Alert(
-            line="L1",
-            segment="s1",
-            t=T0 + k,
-            kind="exceedance",
-            status="raised",
-            indicator="top6",
-            level="alert",
-            probability=0.9,
-        )  # fmt: skip
-        for k in range(2)
-    ]
-    for message in (other, *alerts):
+    other_day = make_state(T0 + DAY_S, segment="s1")
+    alerts = [make_alert(T0 + k, level="alert") for k in range(2)]
+    for message in (other_day, *alerts):
         inbox.put(message)
-    assert inbox.take(timeout=0) == [states[2], other, *alerts]
+    assert inbox.take(timeout=0) == [states[2], other_day, *alerts]
     assert inbox.superseded == 2 and inbox.dropped == 0
-    for segment in ("s1", "s2", "s3"):  # capacity 2: the oldest key goes
-        inbox.put(make_state(T0, segment=segment))
-    assert [m.segment for m in inbox.take(timeout=0)] == ["s2", "s3"]
-    assert inbox.dropped == 1
-    inbox.close()
-    assert inbox.take(timeout=None) is None
 
 
 def test_select_worst_sticky_keeps_plotted_segments_through_near_ties():
@@ -381,3 +341,17 @@ def test_viewer_select_takes_line_slash_segment():
     from services.viewer.service import parse_segment
 
     assert parse_segment("L1/s00042") == ("L1", "s00042")
+
+
+def test_the_ranking_says_what_each_segments_last_trc_record_measured(recording):
+    rec, _ = recording
+    core = ViewerCore(rec, None, worst_n=2, plot_flush_s=5.0, live_flush_s=1.0)
+    core.start(now=0.0)
+    level_only = msgspec.structs.replace(
+        make_state(T0, segment="s1", p_exceed=p_top6(1, 0.7), last_trc_t=T0 - DAY_S),
+        last_trc_indicators=["top6"],
+    )
+    core.take([level_only, make_state(T0, segment="s2", p_exceed=p_top6(1, 0.2))])
+    core.flush(0.0)
+    rows = core._ranking_text.splitlines()
+    assert "| #1 | L1/s1 | 0.70 | top6 |" in rows and "| #2 | L1/s2 | 0.20 | - |" in rows
