@@ -85,7 +85,7 @@ class Loop:
         self.args = args
         self.truth = Truth(network, cfg, START, seed)
         self.truth.log_limits = np.full_like(self.truth.log_limits, np.inf)  # no own tamping
-        self.truth._pending[:] = np.inf
+        self.truth.tamping_due[:] = np.inf
         self.refs = [SegmentRef(line.id, seg.id, seg.length_m) for line, seg in network.segments()]
         self.km = np.array([r.length_m for r in self.refs]) / 1000.0
         self.limits = load_limits(DEFAULT_LIMITS_FILE)
@@ -199,20 +199,20 @@ class Loop:
                 c.intervention_per_km_day * self.km[above_il].sum()
                 + c.immediate_action_per_km_day * self.km[above_ial].sum()
             )
-            new = above_ial & np.isinf(self.unplanned_due) & np.isinf(self.truth._pending)
+            new = above_ial & np.isinf(self.unplanned_due) & np.isinf(self.truth.tamping_due)
             for i in np.flatnonzero(new):  # reached the IAL: an unplanned tamping in a week
                 self.unplanned_due[i] = self.truth.t + 7 * DAY_S
-                self.truth._pending[i] = self.unplanned_due[i]
+                self.truth.tamping_due[i] = self.unplanned_due[i]
                 self.last_tamped[i] = self.unplanned_due[i]
                 self.figures["unplanned"] += 1
                 self.figures["cost"] += c.unplanned_per_km * self.km[i]
             self.unplanned_due[self.unplanned_due <= self.truth.t] = np.inf
 
     def tamp(self, rows: np.ndarray, t: float, planned: bool) -> None:
-        rows = rows[np.isinf(self.truth._pending[rows])]
+        rows = rows[np.isinf(self.truth.tamping_due[rows])]
         if not rows.size:
             return
-        self.truth._pending[rows] = t
+        self.truth.tamping_due[rows] = t
         self.last_tamped[rows] = t
         c = self.config.costs
         runs = 1 + int((np.diff(rows) != 1).sum())

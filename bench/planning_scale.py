@@ -8,7 +8,7 @@ first plan (forecasts, deadlines and costs of every segment, then the optimisati
 its gap to the bound, then a re-plan after one segment's new state.
 
 Baseline, in the same process: HiGHS's MILP over every (segment, week) option
-(``services.planning.solver._compact_milp``) on the first ``--baseline`` segments of one
+(``services.planning.solver.compact_milp``) on the first ``--baseline`` segments of one
 region of the same problem (the whole region is beyond it); the ratio compares segments
 planned per second.
 """
@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
         core.on_state(state)
     print(f"network: {len(refs):,} segments, {len(regions)} regions "
           f"({time.perf_counter() - started:.1f} s to build)")  # fmt: skip
-    solver._dp_blocks(np.zeros((1, 2)), np.array([0, 1]), np.array([1]), np.zeros(1))  # compile
+    solver.dp_blocks(np.zeros((1, 2)), np.array([0, 1]), np.array([1]), np.zeros(1))  # compile
     core.plan(T0 - 30 * 86400.0, weeks=2)  # compiles the forecast kernels on a small horizon
 
     t = time.perf_counter()
@@ -79,15 +79,15 @@ def main(argv: list[str] | None = None) -> int:
 
     # baseline: the MILP over every (segment, week) of the first region
     planned = list(core.states)
-    costs, fp = core._cost_rows(planned, week_start(T0), args.weeks)
-    problem, order, _ = core._problem(planned, costs, fp, args.weeks, None)
+    costs, fp = core.cost_rows(planned, week_start(T0), args.weeks)
+    problem, order, _ = core.optimisation_problem(planned, costs, fp, args.weeks, None)
     blocks = np.flatnonzero(problem.region == 0)
     blocks = blocks[problem.starts[blocks + 1] <= problem.starts[blocks[0]] + args.baseline]
-    sub, rows = solver._subproblem(problem, blocks)
+    sub, rows = solver.subproblem(problem, blocks)
     n_region = len(rows)
     solver.COMPACT_MAX_VARIABLES = 10**7
     t = time.perf_counter()
-    found = solver._compact_milp(sub, config.target_gap, time_limit=120.0)
+    found = solver.compact_milp(sub, config.target_gap, time_limit=120.0)
     base = time.perf_counter() - t
     if found is None:
         print("baseline: HiGHS found no plan in 120 s")

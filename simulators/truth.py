@@ -309,7 +309,9 @@ class Truth:
         )
         self.epoch = np.zeros(len(self.keys), dtype=np.int64)
         self.t = self.start_t
-        self._pending = np.full(len(self.keys), np.inf)  # limit-triggered tamping time
+        self.tamping_due = np.full(
+            len(self.keys), np.inf
+        )  # when each segment is tamped (inf: none due)
         self._next_sched = np.where(period > 0, self.start_t + p["phase"] * DAY_S, np.inf)
         self._gens = {
             line_id: stable_rng(seed, "truth-increments", line_id) for line_id in self.line_slices
@@ -345,8 +347,10 @@ class Truth:
     def _schedule_crossings(self) -> None:
         """Schedule a tamping for segments over a limit with none pending."""
         lo, hi = self.config.delay_days
-        for i in np.flatnonzero((self.z > self.log_limits).any(axis=1) & np.isinf(self._pending)):
-            self._pending[i] = self.t + self._event_rng("delay", i).uniform(lo, hi) * DAY_S
+        for i in np.flatnonzero(
+            (self.z > self.log_limits).any(axis=1) & np.isinf(self.tamping_due)
+        ):
+            self.tamping_due[i] = self.t + self._event_rng("delay", i).uniform(lo, hi) * DAY_S
 
     def step(self) -> list[Tamping]:
         """Advance one grid step; returns the tampings inside it, in time order."""
@@ -361,11 +365,11 @@ class Truth:
         )
         w = _matvec(self._chol, e)
         z_new = self.z + self.mu * dt + math.sqrt(dt) * w
-        due_t = np.minimum(self._pending, self._next_sched)
+        due_t = np.minimum(self.tamping_due, self._next_sched)
         tamped, out = {}, []
         for i in np.flatnonzero(due_t <= t_new):
             t_m = max(float(due_t[i]), t_prev)
-            cause = "limit" if self._pending[i] <= self._next_sched[i] else "scheduled"
+            cause = "limit" if self.tamping_due[i] <= self._next_sched[i] else "scheduled"
             self.epoch[i] += 1
             rng = self._event_rng("tamping", i)
             zp = self.z_plus[i] + self._chol_zp[i] @ rng.standard_normal(2)
@@ -377,7 +381,7 @@ class Truth:
                 span = rng.uniform(*cfg.interval_days) * DAY_S
                 t_start = t_m - rng.random() * span
                 t_end = t_start + span
-            self._pending[i] = np.inf
+            self.tamping_due[i] = np.inf
             while self._next_sched[i] <= t_new:
                 self._next_sched[i] += cfg.scheduled_period_days * DAY_S
             tamped[int(i)] = (t_m, z_pre, zp)

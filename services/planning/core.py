@@ -312,8 +312,10 @@ class PlanningCore:
             if s.posterior_group in self.posteriors or len(self.posteriors) == 1
         ]
         without_model = len(self.states) - len(planned)
-        costs, fp = self._cost_rows(planned, t0, n_weeks)
-        problem, order, blocks_of_segment = self._problem(planned, costs, fp, n_weeks, budget)
+        costs, fp = self.cost_rows(planned, t0, n_weeks)
+        problem, order, blocks_of_segment = self.optimisation_problem(
+            planned, costs, fp, n_weeks, budget
+        )
         if problem is None:
             return Plan(t0, n_weeks, self._risk_rows(planned, costs, fp, n_weeks), 0.0, 0.0,
                         0.0, "optimal", 0.0, [0.0] * n_weeks, 0, 0.0, len(planned),
@@ -328,30 +330,7 @@ class PlanningCore:
         ``(m, v, offset_days)`` replaces their states' means, variances and ages."""
         cfg, c = self.config, self.config.costs
         n = len(idx)
-        m = np.empty((n, 2))
-        v = np.empty((n, 2))
-        offset = np.empty(n)
-        log_il = np.empty((n, 2))
-        log_ial = np.empty((n, 2))
-        km = np.empty(n)
-        earliest = np.zeros(n)
-        groups: dict[str, list[int]] = {}
-        for r, i in enumerate(idx):
-            s = self.states[i]
-            cols = [s.indicators.index(name) for name in INDICATORS]
-            m[r] = s.mean.array()[cols]
-            v[r] = np.diag(s.cov.array())[cols]
-            offset[r] = (t0 - s.t) / DAY_S
-            ref = self.refs[i]
-            log_il[r] = np.log(self.limits.for_line(ref.line)[self._il_level])
-            log_ial[r] = np.log(self.immediate_action[self.limits.speed_class(ref.line)])
-            km[r] = ref.length_m / 1000.0
-            last = self.last_tamped.get(i)
-            if last is not None:
-                due = last + cfg.min_interval_weeks * WEEK_S
-                earliest[r] = math.ceil(max(0.0, (due - t0) / WEEK_S - 1.0))
-            group = s.posterior_group if s.posterior_group in self.posteriors else None
-            groups.setdefault(group or next(iter(self.posteriors)), []).append(r)
+        m, v, offset, log_il, log_ial, km, earliest, groups = self._segment_inputs(idx, t0)
         if start is not None:
             m, v, offset = (np.asarray(a, float) for a in start)
         cost = np.empty((n, weeks + 1))
@@ -383,16 +362,7 @@ class PlanningCore:
             )
             # after a tamping: per pair of limits (one per speed class), ages at mid-week;
             # a tamping in week w leaves W - w - 1 weeks, the first ones after a tamping
-            pairs, inverse = np.unique(np.c_[log_il[r], log_ial[r]], axis=0, return_inverse=True)
-            post_sum = np.empty((len(pairs), weeks))
-            for k, pair in enumerate(pairs):
-                q_il = risk.above_any_after_tamping(post, mid, pair[:2])
-                q_ial = risk.above_any_after_tamping(post, mid, pair[2:])
-                per_week = 7.0 * (
-                    c.intervention_per_km_day * q_il + c.immediate_action_per_km_day * q_ial
-                )
-                post_sum[k] = np.r_[0.0, np.cumsum(per_week)][weeks - week - 1]
-            post_sum = post_sum[inverse.ravel()]
+            post_sum = self._cost_after_tamping(post, log_il[r], log_ial[r], weeks)
             cum_pre = np.cumsum(pre, axis=1)  # cost of weeks 0..w untamped
             tamp = c.tamping_per_km * km[r]
             zp = post.z_plus.mean(axis=0)
@@ -426,6 +396,55 @@ class PlanningCore:
             cost[r, weeks] = cost_none
             fp_out[r] = fp
         return cost, fp_out
+
+    def _segment_inputs(self, idx: Sequence[int], t0: float):
+        """Per segment of ``idx``: mean and variance of the indicators, age in days at ``t0``,
+        log limits (intervention, immediate action), km, the first allowed week; and the rows
+        of each posterior group."""
+        cfg = self.config
+        n = len(idx)
+        m = np.empty((n, 2))
+        v = np.empty((n, 2))
+        offset = np.empty(n)
+        log_il = np.empty((n, 2))
+        log_ial = np.empty((n, 2))
+        km = np.empty(n)
+        earliest = np.zeros(n)
+        groups: dict[str, list[int]] = {}
+        for r, i in enumerate(idx):
+            s = self.states[i]
+            cols = [s.indicators.index(name) for name in INDICATORS]
+            m[r] = s.mean.array()[cols]
+            v[r] = np.diag(s.cov.array())[cols]
+            offset[r] = (t0 - s.t) / DAY_S
+            ref = self.refs[i]
+            log_il[r] = np.log(self.limits.for_line(ref.line)[self._il_level])
+            log_ial[r] = np.log(self.immediate_action[self.limits.speed_class(ref.line)])
+            km[r] = ref.length_m / 1000.0
+            last = self.last_tamped.get(i)
+            if last is not None:
+                due = last + cfg.min_interval_weeks * WEEK_S
+                earliest[r] = math.ceil(max(0.0, (due - t0) / WEEK_S - 1.0))
+            group = s.posterior_group if s.posterior_group in self.posteriors else None
+            groups.setdefault(group or next(iter(self.posteriors)), []).append(r)
+        return m, v, offset, log_il, log_ial, km, earliest, groups
+
+    def _cost_after_tamping(self, post, log_il, log_ial, weeks: int) -> np.ndarray:
+        """(rows, W): the limit costs a km from a tamping in week w to the horizon's end, per
+        pair of limits (one pair per speed class), at mid-week ages after the tamping."""
+        c = self.config.costs
+        week = np.arange(weeks)
+        mid = 7.0 * week + 3.5
+        pairs, inverse = np.unique(np.c_[log_il, log_ial], axis=0, return_inverse=True)
+        post_sum = np.empty((len(pairs), weeks))
+        for k, pair in enumerate(pairs):
+            q_il = risk.above_any_after_tamping(post, mid, pair[:2])
+            q_ial = risk.above_any_after_tamping(post, mid, pair[2:])
+            per_week = 7.0 * (
+                c.intervention_per_km_day * q_il + c.immediate_action_per_km_day * q_ial
+            )
+            post_sum[k] = np.r_[0.0, np.cumsum(per_week)][weeks - week - 1]
+        return post_sum[inverse.ravel()]
 
     def trc_value(
         self, now_t: float, *, weeks: int | None = None, nodes: int = 3, noise_sd: float = 0.02
@@ -482,7 +501,7 @@ class PlanningCore:
         ranked = [(line, float(sum(vals)), len(vals)) for line, vals in by_line.items()]
         return sorted(ranked, key=lambda item: (-item[1], item[0]))
 
-    def _cost_rows(self, planned: list[int], t0: float, weeks: int):
+    def cost_rows(self, planned: list[int], t0: float, weeks: int):
         """Cost and first-passage rows of every planned segment, cached per segment (a row is
         recomputed when its state, posterior, last tamping, week 0 or horizon change)."""
         keys = {}
@@ -504,7 +523,7 @@ class PlanningCore:
         fp = np.array([self._rows[i][2] for i in planned]).reshape(len(planned), weeks + 1)
         return cost, fp
 
-    def _problem(self, planned, costs, fp, weeks, budget):
+    def optimisation_problem(self, planned, costs, fp, weeks, budget):
         """The optimisation over the blocks around the candidate segments (those for which
         some tamping week is cheaper than none, or whose risk limit needs a tamping), each
         widened by the shortest worksite on both sides along its line."""

@@ -10,7 +10,7 @@ region) and a budget (tamping and possession money over the horizon).
 
 **Per block** the problem without the coupling constraints is a shortest path over the
 segments, with states "not tamped" and "tamped in week w, the worksite so far r segments
-long" (r capped at k): :func:`_dp_blocks` solves every block exactly in
+long" (r capped at k): :func:`dp_blocks` solves every block exactly in
 O(n W k) (compiled).
 
 **Coupling**: Dantzig-Wolfe column generation. The restricted master LP (HiGHS, through
@@ -60,7 +60,7 @@ MILP_REL_GAP = 0.002  # HiGHS stops the integer master within this of its own bo
 
 
 @numba.njit(cache=True, nogil=True)
-def _dp_blocks(cost, starts, k, poss):  # pragma: no cover - compiled
+def dp_blocks(cost, starts, k, poss):  # pragma: no cover - compiled
     """Best plan of every block: choice (N,) (-1 or week) and its cost (B,)."""
     n_seg, width = cost.shape
     weeks = width - 1
@@ -242,7 +242,7 @@ def solve(
     cap = problem.capacity
     budget = problem.budget if problem.budget is not None else np.inf
     t = time.perf_counter()
-    choice, value = _dp_blocks(problem.cost, problem.starts, problem.k, problem.possession)
+    choice, value = dp_blocks(problem.cost, problem.starts, problem.k, problem.possession)
     timings["dp"] += time.perf_counter() - t
     _, km, money = plan_cost(problem, choice)
     load = np.zeros_like(cap)
@@ -258,7 +258,7 @@ def solve(
         used: set[bytes] = set()
         for n, r in enumerate(over):
             blocks = np.flatnonzero(problem.region == r)
-            sub, rows = _subproblem(problem, blocks)
+            sub, rows = subproblem(problem, blocks)
             share = max(0.0, deadline - time.perf_counter()) / (len(over) - n)
             key = _digest(sub, target_gap)
             used.add(key)
@@ -294,7 +294,7 @@ def _digest(problem: Problem, target_gap: float) -> bytes:
     return h.digest()
 
 
-def _subproblem(problem: Problem, blocks: np.ndarray) -> tuple[Problem, np.ndarray]:
+def subproblem(problem: Problem, blocks: np.ndarray) -> tuple[Problem, np.ndarray]:
     """The problem of some blocks of one region, and the rows of their segments."""
     lo, hi = problem.starts[blocks], problem.starts[blocks + 1]
     rows = np.concatenate([np.arange(a, b) for a, b in zip(lo, hi, strict=True)])
@@ -326,7 +326,7 @@ def _coupled(problem: Problem, target_gap: float, timings: dict[str, float], mil
 
     def dp(cost, poss):
         t = time.perf_counter()
-        out = _dp_blocks(cost, problem.starts, problem.k, poss)
+        out = dp_blocks(cost, problem.starts, problem.k, poss)
         timings["dp"] += time.perf_counter() - t
         return out
 
@@ -375,7 +375,7 @@ def _coupled(problem: Problem, target_gap: float, timings: dict[str, float], mil
     if total - best_bound > target_gap * max(abs(total), 1e-12) and left >= 0.2:
         # the worksites found are not enough: the MILP over (segment, week), if not too large
         t = time.perf_counter()
-        found = _compact_milp(problem, target_gap, min(left, MILP_TIME_LIMIT_S))
+        found = compact_milp(problem, target_gap, min(left, MILP_TIME_LIMIT_S))
         timings["compact_milp"] = timings.get("compact_milp", 0.0) + time.perf_counter() - t
         if found is not None:
             compact_choice, compact_bound = found
@@ -622,7 +622,7 @@ class _Worksites:
 COMPACT_MAX_VARIABLES = 20_000  # (segment, week) options the compact MILP takes at most
 
 
-def _compact_milp(
+def compact_milp(
     problem: Problem, target_gap: float, time_limit: float = MILP_TIME_LIMIT_S
 ) -> tuple[np.ndarray, float] | None:
     """The MILP over (segment, week): x[i,w] tamped, s[i,w] a worksite starts; (choice,

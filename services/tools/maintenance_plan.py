@@ -15,6 +15,7 @@ import msgspec
 
 from schemas import DAY_S, MaintenancePlan, decode, keys
 from services.runtime.config import RuntimeConfig
+from services.tools.query import ask, open_session
 
 CSV_COLUMNS = [
     "line", "segment", "week", "week_start", "worksite", "length_km", "deadline_week",
@@ -98,9 +99,7 @@ def main(
     timeout: float,
     out: TextIO = sys.stdout,
 ) -> int:
-    from services.tools.operator import _session, ask
-
-    with _session(conf) as session:
+    with open_session(conf) as session:
         replies = list(ask(session, selector(conf.ns, weeks, budget), timeout))
     if not replies:
         raise SystemExit("plan maintenance: no answer from the planning service (is it running?)")

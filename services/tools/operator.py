@@ -4,7 +4,7 @@ part of `trackfusion import-trc FILE.csv` is here too; the command itself, with 
 ``--profile`` form, is :mod:`services.tools.trc_import`.
 
 Pure parts (CSV parsing, formatting, GeoJSON building) are plain functions, tested without
-Zenoh; the thin part is ``ask`` (a ``session.get`` on a queryable) and ``main_*``.
+Zenoh; the thin part is ``main_*``, asking through :mod:`services.tools.query`.
 """
 
 from __future__ import annotations
@@ -38,36 +38,12 @@ from schemas import (
 from schemas.keys import SegmentId
 from services.defaults import add_network_argument
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
+from services.tools import maintenance_plan
+from services.tools.query import QUERY_TIMEOUT_S, ask, open_session
 
-QUERY_TIMEOUT_S = 10.0  # `--timeout`: a service catching up on a backlog answers late
 PLAN_ROWS = 20  # `plan --limit`
 TRC_COLUMNS = ("line", "segment", "t", "run_id")  # and one value column at least
 TRC_VALUE_COLUMNS = ("top6_mm", "align10_mm")  # in state order (INDICATORS)
-
-
-def ask(session: zenoh.Session, selector: str, timeout: float = QUERY_TIMEOUT_S):
-    """(key, payload bytes) of every reply to a query; errors from the queryable raise."""
-    # replies take the query's QoS: BLOCK, so that none is dropped under congestion
-    block = zenoh.CongestionControl.BLOCK
-    for reply in session.get(selector, timeout=timeout, congestion_control=block):
-        if reply.ok is None:
-            reason = reply.err.payload.to_string()
-            if reason == "Timeout":  # Zenoh's own error when the answer is incomplete
-                raise SystemExit(
-                    f"{selector}: no complete answer within {timeout:g} s. A service that is "
-                    "catching up on a backlog answers only after the events queued ahead of "
-                    "the question: try again, or give a larger --timeout."
-                )
-            raise SystemExit(f"{selector}: {reason}")
-        yield str(reply.ok.key_expr), reply.ok.payload.to_bytes()
-
-
-def open_session(conf: RuntimeConfig) -> zenoh.Session:
-    """A session of a command; SystemExit saying what to check when the router is not there."""
-    try:
-        return zenoh.open(conf.zenoh_config())
-    except zenoh.ZError as exc:
-        raise SystemExit(f"cannot reach the router ({exc}); is `trackfusion up` running?") from None
 
 
 # --- status ---------------------------------------------------------------------------------
@@ -483,8 +459,6 @@ def plan_add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def plan_run(args: argparse.Namespace) -> int:
     if args.what == "maintenance":
-        from services.tools import maintenance_plan
-
         return maintenance_plan.main(
             config_from_args(args),
             weeks=args.weeks,
