@@ -32,12 +32,12 @@ from collections import defaultdict
 import numpy as np
 
 from schemas import DAY_S, INDICATORS, DegradationPosterior, MaintenanceEvent
+from services.defaults import load_network
 from services.limits import DEFAULT_LIMITS_FILE, load_immediate_action, load_limits
 from services.planning.core import PlanningConfig, PlanningCore, SegmentRef, week_start
 from services.planning.testing import f8, make_state
 from simulators.network import generate_network, stable_rng
 from simulators.truth import Truth, load_config
-from track.network import load_network
 
 START = 1_767_571_200.0  # 2026-01-05T00:00:00Z, a Monday
 TRC_NOISE = 0.02

@@ -37,7 +37,7 @@ from schemas import (
     encode,
     keys,
 )
-from services.defaults import default_file
+from services.defaults import default_file, load_network
 from services.limits import DEFAULT_LIMITS_FILE, load_immediate_action, load_limits
 from services.planning.core import Plan, PlanningConfig, PlanningCore, SegmentRef
 from services.runtime.config import (
@@ -68,9 +68,7 @@ def load_planning_config(path: str | Path = DEFAULT_PLANNING_FILE) -> PlanningCo
 
 def network_segments(path: str | Path | None) -> list[SegmentRef]:
     """The segments of a network file (the demo network without one), lines in chainage order."""
-    from track.network import load_network
-
-    network = load_network(None if path is None else str(path))
+    network = load_network(path)
     return [SegmentRef(line.id, seg.id, seg.length_m) for line, seg in network.segments()]
 
 
