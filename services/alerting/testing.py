@@ -5,17 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from schemas import DAY_S, INDICATORS, Alert, NDArray, OnboardIndex, PlanRow, SegmentState
+from schemas import DAY_S, INDICATORS, Alert, OnboardIndex, PlanRow, SegmentState
+from schemas.testing import lognormal_state
 from services.limits import Limits
 
 T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
 LEVELS = ("alert", "intervention")
 LIMITS_MM = np.array([[6.0, 5.0], [8.0, 7.0]])  # (L, n): alert, intervention x top6, align10
 HORIZONS = (30.0, 90.0, 180.0)
-
-
-def f8(values) -> NDArray:
-    return NDArray.of(values, "f8")
 
 
 def make_limits() -> Limits:
@@ -39,30 +36,17 @@ def make_state(
     """A SegmentState with the given (L, n) ``p_exceed`` and (h, L, n) ``forecast`` at
     :data:`HORIZONS` (zeros by default); the rest is a consistent log-normal summary
     with a flat forecast."""
-    n, h = len(INDICATORS), len(HORIZONS)
-    p_exceed = np.zeros((len(LEVELS), n)) if p_exceed is None else np.asarray(p_exceed, float)
-    forecast = np.zeros((h, len(LEVELS), n)) if forecast is None else np.asarray(forecast, float)
-    mean = np.log(mean_mm)
-    sd = np.asarray(sd_log, float)
-    low, high = np.exp(mean - 1.96 * sd), np.exp(mean + 1.96 * sd)
-    return SegmentState(
-        line=line,
-        segment=segment,
-        t=t,
-        indicators=list(INDICATORS),
-        mean=f8(mean),
-        cov=f8(np.diag(sd**2)),
-        ci_low_mm=f8(low),
-        ci_high_mm=f8(high),
-        width=float(np.prod(sd**2) ** (1 / n)),
-        limit_levels=list(LEVELS),
-        limits_mm=f8(limits_mm),
-        p_exceed=f8(p_exceed),
-        horizons_days=f8(HORIZONS),
-        forecast_mean=f8(np.tile(mean, (h, 1))),
-        forecast_ci_low_mm=f8(np.tile(low, (h, 1))),
-        forecast_ci_high_mm=f8(np.tile(high, (h, 1))),
-        forecast_p_exceed=f8(forecast),
+    return lognormal_state(
+        line,
+        segment,
+        t,
+        mean_mm=mean_mm,
+        sd_log=sd_log,
+        levels=LEVELS,
+        limits_mm=limits_mm,
+        horizons=HORIZONS,
+        p_exceed=p_exceed,
+        forecast_p_exceed=forecast,
         last_trc_t=last_trc_t,
         nis=nis,
     )

@@ -90,21 +90,7 @@ def to_message(
             possessions=0, money=0.0, budget=budget, segments=0, without_model=0,
             version=version, rows=[],
         )  # fmt: skip
-    rows = [
-        PlannedTamping(
-            line=r.line,
-            segment=r.segment,
-            week=r.week,
-            worksite=r.worksite,
-            length_km=r.length_km,
-            deadline_week=r.deadline_week,
-            p_reach_ial=r.p_reach_ial,
-            risk_met=r.risk_met,
-            cost=r.cost,
-            cost_untamped=r.cost_untamped,
-        )  # fmt: skip
-        for r in plan.rows
-    ]
+    rows = [PlannedTamping(**vars(r)) for r in plan.rows]  # the same fields, by name
     return MaintenancePlan(
         t=plan.t,
         computed_at=computed_at,

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from schemas import DAY_S, INDICATORS, DegradationPosterior, NDArray, SegmentState
+from schemas import DAY_S, INDICATORS, DegradationPosterior, SegmentState
+from schemas.testing import f8, lognormal_state
 from services.limits import Limits
 from services.planning.core import SegmentRef
 
@@ -18,10 +19,6 @@ MU = np.array([7.0e-4, 4.0e-4])
 SIGMA_SD = np.array([1.0e-2, 7.0e-3])
 Z_PLUS_MM = np.array([2.0, 1.8])
 Z_PLUS_SD = np.array([0.08, 0.08])
-
-
-def f8(values) -> NDArray:
-    return NDArray.of(np.asarray(values, float), "f8")
 
 
 def make_limits() -> tuple[Limits, dict[str, np.ndarray]]:
@@ -74,27 +71,15 @@ def make_state(
     group: str = "net",
 ) -> SegmentState:
     """A SegmentState with the given log-normal summary (its probabilities are not used)."""
-    mean = np.log(np.asarray(mean_mm, float))
-    sd = np.asarray(sd_log, float)
-    n, h = len(INDICATORS), 1
-    return SegmentState(
-        line=line,
-        segment=segment,
-        t=t,
-        indicators=list(INDICATORS),
-        mean=f8(mean),
-        cov=f8(np.diag(sd**2)),
-        ci_low_mm=f8(np.exp(mean - 1.96 * sd)),
-        ci_high_mm=f8(np.exp(mean + 1.96 * sd)),
-        width=float(np.prod(sd**2) ** (1 / n)),
-        limit_levels=list(LEVELS),
-        limits_mm=f8(LIMITS_MM),
-        p_exceed=f8(np.zeros((len(LEVELS), n))),
-        horizons_days=f8([30.0]),
-        forecast_mean=f8(mean[None]),
-        forecast_ci_low_mm=f8(np.exp(mean - 1.96 * sd)[None]),
-        forecast_ci_high_mm=f8(np.exp(mean + 1.96 * sd)[None]),
-        forecast_p_exceed=f8(np.zeros((h, len(LEVELS), n))),
+    return lognormal_state(
+        line,
+        segment,
+        t,
+        mean_mm=mean_mm,
+        sd_log=sd_log,
+        levels=LEVELS,
+        limits_mm=LIMITS_MM,
+        horizons=(30.0,),
         posterior_group=group,
         posterior_version=1,
     )

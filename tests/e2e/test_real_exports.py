@@ -16,6 +16,7 @@ from schemas import SegmentState, decode, keys
 from services.defaults import load_network
 from services.tools.operator import parse_time
 from simulators.profile import LineProfile
+from tests.e2e.stacks import estimation_on
 
 OSM = Path(__file__).parents[1] / "fixtures" / "osm" / "riviera.json"
 LINE = "way1024952344-t1"  # track 1 of the coast line: no name, no ref on its ways
@@ -52,13 +53,7 @@ def test_a_level_only_car_on_an_imported_network(up, namespace, collector, tmp_p
     state_dir = tmp_path / "var"
     stack = up(
         [
-            {"name": "calibration",
-             "args": ["--db", str(state_dir / "cal.sqlite"), "--instance", "calibration",
-                      "--initial-models", "{defaults}/initial-models.json5",
-                      "--network", "{network}"]},
-            {"name": "filtering",
-             "args": ["--db", str(state_dir / "f.sqlite"), "--instance", "filtering",
-                      "--network", "{network}"]},
+            *estimation_on("{network}", state_dir),
             {"name": "simulator", "command": "simulate",
              "args": ["--fidelity", "index", "--days", "20", "--trains", "2",
                       "--start", "2026-01-01", "--speedup", "200000", "--no-progress",

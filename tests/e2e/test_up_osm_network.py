@@ -12,6 +12,7 @@ from support import run_cli
 
 from schemas import SegmentState, decode, keys
 from services.defaults import load_network
+from tests.e2e.stacks import estimation_on
 
 OSM = Path(__file__).parents[1] / "fixtures" / "osm" / "lakeside.geojson"
 START_S = 60.0  # upper bound for a process to start or a first state on two loaded cores
@@ -31,13 +32,7 @@ def test_up_runs_the_stack_on_an_imported_network(
     state_dir = tmp_path / "var"
     stack = up(
         [
-            {"name": "calibration",
-             "args": ["--db", str(state_dir / "cal.sqlite"), "--instance", "calibration",
-                      "--initial-models", "{defaults}/initial-models.json5",
-                      "--network", "{network}"]},
-            {"name": "filtering",
-             "args": ["--db", str(state_dir / "f.sqlite"), "--instance", "filtering",
-                      "--network", "{network}"]},
+            *estimation_on("{network}", state_dir),
             {"name": "ingestion", "args": ["--instance", "ingestion", "--network", "{network}"]},
             {"name": "extraction", "args": ["--instance", "extraction", "--network", "{network}"]},
             {"name": "simulator", "command": "simulate",
