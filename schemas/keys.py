@@ -14,25 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from schemas.messages import (
-    Alert,
-    Calibration,
-    DeadLetter,
-    DegradationPosterior,
-    GpsFix,
-    InspectionPlan,
-    MaintenanceEvent,
-    MaintenancePlan,
-    Message,
-    OnboardIndex,
-    PositionedChunk,
-    RaisedAlerts,
-    RawChunk,
-    SegmentState,
-    StackHealth,
-    TrcRecord,
-    ViewerSelect,
-)
+from schemas import messages
 from schemas.wire import SchemaError, check_id
 
 DEFAULT_NS = "tf"
@@ -205,43 +187,43 @@ def model_kind(key: str) -> str:
 # --- a message and its key -----------------------------------------------------------------
 
 # Each message type's key; its id chunks are the message's fields of the same names.
-_MESSAGE_KEYS: dict[type[Message], KeyForm] = {
-    RawChunk: raw,
-    GpsFix: gps,
-    PositionedChunk: accel,
-    OnboardIndex: index,
-    TrcRecord: trc,
-    MaintenanceEvent: maintenance,
-    Calibration: calibration,
-    DegradationPosterior: degradation,
-    SegmentState: state,
-    Alert: alert,
-    DeadLetter: deadletter,
-    StackHealth: stack_health,
-    ViewerSelect: viewer_select,
-    RaisedAlerts: q_alerts,  # replies of the alerting queryables
-    InspectionPlan: q_plan,
-    MaintenancePlan: maintenance_plan,
+_MESSAGE_KEYS: dict[type[messages.Message], KeyForm] = {
+    messages.RawChunk: raw,
+    messages.GpsFix: gps,
+    messages.PositionedChunk: accel,
+    messages.OnboardIndex: index,
+    messages.TrcRecord: trc,
+    messages.MaintenanceEvent: maintenance,
+    messages.Calibration: calibration,
+    messages.DegradationPosterior: degradation,
+    messages.SegmentState: state,
+    messages.Alert: alert,
+    messages.DeadLetter: deadletter,
+    messages.StackHealth: stack_health,
+    messages.ViewerSelect: viewer_select,
+    messages.RaisedAlerts: q_alerts,  # replies of the alerting queryables
+    messages.InspectionPlan: q_plan,
+    messages.MaintenancePlan: maintenance_plan,
 }
 _ALSO = {  # also the reply of a queryable
-    SegmentState: (q_state,),
-    MaintenancePlan: (q_maintenance_plan,),
+    messages.SegmentState: (q_state,),
+    messages.MaintenancePlan: (q_maintenance_plan,),
 }
 
 
-def _form_of(message: Message) -> KeyForm:
-    if isinstance(message, Calibration) and message.train:
+def _form_of(message: messages.Message) -> KeyForm:
+    if isinstance(message, messages.Calibration) and message.train:
         return unit_calibration
     return _MESSAGE_KEYS[type(message)]
 
 
-def key_of(ns: str, message: Message) -> str:
+def key_of(ns: str, message: messages.Message) -> str:
     """The key ``message`` is published on: its kind and its own ids."""
     form = _form_of(message)
     return form(ns, *(getattr(message, name) for name in form.ids))
 
 
-def check_key(key: str, message: Message) -> None:
+def check_key(key: str, message: messages.Message) -> None:
     """Refuse a message whose key is not its kind's or carries other ids than the message.
 
     The namespace chunk is not compared (the subscription chose it). A SegmentState may

@@ -9,6 +9,10 @@ import numpy as np
 
 from schemas.messages import INDICATORS, NDArray, SegmentState
 
+T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z, a Thursday
+LEVELS = ("alert", "intervention")
+LIMITS_MM = np.array([[6.0, 5.0], [8.0, 7.0]])  # (L, n): alert, intervention x top6, align10
+
 
 def f8(values) -> NDArray:
     return NDArray.of(np.asarray(values, float), "f8")
@@ -21,15 +25,16 @@ def lognormal_state(
     *,
     mean_mm: Sequence[float],
     sd_log: Sequence[float],
-    levels: Sequence[str],
-    limits_mm,
     horizons: Sequence[float],
+    levels: Sequence[str] = LEVELS,
+    limits_mm=LIMITS_MM,
     p_exceed=None,
     forecast_p_exceed=None,
     **fields: Any,
 ) -> SegmentState:
     """A SegmentState whose summary is independent log-normals (median ``mean_mm``, log sd
-    ``sd_log``) with a flat forecast at ``horizons``; ``p_exceed`` (L, n) and
+    ``sd_log``) with a flat forecast at ``horizons`` and the limits ``limits_mm`` (L, n) of
+    ``levels``; ``p_exceed`` (L, n) and
     ``forecast_p_exceed`` (h, L, n) are zeros unless given; ``fields`` sets the rest."""
     n, h, levels_n = len(INDICATORS), len(horizons), len(levels)
     mean = np.log(np.asarray(mean_mm, float))

@@ -6,12 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 from schemas import DAY_S, INDICATORS, Alert, OnboardIndex, PlanRow, SegmentState
-from schemas.testing import lognormal_state
+from schemas.testing import LEVELS, LIMITS_MM, T0, lognormal_state
 from services.limits import Limits
 
-T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
-LEVELS = ("alert", "intervention")
-LIMITS_MM = np.array([[6.0, 5.0], [8.0, 7.0]])  # (L, n): alert, intervention x top6, align10
 HORIZONS = (30.0, 90.0, 180.0)
 
 

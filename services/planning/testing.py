@@ -6,13 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from schemas import DAY_S, INDICATORS, DegradationPosterior, SegmentState
-from schemas.testing import f8, lognormal_state
+from schemas.testing import LEVELS, LIMITS_MM, T0, f8, lognormal_state
 from services.limits import Limits
 from services.planning.core import SegmentRef
 
-T0 = 1_767_225_600.0  # 2026-01-01T00:00:00Z, a Thursday
-LEVELS = ("alert", "intervention")
-LIMITS_MM = np.array([[6.0, 5.0], [8.0, 7.0]])  # alert, intervention x top6, align10
 IAL_MM = np.array([11.0, 9.5])
 # the simulator's "typical" class (services/defaults/simulator.json5), per day, log mm
 MU = np.array([7.0e-4, 4.0e-4])
@@ -77,8 +74,6 @@ def make_state(
         t,
         mean_mm=mean_mm,
         sd_log=sd_log,
-        levels=LEVELS,
-        limits_mm=LIMITS_MM,
         horizons=(30.0,),
         posterior_group=group,
         posterior_version=1,

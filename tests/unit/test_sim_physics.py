@@ -11,14 +11,7 @@ from scipy import signal
 from simulators.bogie import BogiePhysics, BogieUnit, Kinematics
 from simulators.profile import LineProfile, TrackSpectrum
 from simulators.train import TrainConfig, TrainSimulator
-from track.versine import (
-    ALIGN_CHORD_M,
-    END_GUARD_M,
-    TOP_CHORD_M,
-    chord_versine,
-    half_chord_samples,
-    segment_statistic,
-)
+from track import versine
 
 QUIET = BogiePhysics(
     outlier_rate_hz=0.0, flatline_rate_hz=0.0, sag_rate_hz=0.0, missing_chunk_prob=0.0
@@ -64,18 +57,18 @@ def moving(n: int, t0: float = 0.0, speed: float = 25.0) -> Kinematics:
 # -- versine contract ----------------------------------------------------------------
 
 
-@pytest.mark.parametrize("chord", [TOP_CHORD_M, ALIGN_CHORD_M])
+@pytest.mark.parametrize("chord", [versine.TOP_CHORD_M, versine.ALIGN_CHORD_M])
 def test_versine_of_a_sinusoid_and_its_valid_slice(chord):
     dx, lam = 0.25, 17.0
     x = np.arange(2000) * dx
-    v = chord_versine(np.sin(2 * np.pi * x / lam), dx, chord)
-    h = half_chord_samples(dx, chord)
+    v = versine.chord_versine(np.sin(2 * np.pi * x / lam), dx, chord)
+    h = versine.half_chord_samples(dx, chord)
     assert v.shape == (2000 - 2 * h,)
     expected = (1 - np.cos(np.pi * chord / lam)) * np.sin(2 * np.pi * x[h:-h] / lam)
     assert np.allclose(v, expected, atol=1e-12)
-    assert np.isclose(segment_statistic(v), np.std(expected))
+    assert np.isclose(versine.segment_statistic(v), np.std(expected))
     with pytest.raises(ValueError):
-        chord_versine(x, 0.4, chord)
+        versine.chord_versine(x, 0.4, chord)
 
 
 # -- profiles ------------------------------------------------------------------------
@@ -89,12 +82,14 @@ def test_segment_statistic_equals_exp_z_exactly_for_both_indicators_and_rails():
     lp.update(z, epoch)
     for k in (0, 7, lp.n_segments - 1):
         _, p, inner = lp.segment_profile(k)
-        for c, chord in enumerate((TOP_CHORD_M, TOP_CHORD_M, ALIGN_CHORD_M, ALIGN_CHORD_M)):
-            h = half_chord_samples(lp.spacing_m, chord)
-            g = round(END_GUARD_M / lp.spacing_m)  # whole chords, 1 m inside the ends
-            v = chord_versine(p[c, inner.start + g : inner.stop - g], lp.spacing_m, chord)
+        for c, chord in enumerate(
+            (versine.TOP_CHORD_M, versine.TOP_CHORD_M, versine.ALIGN_CHORD_M, versine.ALIGN_CHORD_M)
+        ):
+            h = versine.half_chord_samples(lp.spacing_m, chord)
+            g = round(versine.END_GUARD_M / lp.spacing_m)  # whole chords, 1 m inside the ends
+            v = versine.chord_versine(p[c, inner.start + g : inner.stop - g], lp.spacing_m, chord)
             assert v.size == inner.stop - inner.start - 2 * (h + g)
-            assert segment_statistic(v) == pytest.approx(np.exp(z[k, c // 2]), rel=1e-9)
+            assert versine.segment_statistic(v) == pytest.approx(np.exp(z[k, c // 2]), rel=1e-9)
     # A tamping (new epoch) draws a fresh shape, still scaled exactly.
     before = lp.segment_profile(3)[1].copy()
     epoch[3] += 1
