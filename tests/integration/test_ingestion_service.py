@@ -50,6 +50,28 @@ def simulated(seconds: int):
     return messages
 
 
+def gateway_publishers(client: zenoh.Session, ns: str, until_matched) -> tuple:
+    """Train T7's raw (unit u0) and GPS publishers, once ingestion matches them. BLOCK, like
+    a gateway: the default (drop) may lose 56 kB chunks on a busy machine."""
+    block = zenoh.CongestionControl.BLOCK
+    raw_pub = client.declare_publisher(keys.raw(ns, "T7", "u0"), congestion_control=block)
+    gps_pub = client.declare_publisher(keys.gps(ns, "T7"), congestion_control=block)
+    until_matched(raw_pub)
+    until_matched(gps_pub)
+    return raw_pub, gps_pub
+
+
+def publish_and_collect(ns: str, messages, raw_pub, gps_pub, accel) -> list:
+    """Publish the simulated messages as T7's gateway; the first three positioned chunks."""
+    for message in messages:
+        key, payload = key_and_payload(ns, message)
+        (raw_pub if key == raw_pub.key_expr else gps_pub).put(payload)
+    got = [accel.get() for _ in range(3)]  # the 4th waits for a fix after it
+    raw_pub.undeclare()
+    gps_pub.undeclare()
+    return got
+
+
 def test_raw_and_gps_in_positioned_chunks_out(
     open_session, service_config, running, collector, until_matched
 ):
@@ -59,18 +81,8 @@ def test_raw_and_gps_in_positioned_chunks_out(
     client.declare_subscriber(keys.accel_all(ns), accel)
     messages = simulated(4)
     with running():
-        # BLOCK, like a gateway: the default (drop) may lose 56 kB chunks on a busy machine
-        block = zenoh.CongestionControl.BLOCK
-        raw_pub = client.declare_publisher(keys.raw(ns, "T7", "u0"), congestion_control=block)
-        gps_pub = client.declare_publisher(keys.gps(ns, "T7"), congestion_control=block)
-        until_matched(raw_pub)
-        until_matched(gps_pub)
-        for message in messages:
-            key, payload = key_and_payload(ns, message)
-            (raw_pub if key == raw_pub.key_expr else gps_pub).put(payload)
-        got = [accel.get() for _ in range(3)]  # the 4th waits for a fix after it
-        raw_pub.undeclare()
-        gps_pub.undeclare()
+        raw_pub, gps_pub = gateway_publishers(client, ns, until_matched)
+        got = publish_and_collect(ns, messages, raw_pub, gps_pub, accel)
     assert [k for k, _ in got] == [keys.accel(ns, "T7", "u0")] * 3
     chunks = [c for _, c in got]
     assert [c.seq for c in chunks] == [0, 1, 2]
@@ -131,10 +143,7 @@ def test_old_dated_trains_do_not_refuse_a_live_one_and_the_future_is_the_receive
     fix = next(m for m in messages if hasattr(m, "lat_deg"))
     with running():
         block = zenoh.CongestionControl.BLOCK
-        raw_pub = client.declare_publisher(keys.raw(ns, "T7", "u0"), congestion_control=block)
-        gps_pub = client.declare_publisher(keys.gps(ns, "T7"), congestion_control=block)
-        until_matched(raw_pub)
-        until_matched(gps_pub)
+        raw_pub, gps_pub = gateway_publishers(client, ns, until_matched)
         for k in range(30):
             old = msgspec.structs.replace(fix, train=f"B{k}", t=fix.t - 3600.0)
             client.put(*key_and_payload(ns, old), congestion_control=block)
@@ -142,11 +151,6 @@ def test_old_dated_trains_do_not_refuse_a_live_one_and_the_future_is_the_receive
         client.put(*key_and_payload(ns, future), congestion_control=block)
         letter = letters.get()
         assert letter.key == keys.gps(ns, "F1") and "ahead of the receiving clock" in letter.reason
-        for message in messages:
-            key, payload = key_and_payload(ns, message)
-            (raw_pub if key == raw_pub.key_expr else gps_pub).put(payload)
-        got = [accel.get() for _ in range(3)]  # the 4th waits for a fix after it
-        raw_pub.undeclare()
-        gps_pub.undeclare()
+        got = publish_and_collect(ns, messages, raw_pub, gps_pub, accel)
     assert [c.seq for c in got] == [0, 1, 2] and all(c.position_ok for c in got)
     assert letters.empty()

@@ -92,15 +92,22 @@ def tracker() -> Tracker:
     return out
 
 
-def test_a_partial_record_observes_its_indicators_exactly_and_the_others_follow():
+def follows_reference(events):
+    """A tracker stepped through ``events``, its state checked against :func:`reference`
+    after each."""
     live = tracker()
-    for k, msg in enumerate(EVENTS):
+    for k, msg in enumerate(events):
         assert live.step(msg).accepted
         state = live.histories[("L1", "s1")].state
-        z, P, log_w = reference(EVENTS[: k + 1])
+        z, P, log_w = reference(events[: k + 1])
         np.testing.assert_allclose(state.z, z, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(state.P, P, rtol=1e-7, atol=1e-15)
         np.testing.assert_allclose(state.log_w, log_w, rtol=1e-9)
+    return live
+
+
+def test_a_partial_record_observes_its_indicators_exactly_and_the_others_follow():
+    live = follows_reference(EVENTS)
     summary = live.state_of("L1", "s1")
     assert summary.last_trc_indicators == ["align10"] and summary.last_trc_t == EVENTS[5].t
     after_top6 = tracker()
@@ -189,14 +196,8 @@ MIXED = [
 
 
 def test_an_index_of_some_indicators_updates_with_its_rows_of_the_model():
-    live = tracker()
-    for k, msg in enumerate(MIXED):
-        assert live.step(msg).accepted
-        state = live.histories[("L1", "s1")].state
-        z, P, log_w = reference(MIXED[: k + 1])
-        np.testing.assert_allclose(state.z, z, rtol=1e-9, atol=1e-12)
-        np.testing.assert_allclose(state.P, P, rtol=1e-7, atol=1e-15)
-        np.testing.assert_allclose(state.log_w, log_w, rtol=1e-9)
+    live = follows_reference(MIXED)
+    state = live.histories[("L1", "s1")].state
     assert state.n_updates == 2  # since the Align10 record
 
 
