@@ -68,6 +68,7 @@ from scipy import stats
 from schemas import DAY_S, INDICATORS, Alert, MaintenanceEvent, PlanRow, SegmentState, TrcRecord
 from schemas.keys import SegmentId
 from services.limits import Limits
+from services.runtime.event_time import NewestTimes
 
 _Z975 = float(stats.norm.ppf(0.975))
 INDICATOR_LABELS = {"top6": "Top6", "align10": "Align10"}
@@ -308,8 +309,7 @@ class AlertingCore:
         self.raised: dict[AlertKey, Alert] = {}
         self.segments: dict[SegmentId, SegmentMemory] = {}
         self.schedule = TrcSchedule(config.default_trc_interval_days)
-        self._latest: dict[SegmentId, float] = {}  # newest event time per segment
-        self._top: list[tuple[float, SegmentId]] = []  # the quorum newest, descending
+        self._times = NewestTimes(config.watermark_quorum)
         self.approximated = 0  # probabilities recomputed because the state's limits differ
         self._nis_threshold = config.nis_threshold
         self._stale_s = config.stale_days * DAY_S
@@ -328,7 +328,7 @@ class AlertingCore:
         if memory is None:
             memory = self.segments[where] = SegmentMemory(state)
         memory.state = state
-        self._seen(where, state.t)
+        self._times.note(where, state.t)
         self._stale_due = min(self._stale_due, state.t + self._stale_s)
 
         out: list[Alert] = []
@@ -374,7 +374,7 @@ class AlertingCore:
 
     def on_trc(self, record: TrcRecord) -> bool:
         """Learn the line's TRC schedule; True if it changed (to persist)."""
-        self._seen((record.line, record.segment), record.t)
+        self._times.note((record.line, record.segment), record.t)
         return self.schedule.observe(record.line, record.run_id, record.t)
 
     def check_stale(self, now_t: float) -> list[Alert]:
@@ -415,11 +415,11 @@ class AlertingCore:
             self.raised[alert_key(alert)] = alert
         for memory in segments:
             self.segments[(memory.state.line, memory.state.segment)] = memory
-            self._seen((memory.state.line, memory.state.segment), memory.state.t)
+            self._times.note((memory.state.line, memory.state.segment), memory.state.t)
             self._stale_due = min(self._stale_due, memory.state.t + self._stale_s)
         for line, run_id, t in trc_runs:
             self.schedule.observe(line, run_id, t)
-            self._seen((line, ""), t)  # the run's segments are not stored: its line stands in
+            self._times.note((line, ""), t)  # the run's segments are not stored: its line stands in
 
     # --- outputs -------------------------------------------------------------------------
 
@@ -595,20 +595,8 @@ class AlertingCore:
     def newest_t(self) -> float | None:
         """The event-time watermark: the newest time ``k`` segments agree on (module
         docstring, ``stale``); None before any data."""
-        if not self._top:
-            return None
-        k = min(self.config.watermark_quorum, max(1, len(self._latest) // 2))
-        return self._top[k - 1][0]
-
-    def _seen(self, where: SegmentId, t: float) -> None:
-        """Note a segment's event time; keeps the ``watermark_quorum`` newest segments."""
-        if t <= self._latest.get(where, -math.inf):
-            return
-        self._latest[where] = t
-        top = [entry for entry in self._top if entry[1] != where]
-        top.append((t, where))
-        top.sort(reverse=True)
-        self._top = top[: self.config.watermark_quorum]
+        k = min(self.config.watermark_quorum, max(1, len(self._times) // 2))
+        return self._times.kth(k)
 
     def _raise(
         self,

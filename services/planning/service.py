@@ -46,6 +46,7 @@ from services.runtime.config import (
     config_from_args,
     read_json5,
 )
+from services.runtime.event_time import NewestTimes
 from services.runtime.service import ServiceRuntime, configure_logging
 
 log = logging.getLogger(__name__)
@@ -145,8 +146,7 @@ class PlanningAdapter:
         self.plans = 0
         self.latest: bytes = encode(self._message(None, None))
         self.requests: queue.Queue[tuple[zenoh.Query, int | None, float | None]] = queue.Queue()
-        self._newest: dict[tuple[str, str], float] = {}
-        self._top: list[float] = []
+        self.times = NewestTimes(QUORUM)
 
     def _message(self, plan: Plan | None, now_t: float | None, budget=None, weeks=None, trc=()):
         cfg = self.core.config
@@ -196,7 +196,7 @@ class PlanningAdapter:
                 case SegmentState():
                     changed = self.core.on_state(message)
                     if changed:
-                        self._seen((message.line, message.segment), message.t)
+                        self.times.note((message.line, message.segment), message.t)
                 case DegradationPosterior():
                     changed = self.core.on_posterior(message)
                 case MaintenanceEvent():
@@ -207,18 +207,10 @@ class PlanningAdapter:
                 self.last_change = now
                 self.changed.notify()
 
-    def _seen(self, where: tuple[str, str], t: float) -> None:
-        if t <= self._newest.get(where, -math.inf):
-            return
-        self._newest[where] = t
-        self._top = sorted([*self._top, t], reverse=True)[:QUORUM]
-
     @property
     def now_t(self) -> float | None:
         """The newest state time ``QUORUM`` segments agree on (the newest of fewer)."""
-        if not self._top:
-            return None
-        return self._top[min(QUORUM, len(self._newest)) - 1]
+        return self.times.kth(min(QUORUM, len(self.times)))
 
     # --- the planner thread ----------------------------------------------------------------
 
