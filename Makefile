@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench scale soak soak-demo soak-trains soak-order lint format clean
+.PHONY: run test bench scale soak soak-demo soak-trains soak-order soak-chaos lint format clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -35,7 +35,7 @@ scale: $(STAMP)
 # picture), then the whole stack under 100 raw trains for 10 minutes (bench/soak.py), then
 # filtering's order check (bench/order_check.py). Each alone: `make soak-demo DEMO_SOAK_ARGS="--minutes 15"`, `make soak-trains
 # SOAK_ARGS="--minutes 3 --trains 100,70,50"`.
-soak: soak-demo soak-trains soak-order
+soak: soak-demo soak-trains soak-order soak-chaos
 
 soak-demo: $(STAMP)
 	$(BIN)/python -m bench.demo_soak $(DEMO_SOAK_ARGS)
@@ -47,6 +47,15 @@ soak-trains: $(STAMP)
 # message at a time, batches and a restart: filtering must end as in canonical order.
 soak-order: $(STAMP)
 	$(BIN)/python -m bench.order_check $(ORDER_ARGS)
+
+# Seeded random faults for 30 minutes on the demo network, then on a generated 25,000-segment
+# one (bench/chaos.py): SIGKILL and SIGSTOP of any process and the router, filtering's disk
+# full, a cut link, clock jumps, old-dated bursts, duplicates, hostile messages; then every
+# segment's state compared byte for byte with the undisturbed fold of the same inputs.
+# A short run: `make soak-chaos CHAOS_ARGS="--minutes 3 --days 30"`.
+soak-chaos: $(STAMP)
+	$(BIN)/python -m bench.chaos --network demo $(CHAOS_ARGS)
+	$(BIN)/python -m bench.chaos --network 25000 --days 60 $(CHAOS_ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

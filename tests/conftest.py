@@ -20,9 +20,9 @@ from typing import Any
 
 import pytest
 import zenoh
-from linkproxy import LinkProxy
 from support import TIMEOUT_S, Process, ServiceThread, cli, closed_at_exit
 
+from bench.linkproxy import LinkProxy
 from services.runtime.config import RuntimeConfig, reserve_rx_threads, zenoh_config
 
 reserve_rx_threads()  # the router and its clients share this process

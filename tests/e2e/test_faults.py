@@ -16,9 +16,9 @@ from collections.abc import Callable
 from datetime import datetime
 
 import zenoh
-from linkproxy import LinkProxy
 from support import accepts_connections, wait_for
 
+from bench.linkproxy import LinkProxy
 from schemas import (
     DAY_S,
     Calibration,

@@ -9,8 +9,8 @@ from collections.abc import Callable, Iterator
 
 import pytest
 import zenoh
-from linkproxy import LinkProxy
 
+from bench.linkproxy import LinkProxy
 from services.runtime.config import RuntimeConfig, zenoh_config
 from services.runtime.delivery import DeliverySettings, ReliablePublisher
 from services.runtime.service import ServiceRuntime
