@@ -70,7 +70,6 @@ from schemas import (
     keys,
 )
 from services.defaults import default_file, load_network
-from services.filtering.testing import states_by_instance
 from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_limits
 from simulators.gateway import key_and_payload
@@ -96,6 +95,7 @@ RECOVER_TIMEOUT_S = 180.0
 SETTLE_TIMEOUT_S = 600.0  # after the last fault: the states must converge within this
 PUBLISHED = "published; lingering"  # the simulator's log line once its world is out
 RESTART_DELAY_S = 1.0
+QUERY_TIMEOUT_S = 120.0
 
 
 @dataclass
@@ -346,35 +346,52 @@ def run_fault(
     return "bus", 0.0, True, inject(kind, rng, stack, session, world, line)
 
 
-def compare(session: zenoh.Session, stack: Stack, world: list) -> dict:
+class Reference:
+    """The states an undisturbed filter reaches on the world with the given models (folded
+    again only when the models change)."""
+
+    def __init__(self, ns: str, world: list) -> None:
+        self.ns, self.world = ns, world
+        self.limits = load_limits(DEFAULT_LIMITS_FILE)
+        self._models: dict[str, bytes] = {}
+        self.states: dict[str, bytes] = {}
+
+    def update(self, models: dict[str, bytes]) -> None:
+        if models == self._models:
+            return
+        decoded = [
+            decode(p, Calibration if keys.model_kind(k) == "calibration" else DegradationPosterior)
+            for k, p in models.items()
+        ]
+        tracker = Tracker(self.limits.for_line, self.limits.levels)
+        self.states = {
+            keys.q_state(self.ns, s.line, s.segment): encode(s)
+            for s in tracker.load(decoded, self.world)
+        }
+        self._models = models
+
+
+def answers(session: zenoh.Session, selector: str) -> dict[str, bytes]:
+    """Every reply to ``selector`` (generous timeout: 25,000 states on a loaded machine)."""
+    block = zenoh.CongestionControl.BLOCK
+    replies = session.get(selector, timeout=QUERY_TIMEOUT_S, congestion_control=block)
+    return {str(r.ok.key_expr): r.ok.payload.to_bytes() for r in replies if r.ok is not None}
+
+
+def compare(session: zenoh.Session, reference: Reference) -> dict:
     """Every segment's state against the undisturbed fold of the world with the final models."""
-    replies = list(session.get(keys.model_all(stack.ns), timeout=10))
-    models = [
-        decode(
-            r.ok.payload.to_bytes(),
-            Calibration
-            if keys.model_kind(str(r.ok.key_expr)) == "calibration"
-            else DegradationPosterior,
-        )
-        for r in replies
-        if r.ok is not None
-    ]
-    limits = load_limits(DEFAULT_LIMITS_FILE)
-    reference = {
-        keys.q_state(stack.ns, s.line, s.segment): encode(s)
-        for s in Tracker(limits.for_line, limits.levels).load(models, world)
-    }
-    answered = states_by_instance(session, stack.ns)
-    states = next(iter(answered.values()), {})
-    missing = [k for k in reference if k not in states]
-    differ = [k for k in reference if k in states and states[k] != reference[k]]
+    reference.update(answers(session, keys.model_all(reference.ns)))
+    expected = reference.states
+    states = answers(session, keys.q_state_all(reference.ns))
+    missing = [k for k in expected if k not in states]
+    differ = [k for k in expected if k in states and states[k] != expected[k]]
     fewer_updates = 0
     for k in differ:
-        ref, got = decode(reference[k], SegmentState), decode(states[k], SegmentState)
+        ref, got = decode(expected[k], SegmentState), decode(states[k], SegmentState)
         if ref.last_trc_t == got.last_trc_t:
             fewer_updates += max(0, ref.n_updates - got.n_updates)
     return {
-        "segments": len(reference),
+        "segments": len(expected),
         "answered": len(states),
         "missing": len(missing),
         "differ": len(differ),
@@ -385,10 +402,11 @@ def compare(session: zenoh.Session, stack: Stack, world: list) -> dict:
 
 def settle(session, stack: Stack, world: list, tokens: Tokens) -> dict:
     """Compare until equal, or until ``SETTLE_TIMEOUT_S`` (the last comparison)."""
+    reference = Reference(stack.ns, world)
     deadline = time.monotonic() + SETTLE_TIMEOUT_S
     while True:
         tokens.until(SERVICES, RECOVER_TIMEOUT_S)
-        result = compare(session, stack, world)
+        result = compare(session, reference)
         if (result["missing"] == result["differ"] == 0) or time.monotonic() > deadline:
             result["settled_s"] = round(SETTLE_TIMEOUT_S - (deadline - time.monotonic()), 1)
             return result
