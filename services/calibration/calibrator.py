@@ -94,7 +94,7 @@ from services.calibration.groups import (
 )
 from services.calibration.moves import Move, calibration_change, posterior_change
 from services.calibration.pairing import ln_mm, match_record, oldest_waiting
-from services.calibration.posterior import SegmentIncrements, history_to_increments
+from services.calibration.posterior import SegmentIncrements, segment_increments
 from services.calibration.refit import outlying_pairs, worse
 from services.calibration.regression import fit_observation
 from services.calibration.robust import Rules, check_model, raw_pieces, reference, screen_segment
@@ -137,6 +137,7 @@ class Calibrator:
         self.rejections: deque[str] = deque(maxlen=100)  # reasons of rejected refits, newest last
         self._trc: dict[SegmentId, dict[str, TrcRecord]] = {}
         self._trc_times: dict[SegmentId, list[tuple[float, str]]] = {}  # sorted (t, run_id)
+        self._complete_times: dict[SegmentId, list[tuple[float, str]]] = {}  # of all indicators
         self._maint: dict[SegmentId, dict[str, MaintenanceEvent]] = {}
         self._pending: dict[SegmentId, dict[str, OnboardIndex]] = {}
         self._pairs: list[Pair] = []
@@ -343,12 +344,11 @@ class Calibrator:
         seg = (rec.line, rec.segment)
         self._trc.setdefault(seg, {})[rec.run_id] = rec
         bisect.insort(self._trc_times.setdefault(seg, []), (rec.t, rec.run_id))
+        if len(rec.indicators) == _N:
+            bisect.insort(self._complete_times.setdefault(seg, []), (rec.t, rec.run_id))
 
     def _ingest_trc(self, rec: TrcRecord) -> bool:
         seg = (rec.line, rec.segment)
-        if len(rec.indicators) < _N:  # a pair (Eq. 5-6) and an increment need the whole z
-            self.stats["trc_partial"] += 1
-            return False
         known = self._trc.get(seg, {})
         if rec.run_id in known:
             self.stats["trc_duplicates"] += 1
@@ -362,6 +362,8 @@ class Calibrator:
         self._add_trc(rec)
         self._changes.trc.append(rec)
         self.stats["trc"] += 1
+        if len(rec.indicators) < _N:  # used by the posteriors on what it measured (.groups)
+            self.stats["trc_partial"] += 1
         self._dirty.add(seg)
         # pending indices of the segment that this record completes
         pending = self._pending.get(seg, {})
@@ -386,13 +388,28 @@ class Calibrator:
         self.stats["index_expired"] += 1
 
     def _match(self, idx: OnboardIndex) -> TrcRecord | None:
-        """The TRC record ``idx`` pairs with among those known, if any."""
+        """The TRC record ``idx`` pairs with among those known, if any: by time, a record of
+        every indicator only (one of some would make no pair, see :meth:`_add_pair`)."""
         seg = (idx.line, idx.segment)
         return match_record(
-            self._trc.get(seg), self._trc_times.get(seg, []), idx, self.config.tolerance_days
+            self._trc.get(seg), self._complete_times.get(seg, []), idx, self.config.tolerance_days
         )
 
     def _add_pair(self, idx: OnboardIndex, iid: str, rec: TrcRecord) -> None:
+        if len(rec.indicators) < _N:
+            # every row of H weighs every indicator (H is full): without z_k a row of
+            # y = H z + b + e has an unknown term H_ik z_k, so the pair fits no element of
+            # H, b, R (see services/calibration/README.md)
+            self._paired.add(iid)
+            self.stats["index_record_partial"] += 1
+            why = (
+                f"on-board index {iid} not paired: its TRC record {trc_id(rec)} measured "
+                f"{rec.indicators} only, and every row of the observation model weighs "
+                f"{list(INDICATORS)}"
+            )
+            log.info("%s", why)
+            self._outbox.append(Quarantine("index", idx.line, idx.segment, why))
+            return
         pair = Pair(idx.line, idx.segment, rec.run_id, iid, idx.t, ln_mm(rec), ln_mm(idx))
         if len(idx.indicators) < len(ONBOARD_INDICES):  # for its unit's model only
             self._partial_pairs.append(pair)
@@ -716,7 +733,7 @@ class Calibrator:
                 self._increments.pop(seg, None)
                 self._newest_used.pop(seg, None)
                 continue
-            self._increments[seg] = history_to_increments(
+            self._increments[seg] = segment_increments(
                 t[keep], z[keep], tamping, max_age=cfg.max_level_age_days
             )
             self._newest_used[seg] = float(t[keep].max()) * DAY_S
@@ -749,13 +766,22 @@ class Calibrator:
     def _rebuild_posteriors(self) -> None:
         if not self._increments:
             return
-        for group, g in sorted(
-            group_inputs(self._increments, self._newest_used, self.config).items()
-        ):
+        inputs = group_inputs(self._increments, self._newest_used, self.config)
+        self.stats["trc_partial_left_out"] = inputs["net"].left_out
+        for group, g in sorted(inputs.items()):
             fp = fingerprint(group, g, self.config)
             entry = self._current(group)
             if (entry is not None and entry.fingerprint == fp) or self._refused.get(group) == fp:
                 continue
+            if g.left_out:
+                log.info(
+                    "posterior %s: %d TRC records of some indicators only left out: they did "
+                    "not measure %s, the indicator most of them measured (both kinds at once "
+                    "have no exact posterior)",
+                    group,
+                    g.left_out,
+                    INDICATORS[g.chain[0]] if g.chain else "",
+                )
             in_force = self._models.get(group)
             version = self._next_version(group)
             try:
