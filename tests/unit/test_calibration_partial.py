@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from schemas import DAY_S, TrcRecord
+from schemas import DAY_S, INDICATORS, TrcRecord
 from services.alerting.testing import make_index
 from services.calibration.calibrator import Calibrator
 from services.calibration.config import CalibratorConfig
@@ -17,6 +17,7 @@ from services.calibration.posterior import (
     sample_degradation_posterior,
     segment_increments,
 )
+from services.calibration.store import SqliteStore
 from services.drift_diffusion import NIWPrior, posterior_drift_diffusion
 
 T0 = 1_700_000_000.0
@@ -166,3 +167,24 @@ def test_level_only_runs_give_the_level_drift_and_diffusion():
         assert abs(value.mean() - truth) < 3 * value.std(), (value.mean(), truth)
         assert value.std() < 0.15 * truth  # informed by the data, not the prior
     assert sigma[:, 1, 1].std() > 10 * sigma[:, 0, 0].std()  # alignment: the prior's
+
+
+def test_partial_records_come_back_from_the_store_with_the_same_posteriors(tmp_path):
+    rng = np.random.default_rng(4)
+    cfg = CalibratorConfig(samples=40, unit_models=False)
+    events = []
+    for s in range(8):
+        z, t = rng.normal([1.0, 0.8], 0.1), T0 + s * DAY_S
+        for r in range(6):
+            events.append(record(f"s{s}", f"r{r}", t, z, ["top6"] if r % 2 else INDICATORS))
+            dt = rng.uniform(56, 77)
+            z, t = z + MU * dt + rng.multivariate_normal([0, 0], SIGMA * dt), t + dt * DAY_S
+    store = SqliteStore(tmp_path / "c.sqlite")
+    core = Calibrator(cfg, store.load())
+    assert core.step(events) != []
+    store.apply(core.drain_changes())
+    store.close()
+    store = SqliteStore(tmp_path / "c.sqlite")
+    restored = Calibrator(cfg, store.load())
+    assert restored.models() == core.models() and restored.step([]) == []
+    store.close()
