@@ -45,7 +45,7 @@ that indicator only (``indicators``; the other value is None); a change of chann
 restarts the unit's chain, as a gap does. A chunk with neither pair is refused
 (SchemaError; ingestion refuses such a RawChunk before it gets here).
 
-A segment's OnboardIndex is emitted once the versine of both indicators has passed the
+A segment's OnboardIndex is emitted once the versine of every indicator measured has passed the
 last chord centre of the segment (``end - L/2 - guard``), i.e. when the unit is the 1 m
 guard short of the segment's end (plus ``v tau``, the filter's delay, and one grid step):
 nothing past the end is needed. It comes out of the very chunk that holds that sample
@@ -74,7 +74,7 @@ rail (the train reverses without turning). ``min(left, right)`` is symmetric, an
 lateral sign flip does not change a standard deviation, so a pass gives the same index in
 either direction.
 
-Quality: ``coverage`` (the smaller of the two indicators' best rail coverage), halved when
+Quality: ``coverage`` (the smaller of the measured indicators' best rail coverage), halved when
 an indicator had only one usable rail (``min(L, R)`` could not reject a one-rail outlier),
 times 0.9 when ingestion flagged the segment's chunks with chunk-wide findings
 (``clipping``, ``supply``).
