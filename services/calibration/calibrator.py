@@ -93,11 +93,17 @@ from services.calibration.groups import (
     one_segment_move,
 )
 from services.calibration.moves import Move, calibration_change, posterior_change
-from services.calibration.pairing import ln_mm, match_record, oldest_waiting
+from services.calibration.pairing import ln_mm, match_record, oldest_waiting, partial_record_reason
 from services.calibration.posterior import SegmentIncrements, segment_increments
 from services.calibration.refit import outlying_pairs, worse
 from services.calibration.regression import fit_observation
-from services.calibration.robust import Rules, check_model, raw_pieces, reference, screen_segment
+from services.calibration.robust import (
+    Rules,
+    check_model,
+    network_references,
+    raw_pieces,
+    screen_segment,
+)
 from services.calibration.state import (
     CALIBRATION_KEY,
     Changes,
@@ -119,8 +125,6 @@ from services.drift_diffusion import CalibrationError
 log = logging.getLogger(__name__)
 
 _AHEAD = "dated "  # how robust.screen_segment's reason for a record ahead of event time begins
-_INCREMENT_SD_FLOOR = 1e-3  # ln mm / sqrt(day): the robust sd of increments is at least this
-_LEVEL_SD_FLOOR = 1e-2  # ln mm: and that of post-tamping levels
 _N = len(INDICATORS)
 
 
@@ -396,17 +400,9 @@ class Calibrator:
         )
 
     def _add_pair(self, idx: OnboardIndex, iid: str, rec: TrcRecord) -> None:
-        if len(rec.indicators) < _N:
-            # every row of H weighs every indicator (H is full): without z_k a row of
-            # y = H z + b + e has an unknown term H_ik z_k, so the pair fits no element of
-            # H, b, R (see services/calibration/README.md)
+        if (why := partial_record_reason(iid, rec)) is not None:
             self._paired.add(iid)
             self.stats["index_record_partial"] += 1
-            why = (
-                f"on-board index {iid} not paired: its TRC record {trc_id(rec)} measured "
-                f"{rec.indicators} only, and every row of the observation model weighs "
-                f"{list(INDICATORS)}"
-            )
             log.info("%s", why)
             self._outbox.append(Quarantine("index", idx.line, idx.segment, why))
             return
@@ -705,17 +701,7 @@ class Calibrator:
             self._history[seg] = (records, t, z, tamping)
             self._raw[seg] = raw_pieces(t, z, tamping)
         raw = [self._raw[s] for s in sorted(self._raw)]
-        empty = np.empty((0, _N))
-        increments = reference(
-            np.concatenate([x for x, _ in raw] or [empty]),
-            min_count=cfg.robust_min_count,
-            floor=_INCREMENT_SD_FLOOR,
-        )
-        levels = reference(
-            np.concatenate([lv for _, lv in raw] or [empty]),
-            min_count=cfg.robust_min_count,
-            floor=_LEVEL_SD_FLOOR,
-        )
+        increments, levels = network_references(raw, _N, cfg.robust_min_count)
         rules = Rules(cfg.max_rate_per_day, cfg.max_jump, cfg.robust_k, cfg.max_ahead_days)
         now_days = self._now / DAY_S if math.isfinite(self._now) else math.inf
         self._screened_now = self._now
@@ -773,15 +759,8 @@ class Calibrator:
             entry = self._current(group)
             if (entry is not None and entry.fingerprint == fp) or self._refused.get(group) == fp:
                 continue
-            if g.left_out:
-                log.info(
-                    "posterior %s: %d TRC records of some indicators only left out: they did "
-                    "not measure %s, the indicator most of them measured (both kinds at once "
-                    "have no exact posterior)",
-                    group,
-                    g.left_out,
-                    INDICATORS[g.chain[0]] if g.chain else "",
-                )
+            if g.left_out:  # records that did not measure the group's j (see .groups)
+                log.info("posterior %s: %d partial TRC records left out", group, g.left_out)
             in_force = self._models.get(group)
             version = self._next_version(group)
             try:

@@ -36,9 +36,19 @@ import numpy as np
 
 from schemas import Calibration, DegradationPosterior
 
-__all__ = ["Reference", "Rules", "check_model", "raw_pieces", "reference", "screen_segment"]
+__all__ = [
+    "Reference",
+    "Rules",
+    "check_model",
+    "network_references",
+    "raw_pieces",
+    "reference",
+    "screen_segment",
+]
 
 MAD_TO_SD = 1.4826  # 1 / Phi^-1(3/4): MAD of a Gaussian in standard deviations
+INCREMENT_SD_FLOOR = 1e-3  # ln mm / sqrt(day): the robust sd of increments is at least this
+LEVEL_SD_FLOOR = 1e-2  # ln mm: and that of post-tamping levels
 
 
 @dataclass(frozen=True)
@@ -74,6 +84,20 @@ def reference(samples: np.ndarray, *, min_count: int, floor: float) -> Reference
     if not np.isfinite(med).any():
         return None
     return Reference(med, scale, int(counts.max()))
+
+
+def network_references(
+    raw: list[tuple[np.ndarray, np.ndarray]], n: int, min_count: int
+) -> tuple[Reference | None, Reference | None]:
+    """The references of the standardised increments and of the post-tamping levels over
+    every segment's :func:`raw_pieces` (``raw``; ``n`` indicators)."""
+    empty = np.empty((0, n))
+    x = np.concatenate([x for x, _ in raw] or [empty])
+    levels = np.concatenate([lv for _, lv in raw] or [empty])
+    return (
+        reference(x, min_count=min_count, floor=INCREMENT_SD_FLOOR),
+        reference(levels, min_count=min_count, floor=LEVEL_SD_FLOOR),
+    )
 
 
 def _runs(t: np.ndarray, tamping: np.ndarray) -> np.ndarray:
