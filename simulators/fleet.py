@@ -29,7 +29,11 @@ every acceleration its sensor measures and its mounting tilt ``N(0, mount_sd_deg
 mixes vertical into lateral (gravity too). The indices then differ by class and unit
 through the signal chain itself.
 
-Both are drawn from the train and unit ids (:func:`simulators.network.stable_rng`), so a
+A share ``vertical_only_share`` (default 0) of the units carries a vertical sensor only: in
+the raw mode its chunks hold the vertical channels and ``supply_v`` only, in the fast mode
+its indices are Top6 only (``indicators: ["top6"]``).
+
+All are drawn from the train and unit ids (:func:`simulators.network.stable_rng`), so a
 unit keeps its model for the whole run and across runs with the same seed. The defaults
 (one ``standard`` class equal to the ``index`` section, no spread) give every unit the
 same model.
@@ -99,6 +103,7 @@ class Unit:
     model: IndexSensorModel  # y = H z + b + e with the class and the sensor in H and b
     speed_factor: tuple[float, float]
     mount_rad: float  # raw mode: the sensor's tilt about the running axis
+    vertical_only: bool = False  # a vertical sensor only: Top6 indices, vertical channels
 
 
 class Fleet:
@@ -112,6 +117,7 @@ class Fleet:
         offset_sd: np.ndarray,
         seed: int,
         mount_sd_deg: float = 0.0,
+        vertical_only_share: float = 0.0,
     ) -> None:
         if not classes or sum(c.share for c in classes) <= 0:
             raise ValueError("fleet.classes: at least one class with a share > 0")
@@ -122,6 +128,9 @@ class Fleet:
         if not mount_sd_deg >= 0:
             raise ValueError(f"fleet.mount_sd_deg: must be >= 0, got {mount_sd_deg}")
         self.mount_sd_rad = np.deg2rad(mount_sd_deg)
+        if not 0 <= vertical_only_share <= 1:
+            raise ValueError(f"fleet.vertical_only_share: in [0, 1], got {vertical_only_share}")
+        self.vertical_only_share = float(vertical_only_share)
         shares = np.array([c.share for c in classes], dtype=np.float64)
         self._cum = np.cumsum(shares / shares.sum())
 
@@ -151,7 +160,15 @@ class Fleet:
             classes.append(VehicleClass(name, share, h, b, speed, bogie, own_speed))
         offset = np.asarray(sec.get("offset_sd", [0.0, 0.0]), dtype=np.float64)
         gain = float(sec.get("gain_spread", 0.0))
-        return cls(base, classes, gain, offset, seed, float(sec.get("mount_sd_deg", 0.0)))
+        return cls(
+            base,
+            classes,
+            gain,
+            offset,
+            seed,
+            float(sec.get("mount_sd_deg", 0.0)),
+            float(sec.get("vertical_only_share", 0.0)),
+        )
 
     def vehicle_class(self, train: str) -> VehicleClass:
         """The class of ``train`` (drawn once per train id by the class shares)."""
@@ -170,7 +187,19 @@ class Fleet:
         H = klass.H_scale[:, None] * self.base.H
         b = self.base.b + klass.b_shift + np.log(gain) + offset
         model = IndexSensorModel(H, b, self.base.R)
-        return Unit(train, unit, klass.name, gain, offset, model, klass.speed_factor, mount)
+        # its own stream: the share leaves every other draw of the unit as it is
+        vertical = stable_rng(self.seed, "fleet-sensor", train, unit).random()
+        return Unit(
+            train,
+            unit,
+            klass.name,
+            gain,
+            offset,
+            model,
+            klass.speed_factor,
+            mount,
+            vertical < self.vertical_only_share,
+        )
 
     def train_config(self, train: str, base: TrainConfig | None = None) -> TrainConfig:
         """Raw mode: the train's constants with its class's bogie and cruise speed."""

@@ -16,9 +16,10 @@ import heapq
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 
+import msgspec
 import numpy as np
 
-from schemas import DAY_S, Message, OnboardIndex
+from schemas import DAY_S, SUPPLY_CHANNEL, Message, NDArray, OnboardIndex, RawChunk
 from simulators.fleet import Fleet
 from simulators.index_model import IndexSensorModel
 from simulators.network import stable_rng
@@ -27,6 +28,8 @@ from simulators.train import TrainSimulator
 from simulators.trc import trc_events
 from simulators.truth import Truth, config_pair, truth_events
 from track.network import Network
+
+VERTICAL_CHANNELS = ("left_z", "right_z", SUPPLY_CHANNEL)  # what a vertical-only unit sends
 
 
 @dataclass(frozen=True)
@@ -87,6 +90,12 @@ def raw_train_events(spec: WorldSpec) -> Iterator[tuple[float, list[Message]]]:
         )
 
     trains = [train(i) for i in range(spec.trains)]
+    vertical_only = {
+        (t.train_id, u)
+        for t in trains
+        for u in range(spec.units)
+        if fleet.unit(t.train_id, f"u{u}").vertical_only
+    }
     day = 0
     for k in range(int(spec.days * DAY_S)):
         t = spec.start_t + k
@@ -100,10 +109,19 @@ def raw_train_events(spec: WorldSpec) -> Iterator[tuple[float, list[Message]]]:
                 continue
             for unit in range(spec.units):
                 chunk, dropped = train.raw_chunk(k, unit)
+                if (train.train_id, unit) in vertical_only:
+                    chunk = vertical_channels(chunk)
                 if not dropped:  # a lost chunk's seq is skipped: ingestion sees a gap
                     messages.append(chunk)
             messages.extend(train.gps_fixes(t, t + 1.0))
         yield t, messages
+
+
+def vertical_channels(chunk: RawChunk) -> RawChunk:
+    """``chunk`` as a unit with a vertical sensor only sends it."""
+    cols = [chunk.channels.index(c) for c in VERTICAL_CHANNELS]
+    samples = NDArray.of(chunk.samples.array()[:, cols], "f4")
+    return msgspec.structs.replace(chunk, channels=list(VERTICAL_CHANNELS), samples=samples)
 
 
 def index_pass_events(
@@ -187,6 +205,7 @@ def index_pass_events(
             )
             lo += m
         train = np.concatenate([[f"T{line_id}-{k:02d}"] * m for line_id, k, _, m in meta])
+        top_only = {tr for tr in set(train.tolist()) if model is None and units[tr].vertical_only}
         speed = np.concatenate([[v] * m for _, _, v, m in meta])
         for j in np.argsort(t, kind="stable"):
             line_id, seg_id = truth.keys[seg[j]]
@@ -197,10 +216,11 @@ def index_pass_events(
                 unit=unit,
                 t=float(t[j]),
                 top6_mm=float(y[j, 0]),
-                align10_mm=float(y[j, 1]),
+                align10_mm=None if train[j] in top_only else float(y[j, 1]),
                 speed_mps=float(speed[j]),
                 coverage=1.0,
                 quality=1.0,
+                indicators=["top6"] if train[j] in top_only else ["top6", "align10"],
             )
             yield float(t[j]), [msg]
 

@@ -93,11 +93,17 @@ from services.calibration.groups import (
     one_segment_move,
 )
 from services.calibration.moves import Move, calibration_change, posterior_change
-from services.calibration.pairing import ln_mm, match_record, oldest_waiting
-from services.calibration.posterior import SegmentIncrements, history_to_increments
+from services.calibration.pairing import ln_mm, match_record, oldest_waiting, partial_record_reason
+from services.calibration.posterior import SegmentIncrements, segment_increments
 from services.calibration.refit import outlying_pairs, worse
 from services.calibration.regression import fit_observation
-from services.calibration.robust import Rules, check_model, raw_pieces, reference, screen_segment
+from services.calibration.robust import (
+    Rules,
+    check_model,
+    network_references,
+    raw_pieces,
+    screen_segment,
+)
 from services.calibration.state import (
     CALIBRATION_KEY,
     Changes,
@@ -119,8 +125,6 @@ from services.drift_diffusion import CalibrationError
 log = logging.getLogger(__name__)
 
 _AHEAD = "dated "  # how robust.screen_segment's reason for a record ahead of event time begins
-_INCREMENT_SD_FLOOR = 1e-3  # ln mm / sqrt(day): the robust sd of increments is at least this
-_LEVEL_SD_FLOOR = 1e-2  # ln mm: and that of post-tamping levels
 _N = len(INDICATORS)
 
 
@@ -137,6 +141,7 @@ class Calibrator:
         self.rejections: deque[str] = deque(maxlen=100)  # reasons of rejected refits, newest last
         self._trc: dict[SegmentId, dict[str, TrcRecord]] = {}
         self._trc_times: dict[SegmentId, list[tuple[float, str]]] = {}  # sorted (t, run_id)
+        self._complete_times: dict[SegmentId, list[tuple[float, str]]] = {}  # of all indicators
         self._maint: dict[SegmentId, dict[str, MaintenanceEvent]] = {}
         self._pending: dict[SegmentId, dict[str, OnboardIndex]] = {}
         self._pairs: list[Pair] = []
@@ -343,12 +348,11 @@ class Calibrator:
         seg = (rec.line, rec.segment)
         self._trc.setdefault(seg, {})[rec.run_id] = rec
         bisect.insort(self._trc_times.setdefault(seg, []), (rec.t, rec.run_id))
+        if len(rec.indicators) == _N:
+            bisect.insort(self._complete_times.setdefault(seg, []), (rec.t, rec.run_id))
 
     def _ingest_trc(self, rec: TrcRecord) -> bool:
         seg = (rec.line, rec.segment)
-        if len(rec.indicators) < _N:  # a pair (Eq. 5-6) and an increment need the whole z
-            self.stats["trc_partial"] += 1
-            return False
         known = self._trc.get(seg, {})
         if rec.run_id in known:
             self.stats["trc_duplicates"] += 1
@@ -362,6 +366,8 @@ class Calibrator:
         self._add_trc(rec)
         self._changes.trc.append(rec)
         self.stats["trc"] += 1
+        if len(rec.indicators) < _N:  # used by the posteriors on what it measured (.groups)
+            self.stats["trc_partial"] += 1
         self._dirty.add(seg)
         # pending indices of the segment that this record completes
         pending = self._pending.get(seg, {})
@@ -386,13 +392,20 @@ class Calibrator:
         self.stats["index_expired"] += 1
 
     def _match(self, idx: OnboardIndex) -> TrcRecord | None:
-        """The TRC record ``idx`` pairs with among those known, if any."""
+        """The TRC record ``idx`` pairs with among those known, if any: by time, a record of
+        every indicator only (one of some would make no pair, see :meth:`_add_pair`)."""
         seg = (idx.line, idx.segment)
         return match_record(
-            self._trc.get(seg), self._trc_times.get(seg, []), idx, self.config.tolerance_days
+            self._trc.get(seg), self._complete_times.get(seg, []), idx, self.config.tolerance_days
         )
 
     def _add_pair(self, idx: OnboardIndex, iid: str, rec: TrcRecord) -> None:
+        if (why := partial_record_reason(iid, rec)) is not None:
+            self._paired.add(iid)
+            self.stats["index_record_partial"] += 1
+            log.info("%s", why)
+            self._outbox.append(Quarantine("index", idx.line, idx.segment, why))
+            return
         pair = Pair(idx.line, idx.segment, rec.run_id, iid, idx.t, ln_mm(rec), ln_mm(idx))
         if len(idx.indicators) < len(ONBOARD_INDICES):  # for its unit's model only
             self._partial_pairs.append(pair)
@@ -688,17 +701,7 @@ class Calibrator:
             self._history[seg] = (records, t, z, tamping)
             self._raw[seg] = raw_pieces(t, z, tamping)
         raw = [self._raw[s] for s in sorted(self._raw)]
-        empty = np.empty((0, _N))
-        increments = reference(
-            np.concatenate([x for x, _ in raw] or [empty]),
-            min_count=cfg.robust_min_count,
-            floor=_INCREMENT_SD_FLOOR,
-        )
-        levels = reference(
-            np.concatenate([lv for _, lv in raw] or [empty]),
-            min_count=cfg.robust_min_count,
-            floor=_LEVEL_SD_FLOOR,
-        )
+        increments, levels = network_references(raw, _N, cfg.robust_min_count)
         rules = Rules(cfg.max_rate_per_day, cfg.max_jump, cfg.robust_k, cfg.max_ahead_days)
         now_days = self._now / DAY_S if math.isfinite(self._now) else math.inf
         self._screened_now = self._now
@@ -716,7 +719,7 @@ class Calibrator:
                 self._increments.pop(seg, None)
                 self._newest_used.pop(seg, None)
                 continue
-            self._increments[seg] = history_to_increments(
+            self._increments[seg] = segment_increments(
                 t[keep], z[keep], tamping, max_age=cfg.max_level_age_days
             )
             self._newest_used[seg] = float(t[keep].max()) * DAY_S
@@ -749,13 +752,15 @@ class Calibrator:
     def _rebuild_posteriors(self) -> None:
         if not self._increments:
             return
-        for group, g in sorted(
-            group_inputs(self._increments, self._newest_used, self.config).items()
-        ):
+        inputs = group_inputs(self._increments, self._newest_used, self.config)
+        self.stats["trc_partial_left_out"] = inputs["net"].left_out
+        for group, g in sorted(inputs.items()):
             fp = fingerprint(group, g, self.config)
             entry = self._current(group)
             if (entry is not None and entry.fingerprint == fp) or self._refused.get(group) == fp:
                 continue
+            if g.left_out:  # records that did not measure the group's j (see .groups)
+                log.info("posterior %s: %d partial TRC records left out", group, g.left_out)
             in_force = self._models.get(group)
             version = self._next_version(group)
             try:

@@ -19,6 +19,17 @@ Degradation posteriors
     that shape the draws) changed; when the core raises :class:`CalibrationError` (too little
     data) the old posterior stays and the refusal is counted.
 
+Records of some indicators only
+    A group whose segments have records of some indicators only (a level-only TRC car) is
+    drawn from :func:`partial_drift_posterior`: the indicator ``j`` that the most of those
+    records measured gets every one of its increments, the others their increments between
+    complete records (exact; see :class:`PartialDriftPosterior`). The records that did not
+    measure ``j`` (alignment-only records in a group whose partial records are mostly
+    level-only) are left out of the group's drift and diffusion: with both kinds the
+    posterior has no closed form, and they are counted in ``left_out``. Post-tamping levels
+    come from complete records only (``z+`` is a joint level). ``n_increments`` of such a
+    posterior counts the increments of ``j``.
+
 """
 
 from __future__ import annotations
@@ -37,7 +48,8 @@ from services.calibration.moves import Move, largest_move
 from services.calibration.posterior import (
     SegmentIncrements,
     group_rng,
-    sample_degradation_posterior,
+    partial_drift_posterior,
+    sample_post_tamping,
     sample_prior,
 )
 from services.calibration.state import ModelEntry
@@ -57,6 +69,23 @@ class GroupInput:
     level_source: str  # the group whose levels are used, or "prior"
     t_newest: float  # epoch s of the newest TRC record used of the group's segments
     members: tuple[SegmentId, ...] = ()  # segments whose increments are pooled
+    # records of some indicators only: the indicator j all of whose increments are used and
+    # those increments (dz_j, dt_j), None when every record is complete
+    chain: tuple[int, np.ndarray, np.ndarray] | None = None
+    left_out: int = 0  # records of some indicators only that did not measure j
+
+
+def _chain(incs: list[SegmentIncrements]) -> tuple[tuple[int, np.ndarray, np.ndarray] | None, int]:
+    """The indicator whose increments a pool of segments uses from its partial records, with
+    them, and the number of partial records left out; (None, 0) when every record is
+    complete."""
+    partial = [i for i in incs if i.chains]
+    if not partial:
+        return None, 0
+    j = int(np.argmax(np.sum([i.partial_with for i in partial], axis=0)))
+    dz = np.concatenate([i.chains[j][0] if i.chains else i.dz[:, j] for i in incs])
+    dt = np.concatenate([i.chains[j][1] if i.chains else i.dt for i in incs])
+    return (j, dz, dt), sum(i.partial_without[j] for i in partial)
 
 
 def group_inputs(
@@ -77,6 +106,7 @@ def group_inputs(
             np.concatenate([i.age for i in incs]),
             max(newest[s] for s in members),
             tuple(members),
+            *_chain(incs),
         )
 
     net = pool(segs)
@@ -85,18 +115,21 @@ def group_inputs(
         lines.setdefault(s[0], []).append(s)
     line_pool = {line: pool(members) for line, members in lines.items()}
 
-    def make(own, chain: list[tuple[str, tuple]]) -> GroupInput:
-        dz, dt, _, _, t_newest, members = own
-        for source, (_, _, level, age, _, _) in chain:
+    def make(own, sources: list[tuple[str, tuple]]) -> GroupInput:
+        dz, dt, _, _, t_newest, members, chain, left_out = own
+        for source, (_, _, level, age, *_) in sources:
             if len(level) >= cfg.min_levels:
-                return GroupInput(dz, dt, level, age, source, t_newest, members)
-        return GroupInput(dz, dt, net[2][:0], net[3][:0], "prior", t_newest, members)
+                return GroupInput(dz, dt, level, age, source, t_newest, members, chain, left_out)
+        return GroupInput(
+            dz, dt, net[2][:0], net[3][:0], "prior", t_newest, members, chain, left_out
+        )
 
     out: dict[str, GroupInput] = {"net": make(net, [("net", net)])}
     for line, lp in line_pool.items():
         out[f"line.{line}"] = make(lp, [(f"line.{line}", lp), ("net", net)])
     for s in segs:
-        if len(increments[s].dt) >= cfg.segment_min_increments:
+        inc = increments[s]
+        if max([len(inc.dt)] + [len(dt) for _, dt in inc.chains]) >= cfg.segment_min_increments:
             own = pool([s])
             group = f"seg.{s[0]}.{s[1]}"
             out[group] = make(own, [(group, own), (f"line.{s[0]}", line_pool[s[0]]), ("net", net)])
@@ -120,7 +153,11 @@ def fingerprint(group: str, g: GroupInput, cfg: CalibratorConfig) -> str:
             h.update(
                 repr((prior.m0.tolist(), prior.lambda0, prior.Psi0.tolist(), prior.nu0)).encode()
             )
-    for a in (g.dz, g.dt, g.level, g.age):
+    arrays = [g.dz, g.dt, g.level, g.age]
+    if g.chain is not None:
+        h.update(repr(("chain", g.chain[0])).encode())
+        arrays += [g.chain[1], g.chain[2]]
+    for a in arrays:
         h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
         h.update(repr(a.shape).encode())
     return h.hexdigest()
@@ -159,6 +196,8 @@ def one_segment_move(
     if moved[0] <= bound:
         return None
     members = [s for s in g.members if len(increments[s].dt)]
+    if not members:
+        return None  # no complete increments: nothing to leave out in turn
     if len(members) == 1 and old.n_increments > 0:
         return None  # a one-segment group from data: it moves with its segment
     culprit: SegmentId | None = members[0] if len(members) == 1 else None
@@ -195,23 +234,19 @@ def build_posterior(
     """Version ``version`` of ``group``'s posterior from its inputs; raises CalibrationError."""
     rng = group_rng(cfg.seed, group, version)
     min_inc = cfg.segment_min_increments if group.startswith("seg.") else cfg.min_increments
-    if g.level_source != "prior":
-        s = sample_degradation_posterior(
-            g.dz,
-            g.dt,
-            g.level,
-            g.age,
-            ns=cfg.samples,
-            rng=rng,
-            drift_prior=cfg.drift_prior,
-            level_prior=cfg.level_prior,
-            min_increments=min_inc,
-            min_levels=cfg.min_levels,
-        )
-        mu, sigma, z_plus, sigma_z_plus = s.mu, s.sigma, s.z_plus, s.sigma_z_plus
-    else:
+    if g.chain is None:
         post = posterior_drift_diffusion(g.dz, g.dt, cfg.drift_prior, min_increments=min_inc)
-        mu, sigma = post.sample(cfg.samples, rng)
+    else:
+        j, dz_j, dt_j = g.chain
+        post = partial_drift_posterior(
+            g.dz, g.dt, j, dz_j, dt_j, cfg.drift_prior, min_increments=min_inc
+        )
+    mu, sigma = post.sample(cfg.samples, rng)
+    if g.level_source != "prior":
+        z_plus, sigma_z_plus = sample_post_tamping(
+            g.level, g.age, mu, rng, cfg.level_prior, min_levels=cfg.min_levels
+        )
+    else:
         level_prior = cfg.level_prior or NIWPrior.default_level(_N)
         z_plus, sigma_z_plus = sample_prior(level_prior, cfg.samples, rng)
     return DegradationPosterior(
@@ -223,6 +258,6 @@ def build_posterior(
         sigma=NDArray.of(sigma),
         z_plus=NDArray.of(z_plus),
         sigma_z_plus=NDArray.of(sigma_z_plus),
-        n_increments=len(g.dt),
+        n_increments=post.n_obs,
         n_levels=len(g.age),
     )

@@ -24,6 +24,13 @@ Pairing
     that outranks the one held (``MaintenanceEvent.rank``: a correction) replaces it, as in
     filtering, whatever the order. A pair's time is the index's.
 
+Records of some indicators
+    By time an index pairs with a record of every indicator only. One that pairs by
+    ``run_id`` with a record of some indicators only makes no pair
+    (:func:`partial_record_reason`): every row of H weighs every indicator (H is full), so
+    without ``z_k`` each row of ``y = H z + b + e`` has an unknown term ``H_ik z_k`` and the
+    pair fits no element of H, b or R.
+
 """
 
 from __future__ import annotations
@@ -32,7 +39,7 @@ import bisect
 import math
 from collections.abc import Mapping
 
-from schemas import DAY_S, OnboardIndex, TrcRecord
+from schemas import DAY_S, INDICATORS, OnboardIndex, TrcRecord
 
 
 def ln_mm(msg: TrcRecord | OnboardIndex) -> tuple[float, ...]:
@@ -68,3 +75,15 @@ def oldest_waiting(times: list[tuple[float, str]] | None, index_window_days: flo
     """Indices of a segment older than this (epoch s) no longer wait for a TRC record
     (``times``: the segment's sorted ``(t, run_id)``)."""
     return times[-1][0] - index_window_days * DAY_S if times else -math.inf
+
+
+def partial_record_reason(iid: str, rec: TrcRecord) -> str | None:
+    """Why index ``iid`` makes no pair with ``rec`` (a record of some indicators only), or
+    None (see the module docstring)."""
+    if len(rec.indicators) == len(INDICATORS):
+        return None
+    return (
+        f"on-board index {iid} not paired: its TRC record {rec.line}/{rec.segment}/"
+        f"{rec.run_id} measured {rec.indicators} only, and every row of the observation "
+        f"model weighs {list(INDICATORS)}"
+    )

@@ -29,8 +29,11 @@ from services.drift_diffusion import (
 
 __all__ = [
     "DegradationSamples",
+    "PartialDriftPosterior",
     "SegmentIncrements",
     "history_to_increments",
+    "partial_drift_posterior",
+    "segment_increments",
     "sample_degradation_posterior",
     "sample_post_tamping",
 ]
@@ -116,12 +119,19 @@ def sample_post_tamping(
 
 
 class SegmentIncrements(NamedTuple):
-    """Output of :func:`history_to_increments` (all arrays float64)."""
+    """Output of :func:`history_to_increments` and :func:`segment_increments` (all arrays
+    float64)."""
 
     dz: np.ndarray  # (K, n) increments not spanning a tamping
     dt: np.ndarray  # (K,) their durations, days
     level: np.ndarray  # (P, n) first record after each tamping
     age: np.ndarray  # (P,) its days since that tamping
+    # per indicator i, (dz_i (K_i,), dt_i (K_i,)): the increments between consecutive records
+    # that measured i (complete or not); empty when every record is complete
+    chains: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
+    # per indicator i, the records of some indicators only that measured i / did not
+    partial_with: tuple[int, ...] = ()
+    partial_without: tuple[int, ...] = ()
 
 
 def history_to_increments(t, z, tamping_t=(), *, max_age: float | None = None) -> SegmentIncrements:
@@ -174,6 +184,131 @@ def history_to_increments(t, z, tamping_t=(), *, max_age: float | None = None) -
     if max_age is not None:
         rec, age = rec[age <= max_age], age[age <= max_age]
     return SegmentIncrements(dz=dz, dt=dt, level=z[rec], age=age)
+
+
+def segment_increments(t, z, tamping_t=(), *, max_age: float | None = None) -> SegmentIncrements:
+    """:func:`history_to_increments` of a history whose records may miss indicators (``z``
+    NaN where a record did not measure one: a level-only TRC car).
+
+    ``dz, dt, level, age`` are those of the complete records alone (an increment between
+    two consecutive complete records, a post-tamping level from the first complete record
+    after a tamping, aged from the tamping). When some record is partial, ``chains[i]`` holds
+    the increments of indicator ``i`` between consecutive records that measured it, with the
+    same tamping rule; :func:`partial_drift_posterior` uses them. A history of complete
+    records gives exactly :func:`history_to_increments`.
+    """
+    t = as_finite("t", t, 1)
+    z = np.asarray(z, dtype=np.float64)
+    if z.ndim != 2 or z.shape[0] != t.size:
+        raise ValueError(f"z: shape {z.shape} does not match t with {t.size} times")
+    seen = np.isfinite(z)
+    if np.isinf(z).any() or not seen.any(axis=1).all():
+        raise ValueError("z: each record needs a finite value of some indicator, NaN elsewhere")
+    complete = seen.all(axis=1)
+    base = history_to_increments(t[complete], z[complete], tamping_t, max_age=max_age)
+    if complete.all():
+        return base
+    partial = ~complete
+    chains = []
+    for i in range(z.shape[1]):
+        own = history_to_increments(t[seen[:, i]], z[seen[:, i], i : i + 1], tamping_t)
+        chains.append((own.dz[:, 0], own.dt))
+    with_i = seen[partial].sum(axis=0)
+    return base._replace(
+        chains=tuple(chains),
+        partial_with=tuple(int(c) for c in with_i),
+        partial_without=tuple(int(partial.sum() - c) for c in with_i),
+    )
+
+
+@dataclass(frozen=True)
+class PartialDriftPosterior:
+    r"""Posterior of ``(mu, Sigma)`` from complete increments and the increments of one
+    indicator ``j`` alone; built by :func:`partial_drift_posterior`.
+
+    Write the state's other indicators as ``r``. The Wiener process factorises as
+    :math:`z_j(t)` with drift :math:`\mu_j` and diffusion :math:`\Sigma_{jj}`, and
+    :math:`\mathbf z_r(t) = \boldsymbol\alpha t + \mathbf B z_j(t) + \mathbf W_{r\cdot j}(t)`
+    with :math:`\mathbf B = \boldsymbol\Sigma_{rj}/\Sigma_{jj}`,
+    :math:`\boldsymbol\alpha = \boldsymbol\mu_r - \mathbf B\mu_j` and
+    :math:`\mathbf W_{r\cdot j}` of covariance :math:`\boldsymbol\Sigma_{r\cdot j} =
+    \boldsymbol\Sigma_{rr} - \mathbf B\boldsymbol\Sigma_{jr}` independent of :math:`z_j`.
+    The likelihood of a history whose records measured ``j`` (all of them) and ``r`` (the
+    complete ones) is then the product of that of ``j``'s increments between consecutive
+    records measuring ``j`` (``marginal``'s data) and, over each interval between consecutive
+    complete records, that of :math:`\Delta\mathbf z_r` given :math:`\Delta z_j`. The NIW
+    prior factorises the same way: :math:`(\mu_j, \Sigma_{jj})` is independent of
+    :math:`(\boldsymbol\alpha, \mathbf B, \boldsymbol\Sigma_{r\cdot j})`. So the posterior is
+    exact and the product of
+
+    * ``marginal``: the one-indicator NIW update of :math:`(\mu_j, \Sigma_{jj})` from the prior's
+      marginal :math:`(m_{0,j}, \lambda_0, \Psi_{0,jj}, \nu_0 - n + 1)` with every increment of
+      ``j``;
+    * the conditional part of ``complete`` (the NIW update from the complete increments),
+      with :math:`\Psi_{r\cdot j} = \Psi_{rr} - \Psi_{rj}\Psi_{jr}/\Psi_{jj}`:
+
+      .. math::
+
+          \boldsymbol\Sigma_{r\cdot j} \sim IW(\Psi_{r\cdot j}, \nu_n),\quad
+          \mathbf B \sim N(\Psi_{rj}/\Psi_{jj}, \boldsymbol\Sigma_{r\cdot j}/\Psi_{jj}),\quad
+          \boldsymbol\alpha \sim N(\mathbf m_r - \mathbf B m_j,
+          \boldsymbol\Sigma_{r\cdot j}/\lambda_n).
+
+    When ``marginal`` holds the complete increments' ``j`` only, this is the distribution of
+    ``complete`` itself.
+    """
+
+    complete: NIWPosterior
+    marginal: NIWPosterior
+    j: int
+
+    @property
+    def n_obs(self) -> int:
+        return self.marginal.n_obs
+
+    def sample(self, ns: int, rng) -> tuple[np.ndarray, np.ndarray]:
+        """Draw ``ns`` joint samples: ``mu`` (ns, n), ``Sigma`` (ns, n, n)."""
+        rng = np.random.default_rng(rng)
+        c, j = self.complete, self.j
+        r = np.flatnonzero(np.arange(c.n) != j)
+        s_jj = sample_inverse_wishart(self.marginal.Psi, self.marginal.nu, rng, size=ns)[:, 0, 0]
+        mu_j = self.marginal.m[0] + np.sqrt(s_jj / self.marginal.lam) * rng.standard_normal(ns)
+        psi_jj, psi_rj = c.Psi[j, j], c.Psi[r, j]
+        psi_r_j = c.Psi[np.ix_(r, r)] - np.outer(psi_rj, psi_rj) / psi_jj
+        s_r_j = sample_inverse_wishart(0.5 * (psi_r_j + psi_r_j.T), c.nu, rng, size=ns)
+        zero = np.zeros((ns, r.size))
+        B = psi_rj / psi_jj + sample_mvn(zero, s_r_j / psi_jj, rng)
+        alpha = c.m[r] - B * c.m[j] + sample_mvn(zero, s_r_j / c.lam, rng)
+        mu = np.empty((ns, c.n))
+        mu[:, j], mu[:, r] = mu_j, alpha + B * mu_j[:, None]
+        sigma = np.empty((ns, c.n, c.n))
+        sigma[:, j, j] = s_jj
+        sigma[:, r, j] = sigma[:, j, r] = B * s_jj[:, None]
+        sigma[:, r[:, None], r] = s_r_j + s_jj[:, None, None] * B[:, :, None] * B[:, None, :]
+        return mu, sigma
+
+
+def partial_drift_posterior(
+    dz, dt, j: int, dz_j, dt_j, prior: NIWPrior | None = None, *, min_increments: int
+) -> PartialDriftPosterior:
+    """:class:`PartialDriftPosterior` from the complete increments ``dz, dt`` (any number,
+    none included) and the ``min_increments`` or more increments ``dz_j, dt_j`` of
+    indicator ``j`` between consecutive records that measured it."""
+    dz = np.asarray(dz, dtype=np.float64)
+    n = dz.shape[1]
+    prior = NIWPrior.default_drift(n) if prior is None else prior
+    one = NIWPrior(
+        m0=prior.m0[[j]],
+        lambda0=prior.lambda0,
+        Psi0=prior.Psi0[[j]][:, [j]],
+        nu0=prior.nu0 - (n - 1),
+    )
+    dz_j = as_finite("dz_j", dz_j, 1)
+    return PartialDriftPosterior(
+        complete=posterior_drift_diffusion(dz, dt, prior, min_increments=0),
+        marginal=posterior_drift_diffusion(dz_j[:, None], dt_j, one, min_increments=min_increments),
+        j=j,
+    )
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,10 @@ step), the oldest beyond the hard bound against a consistent pair after it, a po
 level beyond ``k`` robust sd of the network's levels, or a record dated more than
 ``max_ahead_days`` after event time. Two consecutive records that agree make a step (an
 unreported tamping, a real defect), not an outlier: they are kept.
+
+A record of some indicators only (``z`` NaN for the others) is judged on the indicators it
+measured: a test on an indicator that one of the two records lacks passes (NaN compares
+false), and the references are per indicator over the values there are.
 """
 
 from __future__ import annotations
@@ -32,9 +36,19 @@ import numpy as np
 
 from schemas import Calibration, DegradationPosterior
 
-__all__ = ["Reference", "Rules", "check_model", "raw_pieces", "reference", "screen_segment"]
+__all__ = [
+    "Reference",
+    "Rules",
+    "check_model",
+    "network_references",
+    "raw_pieces",
+    "reference",
+    "screen_segment",
+]
 
 MAD_TO_SD = 1.4826  # 1 / Phi^-1(3/4): MAD of a Gaussian in standard deviations
+INCREMENT_SD_FLOOR = 1e-3  # ln mm / sqrt(day): the robust sd of increments is at least this
+LEVEL_SD_FLOOR = 1e-2  # ln mm: and that of post-tamping levels
 
 
 @dataclass(frozen=True)
@@ -51,12 +65,39 @@ class Reference:
 
 
 def reference(samples: np.ndarray, *, min_count: int, floor: float) -> Reference | None:
-    """The robust reference of ``samples`` (N, n_ind), or None below ``min_count``."""
-    if len(samples) < min_count:
+    """The robust reference of ``samples`` (N, n_ind; NaN where a record did not measure an
+    indicator), per indicator on its finite values; NaN for an indicator with fewer than
+    ``min_count`` (no soft test on it: NaN compares false), None when every one has."""
+    samples = np.asarray(samples, dtype=np.float64)
+    if not np.isnan(samples).any():
+        if len(samples) < min_count:
+            return None
+        med = np.median(samples, axis=0)
+        mad = np.median(np.abs(samples - med), axis=0)
+        return Reference(med, np.maximum(MAD_TO_SD * mad, floor), len(samples))
+    med, scale = np.full(samples.shape[1], np.nan), np.full(samples.shape[1], np.nan)
+    counts = np.isfinite(samples).sum(axis=0)
+    for i in np.flatnonzero(counts >= min_count):
+        x = samples[np.isfinite(samples[:, i]), i]
+        med[i] = np.median(x)
+        scale[i] = max(MAD_TO_SD * float(np.median(np.abs(x - med[i]))), floor)
+    if not np.isfinite(med).any():
         return None
-    med = np.median(samples, axis=0)
-    mad = np.median(np.abs(samples - med), axis=0)
-    return Reference(med, np.maximum(MAD_TO_SD * mad, floor), len(samples))
+    return Reference(med, scale, int(counts.max()))
+
+
+def network_references(
+    raw: list[tuple[np.ndarray, np.ndarray]], n: int, min_count: int
+) -> tuple[Reference | None, Reference | None]:
+    """The references of the standardised increments and of the post-tamping levels over
+    every segment's :func:`raw_pieces` (``raw``; ``n`` indicators)."""
+    empty = np.empty((0, n))
+    x = np.concatenate([x for x, _ in raw] or [empty])
+    levels = np.concatenate([lv for _, lv in raw] or [empty])
+    return (
+        reference(x, min_count=min_count, floor=INCREMENT_SD_FLOOR),
+        reference(levels, min_count=min_count, floor=LEVEL_SD_FLOOR),
+    )
 
 
 def _runs(t: np.ndarray, tamping: np.ndarray) -> np.ndarray:
@@ -125,7 +166,7 @@ def screen_segment(
         dz, dt = z[b] - z[a], t[b] - t[a]
         bound = rules.max_rate * dt + rules.max_jump
         if np.any(np.abs(dz) > bound):
-            i = int(np.argmax(np.abs(dz) - bound))
+            i = int(np.nanargmax(np.abs(dz) - bound))
             return (
                 f"change {dz[i]:+.3f} ln mm in {dt:.1f} days beyond {bound:.3f} "
                 f"({rules.max_rate:.3g} ln mm/day + {rules.max_jump:g})"
@@ -134,7 +175,7 @@ def screen_segment(
             x = dz / np.sqrt(dt)
             if increments.outlying(x, rules.k):
                 d = np.abs(x - increments.median) / increments.scale
-                i = int(np.argmax(d))
+                i = int(np.nanargmax(d))
                 return (
                     f"increment {dz[i]:+.3f} ln mm in {dt:.1f} days is {d[i]:.1f} robust sd "
                     f"from the network's (more than {rules.k:g})"
@@ -164,7 +205,7 @@ def screen_segment(
             level = reason is None and not kept and starts_after_tamping
             if level and levels is not None and levels.outlying(z[i], rules.k):
                 d = np.abs(z[i] - levels.median) / levels.scale
-                m = int(np.argmax(d))
+                m = int(np.nanargmax(d))
                 reason = (
                     f"post-tamping level {z[i][m]:.3f} ln mm is {d[m]:.1f} robust sd from "
                     f"the network's {levels.median[m]:.3f} (more than {rules.k:g})"

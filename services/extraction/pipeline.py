@@ -38,7 +38,14 @@ memory is bounded by a few seconds of samples and one segment of versine samples
    ends (the shared statistic's support), per rail (left,
    right accelerometer), then ``min(left, right)`` per indicator, in mm.
 
-A segment's OnboardIndex is emitted once the versine of both indicators has passed the
+Channels: Top6 comes from the vertical pair (``left_z``, ``right_z``), Align10 from the
+lateral pair (``left_y``, ``right_y``). A unit whose chunks carry one pair only (a
+vertical-only sensor) gets the chain of that indicator only, and its OnboardIndex lists
+that indicator only (``indicators``; the other value is None); a change of channel set
+restarts the unit's chain, as a gap does. A chunk with neither pair is refused
+(SchemaError; ingestion refuses such a RawChunk before it gets here).
+
+A segment's OnboardIndex is emitted once the versine of every indicator measured has passed the
 last chord centre of the segment (``end - L/2 - guard``), i.e. when the unit is the 1 m
 guard short of the segment's end (plus ``v tau``, the filter's delay, and one grid step):
 nothing past the end is needed. It comes out of the very chunk that holds that sample
@@ -67,7 +74,7 @@ rail (the train reverses without turning). ``min(left, right)`` is symmetric, an
 lateral sign flip does not change a standard deviation, so a pass gives the same index in
 either direction.
 
-Quality: ``coverage`` (the smaller of the two indicators' best rail coverage), halved when
+Quality: ``coverage`` (the smaller of the measured indicators' best rail coverage), halved when
 an indicator had only one usable rail (``min(L, R)`` could not reject a one-rail outlier),
 times 0.9 when ingestion flagged the segment's chunks with chunk-wide findings
 (``clipping``, ``supply``).
@@ -82,7 +89,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 from scipy import signal
 
-from schemas import OnboardIndex, PositionedChunk, SchemaError
+from schemas import INDICATORS, OnboardIndex, PositionedChunk, SchemaError
 from schemas.messages import INDEX_MAX_MM
 from track.segments import LineSegments, SegmentTable
 from track.versine import (
@@ -108,6 +115,7 @@ _CHANNEL_SIDES = {  # channel -> (indicator, side): 0 = top6 (z), 1 = align10 (y
     "left_y": (1, 0),
     "right_y": (1, 1),
 }
+_INDICATOR_COLUMNS = (("left_z", "right_z"), ("left_y", "right_y"))  # by indicator, both rails
 _RAIL_FLAGS = ("flatline", "dropout")  # ingestion's per-channel findings that void a rail
 _CHUNK_FLAGS = ("clipping", "supply")  # chunk-wide findings: lower the quality only
 
@@ -505,7 +513,10 @@ class UnitPipeline:
         self.fir_delay_s = (cfg.fir_taps - 1) / 2 / cfg.rate_hz
         self.chains = [_IndicatorChain(cfg, i) for i in range(len(INDICATOR_CHORDS_M))]
         self.counters = Counters()
-        self._columns: tuple[tuple[str, ...], np.ndarray] | None = None
+        # channel names -> (their columns in the order of _INDICATOR_COLUMNS, -1 absent;
+        # the indicators they allow)
+        self._columns: tuple[tuple[str, ...], np.ndarray, tuple[int, ...]] | None = None
+        self._measured: tuple[int, ...] = ()  # the indicators of the chunks in this run
         self._pending: dict[tuple[int, int, int], _IndicatorResult] = {}
         self._run = 0
         self._line: LineSegments | None = None
@@ -548,23 +559,30 @@ class UnitPipeline:
 
     # -- one chunk --------------------------------------------------------------------------
 
-    def _columns_of(self, chunk: PositionedChunk) -> np.ndarray:
+    def _columns_of(self, chunk: PositionedChunk) -> tuple[np.ndarray, tuple[int, ...]]:
+        """The columns of top6 left, right, align10 left, right (-1: absent) and the
+        indicators whose two rails are both there (Top6 needs the vertical channels, Align10
+        the lateral ones)."""
         names = tuple(chunk.channels)
         if self._columns is None or self._columns[0] != names:
-            missing = [c for c in _CHANNEL_SIDES if c not in names]
-            if missing:
-                raise SchemaError(f"channels: {missing} missing from {list(names)}")
-            # column order: top6 left, right; align10 left, right
-            cols = [names.index(c) for c in ("left_z", "right_z", "left_y", "right_y")]
-            self._columns = (names, np.array(cols))
-        return self._columns[1]
+            measured = tuple(
+                i for i, pair in enumerate(_INDICATOR_COLUMNS) if all(c in names for c in pair)
+            )
+            if not measured:
+                need = " or ".join(str(list(pair)) for pair in _INDICATOR_COLUMNS)
+                raise SchemaError(f"channels: need {need}, have {list(names)}")
+            cols = [
+                names.index(c) if c in names else -1 for pair in _INDICATOR_COLUMNS for c in pair
+            ]
+            self._columns = (names, np.array(cols), measured)
+        return self._columns[1], self._columns[2]
 
     def process(self, chunk: PositionedChunk) -> list[OnboardIndex]:
         """One chunk in; the OnboardIndex of every segment pass it completed out."""
         cfg = self.cfg
         if abs(chunk.rate_hz - cfg.rate_hz) > 1e-6 * cfg.rate_hz:
             raise SchemaError(f"rate_hz: {chunk.rate_hz} Hz, extraction expects {cfg.rate_hz} Hz")
-        cols = self._columns_of(chunk)
+        cols, measured = self._columns_of(chunk)
         line = self.segments.lines.get(chunk.line)
         if line is None:
             self.counters.unknown_line += 1
@@ -580,13 +598,16 @@ class UnitPipeline:
             or chunk.gap_before
             or line is not self._line
             or chunk.t0 < self._t_end - 0.5 / fs_in
+            or measured != self._measured
         ):
             out += self._reset(chunk.t0)
             self._line = line
+            self._measured = measured
         self._t_end = chunk.t0 + n / fs_in
         if n == 0:
             return out
-        x = np.ascontiguousarray(samples[:, cols].T, dtype=np.float64)  # (4, n)
+        x = np.zeros((4, n))  # an absent channel's rows stay 0; its chain does not run
+        x[cols >= 0] = samples[:, cols[cols >= 0]].T
         y, t = self._decimate(x, chunk.t0)
         self._flag_rails(chunk)
         chunk_flags = any(f.split(":", 1)[0] in _CHUNK_FLAGS for f in chunk.sensor_flags)
@@ -596,7 +617,8 @@ class UnitPipeline:
         kt, kc, kv = self._knots_with(chunk)
         v = np.interp(t, kt, kv)
         results: list[_IndicatorResult] = []
-        for i, chain in enumerate(self.chains):
+        for i in measured:
+            chain = self.chains[i]
             d = chain.filter(y[2 * i : 2 * i + 2])
             ts = t - chain.delay(v)  # when the unit was over what this output shows
             c = np.interp(ts, kt, kc)
@@ -656,9 +678,12 @@ class UnitPipeline:
     # -- passes -----------------------------------------------------------------------------
 
     def _combine(self, results: list[_IndicatorResult]) -> list[OnboardIndex]:
-        """Pair the two indicators' views of a pass; decide once both are in."""
+        """Gather the measured indicators' views of a pass; decide once all are in."""
         out: list[OnboardIndex] = []
         for r in results:
+            if len(self._measured) == 1:  # one indicator measured: nothing to wait for
+                out += self._decide(r, None)
+                continue
             key = (r.run, r.k, r.direction)
             other = self._pending.pop(key, None)
             if other is None:
@@ -668,51 +693,56 @@ class UnitPipeline:
         return out
 
     def _decide(self, a: _IndicatorResult, b: _IndicatorResult | None) -> list[OnboardIndex]:
+        """The index of a pass from the views of the indicators measured (``b`` None: ``a``
+        alone, which is a pass skipped when the unit measures both)."""
         c = self.counters
-        both = [a] if b is None else [a, b]
-        if any(r.pos_bad for r in both):
+        views = sorted([a] if b is None else [a, b], key=lambda r: r.indicator)
+        if any(r.pos_bad for r in views):
             c.skipped_position += 1
             return []
-        if any(r.slow for r in both):
+        if any(r.slow for r in views):
             c.skipped_slow += 1
             return []
-        if b is None or any(all(s is None for s in r.stat_mm) for r in both):
+        if len(views) < len(self._measured) or any(
+            all(s is None for s in r.stat_mm) for r in views
+        ):
             c.skipped_coverage += 1
             return []
-        top, align = (a, b) if a.indicator == 0 else (b, a)
         line = self._line
         assert line is not None
-        stats = []
+        stats: dict[int, float] = {}
         single = False
-        for r in (top, align):
+        for r in views:
             usable = [s for s in r.stat_mm if s is not None]
             single |= len(usable) < 2
-            stats.append(min(usable))
-        if min(stats) <= 0.0:
+            stats[r.indicator] = min(usable)
+        if min(stats.values()) <= 0.0:
             c.skipped_coverage += 1
             return []
-        if max(stats) > INDEX_MAX_MM:  # not track geometry: a sensor fault or a wrong unit
+        if max(stats.values()) > INDEX_MAX_MM:  # not track geometry: a sensor fault
             c.skipped_implausible += 1
             return []
-        coverage = min(max(r.coverage) for r in (top, align))
+        coverage = min(max(r.coverage) for r in views)
         quality = (
             coverage
             * (0.5 if single else 1.0)
-            * (0.9 if top.chunk_flags or align.chunk_flags else 1.0)
+            * (0.9 if any(r.chunk_flags for r in views) else 1.0)
         )
         c.passes_indexed += 1
+        first = views[0]  # Top6's view when measured: its chord's times and speeds
         return [
             OnboardIndex(
                 line=line.line,
-                segment=line.ids[top.k],
+                segment=line.ids[first.k],
                 train=self.train,
                 unit=self.unit,
-                t=top.t_mid,
-                top6_mm=stats[0],
-                align10_mm=stats[1],
-                speed_mps=max(0.0, top.speed_mps),
+                t=first.t_mid,
+                top6_mm=stats.get(0),
+                align10_mm=stats.get(1),
+                speed_mps=max(0.0, first.speed_mps),
                 coverage=min(1.0, coverage),
                 quality=min(1.0, quality),
+                indicators=[INDICATORS[i] for i in sorted(stats)],
             )
         ]
 

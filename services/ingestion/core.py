@@ -74,7 +74,6 @@ import numpy as np
 from schemas import GpsFix, NDArray, PositionedChunk, RawChunk
 from services.ingestion.config import IngestionConfig
 from services.ingestion.health import (
-    CHANNELS,
     Inspected,
     UnitHealth,
     inspect_chunk,
@@ -192,7 +191,7 @@ def _positioned(st: TrainState, item: Inspected, gap_before: bool, cfg: Ingestio
         seq=raw.seq,
         t0=raw.t0,
         rate_hz=raw.rate_hz,
-        channels=CHANNELS,
+        channels=item.channels,
         samples=NDArray(dtype="f4", shape=list(item.samples.shape), data=item.samples.tobytes()),
         line=line,
         knot_t=NDArray.of(t),

@@ -1,11 +1,14 @@
 """Validation beyond the schema, health and correction of one chunk (vectorised). Pure.
 
-**Validation** beyond the schema (:func:`inspect_chunk`): the channel set holds the six
-accelerometer channels and ``supply_v``; the sample rate is within ``rate_tolerance`` of
-the unit's expected rate; the samples are floats (an integer dtype carries no scale on
-the wire: refused); ``t0`` is in the valid time range; every value is finite; the
-accelerations are in g (:func:`vertical_unit_reason`: a vertical channel's mean is
-gravity, so a mean beyond ``vertical_max_g`` is m/s² at ≈ 9.81, or counts); the supply
+**Validation** beyond the schema (:func:`inspect_chunk`): the channel set holds
+``supply_v`` and the vertical pair (``left_z``, ``right_z``), the lateral pair (``left_y``,
+``right_y``) or both (:func:`channels_reason`: a vertical-only sensor measures Top6 only);
+the longitudinal channels are passed on when present; the sample rate is within
+``rate_tolerance`` of the unit's expected rate; the samples are floats (an integer dtype
+carries no scale on the wire: refused); ``t0`` is in the valid time range; every value is
+finite; the accelerations are in g (:func:`vertical_unit_reason`: a vertical channel's mean is
+gravity, so a mean beyond ``vertical_max_g`` is m/s² at ≈ 9.81, or counts; a chunk without
+vertical channels has no such check); the supply
 voltage is plausible (``supply_min_v``..``supply_max_v``). A failure is a
 reason (the core makes it a :class:`~services.ingestion.core.Rejection`).
 
@@ -28,8 +31,10 @@ from schemas import ACCEL_CHANNELS, SUPPLY_CHANNEL, RawChunk
 from services.ingestion.config import IngestionConfig
 
 G_MPS2 = 9.80665
-CHANNELS = list(ACCEL_CHANNELS)  # output columns (supply_v dropped after the correction)
 _CANONICAL = [*ACCEL_CHANNELS, SUPPLY_CHANNEL]
+# the channel pairs an indicator needs, both rails: Top6 from the vertical, Align10 from the
+# lateral accelerations (docs/science.md, signal chain)
+INDICATOR_CHANNELS = {"top6": ("left_z", "right_z"), "align10": ("left_y", "right_y")}
 
 
 @dataclass
@@ -38,6 +43,7 @@ class UnitHealth:
 
     chunks: int = 0  # accepted (validated) chunks
     samples: int = 0  # accepted sample rows
+    values: int = 0  # accepted acceleration values (rows x accelerometer channels)
     published: int = 0  # PositionedChunks emitted
     rejected: int = 0  # validation / sequencing rejections
     duplicates: int = 0
@@ -56,7 +62,7 @@ class UnitHealth:
 
     @property
     def clip_fraction(self) -> float:
-        return self.clipped_samples / max(1, 6 * self.samples)
+        return self.clipped_samples / max(1, self.values)
 
 
 @dataclass(frozen=True)
@@ -64,7 +70,8 @@ class Inspected:
     """A validated, corrected chunk waiting for its neighbours and its position."""
 
     raw: RawChunk
-    samples: np.ndarray  # (n, 6) float32 m/s^2, supply-corrected, canonical order
+    channels: list[str]  # the accelerometer channels of ``samples``, in ACCEL_CHANNELS order
+    samples: np.ndarray  # (n, len(channels)) float32 m/s^2, supply-corrected
     flags: tuple[str, ...]
     t_last: float  # epoch s of the last sample
     duration_s: float  # n / rate
@@ -73,11 +80,22 @@ class Inspected:
     supply_max_v: float
 
 
-def _column_order(channels: list[str]) -> list[int] | None:
+def _column_order(channels: list[str], accel: list[str]) -> list[int] | None:
     if channels == _CANONICAL:
         return None  # the usual case: no gather
     where = {name: i for i, name in enumerate(channels)}
-    return [where[name] for name in _CANONICAL]
+    return [where[name] for name in [*accel, SUPPLY_CHANNEL]]
+
+
+def channels_reason(channels: list[str]) -> str | None:
+    """Why a chunk's channels cannot give an index, or None: it needs ``supply_v`` (the
+    ratiometric correction) and both rails of the vertical or of the lateral accelerations."""
+    if SUPPLY_CHANNEL not in channels:
+        return f"channels: missing ['{SUPPLY_CHANNEL}'] (have {channels})"
+    if any(all(c in channels for c in pair) for pair in INDICATOR_CHANNELS.values()):
+        return None
+    need = " or ".join(str(list(pair)) for pair in INDICATOR_CHANNELS.values())
+    return f"channels: need {need}, each with '{SUPPLY_CHANNEL}' (have {channels})"
 
 
 def inspect_chunk(chunk: RawChunk, cfg: IngestionConfig) -> Inspected | str:
@@ -89,9 +107,9 @@ def inspect_chunk(chunk: RawChunk, cfg: IngestionConfig) -> Inspected | str:
 
     (the sensor output is ratiometric: proportional to the supply voltage ``V[k]``).
     """
-    missing = [c for c in _CANONICAL if c not in chunk.channels]
-    if missing:
-        return f"channels: missing {missing} (have {chunk.channels})"
+    bad_channels = channels_reason(chunk.channels)
+    if bad_channels:
+        return bad_channels
     expected = cfg.expected_rate(chunk.train, chunk.unit)
     if abs(chunk.rate_hz - expected) > cfg.rate_tolerance * expected:
         return (
@@ -111,18 +129,21 @@ def inspect_chunk(chunk: RawChunk, cfg: IngestionConfig) -> Inspected | str:
     bad = time_range_reason("t0", chunk.t0, cfg)
     if bad:
         return bad
-    order = _column_order(chunk.channels)
+    accel = [c for c in ACCEL_CHANNELS if c in chunk.channels]
+    k = len(accel)
+    order = _column_order(chunk.channels, accel)
     if order is not None:
         a = a[:, order]
     if a.dtype != np.float32:
         a = a.astype(np.float32)
-    acc, volts = a[:, :6], a[:, 6]
+    acc, volts = a[:, :k], a[:, k]
     # Whole-array reductions over the contiguous block are several times faster than
     # per-column (axis=0) ones; NaN propagates through max/min, so they check finiteness.
     top, bottom = float(a.max()), float(a.min())
     if not (math.isfinite(top) and math.isfinite(bottom)):
         return "samples: contain NaN or inf"
-    unit = vertical_unit_reason(acc, cfg)
+    vertical = [accel.index(c) for c in INDICATOR_CHANNELS["top6"] if c in accel]
+    unit = vertical_unit_reason(acc[:, vertical], cfg) if vertical else None
     if unit:
         return unit
     vmin, vmax = float(volts.min()), float(volts.max())
@@ -141,14 +162,14 @@ def inspect_chunk(chunk: RawChunk, cfg: IngestionConfig) -> Inspected | str:
     # practically impossible in a live float signal); per channel only when there are some
     same = a[1:] == a[:-1]
     limit = cfg.flat_fraction * (n - 1)
-    if np.count_nonzero(same) - np.count_nonzero(same[:, 6]) >= limit:
-        repeats = np.count_nonzero(same[:, :6], axis=0)
+    if np.count_nonzero(same) - np.count_nonzero(same[:, k]) >= limit:
+        repeats = np.count_nonzero(same[:, :k], axis=0)
         for c in np.flatnonzero(repeats >= limit):
             # stuck at exactly zero is a dropout (signal lost); at any other value, a flatline
             if np.count_nonzero(acc[:, c] == 0.0) >= cfg.flat_fraction * n:
-                flags.append(f"dropout:{ACCEL_CHANNELS[c]}")
+                flags.append(f"dropout:{accel[c]}")
             else:
-                flags.append(f"flatline:{ACCEL_CHANNELS[c]}")
+                flags.append(f"flatline:{accel[c]}")
     nominal = cfg.supply_nominal_v
     if max(nominal - vmin, vmax - nominal) > cfg.supply_flag_deviation * nominal:
         flags.append("supply")
@@ -156,6 +177,7 @@ def inspect_chunk(chunk: RawChunk, cfg: IngestionConfig) -> Inspected | str:
     samples = acc * scale[:, None]
     return Inspected(
         raw=chunk,
+        channels=accel,
         samples=samples,
         flags=tuple(flags),
         t_last=chunk.t0 + (n - 1) / chunk.rate_hz,
@@ -177,13 +199,14 @@ def time_range_reason(name: str, t: float, cfg: IngestionConfig) -> str | None:
 
 
 def vertical_unit_reason(acc: np.ndarray, cfg: IngestionConfig) -> str | None:
-    """Why the accelerations are not in g, judged by gravity on the vertical channels.
+    """Why the accelerations are not in g, judged by gravity on the vertical channels
+    (``acc``: the columns of ``left_z``/``right_z`` present).
 
     Over a chunk a vertical channel averages to gravity, +1 g (the bogie's vibration averages
     out). A mean beyond ``vertical_max_g`` on either of ``left_z``/``right_z`` is no
     acceleration in g: about 9.81 is m/s², anything larger counts or another scale.
     """
-    means = acc[:, [0, 3]].mean(axis=0, dtype=np.float64)
+    means = acc.mean(axis=0, dtype=np.float64)
     worst = float(means[np.argmax(np.abs(means))])
     if abs(worst) <= cfg.vertical_max_g:
         return None
@@ -209,6 +232,7 @@ def account(h: UnitHealth, item: Inspected) -> None:
     """Count an accepted chunk's samples and findings."""
     h.chunks += 1
     h.samples += item.samples.shape[0]
+    h.values += item.samples.size
     if item.clipped:
         h.clipped_samples += item.clipped
         h.clipping_chunks += 1

@@ -14,7 +14,7 @@ import pytest
 import zenoh
 from support import ServiceThread
 
-from schemas import DeadLetter, PositionedChunk, decode, keys
+from schemas import DeadLetter, NDArray, PositionedChunk, decode, keys
 from services.defaults import demo_network
 from services.ingestion import service as ingestion
 from simulators.gateway import key_and_payload
@@ -38,14 +38,18 @@ def running(service_config, service_thread) -> Callable[[], ServiceThread]:
     return start
 
 
-def simulated(seconds: int):
-    """RawChunks (bogie physics) and GPS fixes of a train on L3, in publishing order."""
+def simulated(seconds: int, channels: list[str] = RAW_CHANNELS):
+    """RawChunks (bogie physics) of the ``channels`` and GPS fixes of a train on L3, in
+    publishing order."""
     line = demo_network().lines["L3"]
     profile = LineProfile("L3", [(s.start_m, s.end_m) for s in line.segments], 1)
     sim = TrainSimulator("T7", line, profile, 1, start_t=T0, phase_s=150.0)
+    cols = [RAW_CHANNELS.index(c) for c in channels]
     messages = []
     for k in range(seconds):
         chunk = sim.raw_chunk(k)[0]
+        samples = NDArray.of(chunk.samples.array()[:, cols], "f4")
+        chunk = msgspec.structs.replace(chunk, channels=list(channels), samples=samples)
         messages += [chunk, *sim.gps_fixes(chunk.t0, chunk.t0 + 1.0)]
     return messages
 
@@ -72,14 +76,18 @@ def publish_and_collect(ns: str, messages, raw_pub, gps_pub, accel) -> list:
     return got
 
 
+@pytest.mark.parametrize(
+    "channels", [RAW_CHANNELS, ["left_z", "right_z", "supply_v"]], ids=["all", "vertical"]
+)
 def test_raw_and_gps_in_positioned_chunks_out(
-    open_session, service_config, running, collector, until_matched
+    open_session, service_config, running, collector, until_matched, channels
 ):
     ns = service_config.ns
     client = open_session()
     accel = collector(lambda s: (str(s.key_expr), decode(s.payload.to_bytes(), PositionedChunk)))
     client.declare_subscriber(keys.accel_all(ns), accel)
-    messages = simulated(4)
+    messages = simulated(4, channels)
+    accel_channels = [c for c in RAW_CHANNELS[:6] if c in channels]
     with running():
         raw_pub, gps_pub = gateway_publishers(client, ns, until_matched)
         got = publish_and_collect(ns, messages, raw_pub, gps_pub, accel)
@@ -87,9 +95,10 @@ def test_raw_and_gps_in_positioned_chunks_out(
     chunks = [c for _, c in got]
     assert [c.seq for c in chunks] == [0, 1, 2]
     for c in chunks:
-        assert c.line == "L3" and c.position_ok and c.channels == RAW_CHANNELS[:6]
-        assert c.samples.shape == [2000, 6]
-        assert abs(float(c.samples.array()[:, [0, 3]].mean()) - 9.80665) < 0.3
+        assert c.line == "L3" and c.position_ok and c.channels == accel_channels
+        assert c.samples.shape == [2000, len(accel_channels)]
+        vertical = [accel_channels.index("left_z"), accel_channels.index("right_z")]
+        assert abs(float(c.samples.array()[:, vertical].mean()) - 9.80665) < 0.3
         kt = c.knot_t.array()
         assert kt[0] <= c.t0 and kt[-1] >= c.t0 + 1999 / 2000
     # (the 4th is flushed at shutdown with position_ok False; that put races the session's
@@ -118,6 +127,11 @@ def test_malformed_payload_and_invalid_chunk_go_to_dead_letters(
         raw_pub.put(msgpack.packb(bad))
         letter = letters.get()
         assert "rate_hz" in letter.reason and letter.service == ingestion.SERVICE
+
+        (neither,) = simulated(1, ["left_z", "left_y", "supply_v"])[:1]
+        raw_pub.put(key_and_payload(ns, neither)[1])
+        letter = letters.get()
+        assert "channels: need ['left_z', 'right_z'] or ['left_y', 'right_y']" in letter.reason
 
         fix = {"v": 1, "train": "T9", "t": T0, "lat_deg": -27.4, "lon_deg": 153.0}
         client.put(keys.gps(ns, "T8"), msgpack.packb(fix))

@@ -695,14 +695,3 @@ def test_service_network_setting_and_dead_letter_keys():
     q = Quarantine("trc", "L1", "s00042", "why")
     assert service.quarantine_key("tf", q) == "tf/trc/L1/s00042"
     assert service.quarantine_key("tf", Quarantine("index", "L1", "s1", "")) == "tf/index/L1/s1"
-
-
-def test_a_partial_trc_record_makes_no_pair_and_no_increment():
-    core = Calibrator(CalibratorConfig(tolerance_days=1.0))
-    t = 1.77e9
-    record = TrcRecord(line="L1", segment="s1", t=t, top6_mm=2.0, run_id="r1",
-                       indicators=["top6"])  # fmt: skip
-    assert core.ingest(record) is False
-    assert core.stats["trc_partial"] == 1 and core.stats["trc"] == 0
-    core.ingest(make_index(t))
-    assert core.stats["pairs"] == 0

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from schemas import OnboardIndex, PositionedChunk
+from schemas import NDArray, OnboardIndex, PositionedChunk, SchemaError
 from services.defaults import DEMO_NETWORK
 from services.extraction.pipeline import (
     ExtractionConfig,
@@ -274,3 +274,37 @@ def test_a_statistic_beyond_any_track_geometry_is_skipped_not_published():
     out, p = run(sine_run(20.0, amp_mm=500.0))
     assert out == []
     assert p.counters.skipped_implausible >= 3
+
+
+def _only(c: PositionedChunk, channels: list[str]) -> PositionedChunk:
+    """``c`` as a unit with the accelerometer ``channels`` only would send it."""
+    cols = [c.channels.index(name) for name in channels]
+    return _replace(c, channels=channels, samples=NDArray.of(c.samples.array()[:, cols], "f4"))
+
+
+@pytest.mark.parametrize(
+    ("channels", "indicator"),
+    [(["left_z", "right_z"], "top6"), (["left_y", "right_y", "left_x"], "align10")],
+)
+def test_a_unit_of_one_channel_pair_indexes_the_indicator_it_measures(
+    sim_chunks, channels, indicator
+):
+    both, _ = run(sim_chunks, UnitPipeline("T1", "u0", sim_table()))
+    one, p = run([_only(c, channels) for c in sim_chunks], UnitPipeline("T1", "u0", sim_table()))
+    assert [i.segment for i in one] == [i.segment for i in both] and len(one) >= 8
+    assert p.counters.passes_indexed == len(one)
+    other = "align10" if indicator == "top6" else "top6"
+    for a, b in zip(both, one, strict=True):
+        assert b.indicators == [indicator] and getattr(b, f"{other}_mm") is None
+        # each indicator's chain reads its own channels only: the same value
+        assert getattr(b, f"{indicator}_mm") == getattr(a, f"{indicator}_mm")
+        assert b.quality >= a.quality  # judged on the indicator measured only
+
+
+def test_a_change_of_channels_restarts_the_unit_and_none_of_either_pair_is_refused(sim_chunks):
+    vertical = [_only(c, ["left_z", "right_z"]) for c in sim_chunks[60:]]
+    out, p = run(sim_chunks[:60] + vertical, UnitPipeline("T1", "u0", sim_table()))
+    assert p.counters.resets == 2
+    assert {tuple(i.indicators) for i in out} == {("top6", "align10"), ("top6",)}
+    with pytest.raises(SchemaError, match=r"need \['left_z', 'right_z'\] or"):
+        run([_only(sim_chunks[0], ["left_z", "left_y"])])

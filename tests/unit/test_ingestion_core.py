@@ -213,8 +213,8 @@ def _low_supply(c: RawChunk) -> RawChunk:
 BAD = {
     "rate": (lambda c: msgspec.structs.replace(c, rate_hz=1000.0), "rate_hz"),
     "channels": (
-        lambda c: msgspec.structs.replace(c, channels=[*RAW_CHANNELS[:5], "x7", RAW_CHANNELS[6]]),
-        "channels: missing ['right_x']",
+        lambda c: msgspec.structs.replace(c, channels=["x7", "x8", *RAW_CHANNELS[2:]]),
+        "channels: need ['left_z', 'right_z'] or ['left_y', 'right_y']",
     ),
     "nan": (_with_nan, "NaN"),
     "supply": (_low_supply, "supply_v"),
@@ -424,6 +424,46 @@ def test_channels_in_another_order_are_put_in_canonical_order():
     events[0] = shuffled
     got = positioned(IngestionCore(network()).run(events))[0]
     assert encode(got) == encode(want)
+
+
+@pytest.mark.parametrize(
+    "channels",
+    [["right_z", "supply_v", "left_z"], ["left_y", "right_y", "right_x", "supply_v"]],
+)
+def test_a_chunk_of_one_channel_pair_is_passed_on_with_those_channels(channels):
+    """A vertical-only (or lateral-only) sensor: its channels are corrected and passed on
+    in canonical order, as the same columns of a full chunk are."""
+    _, events = train_on("L3", 2)
+    full = positioned(IngestionCore(network()).run(events))[0]
+    cols = [RAW_CHANNELS.index(c) for c in channels]
+    raw = events[0]
+    events[0] = msgspec.structs.replace(
+        raw, channels=channels, samples=NDArray.of(raw.samples.array()[:, cols], "f4")
+    )
+    core = IngestionCore(network())
+    got = positioned(core.run(events))[0]
+    kept = [c for c in ACCEL_CHANNELS if c in channels]
+    assert got.channels == kept and got.samples.shape == [N, len(kept)]
+    want = full.samples.array()[:, [ACCEL_CHANNELS.index(c) for c in kept]]
+    assert np.array_equal(got.samples.array(), want)
+    assert core.health("T1", "u0").values == N * (len(kept) + 6)  # and the full second one
+
+
+def test_a_chunk_of_neither_pair_is_refused_with_the_channels_it_needs():
+    raw = chunk(0)
+    cols = [RAW_CHANNELS.index(c) for c in ("left_z", "left_y", "supply_v")]
+    bad = msgspec.structs.replace(
+        raw,
+        channels=["left_z", "left_y", "supply_v"],
+        samples=NDArray.of(raw.samples.array()[:, cols], "f4"),
+    )
+    (rejection,) = rejections(IngestionCore(network()).run([bad]))
+    assert rejection.reason.startswith(
+        "RawChunk: channels: need ['left_z', 'right_z'] or ['left_y', 'right_y'], each with"
+    )
+    no_supply = msgspec.structs.replace(raw, channels=RAW_CHANNELS[:6] + ["v"])
+    (rejection,) = rejections(IngestionCore(network()).run([no_supply]))
+    assert rejection.reason.startswith("RawChunk: channels: missing ['supply_v']")
 
 
 def test_config_from_dict_refuses_unknown_keys():

@@ -7,12 +7,12 @@ import copy
 import numpy as np
 import pytest
 
-from schemas import DAY_S, OnboardIndex
+from schemas import DAY_S, OnboardIndex, RawChunk
 from services.defaults import demo_network
 from simulators.fleet import MIXED, Fleet
 from simulators.groundtruth import GroundTruthWriter, load_truth
 from simulators.truth import Truth, truth_events
-from simulators.world import index_pass_events
+from simulators.world import VERTICAL_CHANNELS, WorldSpec, index_pass_events, raw_train_events
 
 T0 = 1767225600.0  # 2026-01-01T00:00:00Z
 
@@ -147,3 +147,33 @@ def test_raw_mode_units_read_with_their_gain_and_tilt_and_classes_change_the_bog
     conf = fleet.train_config(loco)
     assert conf.physics.wheelbase_m == 2.8 and conf.cruise_factor == (0.6, 0.8)
     assert Fleet.from_config(cfg, 3).train_config("T000") == TrainConfig()  # the default fleet
+
+
+def test_vertical_only_units_send_top6_indices_and_vertical_channels(net, cfg):
+    half = copy.deepcopy(cfg)
+    half.setdefault("fleet", {})["vertical_only_share"] = 0.5
+    fleet = Fleet.from_config(half, 5)
+    flags = [fleet.unit(f"T{i:03d}", "u0").vertical_only for i in range(200)]
+    assert 70 < sum(flags) < 130
+    base = Fleet.from_config(cfg, 5).unit("T000", "u0")
+    same = fleet.unit("T000", "u0")  # the share draws on a stream of its own
+    assert (same.gain, same.mount_rad) == (base.gain, base.mount_rad)
+    msgs = [
+        m for _, ms in index_pass_events(net, Truth(net, half, T0, 2), 4, 1, 2, config=half)
+        for m in ms
+    ]  # fmt: skip
+    kinds = {m.train: tuple(m.indicators) for m in msgs}
+    assert set(kinds.values()) == {("top6",), ("top6", "align10")}
+    for m in msgs:
+        assert (m.align10_mm is None) == (kinds[m.train] == ("top6",))
+    with pytest.raises(ValueError, match="vertical_only_share"):
+        Fleet.from_config({**cfg, "fleet": {"vertical_only_share": 2}}, 5)
+
+
+def test_a_vertical_only_raw_unit_sends_the_vertical_channels_and_supply(cfg):
+    config = copy.deepcopy(cfg)
+    config.setdefault("fleet", {})["vertical_only_share"] = 1.0
+    spec = WorldSpec(demo_network(), config, T0, 30 / DAY_S, 3, 1, "raw")
+    chunks = [m for _, ms in raw_train_events(spec) for m in ms if isinstance(m, RawChunk)]
+    assert chunks and all(c.channels == list(VERTICAL_CHANNELS) for c in chunks)
+    assert all(c.samples.shape[1] == 3 for c in chunks)
