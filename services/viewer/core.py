@@ -255,6 +255,11 @@ class ViewerCore:
             raise ValueError("plot_flush_s, live_flush_s: must be >= 0")
         self.rec = rec
         self.network = network
+        self.line_names = (
+            {}
+            if network is None
+            else {line.id: line.name for line in network.lines.values() if line.name}
+        )
         self.worst_n = worst_n
         self.plot_flush_s = plot_flush_s
         self.live_flush_s = live_flush_s
@@ -427,6 +432,13 @@ class ViewerCore:
         """Slot → the segment it shows."""
         return {slot.name: slot.key for slot in self._slots}
 
+    def segment_label(self, key: SegmentId) -> str:
+        """A segment as operators know it: ``line name (line/segment)``, or ``line/segment``
+        when the line has no name (the id is what `trackfusion viewer select` takes)."""
+        name = self.line_names.get(key[0])
+        ids = f"{key[0]}/{key[1]}"
+        return f"{name} ({ids})" if name and name != key[0] else ids
+
     def _slot_can_fill(self) -> bool:
         empty = sum(slot.key is None for slot in self._slots[: self.worst_n])
         return empty > 0 and len(self.p_exceed) > self.worst_n - empty
@@ -516,7 +528,7 @@ class ViewerCore:
             p = self.p_exceed.get(slot.key)
             measured = " ".join(self.last_trc.get(slot.key, ())) or "-"
             lines.append(
-                f"| {row} | {slot.key[0]}/{slot.key[1]} | {'-' if p is None else f'{p:.2f}'} "
+                f"| {row} | {self.segment_label(slot.key)} | {'-' if p is None else f'{p:.2f}'} "
                 f"| {measured} |"
             )
         lines += [
@@ -579,7 +591,7 @@ class ViewerCore:
             for part in (
                 alert.status,
                 alert.kind,
-                f"{alert.line}/{alert.segment}",
+                self.segment_label((alert.line, alert.segment)),
                 alert.indicator,
                 alert.level,
                 f"p={alert.probability:.2f}",

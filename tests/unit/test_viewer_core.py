@@ -31,6 +31,7 @@ from services.viewer.core import (
 )
 from services.viewer.scene import UNKNOWN_RGB, build_blueprint, exceedance_color, health_markdown
 from services.viewer.testing import rrd_contents, verify_rrd
+from track.network import Line, Network
 
 
 @pytest.mark.parametrize(
@@ -355,3 +356,31 @@ def test_the_ranking_says_what_each_segments_last_trc_record_measured(recording)
     core.flush(0.0)
     rows = core._ranking_text.splitlines()
     assert "| #1 | L1/s1 | 0.70 | top6 |" in rows and "| #2 | L1/s2 | 0.20 | - |" in rows
+
+
+def test_the_ranking_and_alerts_name_lines_as_operators_do(recording):
+    rec, _ = recording
+    lonlat = [(8.0, 44.0), (8.05, 44.0)]
+    network = Network(
+        {
+            "way7-t2": Line("way7-t2", lonlat, lonlat[0], name="Sanremo – Albenga, track 2"),
+            "L9": Line("L9", lonlat, lonlat[0]),
+        },
+        200.0,
+        lonlat[0],
+    )
+    core = ViewerCore(rec, network, worst_n=2, plot_flush_s=5.0, live_flush_s=1.0)
+    core.start(now=0.0)
+    core.take(
+        [
+            make_state(T0, line="way7-t2", segment="s00001", p_exceed=p_top6(1, 0.7)),
+            make_state(T0, line="L9", segment="s00002", p_exceed=p_top6(1, 0.2)),
+        ]
+    )
+    core.flush(0.0)
+    rows = core._ranking_text.splitlines()
+    assert "| #1 | Sanremo – Albenga, track 2 (way7-t2/s00001) | 0.70 | - |" in rows
+    assert "| #2 | L9/s00002 | 0.20 | - |" in rows
+    assert (
+        core.segment_label(("way7-t2", "s00003")) == "Sanremo – Albenga, track 2 (way7-t2/s00003)"
+    )
