@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench scale soak soak-demo soak-trains soak-order lint format clean
+.PHONY: run test bench scale soak soak-demo soak-trains soak-order pictures lint format clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -47,6 +47,12 @@ soak-trains: $(STAMP)
 # message at a time, batches and a restart: filtering must end as in canonical order.
 soak-order: $(STAMP)
 	$(BIN)/python -m bench.order_check $(ORDER_ARGS)
+
+# `make pictures`: the pictures of docs/operating.md's real-network walk-through, made by
+# running it on tests/fixtures/osm/riviera.json (bench/walkthrough_pictures.py, a few
+# minutes; needs /usr/bin/chromium).
+pictures: $(STAMP)
+	$(BIN)/python -m bench.walkthrough_pictures
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

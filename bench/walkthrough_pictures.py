@@ -9,11 +9,11 @@
 3. two runs of a level-only recording car on track 1 (``import-trc --profile``), 34 days
    apart, the second aligned to the first;
 4. once every segment of the run was restarted by the second run and the planner has a
-   plan of that time: ``trackfusion report`` of the line, and the web viewer with that line's
-   segment ``s00005`` selected, screenshot by headless Chromium.
+   plan of that time: ``trackfusion report`` of the network, and the web viewer with
+   track 1's segment ``s00005`` selected, screenshot by headless Chromium.
 
-Writes ``walkthrough-viewer.png``, ``walkthrough-report.png`` (the report's top: the line's
-name, the map, the "top6 only" of the last TRC column) and ``walkthrough-plan.png`` (the
+Writes ``walkthrough-viewer.png``, ``walkthrough-report.png`` (the report's top: the lines'
+names, the map, the "top6 only" of the last TRC column) and ``walkthrough-plan.png`` (the
 report's tamping plan), each reduced to 256 colours to stay small. About 3-5 minutes on two
 cores; the stack's logs stay in ``--workdir`` (a temporary directory by default).
 """
@@ -230,8 +230,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"plan: {sum(r.week >= 0 for r in plan.rows)} tampings, {plan.status}")
             print(cli("state", f"{LINE}/{SELECTED}", "--network", str(network), *wiring))
             report = work / "report.html"
-            print(cli("report", "--line", LINE, "--out", str(report), "--network",
-                      str(network), *wiring))  # fmt: skip
+            print(cli("report", "--out", str(report), "--network", str(network), *wiring))
             report_pictures(report, work, out)
             print(cli("viewer", "select", f"{LINE}/{SELECTED}", *wiring))
             url = web_viewer_url(f"rerun+http://127.0.0.1:{grpc_port}/proxy", web_port)

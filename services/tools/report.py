@@ -616,8 +616,9 @@ def _worksites(plan: MaintenancePlan, rows, network: NetworkMap) -> str:
 
 
 def _trc_runs(plan: MaintenancePlan, wanted: set[str], network: NetworkMap) -> str:
-    """The lines whose TRC run now is worth most to the plan (value of information)."""
-    runs = [v for v in plan.trc_lines if not wanted or v.line in wanted]
+    """The lines whose TRC run now is worth most to the plan (value of information); a run
+    worth nothing is not recommended."""
+    runs = [v for v in plan.trc_lines if v.value > 0 and (not wanted or v.line in wanted)]
     if not runs:
         return "<p>No TRC run recommended: no run would lower the plan's expected cost.</p>"
     out = [

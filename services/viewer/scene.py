@@ -350,7 +350,12 @@ def _log_features(rec: rr.RecordingStream, lines: list[Line], span: float) -> np
             ahead = line.xy_at(np.clip(end + inward * 0.02 * span, 0, line.length_m))
             at = line.xy_at(end)
             direction = (at - ahead) / max(1e-9, float(np.hypot(*(at - ahead))))
-            names.append(screen_xy(at + direction * 0.025 * span))
+            where = screen_xy(at + direction * 0.025 * span)
+            # the tracks of a double-track line end a few metres apart: their names one
+            # below the other, not on top of each other
+            while any(np.hypot(*(where - other)) < 0.02 * span for other in names):
+                where = where + np.array([0.0, 0.035 * span])
+            names.append(where)
             name_labels.append(f"{line.id} {line.name}" if line.name else line.id)
     if tunnels:
         rec.log(

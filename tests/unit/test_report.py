@@ -263,3 +263,13 @@ def test_a_missing_planner_is_said_in_one_line_and_the_rest_rendered():
     html = a_report(tamping=None, tamping_missing=note)
     assert html.count(note) == 1 and '<svg class="plan"' not in html
     assert html.count('<tr><td class="n">') == 3 and '<svg id="map"' in html
+
+
+def test_a_trc_run_worth_nothing_is_not_recommended():
+    import msgspec
+
+    plan = msgspec.structs.replace(
+        a_tamping_plan(), trc_lines=[TrcRunValue(line="L1", value=0.0, segments=3)]
+    )
+    html = a_report(tamping=plan)
+    assert 'class="trc-runs"' not in html and "No TRC run recommended" in html
