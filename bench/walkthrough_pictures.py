@@ -9,13 +9,14 @@
 3. two runs of a level-only recording car on track 1 (``import-trc --profile``), 34 days
    apart, the second aligned to the first;
 4. once every segment of the run was restarted by the second run and the planner has a
-   plan of that time: ``trackfusion report`` of the network, and the web viewer with
-   track 1's segment ``s00005`` selected, screenshot by headless Chromium.
+   plan of that time: ``trackfusion report`` of track 1 and of the network, and the web
+   viewer with track 1's segment ``s00005`` selected, screenshot by headless Chromium.
 
-Writes ``walkthrough-viewer.png``, ``walkthrough-report.png`` (the report's top: the lines'
-names, the map, the "top6 only" of the last TRC column) and ``walkthrough-plan.png`` (the
-report's tamping plan), each reduced to 256 colours to stay small. About 3-5 minutes on two
-cores; the stack's logs stay in ``--workdir`` (a temporary directory by default).
+Writes ``walkthrough-report.png`` (the top of track 1's report: its name, its map, the
+"top6 only" of the last TRC column), ``walkthrough-plan.png`` (the network's report's
+tamping plan) and ``walkthrough-viewer.png``, each reduced to 256 colours to stay small.
+About 3-5 minutes on two cores; the stack's logs stay in ``--workdir`` (a temporary
+directory by default).
 """
 
 from __future__ import annotations
@@ -150,18 +151,28 @@ def small_png(png: bytes, path: Path) -> None:
     print(f"wrote {path} ({path.stat().st_size // 1024} kB)")
 
 
-def report_pictures(report: Path, work: Path, out: Path) -> None:
-    """The report's top and its tamping plan section, in a browser window of :data:`SIZE`."""
-    with DevTools(work / "report-profile", work / "chromium-report.log", size=SIZE) as browser:
-        browser.open(report.as_uri())
+def report_pictures(line_report: Path, report: Path, work: Path, out: Path) -> None:
+    """The top of the line's report, and the tamping plan section of the network's, in a
+    browser window of :data:`SIZE`."""
+
+    def load(browser: DevTools, path: Path) -> None:
+        browser.open(path.as_uri())
         deadline = time.monotonic() + 60.0
         while browser.evaluate("document.readyState") != "complete":
             if time.monotonic() > deadline:
-                raise SystemExit(f"walk-through: {report} did not load in Chromium")
+                raise SystemExit(f"walk-through: {path} did not load in Chromium")
             time.sleep(0.2)
-        small_png(browser.screenshot(), out / "walkthrough-report.png")
-        browser.evaluate("document.getElementById('tamping').scrollIntoView()")
-        small_png(browser.screenshot(), out / "walkthrough-plan.png")
+
+    for path, picture, scroll_to in (
+        (line_report, "walkthrough-report.png", None),
+        (report, "walkthrough-plan.png", "tamping"),
+    ):
+        profile = work / f"profile-{path.stem}"
+        with DevTools(profile, work / f"chromium-{path.stem}.log", size=SIZE) as browser:
+            load(browser, path)
+            if scroll_to is not None:
+                browser.evaluate(f"document.getElementById('{scroll_to}').scrollIntoView()")
+            small_png(browser.screenshot(), out / picture)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -229,9 +240,11 @@ def main(argv: list[str] | None = None) -> int:
             plan = newest_plan(session, t2)
             print(f"plan: {sum(r.week >= 0 for r in plan.rows)} tampings, {plan.status}")
             print(cli("state", f"{LINE}/{SELECTED}", "--network", str(network), *wiring))
-            report = work / "report.html"
+            line_report, report = work / "report-line.html", work / "report.html"
+            print(cli("report", "--line", LINE, "--out", str(line_report), "--network",
+                      str(network), *wiring))  # fmt: skip
             print(cli("report", "--out", str(report), "--network", str(network), *wiring))
-            report_pictures(report, work, out)
+            report_pictures(line_report, report, work, out)
             print(cli("viewer", "select", f"{LINE}/{SELECTED}", *wiring))
             url = web_viewer_url(f"rerun+http://127.0.0.1:{grpc_port}/proxy", web_port)
             picture = first_picture(url, work / "browser", wanted=("green", "blue"))

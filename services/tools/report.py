@@ -257,11 +257,19 @@ def _map(data: ReportData, states: list[SegmentState]) -> str:
             f'<polyline points="{points}" fill="none" stroke="{colour(p)}" stroke-width="5" '
             f'stroke-linecap="round"><title>{escape(tip)}</title></polyline>'
         )
+    placed: list[tuple[float, float]] = []
     for line in sorted({k[0] for k in projected}):
         first = min((k for k in projected if k[0] == line), key=lambda k: k[1])
-        x, y = xy(*projected[first][0]).split(",")
+        x, y = map(float, xy(*projected[first][0]).split(","))
+        y -= 8
+        # the tracks of a double-track line start a few metres apart: one name below the other
+        while any(abs(x - px) < 40 and abs(y - py) < 14 for px, py in placed):
+            y += 16
+        placed.append((x, y))
+        # a line starting in the right half is named leftwards, so that its name stays inside
+        anchor = ' text-anchor="end"' if x > MAP_W / 2 else ""
         out.append(
-            f'<text x="{x}" y="{float(y) - 8:.1f}" font-size="13" font-weight="bold" '
+            f'<text x="{x:.1f}" y="{y:.1f}"{anchor} font-size="13" font-weight="bold" '
             f'fill="#222">{escape(data.network.label(line))}</text>'
         )
     for st in stations:

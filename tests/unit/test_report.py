@@ -273,3 +273,14 @@ def test_a_trc_run_worth_nothing_is_not_recommended():
     )
     html = a_report(tamping=plan)
     assert 'class="trc-runs"' not in html and "No TRC run recommended" in html
+
+
+def test_the_names_of_two_tracks_starting_together_do_not_overlap():
+    one = a_network()
+    polylines = one.polylines | {("L2", seg): pts for (_, seg), pts in one.polylines.items()}
+    both = NetworkMap(polylines, {}, [], {"L1": "track 1", "L2": "track 2"})
+    html = render(ReportData(states=some_states(), network=both, made_at=T0))
+    names = re.findall(r'<text x="([\d.]+)" y="([\d.]+)"[^>]*>(L\d \(track \d\))</text>', html)
+    (x1, y1, first), (x2, y2, second) = names
+    assert (first, second) == ("L1 (track 1)", "L2 (track 2)")
+    assert x1 == x2 and float(y2) - float(y1) == 16
