@@ -549,17 +549,18 @@ class ViewerCore:
         the newest event time, so it is written only when it changed."""
         if self._newest_event_t is None:
             return
-        lines = ["| row | segment | p | last TRC measured |", "|---|---|---|---|"]
+        # the segment last: a line's name is long and the panel narrow
+        lines = ["| row | p | last TRC measured | segment |", "|---|---|---|---|"]
         for slot in self._slots:
             row = "selected" if slot.name == SELECTED else f"#{slot.name.split('/')[1]}"
             if slot.key is None:
-                lines.append(f"| {row} | - | | |")
+                lines.append(f"| {row} | | | - |")
                 continue
             p = self.p_exceed.get(slot.key)
             measured = " ".join(self.last_trc.get(slot.key, ())) or "-"
             lines.append(
-                f"| {row} | {self.segment_label(slot.key)} | {'-' if p is None else f'{p:.2f}'} "
-                f"| {measured} |"
+                f"| {row} | {'-' if p is None else f'{p:.2f}'} | {measured} "
+                f"| {self.segment_label(slot.key)} |"
             )
         lines += [
             "",

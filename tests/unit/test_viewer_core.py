@@ -359,7 +359,7 @@ def test_the_ranking_says_what_each_segments_last_trc_record_measured(recording)
     core.take([level_only, make_state(T0, segment="s2", p_exceed=p_top6(1, 0.2))])
     core.flush(0.0)
     rows = core._ranking_text.splitlines()
-    assert "| #1 | L1/s1 | 0.70 | top6 |" in rows and "| #2 | L1/s2 | 0.20 | - |" in rows
+    assert "| #1 | 0.70 | top6 | L1/s1 |" in rows and "| #2 | 0.20 | - | L1/s2 |" in rows
 
 
 def test_the_ranking_and_alerts_name_lines_as_operators_do(recording):
@@ -383,8 +383,8 @@ def test_the_ranking_and_alerts_name_lines_as_operators_do(recording):
     )
     core.flush(0.0)
     rows = core._ranking_text.splitlines()
-    assert "| #1 | Sanremo – Albenga, track 2 (way7-t2/s00001) | 0.70 | - |" in rows
-    assert "| #2 | L9/s00002 | 0.20 | - |" in rows
+    assert "| #1 | 0.70 | - | Sanremo – Albenga, track 2 (way7-t2/s00001) |" in rows
+    assert "| #2 | 0.20 | - | L9/s00002 |" in rows
     assert (
         core.segment_label(("way7-t2", "s00003")) == "Sanremo – Albenga, track 2 (way7-t2/s00003)"
     )
