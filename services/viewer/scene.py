@@ -191,7 +191,7 @@ def build_blueprint(worst_n: int, bounds: np.ndarray | None = None) -> rrb.Bluep
             rrb.TextLogView(origin="alerts", name="Alerts"),
             rrb.TextDocumentView(origin=RANKING_PATH, name="Plotted segments"),
             rrb.TextDocumentView(origin=HEALTH_PATH, name="Health"),
-            column_shares=[5, 3, 4],
+            column_shares=[3, 5, 3],  # the plotted segments: long line names
         ),
         row_shares=[5, 2],
     )
