@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench scale soak soak-demo soak-trains soak-order soak-chaos lint format clean
+.PHONY: run test bench scale soak soak-demo soak-trains soak-order soak-chaos pictures lint format clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -56,6 +56,12 @@ soak-order: $(STAMP)
 soak-chaos: $(STAMP)
 	$(BIN)/python -m bench.chaos --network demo $(CHAOS_ARGS)
 	$(BIN)/python -m bench.chaos --network 25000 --days 10 --trains 1 $(CHAOS_ARGS)
+
+# `make pictures`: the pictures of docs/operating.md's real-network walk-through, made by
+# running it on tests/fixtures/osm/riviera.json (bench/walkthrough_pictures.py, a few
+# minutes; needs /usr/bin/chromium).
+pictures: $(STAMP)
+	$(BIN)/python -m bench.walkthrough_pictures
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -2,7 +2,9 @@
 
 The map of the line(s) coloured by P(exceeding the intervention limit), the segments ranked
 by it with their estimates, 95 % intervals, forecasts and next TRC run, forecast fans of the
-worst segments, and the open alerts. Inline CSS and SVG only: no script, no external
+worst segments, the open alerts, and the planner's tamping plan (per line a weeks × chainage
+grid of the planned tampings, their possessions and deadlines, then the TRC runs the plan
+recommends). Inline CSS and SVG only: no script, no external
 resource, so it renders offline from a mail attachment.
 
 Pure part: :func:`render` (``ReportData`` → HTML text) and its helpers, tested without
@@ -23,8 +25,10 @@ from pathlib import Path
 from typing import TextIO
 
 from schemas import (
+    DAY_S,
     Alert,
     InspectionPlan,
+    MaintenancePlan,
     RaisedAlerts,
     SchemaError,
     SegmentState,
@@ -34,7 +38,7 @@ from schemas import (
 from schemas.keys import SegmentId
 from services.defaults import add_network_argument
 from services.runtime.config import RuntimeConfig, config_from_args
-from services.tools import operator
+from services.tools import maintenance_plan, operator
 
 INTERVENTION = "intervention"
 WORST_N = 6
@@ -82,7 +86,8 @@ class NetworkMap:
 @dataclass(frozen=True)
 class ReportData:
     """Everything one report shows. ``alerts``/``plan`` are None when alerting did not
-    answer; ``missing`` then says why."""
+    answer; ``missing`` then says why. ``tamping`` is None when the planner did not
+    answer; ``tamping_missing`` then says why."""
 
     states: list[SegmentState]
     network: NetworkMap
@@ -92,6 +97,8 @@ class ReportData:
     missing: str = ""
     lines: tuple[str, ...] = ()  # the lines asked for; () = all
     worst_n: int = WORST_N
+    tamping: MaintenancePlan | None = None
+    tamping_missing: str = ""
 
 
 def level_index(state: SegmentState, level: str = INTERVENTION) -> int:
@@ -172,6 +179,8 @@ def render(data: ReportData) -> str:
         _fans(states[: data.worst_n]),
         "<h2>Open alerts</h2>",
         _alerts(data),
+        '<h2 id="tamping">Tamping plan</h2>',
+        _tamping(data),
         "</body></html>",
     ]
     return "\n".join(parts) + "\n"
@@ -248,11 +257,19 @@ def _map(data: ReportData, states: list[SegmentState]) -> str:
             f'<polyline points="{points}" fill="none" stroke="{colour(p)}" stroke-width="5" '
             f'stroke-linecap="round"><title>{escape(tip)}</title></polyline>'
         )
+    placed: list[tuple[float, float]] = []
     for line in sorted({k[0] for k in projected}):
         first = min((k for k in projected if k[0] == line), key=lambda k: k[1])
-        x, y = xy(*projected[first][0]).split(",")
+        x, y = map(float, xy(*projected[first][0]).split(","))
+        y -= 8
+        # the tracks of a double-track line start a few metres apart: one name below the other
+        while any(abs(x - px) < 40 and abs(y - py) < 14 for px, py in placed):
+            y += 16
+        placed.append((x, y))
+        # a line starting in the right half is named leftwards, so that its name stays inside
+        anchor = ' text-anchor="end"' if x > MAP_W / 2 else ""
         out.append(
-            f'<text x="{x}" y="{float(y) - 8:.1f}" font-size="13" font-weight="bold" '
+            f'<text x="{x:.1f}" y="{y:.1f}"{anchor} font-size="13" font-weight="bold" '
             f'fill="#222">{escape(data.network.label(line))}</text>'
         )
     for st in stations:
@@ -426,6 +443,208 @@ def _alerts(data: ReportData) -> str:
     return "".join(rows)
 
 
+# --- the tamping plan -----------------------------------------------------------------------
+
+PLANNED = "#1f78b4"  # a segment tamped that week
+POSSESSION = "#222"  # the outline of a possession: adjacent segments tamped in one week
+DEADLINE = "#d73027"  # the last week a tamping meets the risk limit
+WEEK_PX, GRID_H, GRID_LEFT, GRID_TOP = 26, 180, 64, 22  # px
+
+
+def _tamping(data: ReportData) -> str:
+    plan = data.tamping
+    if plan is None:
+        return f'<p class="note">{escape(data.tamping_missing)}</p>'
+    if plan.status == "no_data" or plan.t is None:
+        return "<p>No plan yet: no segment has both a state and a degradation model.</p>"
+    wanted = set(data.lines)
+    rows = [r for r in plan.rows if not wanted or r.line in wanted]
+    budget = "no budget" if plan.budget is None else f"budget {plan.budget:,.0f}"
+    out = [
+        f"<p>{plan.horizon_weeks} weeks from {day(plan.t)} (Monday of week 0), made from the "
+        f"states up to {escape(iso(plan.computed_at))}: {plan.segments} segments planned, "
+        f"{sum(plan.km_per_week):.1f} km tamped in {plan.possessions} possessions, money "
+        f"{plan.money:,.0f} ({budget}), expected cost {plan.objective:,.0f} "
+        f"({escape(plan.status.replace('_', ' '))}, {100 * plan.gap:.2f} % above the bound). "
+        f"Risk limit: P(reaching the immediate-action limit before the tamping) ≤ "
+        f"{plan.eps:g}; a segment's deadline is the last week whose tamping meets it.</p>",
+        '<p class="legend">'
+        f'<span><i style="background:{PLANNED}"></i>tamped that week</span>'
+        f'<span><i style="border:2px solid {POSSESSION};height:6px"></i>possession</span>'
+        f'<span><i style="background:{DEADLINE};width:3px"></i>deadline</span>'
+        f'<span><i style="background:{DEADLINE};opacity:0.25"></i>risk limit not met</span>'
+        "</p>",
+    ]
+    planned = sorted({r.line for r in rows})
+    if not planned:
+        out.append("<p>No tamping planned and every risk limit met over the horizon.</p>")
+    for line in planned:
+        line_rows = [r for r in rows if r.line == line]
+        out.append(f"<h3>{escape(data.network.label(line))}</h3>")
+        out.append(_tamping_grid(plan, line, line_rows, data.network))
+        out.append(_worksites(plan, line_rows, data.network))
+    out.append(_trc_runs(plan, wanted, data.network))
+    return "".join(out)
+
+
+def _line_extent(network: NetworkMap, line: str, rows) -> tuple[float, float]:
+    """Chainage range (m) of a line: its segments in the network, else the planned ones."""
+    spans = [c for (ln, _), c in network.chainage_m.items() if ln == line]
+    spans = spans or [
+        network.chainage_m[(r.line, r.segment)]
+        for r in rows
+        if (r.line, r.segment) in network.chainage_m
+    ]
+    if not spans:
+        return 0.0, 1.0
+    return min(a for a, _ in spans), max(b for _, b in spans)
+
+
+def _tamping_grid(plan: MaintenancePlan, line: str, rows, network: NetworkMap) -> str:
+    """Weeks across, chainage down: each planned tamping a filled cell, each possession an
+    outline around its cells, each deadline a red bar at the end of its week, each segment
+    whose risk limit the plan does not meet a pale red row."""
+    weeks = plan.horizon_weeks
+    lo, hi = _line_extent(network, line, rows)
+    w = GRID_LEFT + weeks * WEEK_PX + 10
+    h = GRID_TOP + GRID_H + 10
+
+    def x(week: float) -> float:
+        return GRID_LEFT + week * WEEK_PX
+
+    def y(chainage_m: float) -> float:
+        return GRID_TOP + (chainage_m - lo) / max(hi - lo, 1e-9) * GRID_H
+
+    out = [
+        f'<svg class="plan" width="{w}" height="{h}" viewBox="0 0 {w} {h}" role="img" '
+        f'aria-label="{escape(line)} tamping plan" '
+        'style="background:#fafafa;border:1px solid #ccc">'
+    ]
+    for week in range(weeks + 1):
+        out.append(
+            f'<line x1="{x(week):.1f}" y1="{GRID_TOP}" x2="{x(week):.1f}" y2="{GRID_TOP + GRID_H}" '
+            'stroke="#e4e4e4"/>'
+        )
+    for week in range(0, weeks, 4):
+        out.append(
+            f'<text x="{x(week) + 2:.1f}" y="{GRID_TOP - 10}" font-size="10">w{week}</text>'
+            f'<text x="{x(week) + 2:.1f}" y="{GRID_TOP - 1}" font-size="9" fill="#555">'
+            f"{day(plan.t + week * 7 * DAY_S)[5:]}</text>"
+        )
+    for frac in (0.0, 0.5, 1.0):
+        c = lo + frac * (hi - lo)
+        out.append(
+            f'<text x="{GRID_LEFT - 4}" y="{y(c) + 3:.1f}" font-size="10" text-anchor="end">'
+            f"{c / 1e3:.1f} km</text>"
+        )
+    sites: dict[int, list] = {}
+    for r in rows:
+        span = network.chainage_m.get((r.line, r.segment))
+        if span is None:
+            continue
+        top, bottom = y(span[0]), y(span[1])
+        tip = (
+            f"{r.line}/{r.segment} {span[0] / 1e3:.1f}–{span[1] / 1e3:.1f} km: "
+            + (f"tamped week {r.week}" if r.week >= 0 else "not tamped")
+            + f", deadline {'none' if r.deadline_week < 0 else 'w' + str(r.deadline_week)}"
+            + f", P(IAL first) {r.p_reach_ial:.3f}"
+        )
+        if not r.risk_met:
+            out.append(
+                f'<rect x="{x(0):.1f}" y="{top:.1f}" width="{weeks * WEEK_PX}" '
+                f'height="{max(bottom - top, 1):.1f}" fill="{DEADLINE}" fill-opacity="0.25">'
+                f"<title>{escape(tip)}</title></rect>"
+            )
+        if r.week >= 0:
+            sites.setdefault(r.worksite, []).append((r, span))
+            out.append(
+                f'<rect x="{x(r.week) + 1:.1f}" y="{top:.1f}" width="{WEEK_PX - 2}" '
+                f'height="{max(bottom - top, 1):.1f}" fill="{PLANNED}">'
+                f"<title>{escape(tip)}</title></rect>"
+            )
+        if 0 <= r.deadline_week < weeks:
+            out.append(
+                f'<rect x="{x(r.deadline_week + 1) - 2:.1f}" y="{top:.1f}" width="3" '
+                f'height="{max(bottom - top, 1):.1f}" fill="{DEADLINE}">'
+                f"<title>{escape(tip)}</title></rect>"
+            )
+    for site in sites.values():
+        week = site[0][0].week
+        top = y(min(span[0] for _, span in site))
+        bottom = y(max(span[1] for _, span in site))
+        out.append(
+            f'<rect x="{x(week):.1f}" y="{top - 1:.1f}" width="{WEEK_PX}" '
+            f'height="{bottom - top + 2:.1f}" fill="none" stroke="{POSSESSION}" '
+            'stroke-width="1.5"/>'
+        )
+    out.append("</svg>")
+    return "".join(out)
+
+
+def _worksites(plan: MaintenancePlan, rows, network: NetworkMap) -> str:
+    """One table row per possession: its week, where, how long, its earliest deadline."""
+    sites: dict[int, list] = {}
+    for r in rows:
+        if r.week >= 0:
+            sites.setdefault(r.worksite, []).append(r)
+    unmet = [r for r in rows if not r.risk_met]
+    if not sites:
+        return f"<p>No tamping planned; risk limit not met on {len(unmet)} segments.</p>"
+    head = ("week", "starts", "segments", "chainage (km)", "km", "deadline", "max P(IAL first)")
+    out = ['<table class="worksites"><thead><tr>']
+    out += [f"<th>{h}</th>" for h in head]
+    out.append("</tr></thead><tbody>")
+    for site in sorted(sites.values(), key=lambda s: (s[0].week, s[0].segment)):
+        site.sort(key=lambda r: r.segment)
+        spans = [network.chainage_m.get((r.line, r.segment)) for r in site]
+        known = [s for s in spans if s is not None]
+        where = (
+            "–"
+            if not known
+            else f"{min(a for a, _ in known) / 1e3:.1f} – {max(b for _, b in known) / 1e3:.1f}"
+        )
+        deadline = min(r.deadline_week for r in site)
+        deadline_text = (
+            "–" if deadline >= plan.horizon_weeks else ("none" if deadline < 0 else f"w{deadline}")
+        )
+        cells = [
+            f'<td class="n">w{site[0].week}</td>',
+            f"<td>{day(plan.t + site[0].week * 7 * DAY_S)}</td>",
+            f"<td>{escape(site[0].segment)} – {escape(site[-1].segment)}</td>",
+            f"<td>{where}</td>",
+            f'<td class="n">{sum(r.length_km for r in site):.1f}</td>',
+            f"<td>{deadline_text}</td>",
+            f'<td class="n">{max(r.p_reach_ial for r in site):.3f}</td>',
+        ]
+        out.append("<tr>" + "".join(cells) + "</tr>")
+    out.append("</tbody></table>")
+    if unmet:
+        out.append(f"<p>Risk limit not met on {len(unmet)} segments (pale red in the grid).</p>")
+    return "".join(out)
+
+
+def _trc_runs(plan: MaintenancePlan, wanted: set[str], network: NetworkMap) -> str:
+    """The lines whose TRC run now is worth most to the plan (value of information); a run
+    worth nothing is not recommended."""
+    runs = [v for v in plan.trc_lines if v.value > 0 and (not wanted or v.line in wanted)]
+    if not runs:
+        return "<p>No TRC run recommended: no run would lower the plan's expected cost.</p>"
+    out = [
+        "<h3>TRC runs the plan recommends</h3>",
+        "<p>Lines by the value of a recording-car run now: the expected fall of the plan's "
+        "cost from the uncertainty the run removes.</p>",
+        '<table class="trc-runs"><thead><tr><th>#</th><th>line</th><th>value</th>'
+        "<th>segments</th></tr></thead><tbody>",
+    ]
+    for rank, v in enumerate(runs, 1):
+        out.append(
+            f'<tr><td class="n">{rank}</td><td>{escape(network.label(v.line))}</td>'
+            f'<td class="n">{v.value:,.0f}</td><td class="n">{v.segments}</td></tr>'
+        )
+    out.append("</tbody></table>")
+    return "".join(out)
+
+
 # --- network --------------------------------------------------------------------------------
 
 
@@ -491,6 +710,25 @@ def _ask_alerting(session, ns: str, line: str | None, timeout: float):
     return alerts, plan, ""
 
 
+def _ask_planner(session, ns: str, timeout: float) -> tuple[MaintenancePlan | None, str]:
+    """(the plan, "") by the query of `trackfusion plan maintenance`; (None, why not) when
+    the planning service does not answer."""
+    selector = maintenance_plan.selector(ns, None, None)
+    try:
+        replies = list(operator.ask(session, selector, timeout))
+    except SystemExit as exc:
+        return None, f"Tamping plan missing: {exc}"
+    if not replies:
+        return None, (
+            f"Tamping plan missing: no planning service answered on {selector} "
+            "(is it running? `trackfusion status`)."
+        )
+    try:
+        return decode(replies[0][1], MaintenancePlan), ""
+    except SchemaError as exc:
+        return None, f"Tamping plan missing: the planning service's answer: {exc}"
+
+
 def main(
     conf: RuntimeConfig,
     *,
@@ -513,6 +751,7 @@ def main(
                 "segments with a TRC record and a model; check the line id too."
             )
         alerts, plan, missing = _ask_alerting(session, conf.ns, line, timeout)
+        tamping, tamping_missing = _ask_planner(session, conf.ns, timeout)
     data = ReportData(
         states=states,
         network=network,
@@ -522,9 +761,11 @@ def main(
         missing=missing,
         lines=(line,) if line else (),
         worst_n=worst_n,
+        tamping=tamping,
+        tamping_missing=tamping_missing,
     )
     Path(out_path).write_text(render(data), encoding="utf-8")
-    note = f" ({missing})" if missing else ""
+    note = "".join(f" ({text})" for text in (missing, tamping_missing) if text)
     print(f"wrote {out_path}: {len(states)} segments{note}", file=out)
     return 0
 
@@ -532,8 +773,8 @@ def main(
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``trackfusion report``."""
     parser.description = (
-        "Map, ranked segments, forecast fans and open alerts in one HTML file (inline CSS "
-        "and SVG, no external resource)."
+        "Map, ranked segments, forecast fans, open alerts and the tamping plan in one HTML "
+        "file (inline CSS and SVG, no external resource)."
     )
     parser.add_argument("--line", help="one line (default: all lines)")
     parser.add_argument("--out", default=DEFAULT_OUT, metavar="FILE.html", help="(%(default)s)")

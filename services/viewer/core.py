@@ -23,6 +23,9 @@ every ``plot_flush_s`` wall seconds (one chunk per entity) and the map colours, 
 alerts and health every ``live_flush_s``. Segments not in a slot are not written: an
 operator pins one with ``trackfusion viewer select`` (services/viewer/README.md).
 
+The planner's MaintenancePlan: the possessions of its first :data:`PLAN_WEEKS` weeks are
+drawn on the map (``map/plan/tamping``) at the plan's event time, replaced by each newer plan.
+
 Entity paths, styles, the blueprint and the static map: :mod:`services.viewer.scene`.
 """
 
@@ -41,6 +44,7 @@ from schemas import (
     INDICATORS,
     Alert,
     GpsFix,
+    MaintenancePlan,
     Message,
     OnboardIndex,
     SegmentState,
@@ -61,6 +65,7 @@ from services.viewer.scene import (
     exceedance_color,
     health_markdown,
     log_static_map,
+    plan_strips,
     screen_xy,
     slot_names,
     style_columns,
@@ -74,6 +79,7 @@ DEFAULT_PLOT_FLUSH_S = 30.0  # wall seconds between two writes of the slots' row
 DEFAULT_LIVE_FLUSH_S = 5.0  # wall seconds between two writes of map colours, alerts, trains
 HISTORY_DAYS = 365  # event days of states and on-board indices kept per segment
 STACK_REPORT_STALE_S = 5.0  # wall s without a StackHealth: `up` is taken as gone
+PLAN_WEEKS = 8  # weeks of the plan, from its week 0, whose tampings the map shows
 
 
 def segment_exceedance(state: SegmentState) -> float:
@@ -118,6 +124,23 @@ def select_worst_sticky(
     return sorted(kept, key=lambda key: (-p_exceed[key], key))
 
 
+def planned_possessions(plan: MaintenancePlan, weeks: int) -> list[tuple[int, str, list[str]]]:
+    """``(week, line, segment ids)`` of each possession tamped in the plan's first ``weeks``
+    weeks, by week, line and first segment; the segments in the plan's order."""
+    sites: dict[int, tuple[int, str, list[str]]] = {}
+    for row in plan.rows:
+        if 0 <= row.week < weeks:
+            sites.setdefault(row.worksite, (row.week, row.line, []))[2].append(row.segment)
+    return sorted(sites.values(), key=lambda site: (site[0], site[1], site[2][0]))
+
+
+def message_version(msg: Message) -> float:
+    """The event time that orders two messages of one :func:`coalesce_key`: a plan's
+    ``computed_at``, else ``t``."""
+    t = msg.computed_at if isinstance(msg, MaintenancePlan) else msg.t
+    return -math.inf if t is None else t
+
+
 def event_day(t: float) -> int:
     """The UTC day (days since the epoch) of an event time in epoch seconds."""
     return math.floor(t / DAY_S)
@@ -137,6 +160,8 @@ def coalesce_key(msg: Message) -> tuple[str, ...] | None:
             return ("health",)
         case ViewerSelect():
             return ("select",)
+        case MaintenancePlan():
+            return ("plan",)
     return None
 
 
@@ -255,6 +280,11 @@ class ViewerCore:
             raise ValueError("plot_flush_s, live_flush_s: must be >= 0")
         self.rec = rec
         self.network = network
+        self.line_names = (
+            {}
+            if network is None
+            else {line.id: line.name for line in network.lines.values() if line.name}
+        )
         self.worst_n = worst_n
         self.plot_flush_s = plot_flush_s
         self.live_flush_s = live_flush_s
@@ -287,6 +317,8 @@ class ViewerCore:
         self._stack_at: float | None = None
         self._alive: dict[tuple[str, str], bool] = {}
         self._health_text = ""
+        self.plan: MaintenancePlan | None = None  # the newest plan taken
+        self._plan_new = False
 
     # --- setup ---------------------------------------------------------------------------
 
@@ -338,6 +370,9 @@ class ViewerCore:
                 case ViewerSelect():
                     self._selected = (msg.line, msg.segment)
                     self._plots_due = True
+                case MaintenancePlan():
+                    if self.plan is None or message_version(msg) >= message_version(self.plan):
+                        self.plan, self._plan_new = msg, True
                 case _:
                     raise TypeError(f"viewer: cannot log a {type(msg).__name__}")
         self.handled += n
@@ -427,6 +462,13 @@ class ViewerCore:
         """Slot → the segment it shows."""
         return {slot.name: slot.key for slot in self._slots}
 
+    def segment_label(self, key: SegmentId) -> str:
+        """A segment as operators know it: ``line name (line/segment)``, or ``line/segment``
+        when the line has no name (the id is what `trackfusion viewer select` takes)."""
+        name = self.line_names.get(key[0])
+        ids = f"{key[0]}/{key[1]}"
+        return f"{name} ({ids})" if name and name != key[0] else ids
+
     def _slot_can_fill(self) -> bool:
         empty = sum(slot.key is None for slot in self._slots[: self.worst_n])
         return empty > 0 and len(self.p_exceed) > self.worst_n - empty
@@ -507,17 +549,18 @@ class ViewerCore:
         the newest event time, so it is written only when it changed."""
         if self._newest_event_t is None:
             return
-        lines = ["| row | segment | p | last TRC measured |", "|---|---|---|---|"]
+        # the segment last: a line's name is long and the panel narrow
+        lines = ["| row | p | last TRC measured | segment |", "|---|---|---|---|"]
         for slot in self._slots:
             row = "selected" if slot.name == SELECTED else f"#{slot.name.split('/')[1]}"
             if slot.key is None:
-                lines.append(f"| {row} | - | | |")
+                lines.append(f"| {row} | | | - |")
                 continue
             p = self.p_exceed.get(slot.key)
             measured = " ".join(self.last_trc.get(slot.key, ())) or "-"
             lines.append(
-                f"| {row} | {slot.key[0]}/{slot.key[1]} | {'-' if p is None else f'{p:.2f}'} "
-                f"| {measured} |"
+                f"| {row} | {'-' if p is None else f'{p:.2f}'} | {measured} "
+                f"| {self.segment_label(slot.key)} |"
             )
         lines += [
             "",
@@ -556,11 +599,24 @@ class ViewerCore:
                 ),
             )
         self._fixes_new = False
+        if self._plan_new:
+            self._log_plan()
         for alert in sorted(self._alerts, key=lambda a: a.t):
             self._log_alert(alert)
         self._alerts.clear()
         stale = self._stack_at is None or now - self._stack_at > STACK_REPORT_STALE_S
         self._log_health(None if stale else self._stack)
+
+    def _log_plan(self) -> None:
+        """The newest plan's possessions of the next :data:`PLAN_WEEKS` weeks at the plan's
+        event time (a plan without data: nothing to draw)."""
+        self._plan_new = False
+        plan = self.plan
+        if plan is None or plan.computed_at is None or plan.t is None or self.network is None:
+            return
+        self.rec.set_time(TIMELINE, timestamp=plan.computed_at)
+        possessions = planned_possessions(plan, min(PLAN_WEEKS, plan.horizon_weeks))
+        plan_strips(self.rec, self.network, possessions, PLAN_WEEKS, plan.t)
 
     def _log_health(self, stack: StackHealth | None = None) -> None:
         """The health board as a static document, re-logged only when its text changed
@@ -579,7 +635,7 @@ class ViewerCore:
             for part in (
                 alert.status,
                 alert.kind,
-                f"{alert.line}/{alert.segment}",
+                self.segment_label((alert.line, alert.segment)),
                 alert.indicator,
                 alert.level,
                 f"p={alert.probability:.2f}",

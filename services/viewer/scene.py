@@ -17,6 +17,10 @@ Entity paths (values in mm; ``{ind}`` is ``top6`` or ``align10``):
 ``map/tunnels``, ``map/stations``, ``map/lines``  static: tunnels (dark strips under the
                                                   segments), stations and line names
 ``map/legend``                                    static colour scale of the map
+``map/plan/tamping``                              the planner's tampings of the next weeks:
+                                                  one blue halo per possession under the
+                                                  segments, darker the sooner, labelled
+                                                  with its week and Monday
 ``map/trains``                                    last GPS fix of every train (fix_quality > 0)
 ``alerts``                                        TextLog: raised = WARN, cleared = INFO
 ``health``                                        TextDocument: services alive, restarts,
@@ -44,6 +48,7 @@ from track.network import Line, Network
 
 TIMELINE = "event_time"  # timestamp timeline of the messages' event time t (epoch s)
 MAP_PATH = "map/segments"  # every segment of the network, one line strip each
+PLAN_PATH = "map/plan/tamping"  # the planned tampings of the next weeks, one strip a possession
 RANKING_PATH = "worst/ranking"
 HEALTH_PATH = "health"
 SELECTED = "selected"
@@ -63,7 +68,16 @@ _POINT_NAMES = {"onboard": "on-board", "trc": "TRC"}
 _SECONDS = re.compile(r" (after|for) \d+ s$")  # "… after 12 s": changes every second
 _LIMIT_RGB = {"alert": (255, 190, 0), "intervention": (230, 40, 40)}
 # draw order on the map, bottom to top
-DRAW_ORDER = {"tunnels": 10.0, "segments": 20.0, "stations": 30.0, "trains": 40.0, "labels": 50.0}
+DRAW_ORDER = {
+    "tunnels": 10.0,
+    "plan": 15.0,
+    "segments": 20.0,
+    "stations": 30.0,
+    "trains": 40.0,
+    "labels": 50.0,
+}
+_PLAN_SOON_RGB = np.array([20, 70, 230.0])  # a possession of week 0
+_PLAN_LATE_RGB = np.array([150, 200, 255.0])  # one of the last week the map shows
 
 
 def exceedance_color(p: float | np.ndarray) -> np.ndarray:
@@ -177,7 +191,7 @@ def build_blueprint(worst_n: int, bounds: np.ndarray | None = None) -> rrb.Bluep
             rrb.TextLogView(origin="alerts", name="Alerts"),
             rrb.TextDocumentView(origin=RANKING_PATH, name="Plotted segments"),
             rrb.TextDocumentView(origin=HEALTH_PATH, name="Health"),
-            column_shares=[5, 3, 4],
+            column_shares=[3, 5, 3],  # the plotted segments: long line names
         ),
         row_shares=[5, 2],
     )
@@ -227,6 +241,55 @@ def health_markdown(
         if not alive:
             lines += ["", "none yet"]
     return "\n".join(lines)
+
+
+def plan_color(week: int, weeks: int) -> tuple[int, int, int]:
+    """RGB of a possession in ``week`` of the ``weeks`` the map shows: darker the sooner."""
+    f = week / max(weeks - 1, 1)
+    rgb = np.rint(_PLAN_SOON_RGB + f * (_PLAN_LATE_RGB - _PLAN_SOON_RGB)).astype(int)
+    return int(rgb[0]), int(rgb[1]), int(rgb[2])
+
+
+def plan_strips(
+    rec: rr.RecordingStream,
+    network: Network,
+    possessions: Sequence[tuple[int, str, list[str]]],
+    weeks: int,
+    week0_t: float,
+) -> int:
+    """Log the possessions (``(week, line, segment ids)``, adjacent segments of one line) as
+    halos under the segments at the current time, each labelled ``tamp w{week} {MM-DD}``;
+    none: an empty layer. How many strips were logged."""
+    from datetime import UTC, datetime
+
+    strips, colors, labels = [], [], []
+    for week, line_id, segment_ids in possessions:
+        line = network.lines.get(line_id)
+        if line is None:
+            continue
+        by_id = {seg.id: seg for seg in line.segments}
+        segs = sorted((by_id[s] for s in segment_ids if s in by_id), key=lambda g: g.index)
+        if not segs:
+            continue
+        chainage = line.chainage_m
+        inside = chainage[(chainage > segs[0].start_m) & (chainage < segs[-1].end_m)]
+        at = np.r_[segs[0].start_m, inside, segs[-1].end_m]
+        strips.append(screen_xy(line.xy_at(at)))
+        colors.append(plan_color(week, weeks))
+        monday = datetime.fromtimestamp(week0_t + week * 7 * DAY_S, UTC).strftime("%m-%d")
+        labels.append(f"tamp w{week} {monday}")
+    rec.log(
+        PLAN_PATH,
+        rr.LineStrips2D(
+            strips,
+            radii=rr.Radius.ui_points(7.0),
+            colors=colors,
+            labels=labels,
+            show_labels=True,
+            draw_order=DRAW_ORDER["plan"],
+        ),
+    )
+    return len(strips)
 
 
 def screen_xy(xy: np.ndarray) -> np.ndarray:
@@ -287,7 +350,12 @@ def _log_features(rec: rr.RecordingStream, lines: list[Line], span: float) -> np
             ahead = line.xy_at(np.clip(end + inward * 0.02 * span, 0, line.length_m))
             at = line.xy_at(end)
             direction = (at - ahead) / max(1e-9, float(np.hypot(*(at - ahead))))
-            names.append(screen_xy(at + direction * 0.025 * span))
+            where = screen_xy(at + direction * 0.025 * span)
+            # the tracks of a double-track line end a few metres apart: their names one
+            # below the other, not on top of each other
+            while any(np.hypot(*(where - other)) < 0.02 * span for other in names):
+                where = where + np.array([0.0, 0.035 * span])
+            names.append(where)
             name_labels.append(f"{line.id} {line.name}" if line.name else line.id)
     if tunnels:
         rec.log(

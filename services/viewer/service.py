@@ -1,17 +1,18 @@
 """`trackfusion viewer`: the thin adapter around :mod:`services.viewer.core`.
 
 Subscribes ``{ns}/state/**``, ``{ns}/index/**``, ``{ns}/trc/**``, ``{ns}/alert/**``,
-``{ns}/gps/*``, ``{ns}/health/stack`` and ``{ns}/viewer/select`` latest-only
-(``ServiceRuntime.subscribe``: a Zenoh ``RingChannel`` each: when the viewer falls behind,
-the oldest samples are dropped and the pipeline never waits for it). The runtime's
-per-subscription workers decode (errors become dead letters) and hand them to one bounded
-inbox (:class:`~services.runtime.inbox.LatestInbox`) in which a newer state or index of a
-segment and event-day, or a newer fix of a train, replaces the held one (alerts and TRC
-records queue); ONE worker thread takes everything held at once, hands it to the core and
-lets the core write what is due, so only that thread touches the recording. A slow
-browser makes Rerun's log calls wait; the inbox then coalesces and the Zenoh callbacks
-still never wait. The liveliness tokens (``{ns}/alive/**``) go to a set the worker hands
-to the core for the health board.
+``{ns}/gps/*``, ``{ns}/health/stack``, ``{ns}/viewer/select`` and the planner's
+``{ns}/plan/maintenance`` latest-only (``ServiceRuntime.subscribe``: a Zenoh
+``RingChannel`` each: when the viewer falls behind, the oldest samples are dropped and the
+pipeline never waits for it). The runtime's per-subscription workers decode (errors become
+dead letters) and hand them to one bounded inbox
+(:class:`~services.runtime.inbox.LatestInbox`) in which a newer state or index of a
+segment and event-day, a newer fix of a train, or a newer plan, replaces the held one
+(alerts and TRC records queue); ONE worker thread takes everything held at once, hands it
+to the core and lets the core write what is due, so only that thread touches the
+recording. A slow browser makes Rerun's log calls wait; the inbox then coalesces and the
+Zenoh callbacks still never wait. The liveliness tokens (``{ns}/alive/**``) go to a set
+the worker hands to the core for the health board.
 
 :func:`main_select` is ``trackfusion viewer select LINE/SEGMENT``: it publishes a
 ViewerSelect that a running viewer answers by plotting that segment in its "selected" row.
@@ -42,6 +43,7 @@ import zenoh
 from schemas import (
     Alert,
     GpsFix,
+    MaintenancePlan,
     Message,
     OnboardIndex,
     SchemaError,
@@ -68,6 +70,7 @@ from services.viewer.core import (
     DEFAULT_WORST_N,
     ViewerCore,
     coalesce_key,
+    message_version,
 )
 
 log = logging.getLogger(__name__)
@@ -150,6 +153,7 @@ _SUBSCRIPTIONS: dict[str, type[Message]] = {
     "gps": GpsFix,
     "health": StackHealth,
     "select": ViewerSelect,
+    "plan": MaintenancePlan,
 }
 SELECT_TIMEOUT_S = 5.0  # `viewer select`: how long to wait for a running viewer to listen
 STATE_QUERY_TIMEOUT_S = 10.0  # the start-up q/state query (ends sooner when all reply)
@@ -169,7 +173,7 @@ class ViewerAdapter:
         self.core = core
         # the viewer writes only the newest state, index, fix of a key (coalesce_key) anyway
         self.inbox: LatestInbox[Message] = LatestInbox(
-            INBOX_CAPACITY, key=coalesce_key, version=lambda message: message.t
+            INBOX_CAPACITY, key=coalesce_key, version=message_version
         )
         self._on_logged = on_logged
         self._worker: threading.Thread | None = None
@@ -194,6 +198,7 @@ class ViewerAdapter:
             "gps": keys.gps_all(ns),
             "health": keys.stack_health(ns),
             "select": keys.viewer_select(ns),
+            "plan": keys.maintenance_plan(ns),
         }
         for kind, message_type in _SUBSCRIPTIONS.items():
             key = special.get(kind) or keys.segment_keys(ns, kind)
@@ -225,6 +230,14 @@ class ViewerAdapter:
                 self._accept("state", SegmentState, keys.state(ns, line, segment), payload)
             except SchemaError as exc:
                 self.rt.deadletters.reject(key, str(exc), payload)
+        # then the planner's current plan: it publishes only when it plans anew
+        for key, payload in self.rt.ask(keys.q_maintenance_plan(ns), STATE_QUERY_TIMEOUT_S):
+            if self.rt.stopping:
+                return
+            try:
+                self._accept("plan", MaintenancePlan, keys.maintenance_plan(ns), payload)
+            except SchemaError as exc:
+                self.rt.deadletters.reject(key, str(exc), payload)
 
     def _accept(self, kind: str, message_type: type[Message], key: str, payload: bytes) -> None:
         """Decode and check one message and queue it for the recording; SchemaError says
@@ -232,7 +245,7 @@ class ViewerAdapter:
         message = decode(payload, message_type)
         keys.check_key(key, message)
         segment = (getattr(message, "line", None), getattr(message, "segment", None))
-        on_map = kind not in ("gps", "health")
+        on_map = kind not in ("gps", "health", "plan")
         if self._known is not None and on_map and segment not in self._known:
             raise SchemaError(
                 f"{type(message).__name__}: segment {segment[0]}/{segment[1]} is not in "
@@ -371,10 +384,10 @@ def main_select(conf: RuntimeConfig, segment: str, timeout_s: float = SELECT_TIM
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``trackfusion viewer [select LINE/SEGMENT]``."""
     parser.description = (
-        "Subscribe to {ns}/state/**, index/**, trc/**, alert/** and gps/* (dropping the oldest "
-        "when behind) and log them to Rerun on the event_time timeline. Default sink: the "
-        "native viewer when DISPLAY/WAYLAND_DISPLAY is set, else the web viewer (its URL is "
-        "printed on stdout)."
+        "Subscribe to {ns}/state/**, index/**, trc/**, alert/**, gps/* and plan/maintenance "
+        "(dropping the oldest when behind) and log them to Rerun on the event_time timeline. "
+        "Default sink: the native viewer when DISPLAY/WAYLAND_DISPLAY is set, else the web "
+        "viewer (its URL is printed on stdout)."
     )
     add_network_argument(parser, "the map")
     sink = parser.add_mutually_exclusive_group()

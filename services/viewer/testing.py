@@ -1,4 +1,5 @@
-"""Test helpers of the viewer: read a recording back with the wheel's ``rerun`` CLI.
+"""Test helpers of the viewer: a planner's MaintenancePlan, and a recording read back with
+the wheel's ``rerun`` CLI.
 
 ``rerun rrd verify`` checks that a file loads; ``rerun rrd print`` lists its chunks as
 ``Chunk(…) with N rows (…) - /entity/path - data columns: [Archetype:component …]``,
@@ -13,6 +14,8 @@ import subprocess
 import sys
 from collections import defaultdict
 from pathlib import Path
+
+from schemas import MaintenancePlan, PlannedTamping
 
 RERUN = Path(sys.executable).parent / "rerun"  # the venv's CLI, matching the SDK
 _CHUNK = re.compile(r"^Chunk\(\S+\) with (\d+) rows .* - (/\S*) - data columns: \[(.*)\]$")
@@ -66,3 +69,23 @@ def rrd_printout(path: Path) -> str:
     result = rerun_cli("rrd", "print", "-vvv", path)
     assert result.returncode == 0, f"rerun rrd print -vvv {path}:\n{result.stderr}"
     return result.stdout
+
+
+def make_plan(
+    computed_at: float, rows: list[tuple[str, str, int, int]], week0_t: float
+) -> MaintenancePlan:
+    """A 26-week plan from ``week0_t`` with rows ``(line, segment, week, worksite)``, each
+    200 m, its risk limit met."""
+    return MaintenancePlan(
+        t=week0_t, computed_at=computed_at, horizon_weeks=26, eps=0.05, status="optimal",
+        objective=1.0, bound=1.0, gap=0.0, solve_s=0.1, km_per_week=[0.0] * 26,
+        possessions=len({r[3] for r in rows if r[3] >= 0}), money=1.0, budget=None,
+        segments=100, without_model=0,
+        rows=[
+            PlannedTamping(
+                line=line, segment=segment, week=week, worksite=site, length_km=0.2,
+                deadline_week=26, p_reach_ial=0.01, risk_met=True, cost=1.0, cost_untamped=2.0,
+            )
+            for line, segment, week, site in rows
+        ],
+    )  # fmt: skip

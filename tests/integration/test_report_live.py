@@ -1,5 +1,6 @@
 """`trackfusion report` against a real router, with queryables standing in for filtering
-(`q/state/**`) and alerting (`q/alerts`, `q/plan`), and with the real alerting service."""
+(`q/state/**`), alerting (`q/alerts`, `q/plan`) and the planner (`q/plan/maintenance`), and
+with the real alerting service."""
 
 from __future__ import annotations
 
@@ -10,7 +11,17 @@ import pytest
 import zenoh
 from support import run_cli
 
-from schemas import DAY_S, Alert, InspectionPlan, RaisedAlerts, decode, encode, keys
+from schemas import (
+    DAY_S,
+    Alert,
+    InspectionPlan,
+    MaintenancePlan,
+    PlannedTamping,
+    RaisedAlerts,
+    decode,
+    encode,
+    keys,
+)
 from services.alerting import service as alerting
 from services.alerting.testing import T0, make_state, p_top6, plan_row
 from services.tools import report
@@ -55,11 +66,29 @@ def alerting_stand_in(session: zenoh.Session, ns: str, asked: list[str]):
     ]
 
 
+def planner_stand_in(session: zenoh.Session, ns: str) -> zenoh.Queryable:
+    """Answers `q/plan/maintenance` like the planner: L1/s00002 tamped in week 3."""
+    row = PlannedTamping(
+        line="L1", segment="s00002", week=3, worksite=0, length_km=0.2, deadline_week=5,
+        p_reach_ial=0.01, risk_met=True, cost=1.0, cost_untamped=2.0,
+    )  # fmt: skip
+    plan = MaintenancePlan(
+        t=T0, computed_at=T0, horizon_weeks=26, eps=0.05, status="optimal", objective=1.0,
+        bound=1.0, gap=0.0, solve_s=0.1, km_per_week=[0.0] * 3 + [0.2] + [0.0] * 22,
+        possessions=1, money=1.0, budget=None, segments=3, without_model=0, rows=[row],
+    )  # fmt: skip
+    return session.declare_queryable(
+        keys.q_maintenance_plan(ns),
+        lambda query: query.reply(keys.q_maintenance_plan(ns), encode(plan)),
+    )
+
+
 def test_report_of_one_line_from_the_running_system(open_session, service_config, tmp_path):
     ns, asked = service_config.ns, []
     services = open_session()
     filtering_stand_in(services, ns)
     alerting_stand_in(services, ns, asked)
+    planner_stand_in(services, ns)
     out_path, out = tmp_path / "report.html", io.StringIO()
 
     assert report.main(service_config, out_path=out_path, line="L1", timeout=5, out=out) == 0
@@ -73,6 +102,8 @@ def test_report_of_one_line_from_the_running_system(open_session, service_config
     assert "Top6 likely above intervention limit 8.0 mm" in html  # the open alert
     assert "2026-02-10" in html  # next TRC from the plan
     assert "missing" not in html
+    worksites = html[html.index('<table class="worksites">') :].split("</table>")[0]
+    assert "<td>s00002 – s00002</td>" in worksites  # the planner's tamping, week 3
 
 
 def test_report_without_alerting_is_written_with_a_note(open_session, service_config, tmp_path):
@@ -84,6 +115,7 @@ def test_report_without_alerting_is_written_with_a_note(open_session, service_co
     html = out_path.read_text()
     assert "Alerts and plan missing: the alerting service did not answer" in html
     assert "Alerts and plan missing" in out.getvalue()
+    assert "Tamping plan missing: no planning service answered" in html
     assert all(f"{s.line}/{s.segment}: P(exceed)" in html for s in STATES)
 
 
@@ -130,7 +162,7 @@ def test_report_with_the_real_alerting_service(
     assert report.main(service_config, out_path=out_path, line="L1", timeout=5) == 0
     assert service.stop() == 0
     html = out_path.read_text()
-    assert "missing" not in html
+    assert "Alerts and plan missing" not in html
     assert "Top6 likely above intervention limit 8.0 mm (p=0.95)" in html
     row = html[html.index("<td>s00002</td>") :].split("</tr>")[0]
     assert "2026-03-12" in row  # next TRC: the last-TRC stand-in + 70 days (alerting README)

@@ -25,7 +25,13 @@ from schemas import (
 from services.alerting.testing import T0, make_alert, make_index, make_state, p_top6
 from services.defaults import DEMO_NETWORK, demo_network
 from services.viewer import service as viewer
-from services.viewer.testing import blueprint_views, rrd_contents, rrd_printout, verify_rrd
+from services.viewer.testing import (
+    blueprint_views,
+    make_plan,
+    rrd_contents,
+    rrd_printout,
+    verify_rrd,
+)
 
 PUT = zenoh.SampleKind.PUT
 TIMEOUT_S = 5.0
@@ -129,6 +135,7 @@ def test_viewer_records_published_messages(
                 for status in ("raised", "cleared")
             ],
             keys.gps(ns, "T7"): [GpsFix(train="T7", t=T0 + 5, lat_deg=lat, lon_deg=lon)],
+            keys.maintenance_plan(ns): [make_plan(T0, [("L2", hot, 2, 0)], T0)],
         }
         publishers = {key: client.declare_publisher(key) for key in messages}
         for publisher in publishers.values():
@@ -175,8 +182,10 @@ def test_viewer_records_published_messages(
     assert contents["map/segments"]["LineStrips2D:colors"] >= 2  # grey, then coloured
     assert contents["map/trains"]["Points2D:positions"] == 1
     assert contents["alerts"]["TextLog:text"] == 2
+    assert contents["map/plan/tamping"]["LineStrips2D:strips"] == 1  # the planner's plan
     printout = rrd_printout(rrd)
     assert f"L2/{picked}" in printout  # in the plotted-segments table
+    assert "tamp w2 01-15" in printout  # the planned tamping's label on the map
     assert "No report from `trackfusion up`" in printout  # first the liveliness tokens
     assert "**trackfusion up**: **not healthy**" in printout  # then up's report
     # the one blueprint: map, alert log, health, the slots' plots

@@ -7,11 +7,17 @@ import re
 
 import pytest
 
-from schemas import DAY_S, Alert, InspectionPlan
+from schemas import DAY_S, Alert, InspectionPlan, MaintenancePlan, PlannedTamping, TrcRunValue
 from services.alerting.testing import T0, forecast_top6, make_state, p_top6, plan_row
 from services.tools.report import (
     BINS,
+    DEADLINE,
+    GRID_H,
+    GRID_LEFT,
+    GRID_TOP,
     NO_STATE,
+    PLANNED,
+    WEEK_PX,
     NetworkMap,
     ReportData,
     Station,
@@ -183,3 +189,98 @@ def test_lines_are_shown_with_the_names_operators_use():
     assert "1 line(s) (L1 (Alassio – Albenga, track 2))" in html
     row = re.search(r"<tr><td class=\"n\">1</td>.*?</tr>", html).group(0)
     assert "<td>L1 (Alassio – Albenga, track 2)</td>" in row
+
+
+def tamping(line: str, segment: str, week: int, worksite: int, deadline: int, p: float):
+    return PlannedTamping(
+        line=line, segment=segment, week=week, worksite=worksite, length_km=0.2,
+        deadline_week=deadline, p_reach_ial=p, risk_met=p <= 0.05, cost=1.0, cost_untamped=2.0,
+    )  # fmt: skip
+
+
+def a_tamping_plan() -> MaintenancePlan:
+    """s1 and s2 of L1 tamped in week 2 in one possession (s2's deadline week 3), the third
+    segment not tamped with its risk limit not met, and a row of line L2."""
+    return MaintenancePlan(
+        t=T0, computed_at=T0 - DAY_S, horizon_weeks=26, eps=0.05, status="optimal",
+        objective=5.0e4, bound=5.0e4, gap=0.0, solve_s=0.1,
+        km_per_week=[0.0, 0.0, 0.4] + [0.0] * 23 , possessions=2, money=3.0e4, budget=None,
+        segments=40, without_model=0,
+        rows=[
+            tamping("L1", "s1", 2, 0, 26, 0.01),
+            tamping("L1", "s2", 2, 0, 3, 0.02),
+            tamping("L2", "s9", 5, 1, 6, 0.01),
+            tamping("L1", EVIL, -1, -1, -1, 0.3),
+        ],
+        trc_lines=[TrcRunValue(line="L1", value=1234.0, segments=3),
+                   TrcRunValue(line="L2", value=10.0, segments=1)],
+    )  # fmt: skip
+
+
+def _rects(svg: str, fill: str) -> list[tuple[float, float, float, float]]:
+    """(x, y, width, height) of the rects of one fill in an SVG text."""
+    found = re.findall(
+        r'<rect x="([\d.]+)" y="([\d.]+)" width="([\d.]+)" height="([\d.]+)" fill="'
+        + re.escape(fill)
+        + '"',
+        svg,
+    )
+    return [tuple(map(float, row)) for row in found]
+
+
+def test_the_tamping_plan_is_a_weeks_by_chainage_grid_per_line():
+    html = a_report(tamping=a_tamping_plan(), lines=("L1",))
+    section = html[html.index('<h2 id="tamping">') :]
+    assert "26 weeks from 2026-01-01" in section and "≤ 0.05" in section
+    svg = section[section.index('<svg class="plan"') : section.index("</svg>")]
+    cell = GRID_H / 3  # three 200 m segments over the grid's height
+    planned = _rects(svg, PLANNED)
+    x2 = GRID_LEFT + 2 * WEEK_PX + 1
+    assert planned == [(x2, GRID_TOP, WEEK_PX - 2, cell), (x2, GRID_TOP + cell, WEEK_PX - 2, cell)]
+    # one possession around both cells; s2's deadline at the end of week 3; s1's is beyond
+    # the horizon and the third segment has none
+    possession = re.findall(r'<rect x="([\d.]+)" y="([\d.]+)" width="(\d+)" height="([\d.]+)" '
+                            r'fill="none"', svg)  # fmt: skip
+    assert [tuple(map(float, r)) for r in possession] == [
+        (GRID_LEFT + 2 * WEEK_PX, GRID_TOP - 1, WEEK_PX, 2 * cell + 2)
+    ]
+    deadlines = [r for r in _rects(svg, DEADLINE) if r[2] == 3]
+    assert deadlines == [(GRID_LEFT + 4 * WEEK_PX - 2, GRID_TOP + cell, 3, cell)]
+    unmet = [r for r in _rects(svg, DEADLINE) if r[2] == 26 * WEEK_PX]
+    assert unmet == [(GRID_LEFT, GRID_TOP + 2 * cell, 26 * WEEK_PX, cell)]
+    assert "s&lt;b&gt;" in svg and "s<b>" not in svg
+    # the possession's row: week, Monday, segments, chainage, km, earliest deadline
+    row = re.search(r'<table class="worksites">.*?</table>', section).group(0)
+    assert "<td>2026-01-15</td><td>s1 – s2</td><td>0.0 – 0.4</td>" in row and "w3" in row
+    assert "Risk limit not met on 1 segments" in section
+    runs = re.search(r'<table class="trc-runs">.*?</table>', section).group(0)
+    assert '<td>L1</td><td class="n">1,234</td>' in runs
+    assert "L2" not in section  # --line L1: the other line's tampings and runs left out
+
+
+def test_a_missing_planner_is_said_in_one_line_and_the_rest_rendered():
+    note = "Tamping plan missing: no planning service answered on ns/q/plan/maintenance"
+    html = a_report(tamping=None, tamping_missing=note)
+    assert html.count(note) == 1 and '<svg class="plan"' not in html
+    assert html.count('<tr><td class="n">') == 3 and '<svg id="map"' in html
+
+
+def test_a_trc_run_worth_nothing_is_not_recommended():
+    import msgspec
+
+    plan = msgspec.structs.replace(
+        a_tamping_plan(), trc_lines=[TrcRunValue(line="L1", value=0.0, segments=3)]
+    )
+    html = a_report(tamping=plan)
+    assert 'class="trc-runs"' not in html and "No TRC run recommended" in html
+
+
+def test_the_names_of_two_tracks_starting_together_do_not_overlap():
+    one = a_network()
+    polylines = one.polylines | {("L2", seg): pts for (_, seg), pts in one.polylines.items()}
+    both = NetworkMap(polylines, {}, [], {"L1": "track 1", "L2": "track 2"})
+    html = render(ReportData(states=some_states(), network=both, made_at=T0))
+    names = re.findall(r'<text x="([\d.]+)" y="([\d.]+)"[^>]*>(L\d \(track \d\))</text>', html)
+    (x1, y1, first), (x2, y2, second) = names
+    assert (first, second) == ("L1 (track 1)", "L2 (track 2)")
+    assert x1 == x2 and float(y2) - float(y1) == 16

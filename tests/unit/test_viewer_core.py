@@ -24,13 +24,18 @@ from schemas import (
 from services.alerting.testing import T0, make_alert, make_index, make_state, p_top6
 from services.defaults import demo_network
 from services.viewer.core import (
+    PLAN_WEEKS,
     ViewerCore,
+    coalesce_key,
+    message_version,
+    planned_possessions,
     segment_exceedance,
     select_worst,
     select_worst_sticky,
 )
 from services.viewer.scene import UNKNOWN_RGB, build_blueprint, exceedance_color, health_markdown
-from services.viewer.testing import rrd_contents, verify_rrd
+from services.viewer.testing import make_plan, rrd_contents, rrd_printout, verify_rrd
+from track.network import Line, Network
 
 
 @pytest.mark.parametrize(
@@ -354,4 +359,77 @@ def test_the_ranking_says_what_each_segments_last_trc_record_measured(recording)
     core.take([level_only, make_state(T0, segment="s2", p_exceed=p_top6(1, 0.2))])
     core.flush(0.0)
     rows = core._ranking_text.splitlines()
-    assert "| #1 | L1/s1 | 0.70 | top6 |" in rows and "| #2 | L1/s2 | 0.20 | - |" in rows
+    assert "| #1 | 0.70 | top6 | L1/s1 |" in rows and "| #2 | 0.20 | - | L1/s2 |" in rows
+
+
+def test_the_ranking_and_alerts_name_lines_as_operators_do(recording):
+    rec, _ = recording
+    lonlat = [(8.0, 44.0), (8.05, 44.0)]
+    network = Network(
+        {
+            "way7-t2": Line("way7-t2", lonlat, lonlat[0], name="Sanremo – Albenga, track 2"),
+            "L9": Line("L9", lonlat, lonlat[0]),
+        },
+        200.0,
+        lonlat[0],
+    )
+    core = ViewerCore(rec, network, worst_n=2, plot_flush_s=5.0, live_flush_s=1.0)
+    core.start(now=0.0)
+    core.take(
+        [
+            make_state(T0, line="way7-t2", segment="s00001", p_exceed=p_top6(1, 0.7)),
+            make_state(T0, line="L9", segment="s00002", p_exceed=p_top6(1, 0.2)),
+        ]
+    )
+    core.flush(0.0)
+    rows = core._ranking_text.splitlines()
+    assert "| #1 | 0.70 | - | Sanremo – Albenga, track 2 (way7-t2/s00001) |" in rows
+    assert "| #2 | 0.20 | - | L9/s00002 |" in rows
+    assert (
+        core.segment_label(("way7-t2", "s00003")) == "Sanremo – Albenga, track 2 (way7-t2/s00003)"
+    )
+
+
+PLAN_ROWS = [
+    ("L1", "s00002", 0, 0),
+    ("L2", "s00010", 3, 1),
+    ("L1", "s00003", 0, 0),
+    ("L1", "s00050", 12, 2),  # beyond the weeks the map shows
+    ("L1", "s00060", -1, -1),  # not tamped
+]
+
+
+def test_planned_possessions_of_the_next_weeks_by_week():
+    assert planned_possessions(make_plan(T0, PLAN_ROWS, T0), PLAN_WEEKS) == [
+        (0, "L1", ["s00002", "s00003"]),
+        (3, "L2", ["s00010"]),
+    ]
+    assert planned_possessions(make_plan(T0, PLAN_ROWS, T0), 13)[-1] == (12, "L1", ["s00050"])
+
+
+def test_the_map_shows_the_newest_plans_tampings_labelled_with_their_week(recording):
+    rec, path = recording
+    core = ViewerCore(rec, demo_network(), worst_n=1)
+    core.start(now=0.0)
+    core.log_batch([make_plan(T0 + DAY_S, PLAN_ROWS, T0)])
+    core.log_batch([make_plan(T0, [("L3", "s00001", 1, 0)], T0)])  # older: not drawn
+    assert core.plan is not None and core.plan.computed_at == T0 + DAY_S
+    core.log_batch([make_plan(T0 + 2 * DAY_S, [], T0)])  # a newer plan tamping nothing: cleared
+    rec.flush()
+    rec.disconnect()
+    verify_rrd(path)
+    assert rrd_contents(path)["map/plan/tamping"]["LineStrips2D:strips"] == 2
+    printed = rrd_printout(path)
+    assert "tamp w0 01-01" in printed and "tamp w3 01-22" in printed
+    assert "tamp w1" not in printed and "tamp w12" not in printed
+
+
+def test_the_inbox_keeps_the_newest_plan():
+    from services.viewer.service import ViewerAdapter
+
+    inbox = ViewerAdapter(None, ViewerCore(None, None)).inbox  # type: ignore[arg-type]
+    newest, older = make_plan(T0 + DAY_S, PLAN_ROWS, T0), make_plan(T0, [], T0)
+    inbox.put(newest)
+    inbox.put(older)  # late: kept out
+    assert coalesce_key(newest) == ("plan",) and message_version(newest) == T0 + DAY_S
+    assert inbox.take(timeout=0) == [newest]
