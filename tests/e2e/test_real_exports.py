@@ -9,39 +9,20 @@ from __future__ import annotations
 import signal
 from pathlib import Path
 
-import numpy as np
 from support import run_cli
 
+from bench import walkthrough_pictures
+from bench.walkthrough_pictures import level_only_export
 from schemas import SegmentState, decode, keys
-from services.defaults import load_network
 from services.tools.operator import parse_time
-from simulators.profile import LineProfile
 from tests.e2e.stacks import estimation_on
 
 OSM = Path(__file__).parents[1] / "fixtures" / "osm" / "riviera.json"
-LINE = "way1024952344-t1"  # track 1 of the coast line: no name, no ref on its ways
+LINE = walkthrough_pictures.LINE  # track 1 of the coast line: no name, no ref on its ways
 NAME = "Alassio – Albenga, track 1"  # its first and last stations, and the track
 RUNS = (("r1", "2026-01-22T09:00:00Z", 0.0), ("r2", "2026-02-25T09:00:00Z", 4.0))
 COVERED = [f"s{k:05d}" for k in range(1, 15)]  # what 100-3100 m covers of 16 segments
 START_S = 60.0  # upper bound for a process to start or a state to arrive on two loaded cores
-
-
-def level_only_run(network_file: Path, offset_m: float, seed: int) -> str:
-    """A run of LINE over true chainage 100-3100 m recorded ``offset_m`` short, with the
-    level of both rails and no alignment, as a level-only car exports it."""
-    line = load_network(str(network_file)).lines[LINE]
-    bounds = np.stack([line.segment_starts_m, line.segment_ends_m], -1)
-    track = LineProfile(LINE, bounds, seed=3)
-    n = len(bounds)
-    z = np.stack([np.random.default_rng(3).normal(np.log(1.6), 0.4, n), np.zeros(n)], -1)
-    track.update(z, np.zeros(n, dtype=np.int64))  # the track's Top6 (Align10 unmeasured)
-    rng = np.random.default_rng(seed)
-    true_m = np.arange(100.0, 3100.0, 0.25)
-    level = track.sample(true_m)[:2] + rng.normal(0.0, 0.15, (2, true_m.size))
-    rows = np.stack([true_m - offset_m, *level], -1)
-    lines = ["# level-only export", "chainage_m,level_left_mm,level_right_mm"]
-    lines += [f"{x:.3f},{a:.2f},{b:.2f}" for x, a, b in rows]
-    return "\n".join(lines) + "\n"
 
 
 def test_a_level_only_car_on_an_imported_network(up, namespace, collector, tmp_path):
@@ -75,7 +56,7 @@ def test_a_level_only_car_on_an_imported_network(up, namespace, collector, tmp_p
         reports = []
         for k, (run_id, t, offset_m) in enumerate(RUNS):
             export = tmp_path / f"{run_id}.csv"
-            export.write_text(level_only_run(network_file, offset_m, seed=k))
+            export.write_text(level_only_export(network_file, offset_m, seed=k))
             result = run_cli(
                 "import-trc", "--profile", str(export), "--line", LINE, "--run-id", run_id,
                 "--t", t, "--network", str(network_file), *archive, *wiring, timeout=120,
