@@ -353,7 +353,8 @@ class DegradationPosterior(Message, frozen=True, kw_only=True):
     sigma: NDArray  # (Ns, n, n) f8, diffusion of z per day
     z_plus: NDArray  # (Ns, n) f8, mean z right after tamping
     sigma_z_plus: NDArray  # (Ns, n, n) f8
-    n_increments: int  # TRC increments that did not span a tamping
+    n_increments: int  # TRC increments that did not span a tamping (of the indicator used, when
+    # the group's records measured one indicator only)
     n_levels: int  # post-tamping levels
 
     def __post_init__(self) -> None:
