@@ -11,18 +11,21 @@ formulation):
 .. math::
 
     c_{i,w} = T_i + \sum_{u \le w} E^{pre}_i(u) + \ell_i \sum_{u > w} E^{post}(u - w - 1)
-              + U_i F_i(w + 1) + V_i(w) + R_i\,[F_i(w + 1) > \varepsilon]
+              + U_i F_i(w + 1) + V_i(w) + R_i L_i(w)
 
-    c_{i,\varnothing} = \sum_{u < W} E^{pre}_i(u) + U_i F_i(W) + V_i(\varnothing)
-              + R_i\,[F_i(W) > \varepsilon]
+    c_{i,\varnothing} = \sum_{u < W} E^{pre}_i(u) + U_i F_i(W) + V_i(\varnothing) + R_i L_i(W)
 
 with :math:`T_i` the tamping cost, :math:`E(u) = 7\ell_i(c_{IL} p_{IL}(u) + c_{IAL}
 p_{IAL}(u))` the expected exposure cost of week ``u`` from the probabilities of being above
 the intervention and immediate-action limits at mid-week (:mod:`services.planning.risk`),
 :math:`F_i(u)` the probability of reaching the immediate-action limit before the end of
 week ``u - 1`` (first passage), :math:`U_i` the unplanned intervention that follows,
-:math:`V` the wear value at the horizon's end and :math:`R_i` the risk violation cost. The
-segment's *deadline* is the last week whose tamping keeps :math:`F \le \varepsilon`.
+:math:`V` the wear value at the horizon's end and :math:`R_i` the risk violation cost of a
+week late: :math:`L_i(w) = \#\{u : e_i < u \le w,\ F_i(u + 1) > \varepsilon\}` counts the
+weeks after the first allowed one :math:`e_i` whose tamping would miss the risk limit (not
+tamping counts as week ``W``, with :math:`F_i(W + 1) \ge F_i(W)`). The segment's *deadline*
+is the last week whose tamping keeps :math:`F \le \varepsilon`; one already past it at week
+0 is tamped as early as capacity allows.
 """
 
 from __future__ import annotations
@@ -376,26 +379,41 @@ class PlanningCore:
             end_mean = m[r] + mu[None, :] * tau_end[:, -1:]
             wear_none = np.clip((end_mean - zp[None, :]) / span, 0.0, 1.0).max(axis=-1)
             unplanned = c.unplanned_per_km * km[r]
-            violation = c.risk_violation_per_km * km[r]
+            late = self._weeks_late(fp, earliest[r], weeks)
+            violation = c.risk_violation_per_km * km[r, None] * late
             cost_w = (
                 tamp[:, None]
                 + cum_pre
                 + km[r, None] * post_sum
                 + unplanned[:, None] * fp[:, 1:]
                 + c.wear_value * tamp[:, None] * wear_tamped
-                + violation[:, None] * (fp[:, 1:] > cfg.eps)
+                + violation[:, :weeks]
             )
             cost_w[week[None, :] < earliest[r, None]] = np.inf
             cost_none = (
-                cum_pre[:, -1]
-                + unplanned * fp[:, -1]
-                + c.wear_value * tamp * wear_none
-                + violation * (fp[:, -1] > cfg.eps)
-            )
+                cum_pre[:, -1] + unplanned * fp[:, -1] + c.wear_value * tamp * wear_none
+                + violation[:, weeks]
+            )  # fmt: skip
             cost[r, :weeks] = cost_w
             cost[r, weeks] = cost_none
             fp_out[r] = fp
         return cost, fp_out
+
+    def _weeks_late(self, fp: np.ndarray, earliest: np.ndarray, weeks: int) -> np.ndarray:
+        """(rows, W+1): weeks by which a tamping in week w (column W: not in the horizon,
+        counted as week W) misses the risk limit, beyond the first allowed week.
+
+        A tamping in week u meets the limit when F(u+1) <= eps. Each week after the first
+        allowed one that a tamping could not meet it in counts once, so a late tamping costs
+        more the later it is, not tamping costs the most, and a segment that no allowed
+        week can save (already past its deadline at week 0, or held off by the minimum
+        interval) is still tamped as early as capacity allows, paying nothing for the part
+        no plan avoids.
+        """
+        missed = fp[:, 1:] > self.config.eps  # a tamping in week u misses the limit
+        missed = np.c_[missed, missed[:, -1:]]  # after the horizon: as its last week, at least
+        after_first = np.arange(weeks + 1)[None, :] > earliest[:, None]
+        return np.cumsum(missed & after_first, axis=1)
 
     def _segment_inputs(self, idx: Sequence[int], t0: float):
         """Per segment of ``idx``: mean and variance of the indicators, age in days at ``t0``,
