@@ -30,6 +30,7 @@ is the last week whose tamping keeps :math:`F \le \varepsilon`; one already past
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
@@ -249,6 +250,22 @@ class PlanningCore:
             self.index[where] = len(self.refs)
             self.refs.append(ref)
         return self.index[where]
+
+    def snapshot(self) -> PlanningCore:
+        """A copy of the inputs to plan from while this core goes on taking new ones.
+
+        The segments, states, posteriors and last tampings are copied (the messages
+        themselves are immutable); the caches of cost rows and of regions' solutions are
+        shared, so one plan after another recomputes only what changed. Plan from one
+        snapshot at a time: the caches are not locked.
+        """
+        frozen = copy.copy(self)
+        frozen.refs = list(self.refs)
+        frozen.index = dict(self.index)
+        frozen.states = dict(self.states)
+        frozen.posteriors = dict(self.posteriors)
+        frozen.last_tamped = dict(self.last_tamped)
+        return frozen
 
     # --- inputs --------------------------------------------------------------------------
 
