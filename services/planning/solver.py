@@ -37,7 +37,8 @@ block plans found, each also in every other week all its segments may be tamped 
 pieces that fit a week's capacity. Their set-packing LP (every segment in at most one
 worksite, capacity and budget rows) is rounded greedily; when that is further than the
 target gap from the bound, the set-packing MILP (HiGHS through ``scipy.optimize.milp``)
-within a time budget, then for at most ``COMPACT_MAX_VARIABLES / 2`` (segment, week)
+restricted to the worksites near the LP's (a fraction of the time), then over every
+worksite, within a time budget, then for at most ``COMPACT_MAX_VARIABLES / 2`` (segment, week)
 options the MILP over them; the better plan and the better bound are kept. The plan's cost
 against the best bound is the reported gap.
 """
