@@ -37,7 +37,7 @@ import numpy as np
 from schemas import DAY_S, INDICATORS, DegradationPosterior, MaintenanceEvent
 from services.defaults import load_network
 from services.limits import DEFAULT_LIMITS_FILE, load_immediate_action, load_limits
-from services.planning.core import PlanningConfig, PlanningCore, SegmentRef, week_start
+from services.planning.core import Costs, PlanningConfig, PlanningCore, SegmentRef, week_start
 from services.planning.testing import f8, make_state
 from simulators.network import generate_network, stable_rng
 from simulators.truth import Truth, load_config
@@ -96,7 +96,12 @@ class Loop:
         il_level = self.limits.levels.index("intervention")
         self.log_il = np.log([self.limits.for_line(r.line)[il_level] for r in self.refs])
         self.log_ial = np.log([ial[self.limits.speed_class(r.line)] for r in self.refs])
-        self.config = PlanningConfig(capacity_km_per_week=args.capacity, milp_s=args.milp_s)
+        self.config = PlanningConfig(
+            capacity_km_per_week=args.capacity,
+            milp_s=args.milp_s,
+            eps=args.eps,
+            costs=Costs(risk_violation_per_km=args.risk_violation_per_km),
+        )
         self.core = PlanningCore(self.config, self.limits, ial, self.refs)
         rng = stable_rng(seed, "bench-trc")
         lines = sorted({r.line for r in self.refs})
@@ -257,6 +262,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--samples", type=int, default=64)
     parser.add_argument("--milp-s", type=float, default=1.0, help="HiGHS time per plan")
     parser.add_argument("--policies", default=",".join(POLICIES))
+    parser.add_argument("--eps", type=float, default=PlanningConfig.eps, help="the risk limit")
+    parser.add_argument("--risk-violation-per-km", type=float,
+                        default=Costs.risk_violation_per_km,
+                        help="a km per week late on the risk limit (0: no risk limit)")  # fmt: skip
     args = parser.parse_args(argv)
     cfg = world_config()
     networks = [("demo", load_network(None))]
