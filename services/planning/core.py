@@ -91,7 +91,7 @@ class PlanningConfig:
     region_of_line: Mapping[str, str] = field(default_factory=dict)
     budget: float | None = None
     target_gap: float = 0.01
-    milp_s: float = 10.0  # seconds the integer programs of one plan may take in all
+    milp_s: float = 10.0  # s of the regions' optimisation after which no integer program starts
     unplanned_delay_days: float = 7.0  # from reaching the IAL to the unplanned tamping
     posterior_samples: int = 16
     quadrature_nodes: int = 5

@@ -236,10 +236,12 @@ def solve(
 ) -> Solution:
     """The plan of ``problem``: every block's best plan; where that breaks a capacity or the
     budget, column generation and the integer master (module docstring). Without a budget the
-    regions are independent and each is solved on its own. ``milp_s``: seconds the integer
-    masters may take in all (shared by the regions that need one), after which the rounded
-    LP stands. ``solved``: the regions' solutions by their problem's digest, kept between
-    calls, so that a re-plan solves again only the regions whose costs changed."""
+    regions are independent and each is solved on its own. ``milp_s``: seconds from the start
+    of the regions that need column generation (their LPs included) after which no integer
+    master starts; what is left is shared evenly by the regions still to solve, and a
+    region without time keeps its rounded LP. ``solved``: the regions' solutions by their
+    problem's digest, kept between calls, so that a re-plan solves again only the regions
+    whose costs changed."""
     started = time.perf_counter()
     timings = {"dp": 0.0, "lp": 0.0, "milp": 0.0}
     cap = problem.capacity
