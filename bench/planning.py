@@ -16,9 +16,12 @@ later. Policies, on the same world (paired seeds):
 - ``cycle``: every section of 25 segments tamped every ``--cycle-years``, staggered;
 - ``oracle``: the planning core on the true state and the segment's true parameters.
 
-Figures per policy (sums over the seeds): total cost (the planner's cost model: tamping,
-possessions, days above the intervention and immediate-action limits, unplanned tampings),
-segment-days above the intervention and IAL limits, km tamped, possessions, TRC runs.
+Figures per policy (sums over the seeds): total cost, the year's cost (the planner's cost
+model: tamping, possessions, days above the intervention and immediate-action limits,
+unplanned tampings) plus the wear left at the year's end (the planner's wear rule on the
+true levels: a policy cannot look cheap by leaving the track worn for the next year),
+segment-days above the intervention and IAL limits, km tamped, possessions, TRC runs. Every
+tamping, planned or unplanned, reaches the planner as a maintenance record.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ import numpy as np
 from schemas import DAY_S, INDICATORS, DegradationPosterior, MaintenanceEvent
 from services.defaults import load_network
 from services.limits import DEFAULT_LIMITS_FILE, load_immediate_action, load_limits
-from services.planning.core import PlanningConfig, PlanningCore, SegmentRef, week_start
+from services.planning.core import Costs, PlanningConfig, PlanningCore, SegmentRef, week_start
 from services.planning.testing import f8, make_state
 from simulators.network import generate_network, stable_rng
 from simulators.truth import Truth, load_config
@@ -93,7 +96,12 @@ class Loop:
         il_level = self.limits.levels.index("intervention")
         self.log_il = np.log([self.limits.for_line(r.line)[il_level] for r in self.refs])
         self.log_ial = np.log([ial[self.limits.speed_class(r.line)] for r in self.refs])
-        self.config = PlanningConfig(capacity_km_per_week=args.capacity, milp_s=args.milp_s)
+        self.config = PlanningConfig(
+            capacity_km_per_week=args.capacity,
+            milp_s=args.milp_s,
+            eps=args.eps,
+            costs=Costs(risk_violation_per_km=args.risk_violation_per_km),
+        )
         self.core = PlanningCore(self.config, self.limits, ial, self.refs)
         rng = stable_rng(seed, "bench-trc")
         lines = sorted({r.line for r in self.refs})
@@ -203,9 +211,9 @@ class Loop:
             for i in np.flatnonzero(new):  # reached the IAL: an unplanned tamping in a week
                 self.unplanned_due[i] = self.truth.t + 7 * DAY_S
                 self.truth.tamping_due[i] = self.unplanned_due[i]
-                self.last_tamped[i] = self.unplanned_due[i]
                 self.figures["unplanned"] += 1
                 self.figures["cost"] += c.unplanned_per_km * self.km[i]
+                self.record_tamping(i, self.unplanned_due[i])
             self.unplanned_due[self.unplanned_due <= self.truth.t] = np.inf
 
     def tamp(self, rows: np.ndarray, t: float, planned: bool) -> None:
@@ -213,17 +221,33 @@ class Loop:
         if not rows.size:
             return
         self.truth.tamping_due[rows] = t
-        self.last_tamped[rows] = t
         c = self.config.costs
         runs = 1 + int((np.diff(rows) != 1).sum())
         self.figures["km"] += self.km[rows].sum()
         self.figures["possessions"] += runs
         self.figures["cost"] += c.tamping_per_km * self.km[rows].sum() + c.possession * runs
         for i in rows:
-            ref = self.refs[i]
-            self.core.on_maintenance(MaintenanceEvent(line=ref.line, segment=ref.segment,
-                                                      event_id=f"b{i}-{t:.0f}", t_start=t,
-                                                      t_end=t))  # fmt: skip
+            self.record_tamping(i, t)
+
+    def record_tamping(self, i: int, t: float) -> None:
+        """A tamping of segment ``i`` at ``t``, planned or not, as the maintenance record
+        tells the planner (it starts the minimum interval)."""
+        self.last_tamped[i] = t
+        ref = self.refs[i]
+        self.core.on_maintenance(MaintenanceEvent(line=ref.line, segment=ref.segment,
+                                                  event_id=f"b{i}-{t:.0f}", t_start=t,
+                                                  t_end=t))  # fmt: skip
+
+    def wear_left(self) -> float:
+        """What the track is worth less at the end than freshly tamped, by the planner's
+        wear rule: ``wear_value`` x the tamping cost x the share of the way from the level
+        after a tamping to the intervention limit (the largest over indicators, in [0, 1]).
+        A policy that defers tampings past the year's end leaves this much to pay."""
+        c = self.config.costs
+        zp = self.truth.z_plus.mean(axis=0)
+        span = np.maximum(self.log_il - zp, 1e-6)
+        wear = np.clip((self.truth.z - zp) / span, 0.0, 1.0).max(axis=1)
+        return float((c.wear_value * c.tamping_per_km * self.km * wear).sum())
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -238,6 +262,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--samples", type=int, default=64)
     parser.add_argument("--milp-s", type=float, default=1.0, help="HiGHS time per plan")
     parser.add_argument("--policies", default=",".join(POLICIES))
+    parser.add_argument("--eps", type=float, default=PlanningConfig.eps, help="the risk limit")
+    parser.add_argument("--risk-violation-per-km", type=float,
+                        default=Costs.risk_violation_per_km,
+                        help="a km per week late on the risk limit (0: no risk limit)")  # fmt: skip
     args = parser.parse_args(argv)
     cfg = world_config()
     networks = [("demo", load_network(None))]
@@ -247,8 +275,9 @@ def main(argv: list[str] | None = None) -> int:
     for name, network in networks:
         print(f"\n{name}: {network.n_segments} segments, {args.weeks} weeks, seeds "
               f"1..{args.seeds}, capacity {args.capacity:g} km/week a line")  # fmt: skip
-        print(f"{'policy':10} {'total cost':>14} {'days>IL':>9} {'days>IAL':>9} {'unplanned':>9} "
-              f"{'km':>7} {'possessions':>11} {'TRC runs':>8} {'s':>6}")  # fmt: skip
+        print(f"{'policy':10} {'total cost':>14} {'year':>12} {'wear left':>10} {'days>IL':>9} "
+              f"{'days>IAL':>9} {'unplanned':>9} {'km':>7} {'possessions':>11} {'TRC runs':>8} "
+              f"{'s':>6}")  # fmt: skip
         for policy in args.policies.split(","):
             total = defaultdict(float)
             started = time.perf_counter()
@@ -259,7 +288,9 @@ def main(argv: list[str] | None = None) -> int:
                 for key, value in loop.figures.items():
                     total[key] += value
                 total["trc"] += loop.trc_runs
-            print(f"{policy:10} {total['cost']:14,.0f} {total['days_il']:9,.0f} "
+                total["wear"] += loop.wear_left()
+            print(f"{policy:10} {total['cost'] + total['wear']:14,.0f} {total['cost']:12,.0f} "
+                  f"{total['wear']:10,.0f} {total['days_il']:9,.0f} "
                   f"{total['days_ial']:9,.0f} {total['unplanned']:9,.0f} {total['km']:7.1f} "
                   f"{total['possessions']:11,.0f} {total['trc']:8,.0f} "
                   f"{time.perf_counter() - started:6.0f}")  # fmt: skip

@@ -11,22 +11,28 @@ formulation):
 .. math::
 
     c_{i,w} = T_i + \sum_{u \le w} E^{pre}_i(u) + \ell_i \sum_{u > w} E^{post}(u - w - 1)
-              + U_i F_i(w + 1) + V_i(w) + R_i\,[F_i(w + 1) > \varepsilon]
+              + U_i F_i(w + 1) + V_i(w) + R_i L_i(w)
 
-    c_{i,\varnothing} = \sum_{u < W} E^{pre}_i(u) + U_i F_i(W) + V_i(\varnothing)
-              + R_i\,[F_i(W) > \varepsilon]
+    c_{i,\varnothing} = \sum_{u < W} E^{pre}_i(u) + U_i F_i(W) + V_i(\varnothing) + R_i L_i(W)
 
-with :math:`T_i` the tamping cost, :math:`E(u) = 7\ell_i(c_{IL} p_{IL}(u) + c_{IAL}
-p_{IAL}(u))` the expected exposure cost of week ``u`` from the probabilities of being above
-the intervention and immediate-action limits at mid-week (:mod:`services.planning.risk`),
-:math:`F_i(u)` the probability of reaching the immediate-action limit before the end of
-week ``u - 1`` (first passage), :math:`U_i` the unplanned intervention that follows,
-:math:`V` the wear value at the horizon's end and :math:`R_i` the risk violation cost. The
-segment's *deadline* is the last week whose tamping keeps :math:`F \le \varepsilon`.
+with :math:`T_i` the tamping cost, :math:`E^{pre}_i(u)` the expected exposure cost of week
+``u`` untamped: :math:`7\ell_i c_{IL}` times the probability of being above the intervention
+limit at mid-week (:mod:`services.planning.risk`) and not yet tamped unplanned, plus
+:math:`d\,\ell_i c_{IAL}` times the probability of reaching the immediate-action limit (IAL)
+in week ``u`` (its unplanned tamping follows ``d`` = ``unplanned_delay_days`` later);
+:math:`F_i(u)` the probability of reaching the IAL before the end of week ``u - 1`` (first
+passage), :math:`U_i` the unplanned intervention that follows,
+:math:`V` the wear value at the horizon's end and :math:`R_i` the risk violation cost of a
+week late: :math:`L_i(w) = \#\{u : e_i < u \le w,\ F_i(u + 1) > \varepsilon\}` counts the
+weeks after the first allowed one :math:`e_i` whose tamping would miss the risk limit (not
+tamping counts as week ``W``, with :math:`F_i(W + 1) \ge F_i(W)`). The segment's *deadline*
+is the last week whose tamping keeps :math:`F \le \varepsilon`; one already past it at week
+0 is tamped as early as capacity allows.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
@@ -43,6 +49,16 @@ from services.planning.solver import NONE, Problem, Solution, run_starts, solve
 WEEK_S = 7 * DAY_S
 MONDAY_OFFSET_S = 4 * DAY_S  # epoch 0 was a Thursday: Monday 00:00 UTC is 4 days later
 DEFAULT_SEGMENT_M = 200.0  # length of a segment the network does not know
+
+
+def _at_days(fp: np.ndarray, days: np.ndarray) -> np.ndarray:
+    """First-passage rows ``fp`` (rows, W+1) at the end of weeks -1..W-1, at ``days`` after
+    week 0 starts, linear between them (0 before week 0)."""
+    x = np.clip(np.asarray(days, float) / 7.0, 0.0, fp.shape[1] - 1)
+    lo = np.minimum(np.floor(x).astype(int), fp.shape[1] - 2)
+    frac = x - lo
+    out = fp[:, lo] * (1.0 - frac) + fp[:, lo + 1] * frac
+    return np.where(np.asarray(days) < 0.0, 0.0, out)
 
 
 def week_start(t: float) -> float:
@@ -75,7 +91,8 @@ class PlanningConfig:
     region_of_line: Mapping[str, str] = field(default_factory=dict)
     budget: float | None = None
     target_gap: float = 0.01
-    milp_s: float = 10.0  # seconds the integer programs of one plan may take in all
+    milp_s: float = 10.0  # s of the regions' optimisation after which no integer program starts
+    unplanned_delay_days: float = 7.0  # from reaching the IAL to the unplanned tamping
     posterior_samples: int = 16
     quadrature_nodes: int = 5
     replan_quiet_s: float = 2.0
@@ -86,7 +103,8 @@ class PlanningConfig:
             raise ValueError(f"horizon_weeks: 1 to 104, got {self.horizon_weeks}")
         if not 0.0 < self.eps < 1.0:
             raise ValueError(f"eps: a probability in (0, 1), got {self.eps}")
-        for name in ("min_interval_weeks", "min_worksite_m", "replan_quiet_s"):
+        for name in ("min_interval_weeks", "min_worksite_m", "replan_quiet_s",
+                     "unplanned_delay_days"):  # fmt: skip
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name}: must be >= 0, got {getattr(self, name)}")
         if not self.replan_max_wait_s >= self.replan_quiet_s:
@@ -119,11 +137,13 @@ class PlanningConfig:
         top = {
             "horizon_weeks", "eps", "min_interval_weeks", "min_worksite_m", "costs",
             "capacity", "budget", "target_gap", "milp_s", "forecast", "replan",
+            "unplanned_delay_days",
         }  # fmt: skip
         _known("planning config", raw, top)
         try:
             kwargs: dict[str, Any] = {}
-            for name in ("eps", "min_interval_weeks", "min_worksite_m", "target_gap", "milp_s"):
+            for name in ("eps", "min_interval_weeks", "min_worksite_m", "target_gap", "milp_s",
+                         "unplanned_delay_days"):  # fmt: skip
                 if name in raw:
                     kwargs[name] = float(raw[name])
             if "horizon_weeks" in raw:
@@ -247,6 +267,22 @@ class PlanningCore:
             self.refs.append(ref)
         return self.index[where]
 
+    def snapshot(self) -> PlanningCore:
+        """A copy of the inputs to plan from while this core goes on taking new ones.
+
+        The segments, states, posteriors and last tampings are copied (the messages
+        themselves are immutable); the caches of cost rows and of regions' solutions are
+        shared, so one plan after another recomputes only what changed. Plan from one
+        snapshot at a time: the caches are not locked.
+        """
+        frozen = copy.copy(self)
+        frozen.refs = list(self.refs)
+        frozen.index = dict(self.index)
+        frozen.states = dict(self.states)
+        frozen.posteriors = dict(self.posteriors)
+        frozen.last_tamped = dict(self.last_tamped)
+        return frozen
+
     # --- inputs --------------------------------------------------------------------------
 
     def on_state(self, state: SegmentState) -> bool:
@@ -344,7 +380,6 @@ class PlanningCore:
             tau_mid = np.maximum(offset[r, None] + mid[None, :], 0.0)
             tau_end = np.maximum(offset[r, None] + ends[None, :], 1e-6)
             p_il = risk.above_any(m[r], v[r], post, tau_mid, log_il[r])
-            p_ial = risk.above_any(m[r], v[r], post, tau_mid, log_ial[r])
             fp = np.zeros((len(r), weeks + 1))
             bound = 2.0 * risk.above_each(m[r], v[r], post, tau_end[:, -1], log_ial[r]).sum(-1)
             hot = (bound >= risk.NEGLIGIBLE) | (not post.drift_nonnegative)
@@ -355,10 +390,13 @@ class PlanningCore:
                     cfg.quadrature_nodes,
                 )  # fmt: skip
             fp[:, 0] = np.where((m[r] >= log_ial[r]).any(axis=1), fp[:, 0], 0.0)
-            pre = (
-                7.0
-                * km[r, None]
-                * (c.intervention_per_km_day * p_il + c.immediate_action_per_km_day * p_ial)
+            # reaching the IAL forces an unplanned tamping unplanned_delay_days later: that
+            # long above the IAL, then tamped (no longer above either limit untamped)
+            reset = _at_days(fp, mid - cfg.unplanned_delay_days)
+            above_il = np.clip(p_il - reset, 0.0, 1.0)
+            pre = km[r, None] * (
+                7.0 * c.intervention_per_km_day * above_il
+                + cfg.unplanned_delay_days * c.immediate_action_per_km_day * np.diff(fp, axis=1)
             )
             # after a tamping: per pair of limits (one per speed class), ages at mid-week;
             # a tamping in week w leaves W - w - 1 weeks, the first ones after a tamping
@@ -376,26 +414,41 @@ class PlanningCore:
             end_mean = m[r] + mu[None, :] * tau_end[:, -1:]
             wear_none = np.clip((end_mean - zp[None, :]) / span, 0.0, 1.0).max(axis=-1)
             unplanned = c.unplanned_per_km * km[r]
-            violation = c.risk_violation_per_km * km[r]
+            late = self._weeks_late(fp, earliest[r], weeks)
+            violation = c.risk_violation_per_km * km[r, None] * late
             cost_w = (
                 tamp[:, None]
                 + cum_pre
                 + km[r, None] * post_sum
                 + unplanned[:, None] * fp[:, 1:]
                 + c.wear_value * tamp[:, None] * wear_tamped
-                + violation[:, None] * (fp[:, 1:] > cfg.eps)
+                + violation[:, :weeks]
             )
             cost_w[week[None, :] < earliest[r, None]] = np.inf
             cost_none = (
-                cum_pre[:, -1]
-                + unplanned * fp[:, -1]
-                + c.wear_value * tamp * wear_none
-                + violation * (fp[:, -1] > cfg.eps)
-            )
+                cum_pre[:, -1] + unplanned * fp[:, -1] + c.wear_value * tamp * wear_none
+                + violation[:, weeks]
+            )  # fmt: skip
             cost[r, :weeks] = cost_w
             cost[r, weeks] = cost_none
             fp_out[r] = fp
         return cost, fp_out
+
+    def _weeks_late(self, fp: np.ndarray, earliest: np.ndarray, weeks: int) -> np.ndarray:
+        """(rows, W+1): weeks by which a tamping in week w (column W: not in the horizon,
+        counted as week W) misses the risk limit, beyond the first allowed week.
+
+        A tamping in week u meets the limit when F(u+1) <= eps. Each week after the first
+        allowed one that a tamping could not meet it in counts once, so a late tamping costs
+        more the later it is, not tamping costs the most, and a segment that no allowed
+        week can save (already past its deadline at week 0, or held off by the minimum
+        interval) is still tamped as early as capacity allows, paying nothing for the part
+        no plan avoids.
+        """
+        missed = fp[:, 1:] > self.config.eps  # a tamping in week u misses the limit
+        missed = np.c_[missed, missed[:, -1:]]  # after the horizon: as its last week, at least
+        after_first = np.arange(weeks + 1)[None, :] > earliest[:, None]
+        return np.cumsum(missed & after_first, axis=1)
 
     def _segment_inputs(self, idx: Sequence[int], t0: float):
         """Per segment of ``idx``: mean and variance of the indicators, age in days at ``t0``,

@@ -4,7 +4,8 @@ Subscribes ``{ns}/state/**`` (SegmentState), ``{ns}/model/**`` (DegradationPoste
 ``model/degradation/{group}``; calibrations are not the planner's) and
 ``{ns}/maintenance/**`` (a tamping starts the minimum interval); all feed ONE inbox drained by
 ONE worker, which only updates the core. A second thread, the planner, makes the plan when
-something changed: once nothing new arrived for ``replan.quiet_s``, and at most
+something changed, from a snapshot of the core's inputs taken under the lock (the worker goes
+on folding states while it plans): once nothing new arrived for ``replan.quiet_s``, and at most
 ``replan.max_wait_s`` after the first change, one plan at a time, so a flood of states gives a
 few plans, never a storm. Each plan goes out on ``{ns}/plan/maintenance`` (cached for late
 joiners) and answers ``{ns}/q/plan/maintenance``; a query with ``weeks`` or ``budget`` is
@@ -139,7 +140,7 @@ class PlanningAdapter:
     def __init__(self, rt: ServiceRuntime, core: PlanningCore) -> None:
         self.rt = rt
         self.core = core
-        self.lock = threading.Lock()  # the worker writes the core, the planner reads it
+        self.lock = threading.Lock()  # the worker writes the core, the planner snapshots it
         self.changed = threading.Condition(self.lock)
         self.first_change: float | None = None  # monotonic s of the first unplanned change
         self.last_change = 0.0
@@ -246,11 +247,13 @@ class PlanningAdapter:
                 now_t = self.now_t
                 if now_t is None:
                     continue
-                started = time.perf_counter()
-                plan = self.core.plan(now_t)
-                trc = []
-                if plan.segments <= TRC_VALUE_MAX_SEGMENTS:
-                    trc = self.core.trc_value(now_t)
+                inputs = self.core.snapshot()
+            # planned outside the lock: the worker goes on folding states into the core
+            started = time.perf_counter()
+            plan = inputs.plan(now_t)
+            trc = []
+            if plan.segments <= TRC_VALUE_MAX_SEGMENTS:
+                trc = inputs.trc_value(now_t)
             self.plans += 1
             message = self._message(plan, now_t, trc=trc)
             payload = encode(message)
@@ -268,7 +271,8 @@ class PlanningAdapter:
         try:
             with self.lock:
                 now_t = self.now_t
-                plan = None if now_t is None else self.core.plan(now_t, weeks=weeks, budget=budget)
+                inputs = self.core.snapshot()
+            plan = None if now_t is None else inputs.plan(now_t, weeks=weeks, budget=budget)
             payload = encode(self._message(plan, now_t, budget, weeks))
             query.reply(keys.q_maintenance_plan(self.rt.ns), payload)
         except Exception as exc:  # the question fails, not the planner

@@ -37,7 +37,8 @@ block plans found, each also in every other week all its segments may be tamped 
 pieces that fit a week's capacity. Their set-packing LP (every segment in at most one
 worksite, capacity and budget rows) is rounded greedily; when that is further than the
 target gap from the bound, the set-packing MILP (HiGHS through ``scipy.optimize.milp``)
-within a time budget, then for at most ``COMPACT_MAX_VARIABLES / 2`` (segment, week)
+restricted to the worksites near the LP's (a fraction of the time), then over every
+worksite, within a time budget, then for at most ``COMPACT_MAX_VARIABLES / 2`` (segment, week)
 options the MILP over them; the better plan and the better bound are kept. The plan's cost
 against the best bound is the reported gap.
 """
@@ -57,6 +58,8 @@ NONE = -1  # a segment's choice: not tamped in the horizon
 MAX_COLUMN_ROUNDS = 60  # column generation rounds at most
 MILP_TIME_LIMIT_S = 5.0  # per integer master or compact MILP
 MILP_REL_GAP = 0.002  # HiGHS stops the integer master within this of its own bound
+NEAR_LP_COLUMNS = 5  # the restricted integer master: this many worksites of least reduced
+# cost per worksite in the LP's support (with the support and the rounded plan's)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -233,10 +236,12 @@ def solve(
 ) -> Solution:
     """The plan of ``problem``: every block's best plan; where that breaks a capacity or the
     budget, column generation and the integer master (module docstring). Without a budget the
-    regions are independent and each is solved on its own. ``milp_s``: seconds the integer
-    masters may take in all (shared by the regions that need one), after which the rounded
-    LP stands. ``solved``: the regions' solutions by their problem's digest, kept between
-    calls, so that a re-plan solves again only the regions whose costs changed."""
+    regions are independent and each is solved on its own. ``milp_s``: seconds from the start
+    of the regions that need column generation (their LPs included) after which no integer
+    master starts; what is left is shared evenly by the regions still to solve, and a
+    region without time keeps its rounded LP. ``solved``: the regions' solutions by their
+    problem's digest, kept between calls, so that a re-plan solves again only the regions
+    whose costs changed."""
     started = time.perf_counter()
     timings = {"dp": 0.0, "lp": 0.0, "milp": 0.0}
     cap = problem.capacity
@@ -361,13 +366,19 @@ def _coupled(problem: Problem, target_gap: float, timings: dict[str, float], mil
     t = time.perf_counter()
     # the LP over the worksites, rounded: often within the target already
     cost, _, a_seg, a_cap, b_cap = worksites.matrices(cap_rows, budget)
-    choice = worksites.rounded(cost, a_seg, a_cap, b_cap)
+    x, reduced = worksites.relaxation(cost, a_seg, a_cap, b_cap)
+    choice, taken = worksites.rounded(cost, x)
     total = plan_cost(problem, choice)[0]
     timings["rounding"] = timings.get("rounding", 0.0) + time.perf_counter() - t
-    if total - best_bound > target_gap * max(abs(total), 1e-12) and milp_s >= 0.2:
+    # the integer master over the worksites near the LP's (fast), then over all of them
+    for columns in (worksites.near_relaxation(x, reduced, taken, NEAR_LP_COLUMNS), None):
+        if total - best_bound <= target_gap * max(abs(total), 1e-12) or milp_s < 0.05:
+            break
         t = time.perf_counter()
-        found = worksites.master_milp(cap_rows, budget, target_gap, min(milp_s, MILP_TIME_LIMIT_S))
-        if plan_cost(problem, found)[0] < total:
+        found = worksites.master_milp(
+            cap_rows, budget, target_gap, min(milp_s, MILP_TIME_LIMIT_S), columns
+        )
+        if found is not None and plan_cost(problem, found)[0] < total:
             choice, total = found, plan_cost(problem, found)[0]
         timings["milp"] += time.perf_counter() - t
         milp_s -= time.perf_counter() - t
@@ -568,13 +579,19 @@ class _Worksites:
             b_cap = np.r_[b_cap, budget]
         return cost, used, a_seg, a_cap, b_cap
 
-    def rounded(self, cost, a_seg, a_cap, b_cap) -> np.ndarray:
-        """Worksites by their LP value (then cost), each taken if it still fits; then every
-        other worksite that lowers the cost, cheapest first, while it fits."""
+    def relaxation(self, cost, a_seg, a_cap, b_cap) -> tuple[np.ndarray, np.ndarray]:
+        """The set-packing LP: every worksite's value and reduced cost."""
         a_ub = sparse.vstack([a_seg, a_cap]).tocsr()
         b_ub = np.r_[np.ones(a_seg.shape[0]), b_cap]
         res = linprog(cost, A_ub=a_ub, b_ub=b_ub, bounds=(0, 1), method="highs")
-        x = res.x if res.x is not None else np.zeros(self.n)
+        if res.x is None:
+            return np.zeros(self.n), cost
+        return res.x, cost - a_ub.T @ res.ineqlin.marginals
+
+    def rounded(self, cost, x) -> tuple[np.ndarray, np.ndarray]:
+        """Worksites by their LP value ``x`` (then cost), each taken if it still fits; then
+        every other worksite that lowers the cost, cheapest first, while it fits: the plan
+        and the worksites taken."""
         p = self.problem
         first, length, week = (np.array(v, np.int64) for v in (self.first, self.length, self.week))
         cum_km = np.r_[0.0, np.cumsum(p.km)]
@@ -591,6 +608,7 @@ class _Worksites:
         order = np.r_[
             support[np.lexsort((cost[support], -x[support]))], rest[np.argsort(cost[rest])]
         ]
+        taken = []
         for c in order.tolist():
             lo, hi, w, r = first[c], first[c] + length[c], week[c], region[c]
             if km[c] <= left[r, w] + 1e-9 and money[c] <= budget + 1e-9 and free[lo:hi].all():
@@ -598,23 +616,38 @@ class _Worksites:
                 left[r, w] -= km[c]
                 budget -= money[c]
                 choice[lo:hi] = w
-        return choice
+                taken.append(c)
+        return choice, np.array(taken, np.int64)
 
-    def master_milp(self, cap_rows, budget, target_gap, time_limit: float) -> np.ndarray:
-        """The best set of known worksites, as a choice vector."""
+    def near_relaxation(self, x, reduced, taken, per_support: int) -> np.ndarray:
+        """The worksites an integer master restricted to them can do well with: the LP's
+        support, the ``per_support`` x as many of least reduced cost, and ``taken`` (so
+        its optimum is no worse than that plan)."""
+        support = np.flatnonzero(x > 1e-6)
+        cheapest = np.argsort(reduced)[: per_support * max(len(support), 1)]
+        return np.union1d(np.union1d(support, cheapest), taken)
+
+    def master_milp(
+        self, cap_rows, budget, target_gap, time_limit: float, columns=None
+    ) -> np.ndarray | None:
+        """The best set of known worksites (of ``columns`` only, when given), as a choice
+        vector; None when HiGHS finds none in the time."""
         cost, used, a_seg, a_cap, b_cap = self.matrices(cap_rows, budget)
         a = sparse.vstack([a_seg, a_cap]).tocsr()
+        cols = np.arange(self.n) if columns is None else np.asarray(columns)
         res = milp(
-            cost,
-            constraints=[LinearConstraint(a, -np.inf, np.r_[np.ones(a_seg.shape[0]), b_cap])],
-            integrality=np.ones(self.n),
+            cost[cols],
+            constraints=[
+                LinearConstraint(a[:, cols], -np.inf, np.r_[np.ones(a_seg.shape[0]), b_cap])
+            ],
+            integrality=np.ones(len(cols)),
             bounds=Bounds(0, 1),
             options={"time_limit": time_limit, "mip_rel_gap": target_gap / 4},
         )
-        if res.x is None:  # no integer solution in the time: round the LP's greedily
-            return self.rounded(cost, a_seg, a_cap, b_cap)
+        if res.x is None:
+            return None
         choice = np.full(len(self.problem.km), NONE)
-        for c in np.flatnonzero(res.x > 0.5):
+        for c in cols[res.x > 0.5]:
             choice[self.first[c] : self.first[c] + self.length[c]] = self.week[c]
         return choice
 

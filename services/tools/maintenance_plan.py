@@ -86,6 +86,8 @@ def format_plan(plan: MaintenancePlan) -> str:
         lines.append(f"risk limit not met on {len(unmet)} segments:")
         for r in unmet[:20]:
             when = "not tamped" if r.week < 0 else f"tamped week {r.week}"
+            if r.deadline_week < 0:
+                when += ", overdue at week 0"
             lines.append(f"  {r.line}/{r.segment}: P(IAL first) {r.p_reach_ial:.2f}, {when}")
     return "\n".join(lines)
 

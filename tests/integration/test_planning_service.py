@@ -3,6 +3,7 @@ answered, a plan for another horizon on request, bad parameters and bad payloads
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import pytest
@@ -10,6 +11,7 @@ import zenoh
 
 from schemas import DeadLetter, MaintenancePlan, decode, encode, keys
 from services.planning import service as planning
+from services.planning.core import PlanningCore
 from services.planning.testing import T0, make_posterior, make_state
 
 TIMEOUT_S = 10.0
@@ -79,4 +81,56 @@ def test_states_and_a_model_give_a_published_plan_that_the_queryable_answers(
     (bad,) = query(client, keys.q_maintenance_plan(ns) + "?weeks=x")
     assert bad.err is not None and b"weeks" in bad.err.payload.to_bytes()
     state_pub.undeclare()
+    model_pub.undeclare()
+
+
+def test_states_keep_being_taken_while_a_plan_is_made(
+    open_session, service_config, service_thread, collector, until_matched, config_file,
+    monkeypatch,
+):  # fmt: skip
+    # the first plan is held until the test lets it go; a state put meanwhile must be folded
+    # into the core before then, and the next plan has it
+    planning_now, release, folded = threading.Event(), threading.Event(), threading.Event()
+    plan, on_state = PlanningCore.plan, PlanningCore.on_state
+
+    def held_plan(core, *args, **kwargs):
+        if not planning_now.is_set():
+            planning_now.set()
+            assert release.wait(FIRST_PLAN_S), "the test did not let the plan go"
+        return plan(core, *args, **kwargs)
+
+    def noting_on_state(core, state):
+        changed = on_state(core, state)
+        if state.segment == SEGMENTS[5]:
+            folded.set()
+        return changed
+
+    monkeypatch.setattr(PlanningCore, "plan", held_plan)
+    monkeypatch.setattr(PlanningCore, "on_state", noting_on_state)
+    ns = service_config.ns
+    client = open_session()
+    plans = collector(lambda s: decode(s.payload.to_bytes(), MaintenancePlan))
+    client.declare_subscriber(keys.maintenance_plan(ns), plans)
+    service_thread(
+        "planning",
+        lambda stop: planning.main(
+            service_config, planning_config=config_file, stop=stop, handle_signals=False
+        ),
+        alive=keys.alive(ns, planning.SERVICE, "test"),
+    )
+    model_pub = client.declare_publisher(keys.degradation(ns, "net"))
+    until_matched(model_pub)
+    model_pub.put(encode(make_posterior()))
+    client.put(keys.state(ns, "L1", SEGMENTS[2]), encode(make_state("L1", SEGMENTS[2], T0)))
+    assert planning_now.wait(TIMEOUT_S), "no plan started"
+    late = make_state("L1", SEGMENTS[5], T0, mean_mm=(10.0, 8.5))
+    client.put(keys.state(ns, "L1", SEGMENTS[5]), encode(late))
+    try:
+        assert folded.wait(TIMEOUT_S), "a state waited for the plan to end"
+    finally:
+        release.set()
+    got = plans.get(timeout=FIRST_PLAN_S)
+    while got.segments < 2:  # the held plan had the first state only
+        got = plans.get(timeout=FIRST_PLAN_S)
+    assert any(r.segment == SEGMENTS[5] for r in got.rows)
     model_pub.undeclare()

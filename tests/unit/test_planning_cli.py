@@ -14,13 +14,15 @@ from services.planning.testing import T0, make_limits, make_posterior, make_stat
 from services.tools.maintenance_plan import format_plan, selector, to_csv, to_json
 
 
-def plan_message() -> MaintenancePlan:
+def plan_message(overdue: tuple[float, float] | None = None) -> MaintenancePlan:
     limits, ial = make_limits()
     refs = [SegmentRef("L1", f"s{k:02d}", 200.0) for k in range(12)]
     core = PlanningCore(PlanningConfig(), limits, ial, refs)
     core.on_posterior(make_posterior())
     for k in range(12):
         worn = (9.0, 7.6) if 3 <= k < 6 else (2.2, 2.0)
+        if overdue is not None and k == 9:
+            worn = overdue
         core.on_state(make_state("L1", f"s{k:02d}", T0, mean_mm=worn))
     message = to_message(core.plan(T0), computed_at=T0, eps=0.05, budget=None, horizon_weeks=26,
                          version=1)  # fmt: skip
@@ -50,3 +52,8 @@ def test_the_table_csv_and_json_show_the_worksite():
 def test_no_plan_yet_says_why():
     empty = to_message(None, computed_at=None, eps=0.05, budget=None, horizon_weeks=26, version=0)
     assert "no plan yet" in format_plan(empty)
+
+
+def test_a_segment_past_its_deadline_at_week_zero_is_printed_overdue():
+    text = format_plan(plan_message(overdue=(10.6, 9.0)))
+    assert "L1/s09: P(IAL first)" in text and "tamped week 0, overdue at week 0" in text

@@ -10,7 +10,7 @@ import pytest
 
 from schemas import DAY_S, MaintenanceEvent
 from services.planning import risk
-from services.planning.core import PlanningConfig, PlanningCore, SegmentRef, week_start
+from services.planning.core import Costs, PlanningConfig, PlanningCore, SegmentRef, week_start
 from services.planning.service import load_planning_config, plan_parameters, to_message
 from services.planning.testing import T0, make_limits, make_posterior, make_state
 
@@ -167,3 +167,48 @@ def test_a_trc_run_is_worth_most_on_the_line_whose_levels_are_uncertain_near_a_l
     (_, uncertain, n1), (_, known, n2) = ranked
     assert n1 == n2 == 6 and uncertain > 0 and known >= 0
     assert known < 1e-3 * uncertain
+
+
+@pytest.mark.parametrize("mean_mm", [(10.6, 9.0), (12.0, 10.0)])
+def test_a_segment_past_its_deadline_at_week_zero_is_tamped_at_once_and_said_overdue(mean_mm):
+    # one segment near or above the immediate-action limit among fresh ones: the worksite
+    # around it costs more than the exposure it saves, and yet the risk limit asks for it
+    limits, ial = make_limits()
+    refs = [SegmentRef("L1", f"s{k:02d}", 200.0) for k in range(11)]
+    core = PlanningCore(PlanningConfig(), limits, ial, refs)
+    core.on_posterior(make_posterior())
+    for k in range(11):
+        core.on_state(make_state("L1", f"s{k:02d}", T0, mean_mm=mean_mm if k == 5 else FRESH))
+    row = next(r for r in core.plan(T0).rows if r.segment == "s05")
+    assert row.week == 0
+    assert row.deadline_week == -1 and not row.risk_met and row.p_reach_ial > core.config.eps
+
+
+def test_segments_past_their_deadline_beyond_capacity_are_tamped_as_early_as_it_allows():
+    config = PlanningConfig(capacity_km_per_week=1.0)
+    core = line(15, range(15), config=config)
+    for k in range(15):
+        core.on_state(make_state("L1", f"s{k:02d}", T0 + 1.0, mean_mm=(10.6, 9.0)))
+    plan = core.plan(T0)
+    weeks = sorted(r.week for r in plan.rows)
+    # three worksites of 1 km in weeks 0, 1, 2: none left out, none later than it must
+    assert weeks == [0] * 5 + [1] * 5 + [2] * 5
+    assert all(r.deadline_week == -1 and not r.risk_met for r in plan.rows)
+
+
+def test_a_segment_reaching_the_ial_costs_the_days_to_its_unplanned_tamping_not_the_horizon():
+    # only the days above the IAL cost: reaching it forces a tamping unplanned_delay_days
+    # later, so not tamping a segment about to reach it costs at most that many days,
+    # whatever the horizon
+    costs = Costs(intervention_per_km_day=0.0, unplanned_per_km=0.0, risk_violation_per_km=0.0,
+                  wear_value=0.0)  # fmt: skip
+    core = line(1, range(0), config=PlanningConfig(costs=costs))
+    core.on_state(make_state("L1", "s00", T0 + 1.0, mean_mm=(10.9, 9.3)))
+    t0 = week_start(T0)
+    most = core.config.unplanned_delay_days * costs.immediate_action_per_km_day * 0.2
+    untamped = {}
+    for weeks in (4, 26):
+        cost, fp = core.cost_rows([0], t0, weeks)
+        assert fp[0, weeks] > 0.9
+        untamped[weeks] = cost[0, weeks]
+    assert 0.9 * most < untamped[4] <= untamped[26] <= most * (1 + 1e-9)

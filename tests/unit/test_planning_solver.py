@@ -7,7 +7,10 @@ import itertools
 import numpy as np
 import pytest
 
+from services.planning import solver
+from services.planning.core import PlanningConfig, PlanningCore, week_start
 from services.planning.solver import NONE, Problem, plan_cost, run_starts, solve
+from services.planning.testing import T0, make_limits, make_posterior, random_network
 
 
 def brute_force(problem: Problem) -> float:
@@ -108,3 +111,32 @@ def test_coupled_plan_is_feasible_and_its_bound_holds(seed):
     assert solution.cost <= best + 0.01 * abs(solution.cost) + 1e-9
     if solution.status == "optimal":
         assert solution.cost == pytest.approx(best, rel=1e-7)
+
+
+def test_the_integer_master_near_the_lp_is_feasible_and_no_worse_than_the_rounded_lp():
+    # worn lines sharing 1 km a week: the capacity, not the costs, decides the weeks
+    config = PlanningConfig(regions={"R": 1.0}, region_of_line={"L1": "R", "L2": "R"})
+    limits, ial = make_limits()
+    refs, states = random_network(2, 60, seed=3, max_age=1.1)
+    core = PlanningCore(config, limits, ial, refs)
+    core.on_posterior(make_posterior())
+    for state in states:
+        core.on_state(state)
+    planned = list(core.states)
+    costs, fp = core.cost_rows(planned, week_start(T0), 26)
+    problem, _, _ = core.optimisation_problem(planned, costs, fp, 26, None)
+    worksites = solver._Worksites(problem)
+    worksites.add(solver.dp_blocks(problem.cost, problem.starts, problem.k,
+                                   problem.possession)[0])  # fmt: skip
+    cap_rows = np.argwhere(np.isfinite(problem.capacity))
+    cost, _, a_seg, a_cap, b_cap = worksites.matrices(cap_rows, np.inf)
+    x, reduced = worksites.relaxation(cost, a_seg, a_cap, b_cap)
+    rounded, taken = worksites.rounded(cost, x)
+    columns = worksites.near_relaxation(x, reduced, taken, solver.NEAR_LP_COLUMNS)
+    assert len(columns) < worksites.n
+    found = worksites.master_milp(cap_rows, np.inf, 0.01, 30.0, columns)
+    total, km, _ = plan_cost(problem, found)
+    load = np.zeros_like(problem.capacity)
+    np.add.at(load, problem.region, km)
+    assert (load <= problem.capacity + 1e-9).all() and worksites_long_enough(problem, found)
+    assert total <= plan_cost(problem, rounded)[0] + 1e-6
