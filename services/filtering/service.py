@@ -93,7 +93,6 @@ SERVICE = "filtering"
 BATCH = 65_536
 EXIT_STORE_FAILED = 74  # EX_IOERR
 EXIT_SOFTWARE = 70  # EX_SOFTWARE: a bug escaped a batch
-STATE_CACHE = 16  # states kept per segment for a returning consumer (alerting, viewer)
 DEFAULT_SELECTOR = "**"  # the whole network
 OPTIONS = ("db", "limits", "network", "selector")  # services.filtering, flags of the same names
 MODEL_QUERY_TIMEOUT_S = (
@@ -177,7 +176,7 @@ class FilteringAdapter:
 
     def start(self) -> None:
         ns = self.rt.ns
-        self.states_out = self.rt.reliable_publisher(STATE_CACHE)
+        self.states_out = self.rt.reliable_publisher()
         restored = self.node.restore()
         for (line, segment), payload, _unpublished in restored:
             self.latest.put(keys.q_state(ns, line, segment), payload)
