@@ -176,7 +176,7 @@ class FilteringAdapter:
 
     def start(self) -> None:
         ns = self.rt.ns
-        self.states_out = self.rt.reliable_publisher()
+        self.states_out = self.rt.reliable_publisher(beside=self.node.store.path)
         restored = self.node.restore()
         for (line, segment), payload, _unpublished in restored:
             self.latest.put(keys.q_state(ns, line, segment), payload)

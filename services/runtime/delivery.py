@@ -50,7 +50,8 @@ planning, calibration) replays everything retained when it starts.
 
 Settings (``services.delivery``): ``replay_s`` (10 s: the longest a message missed live
 waits for its replay), ``replay_timeout_s`` (120 s for one replay query) and ``outbox``:
-``dir`` (``var/outbox``), ``max_bytes`` (2 GB per producer), ``max_age_s`` (7 days).
+``dir`` (default: beside the service's store, ``var/`` for one without),
+``max_bytes`` (2 GB per producer), ``max_age_s`` (7 days).
 """
 
 from __future__ import annotations
@@ -73,7 +74,8 @@ log = logging.getLogger(__name__)
 QUEUE_LIMIT = 20_000  # messages queued for the outbox before put() blocks the caller
 REPLY_IDLE_S = 5.0  # a replay round with no reply for this long is abandoned
 JOIN_TIMEOUT_S = 2.0  # at close, the longest wait for a replay or a flush to end
-OUTBOX_CHUNKS = ("q", "outbox")  # {ns}/q/outbox/{service}/{instance}
+OUTBOX_CHUNKS = ("q", "outbox")
+DEFAULT_OUTBOX_DIR = "var"  # {ns}/q/outbox/{service}/{instance}
 
 
 def outbox_key(ns: str, producer: str) -> str:
@@ -87,7 +89,7 @@ def outbox_all(ns: str) -> str:
 
 @dataclass(frozen=True)
 class OutboxSettings:
-    dir: str = "var/outbox"
+    dir: str | None = None  # None: beside the service's store, else DEFAULT_OUTBOX_DIR
     max_bytes: int = DEFAULT_MAX_BYTES
     max_age_s: float = DEFAULT_MAX_AGE_S
 
@@ -252,9 +254,14 @@ class ReliablePublisher:
         service: str,
         instance: str,
         settings: DeliverySettings = DeliverySettings(),
+        directory: Path | str | None = DEFAULT_OUTBOX_DIR,
     ) -> ReliablePublisher:
-        """The publisher of ``service/instance`` on its outbox file under ``settings``."""
-        path = Path(settings.outbox.dir) / f"{service}-{instance}.sqlite"
+        """The publisher of ``service/instance`` on its outbox file
+        ``{dir}/outbox-{service}-{instance}.sqlite``: ``settings.outbox.dir`` if set, else
+        ``directory``; with neither (``directory`` None), an outbox in memory that lives as
+        long as the process."""
+        where = settings.outbox.dir or directory
+        path = None if where is None else Path(where) / f"outbox-{service}-{instance}.sqlite"
         outbox = Outbox(
             path, max_bytes=settings.outbox.max_bytes, max_age_s=settings.outbox.max_age_s
         )

@@ -66,23 +66,26 @@ class Outbox:
 
     def __init__(
         self,
-        path: Path | str,
+        path: Path | str | None,
         *,
         max_bytes: int = DEFAULT_MAX_BYTES,
         max_age_s: float = DEFAULT_MAX_AGE_S,
         clock: Callable[[], float] = time.time,
     ) -> None:
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if path is None:  # in memory: as long as the process lives (one URI, two connections)
+            self.path, uri = None, f"file:outbox-{os.urandom(8).hex()}?mode=memory&cache=shared"
+        else:
+            self.path, uri = Path(path), f"file:{path}"
+            self.path.parent.mkdir(parents=True, exist_ok=True)
         self.max_bytes = max_bytes
         self.max_age_s = max_age_s
         self._clock = clock
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        self._db = self._connect(uri)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.executescript(_SCHEMA)
-        self._reader = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        self._reader = self._connect(uri)
         self._read_lock = threading.Lock()
         meta = dict(self._db.execute("SELECT name, value FROM meta"))
         if "epoch" not in meta:
@@ -93,6 +96,10 @@ class Outbox:
         self._pruned_upto: int = meta["pruned_upto"]
         self._bytes: int = meta["bytes"]
         self._next_prune = 0.0
+
+    @staticmethod
+    def _connect(uri: str) -> sqlite3.Connection:
+        return sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=False)
 
     # --- writing ---------------------------------------------------------------------------
 

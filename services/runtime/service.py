@@ -22,6 +22,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
 from types import FrameType
 from typing import Any, Protocol, Self, TypeVar
 
@@ -41,6 +42,7 @@ from services.runtime.config import (
 )
 from services.runtime.deadletter_publisher import DeadLetterPublisher
 from services.runtime.delivery import (
+    DEFAULT_OUTBOX_DIR,
     MARK,
     DeliverySettings,
     ReliablePublisher,
@@ -431,14 +433,21 @@ class ServiceRuntime:
         """A long-lived publisher (do not declare one per changing key, see zenoh#1518)."""
         return self.undeclare_at_close(self.session.declare_publisher(key, **kwargs))
 
-    def reliable_publisher(self) -> ReliablePublisher:
+    def reliable_publisher(
+        self, beside: Path | str | None = None, *, durable: bool = True
+    ) -> ReliablePublisher:
         """``put(key, payload)`` recorded in this process's outbox
-        (``{outbox.dir}/{service}-{instance}.sqlite``) and replayed to returning consumers
-        (at least once, see :mod:`services.runtime.delivery`); BLOCK congestion control.
-        One per process: the outbox is the producer ``{service}/{instance}``."""
+        ``outbox-{service}-{instance}.sqlite`` and replayed to returning consumers (at least
+        once, see :mod:`services.runtime.delivery`); BLOCK congestion control. The file is
+        in ``services.delivery.outbox.dir`` if set, else in the directory of ``beside`` (the
+        service's store), else in ``var/``. ``durable=False``: an outbox in memory, for a
+        process whose messages need not outlive it (the simulator). One per process: the
+        outbox is the producer ``{service}/{instance}``."""
+        directory = Path(beside).parent if beside is not None else DEFAULT_OUTBOX_DIR
         publisher = ReliablePublisher.open(
-            self.session, self.ns, self.service, self.instance, self.delivery
-        )
+            self.session, self.ns, self.service, self.instance, self.delivery,
+            directory if durable else None,
+        )  # fmt: skip
         return self.undeclare_at_close(publisher)
 
     def undeclare_at_close(self, entity: _U) -> _U:
