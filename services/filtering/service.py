@@ -65,6 +65,8 @@ import time
 from contextlib import ExitStack
 from pathlib import Path
 
+import msgpack
+
 from schemas import SegmentState, encode, keys
 from schemas.keys import SegmentId
 from services.defaults import add_network_argument
@@ -80,6 +82,7 @@ from services.runtime.config import (
     default_db,
     flag_values,
 )
+from services.runtime.delivery import MARK
 from services.runtime.inbox import Inbox
 from services.runtime.latest import LatestValues
 from services.runtime.service import ServiceRuntime, run_command
@@ -200,6 +203,7 @@ class FilteringAdapter:
             self._handle_batch,
             max_batch=BATCH,
             reliable=True,
+            positions=self.node.store.positions(),  # the replay resumes where the store is
             on_idle=self._idle,
             on_end=self._at_end,
         )
@@ -229,10 +233,16 @@ class FilteringAdapter:
         self._republished.wait()  # the restored states go out first
         started = time.perf_counter()
         try:
+            positions = [
+                (producer, *msgpack.unpackb(position))
+                for kind, producer, position in batch
+                if kind == MARK
+            ]
             done = self.node.handle_batch(
-                ((key, payload) for _kind, key, payload in batch),
+                ((key, payload) for kind, key, payload in batch if kind != MARK),
                 summarize=False,
                 background=len(batch) >= BACKLOG,  # commits while the next batch folds
+                positions=positions,  # stored with the events the replays brought
             )
             self._batches += 1
             backlog = self.inbox is not None and len(self.inbox) >= BACKLOG
