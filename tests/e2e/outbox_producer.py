@@ -1,10 +1,12 @@
 """A producer process for the durable-delivery test: publishes a flood of models, TRC records
-and on-board indices through its outbox (``ReliablePublisher``), then serves replays until
-SIGTERM/SIGKILL. Started again on the same outbox, it publishes the same flood again (the
-numbering continues; the consumers drop the repeats).
+and on-board indices through its outbox (``ReliablePublisher``) in phases, then serves
+replays until SIGTERM/SIGKILL.
 
-Usage: ``python outbox_producer.py ENDPOINT NS OUTBOX_DIR SEGMENTS PASSES``; prints ``half``
-once half the flood is recorded, ``published`` once all of it is.
+Usage: ``python outbox_producer.py ENDPOINT NS OUTBOX_DIR SEGMENTS PASSES FIRST``. Phase 0 is
+the models and the TRC records, phase k the k-th pass of indices; it publishes from phase
+FIRST on (a producer started again on its outbox goes on where the killed one stopped),
+prints ``phase K`` once phase K is recorded and put, and waits for SIGUSR1 before the next
+one; after the last it serves its outbox until SIGTERM.
 """
 
 from __future__ import annotations
@@ -32,10 +34,11 @@ T0 = 1_767_225_600.0
 SAMPLES = 200
 
 
-def flood(ns: str, segments: int, passes: int) -> list[tuple[str, object]]:
-    """``(key, message)``: the models, one TRC record per segment, then ``passes`` indices
-    per segment, pass after pass."""
+def flood(ns: str, segments: int, passes: int) -> list[list[tuple[str, object]]]:
+    """The phases' ``(key, message)``: the models and one TRC record per segment, then a
+    phase per pass of indices over every segment."""
     out: list[tuple[str, object]] = []
+    phases = [out]
     for model in example_models(SAMPLES, seed=1):
         key = (
             keys.calibration(ns)
@@ -49,6 +52,8 @@ def flood(ns: str, segments: int, passes: int) -> list[tuple[str, object]]:
         out.append((keys.trc(ns, "L1", segment), trc))
     y = np.exp(np.random.default_rng(0).normal([0.8, 0.5], 0.1, (passes, segments, 2)))
     for k in range(passes):
+        out = []
+        phases.append(out)
         for i, segment in enumerate(names):
             index = OnboardIndex(
                 line="L1", segment=segment, train="T1", unit="u1", t=T0 + 3600.0 * (k + 1),
@@ -56,24 +61,26 @@ def flood(ns: str, segments: int, passes: int) -> list[tuple[str, object]]:
                 coverage=1.0,
             )  # fmt: skip
             out.append((keys.index(ns, "L1", segment), index))
-    return out
+    return phases
 
 
-def main(endpoint: str, ns: str, outbox_dir: str, segments: str, passes: str) -> None:
-    stop = threading.Event()
+def main(endpoint: str, ns: str, outbox_dir: str, segments: str, passes: str, first: str) -> None:
+    stop, go = threading.Event(), threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGUSR1, lambda *_: go.set())
     conf = {"mode": "client", "connect": {"endpoints": [endpoint]}}
     with zenoh.open(zenoh_config(conf)) as session:
         settings = DeliverySettings(replay_s=1.0, outbox=OutboxSettings(dir=outbox_dir))
         publisher = ReliablePublisher.open(session, ns, "extraction", "flood", settings)
-        messages = flood(ns, int(segments), int(passes))
-        for i, (key, message) in enumerate(messages):
-            publisher.put(key, encode(message))
-            if i == len(messages) // 2:
-                publisher.flush()
-                print("half", flush=True)
-        publisher.flush()
-        print("published", flush=True)
+        phases = flood(ns, int(segments), int(passes))
+        for k in range(int(first), len(phases)):
+            for key, message in phases[k]:
+                publisher.put(key, encode(message))
+            publisher.flush()
+            print(f"phase {k}", flush=True)
+            if k + 1 < len(phases):
+                go.wait()
+                go.clear()
         stop.wait()
         publisher.undeclare()
 

@@ -1,12 +1,14 @@
 """Real processes: kills during a flood on more keys than any per-key cache could hold,
 then every segment's final state compared with an undisturbed fold of the same messages.
 
-The producer (``outbox_producer.py``) publishes models, a TRC record and two on-board
-indices for each of 3,000 segments through its outbox. During the flood it is SIGKILLed
-and started again on its outbox (it publishes everything again: repeats), and filtering is
-SIGKILLed twice and started again on its store. Whatever a process missed while it was
-down reaches it by the replay, so every segment ends on the state the filtering core
-computes from the same messages in one undisturbed pass, byte for byte.
+The producer (``outbox_producer.py``) publishes, through its outbox, models and a TRC
+record for each of 3,000 segments (phase 0), then two passes of on-board indices (phases 1
+and 2). Filtering is SIGKILLed right after phase 0 went out (mid-fold); phase 1 is
+published while it is down; the producer is then SIGKILLed too, and started again on its
+outbox for phase 2 only; filtering, started again on its store, gets phase 1 from the
+outbox of a producer that did not publish it, and is SIGKILLed once more during phase 2.
+Every segment must end on the state the filtering core computes from the same messages in
+one undisturbed pass, byte for byte.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ def undisturbed(ns: str) -> dict[str, bytes]:
     limits = load_limits()
     tracker = Tracker(limits.for_line, limits.levels)
     final: dict[str, bytes] = {}
-    for _key, message in flood(ns, SEGMENTS, PASSES):
+    for _key, message in (m for phase in flood(ns, SEGMENTS, PASSES) for m in phase):
         for state in tracker.step(message).states:
             final[state.segment] = encode(state)
     return final
@@ -54,19 +56,17 @@ def test_kills_during_a_flood_change_no_final_state(
     config.write_text("{services: {delivery: {replay_s: 1}}}")
     folded: dict[str, int] = {}  # segment -> n_updates of its newest state
     lock = threading.Lock()
-    reached = {n: threading.Event() for n in (SEGMENTS // 3, 2 * SEGMENTS // 3)}
+    indexed = threading.Event()  # a first state with an index folded
     done = threading.Event()
 
     def on_state(sample: zenoh.Sample) -> None:
         state = decode(sample.payload.to_bytes(), SegmentState)
         with lock:
             folded[state.segment] = max(folded.get(state.segment, 0), state.n_updates)
-            with_states = len(folded)
-            if with_states == SEGMENTS and min(folded.values()) == PASSES:
+            if len(folded) == SEGMENTS and min(folded.values()) == PASSES:
                 done.set()
-        for n, event in reached.items():
-            if with_states >= n:
-                event.set()
+        if state.n_updates:
+            indexed.set()
 
     subscriber = session.declare_subscriber(keys.segment_keys(namespace, "state"), on_state)
     stack.callback(subscriber.undeclare)
@@ -80,22 +80,29 @@ def test_kills_during_a_flood_change_no_final_state(
         assert alive.get(READY_S) == (zenoh.SampleKind.PUT, alive_key), process.log()
         return process
 
-    def start_producer():
+    def kill_filtering(process) -> None:
+        process.signal(signal.SIGKILL)
+        process.wait(READY_S)
+        assert alive.get(READY_S) == (zenoh.SampleKind.DELETE, alive_key)
+
+    def start_producer(first: int):
         argv = [sys.executable, str(PRODUCER), endpoint, namespace, str(tmp_path / "outbox")]
-        return spawn("producer", argv=[*argv, str(SEGMENTS), str(PASSES)])
+        return spawn("producer", argv=[*argv, str(SEGMENTS), str(PASSES), str(first)])
 
     filtering = start_filtering()
-    producer = start_producer()
-    assert producer.line(READY_S) == "half", producer.log()
-    producer.signal(signal.SIGKILL)  # half the flood recorded, part of it put
+    producer = start_producer(0)
+    assert producer.line(READY_S) == "phase 0", producer.log()
+    kill_filtering(filtering)  # mid-fold: what it had not committed is lost with it
+    producer.signal(signal.SIGUSR1)
+    assert producer.line(READY_S) == "phase 1", producer.log()  # nobody listening
+    producer.signal(signal.SIGKILL)
     producer.wait(READY_S)
-    producer = start_producer()  # on its outbox: the same flood again, numbered on
-    for event in reached.values():
-        assert event.wait(FOLD_S), f"{len(folded)} segments with a state{filtering.log()}"
-        filtering.signal(signal.SIGKILL)  # mid-flood: what it folded since its commit is lost
-        filtering.wait(READY_S)
-        assert alive.get(READY_S) == (zenoh.SampleKind.DELETE, alive_key)
-        filtering = start_filtering()
+    filtering = start_filtering()
+    producer = start_producer(2)  # on its outbox: phases 0 and 1 only there
+    assert producer.line(READY_S) == "phase 2", producer.log()
+    assert indexed.wait(FOLD_S), filtering.log()
+    kill_filtering(filtering)
+    filtering = start_filtering()
     assert done.wait(FOLD_S), (
         f"{len(folded)} segments with a state, "
         f"{sum(n < PASSES for n in folded.values())} short of {PASSES} updates{filtering.log()}"
