@@ -17,8 +17,9 @@ Workloads (targets: docs/performance.md):
 6. the filtering service over Zenoh: events per second and index-to-state latency, the
    service as its own process as deployed, then in a thread of the bench's process
    (``bench/filtering.py``).
-7. at-least-once delivery: messages per second through cached advanced publishers against
-   plain puts, and a returning subscriber's history fetch (``bench/delivery.py``).
+7. at-least-once delivery: messages per second through the producer's outbox against plain
+   puts, and what a consumer away while 300 keys were published replays on its return
+   (``bench/delivery.py``; ``--keys 100000`` for a national instance's size).
 8. the filtering core's model-change re-run: events replayed per second, summaries included,
    against the filter bank alone and the one-segment-at-a-time re-run (``bench/rerun.py``).
 9. model versions calibration publishes per simulated month of the demo world, with the
@@ -33,13 +34,10 @@ Workloads (targets: docs/performance.md):
     instance's size).
 12. the compiled index step alone, ns per sample-update on one core and on all, against the
     numpy filter bank on the same shapes (``bench/kernel.py``).
-13. a plain put beside 2,000 cached publishers of the same line and of other lines, against
-    the same puts with none declared (``bench/siblings.py``: a cost of Zenoh's router).
 
 Not run here (minutes each, real processes): ``make scale`` (``bench/scale.py``, a national
-deployment: two routers, four filtering shards, 10,000 to 100,000 segments) and
-``python -m bench.delivery_scale`` (what N advanced publishers cost a process, the router
-and a subscriber); ``make soak``; ``python -m bench.planning_scale`` (the maintenance plan of
+deployment: two routers, four filtering shards, 10,000 to 100,000 segments);
+``make soak``; ``python -m bench.planning_scale`` (the maintenance plan of
 100,000 segments x 26 weeks against HiGHS's MILP over (segment, week) on one region) and
 ``python -m bench.planning`` (the planner in closed loop on a simulated year against the
 threshold rule, a fixed cycle, point forecasts and an oracle).
@@ -205,14 +203,12 @@ def main() -> None:
     from bench.kernel import bench_kernel
     from bench.rerun import bench_rerun
     from bench.restart import bench_restart
-    from bench.siblings import bench_siblings
     from bench.simulator import bench_raw_generation
 
     rng = np.random.default_rng(1)
     bench_replay(rng)
     bench_single_event(rng)
     bench_kernel()
-    bench_siblings()
     bench_rerun()
     bench_backlog()
     bench_backlog(10_000, 655_360, history=60)  # the backlog target's figure: ten batches of 65,536

@@ -142,7 +142,7 @@ def shard_of(segment: int, segments: int, shards: int) -> int:
 def line_of(segment: int, segments: int, shards: int = 1) -> str:
     """The line of segment number ``segment``: consecutive numbers, ``LINE_SEGMENTS`` a line
     (a network's layout; one line of 100,000 would make Zenoh's routing of the states the
-    figure, see bench.siblings), named after its shard's letter (its selector ``X$*/**``)."""
+    figure), named after its shard's letter (its selector ``X$*/**``)."""
     letter = chr(ord("A") + shard_of(segment, segments, shards))
     return f"{letter}{segment // LINE_SEGMENTS + 1:03d}"
 

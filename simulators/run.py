@@ -48,9 +48,10 @@ def main_simulate(
 
     Only the events in ``[from_day, to_day)`` days of the world are published: a world cut
     in two such runs publishes exactly what one run would (the world itself is the same).
-    The event streams are cached per key (at-least-once, :mod:`services.runtime.delivery`);
-    ``linger_s`` keeps the process and its caches up that long after the last message, so
-    that a subscriber returning meanwhile still gets what it missed (a stop ends it early).
+    The event streams go through an outbox in memory (at least once while the process
+    lives, :mod:`services.runtime.delivery`); ``linger_s`` keeps the process and its outbox
+    up that long after the last message, so that a consumer returning meanwhile still gets
+    what it missed (a stop ends it early).
     """
     from tqdm import tqdm
 
@@ -84,7 +85,7 @@ def main_simulate(
             rt.session,
             rt.ns,
             events,
-            reliable=rt.reliable_publisher(),
+            reliable=rt.reliable_publisher(durable=False),
             speedup=speedup,
             stop=rt.stop_event,
             on_batch=on_batch,
@@ -166,8 +167,8 @@ def simulate_add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=0.0,
         metavar="S",
-        help="stay up S seconds after the last message, serving the per-key caches to "
-        "subscribers that come back (default %(default)g)",
+        help="stay up S seconds after the last message, serving its outbox to consumers "
+        "that come back (default %(default)g)",
     )
     add_zenoh_arguments(parser)
 

@@ -91,12 +91,14 @@ def open_session(router: str) -> Iterator[Callable[..., zenoh.Session]]:
 
 
 @pytest.fixture
-def service_config(router: str, namespace: str) -> RuntimeConfig:
-    """A service configuration: client of ``router``, in ``namespace``, instance "test"."""
+def service_config(router: str, namespace: str, tmp_path: Path) -> RuntimeConfig:
+    """A service configuration: client of ``router``, in ``namespace``, instance "test",
+    producers' outboxes under ``tmp_path``."""
     return RuntimeConfig(
         ns=namespace,
         instance="test",
         zenoh={"mode": "client", "connect": {"endpoints": [router]}},
+        services={"delivery": {"outbox": {"dir": str(tmp_path / "outbox")}}},
     )
 
 

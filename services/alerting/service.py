@@ -88,9 +88,9 @@ class AlertingAdapter:
         self.rt.declare_queryable(keys.q_alerts(ns), self.on_query_alerts)
         self.rt.declare_queryable(keys.q_plan(ns), self.on_query_plan)
         # After subscribing (nothing newer is missed): the newest state of every segment
-        # from filtering's q/state, queued like publications. A segment whose key is past
-        # a filtering process's cached publishers (services.delivery.max_publishers) has
-        # no history to recover, and would otherwise be judged only at its next change.
+        # from filtering's q/state, queued like publications. A segment whose states
+        # filtering's outbox no longer retains has no replay, and would otherwise be judged
+        # only at its next change.
         asked = 0
         for key, payload in self.rt.ask(keys.q_state_all(ns), STATE_QUERY_TIMEOUT_S):
             try:

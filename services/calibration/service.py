@@ -197,7 +197,7 @@ def _serve(
 ) -> int:
     ns = rt.ns
     latest = LatestValues()
-    models_out = rt.reliable_publisher()  # cached: filtering instances that return get them
+    models_out = rt.reliable_publisher(beside=store.path)  # replayed to returning consumers
 
     def publish(models: list[Model]) -> None:
         for model in models:

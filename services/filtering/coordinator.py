@@ -8,7 +8,7 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from collections.abc import Collection, Iterable, Iterator
+from collections.abc import Collection, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -162,8 +162,10 @@ class PersistentTracker:
         *,
         summarize: bool = True,
         background: bool = False,
+        positions: Sequence[tuple[str, str, int]] = (),
     ) -> BatchResult:
-        """Several ``(key, payload)`` in one store transaction.
+        """Several ``(key, payload)`` in one store transaction, with the delivery
+        ``positions`` ``(producer, epoch, seq)`` they bring the store to.
 
         Model messages go first and are coalesced (:meth:`Tracker.update_models`): of
         several versions of one model only the newest is applied, each is validated, and
@@ -190,6 +192,7 @@ class PersistentTracker:
         models, events, rejected = self._sorted_inputs(items)
         batch = _Batch(rejected)
         with self.store.transaction(background=background):
+            self.store.put_positions(positions)
             if models:
                 self._apply_models(models, batch)
             msgs = [msg for msg, _, _ in events]

@@ -65,6 +65,8 @@ import time
 from contextlib import ExitStack
 from pathlib import Path
 
+import msgpack
+
 from schemas import SegmentState, encode, keys
 from schemas.keys import SegmentId
 from services.defaults import add_network_argument
@@ -80,6 +82,7 @@ from services.runtime.config import (
     default_db,
     flag_values,
 )
+from services.runtime.delivery import MARK
 from services.runtime.inbox import Inbox
 from services.runtime.latest import LatestValues
 from services.runtime.service import ServiceRuntime, run_command
@@ -93,7 +96,6 @@ SERVICE = "filtering"
 BATCH = 65_536
 EXIT_STORE_FAILED = 74  # EX_IOERR
 EXIT_SOFTWARE = 70  # EX_SOFTWARE: a bug escaped a batch
-STATE_CACHE = 16  # states kept per segment for a returning consumer (alerting, viewer)
 DEFAULT_SELECTOR = "**"  # the whole network
 OPTIONS = ("db", "limits", "network", "selector")  # services.filtering, flags of the same names
 MODEL_QUERY_TIMEOUT_S = (
@@ -177,7 +179,7 @@ class FilteringAdapter:
 
     def start(self) -> None:
         ns = self.rt.ns
-        self.states_out = self.rt.reliable_publisher(STATE_CACHE)
+        self.states_out = self.rt.reliable_publisher(beside=self.node.store.path)
         restored = self.node.restore()
         for (line, segment), payload, _unpublished in restored:
             self.latest.put(keys.q_state(ns, line, segment), payload)
@@ -201,6 +203,7 @@ class FilteringAdapter:
             self._handle_batch,
             max_batch=BATCH,
             reliable=True,
+            positions=self.node.store.positions(),  # the replay resumes where the store is
             on_idle=self._idle,
             on_end=self._at_end,
         )
@@ -230,10 +233,16 @@ class FilteringAdapter:
         self._republished.wait()  # the restored states go out first
         started = time.perf_counter()
         try:
+            positions = [
+                (producer, *msgpack.unpackb(position))
+                for kind, producer, position in batch
+                if kind == MARK
+            ]
             done = self.node.handle_batch(
-                ((key, payload) for _kind, key, payload in batch),
+                ((key, payload) for kind, key, payload in batch if kind != MARK),
                 summarize=False,
                 background=len(batch) >= BACKLOG,  # commits while the next batch folds
+                positions=positions,  # stored with the events the replays brought
             )
             self._batches += 1
             backlog = self.inbox is not None and len(self.inbox) >= BACKLOG

@@ -39,6 +39,11 @@ _INDEX_PREFIXES_MAX = 65_536  # forgotten beyond this many (a flood of new ids c
 # VALUES"), one row's values ("(?, ?)"), its tail (an ON CONFLICT clause or ""), the rows
 _Insert = tuple[str, str, str, Sequence[tuple[Any, ...]]]
 _INSERT_EVENTS = "INSERT INTO events (line, segment, kind, key, identity, t, payload) VALUES"
+_PUT_POSITIONS = (
+    "INSERT INTO delivery_positions (producer, epoch, seq) VALUES",
+    "(?, ?, ?)",
+    " ON CONFLICT (producer) DO UPDATE SET epoch = excluded.epoch, seq = excluded.seq",
+)
 
 
 def index_identity(train: str, unit: str, t: float) -> str:
@@ -115,6 +120,13 @@ CREATE TABLE IF NOT EXISTS checkpoints (
 );
 -- published_gen: the newest checkpoint whose states were all published (the one before
 -- the latest, or the latest after a clean stop); gen: the newest checkpoint written
+-- per producer of the streams filtering reads (services.runtime.delivery), the seq up to
+-- which its outbox's messages are folded into this store: a restart replays from there
+CREATE TABLE IF NOT EXISTS delivery_positions (
+    producer TEXT PRIMARY KEY,  -- "{service}/{instance}"
+    epoch    TEXT NOT NULL,     -- the producer's numbering (its outbox file)
+    seq      INTEGER NOT NULL
+);
 CREATE TABLE IF NOT EXISTS checkpoint_meta (
     name  TEXT PRIMARY KEY,
     value INTEGER NOT NULL
@@ -493,6 +505,17 @@ class Store:
         found = [(rowid,) for rowid, payload in rows if decode(payload, MaintenanceEvent).detected]
         self._db.executemany("DELETE FROM events WHERE rowid = ?", found)
         return cur.rowcount + len(found)
+
+    def put_positions(self, rows: Sequence[tuple[str, str, int]]) -> None:
+        """Store ``(producer, epoch, seq)`` delivery positions, with the open transaction's
+        events (at its end, like them)."""
+        if rows:
+            self._defer((*_PUT_POSITIONS, list(rows)))
+
+    def positions(self) -> dict[str, tuple[str, int]]:
+        """``{producer: (epoch, seq)}``: where the replay of each producer resumes."""
+        rows = self._db.execute("SELECT producer, epoch, seq FROM delivery_positions")
+        return {producer: (epoch, seq) for producer, epoch, seq in rows}
 
     def put_model(self, *, name: str, kind: str, version: int, key: str, payload: bytes) -> None:
         """Commit the latest model of ``name`` (the caller checked it is newer)."""

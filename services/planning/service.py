@@ -163,7 +163,7 @@ class PlanningAdapter:
 
     def start(self) -> None:
         ns = self.rt.ns
-        self.out = self.rt.reliable_publisher(cache_samples=1)
+        self.out = self.rt.reliable_publisher()
         subscriptions = {
             "state": keys.segment_keys(ns, "state"),
             "model": keys.model_all(ns),

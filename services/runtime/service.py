@@ -22,9 +22,11 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
 from types import FrameType
 from typing import Any, Protocol, Self, TypeVar
 
+import msgpack
 import zenoh
 
 from schemas import SchemaError, keys
@@ -40,9 +42,11 @@ from services.runtime.config import (
 )
 from services.runtime.deadletter_publisher import DeadLetterPublisher
 from services.runtime.delivery import (
+    DEFAULT_OUTBOX_DIR,
+    MARK,
     DeliverySettings,
     ReliablePublisher,
-    declare_reliable_subscriber,
+    ReliableSubscription,
 )
 from services.runtime.inbox import DEFAULT_MEMORY_BYTES, Inbox, Item
 
@@ -274,6 +278,7 @@ class ServiceRuntime:
         on_idle: Callable[[], None] | None = None,
         idle_s: float = _IDLE_POLL_S,
         reliable: bool = False,
+        positions: Mapping[str, tuple[str, int]] | None = None,
         memory_bytes: int = DEFAULT_MEMORY_BYTES,
     ) -> Inbox:
         """Subscriptions ``{kind: key expression}`` → one :class:`Inbox` → one worker thread
@@ -288,8 +293,16 @@ class ServiceRuntime:
         must turn bad items into dead letters itself (:meth:`guarded`); an exception that
         escapes it is logged and the worker goes on. ``on_idle`` runs when nothing arrived
         for ``idle_s``; ``on_end`` once the subscriptions are undeclared and the inbox is
-        drained. ``reliable``: see :meth:`declare_subscriber`. Returns the inbox (a start-up
-        query may put its replies into it).
+        drained. Returns the inbox (a start-up query may put its replies into it).
+
+        ``reliable``: at least once, live or replayed from the producers' outboxes (a
+        :class:`~services.runtime.delivery.ReliableSubscription`); items may then arrive
+        more than once. With ``positions`` (``{producer: (epoch, W)}``, what the consumer
+        persisted, possibly empty), the consumer persists its watermarks itself: its batches
+        also carry items ``(MARK, producer, msgpack([epoch, head]))``, each after the items
+        of that producer's replay, to be stored with the batch (the replay resumes from
+        them after a restart); without, the marks are taken out of the batches and the
+        replay starts from what the producers retain.
         """
         inbox = Inbox(memory_bytes=memory_bytes)
         self._inboxes.append(inbox)
@@ -321,18 +334,37 @@ class ServiceRuntime:
                     if on_idle is not None:
                         self.guarded(on_idle)
                     continue
+                marks = [item for item in batch if item[0] == MARK]
+                if marks and positions is None:
+                    batch = [item for item in batch if item[0] != MARK]
                 self._busy_since[name] = time.monotonic()
                 try:
-                    handle_batch(batch)
+                    if batch:
+                        handle_batch(batch)
                 except Exception:
                     log.exception("%s: error handling a batch of %d", self.service, len(batch))
                 finally:
                     self._busy_since.pop(name, None)
+                if subscription is not None:
+                    for _, producer, position in marks:
+                        subscription.confirm(producer, *msgpack.unpackb(position))
             if on_end is not None:
                 on_end()
 
-        for kind, key in subscriptions.items():
-            self.declare_subscriber(key, callback(kind), reliable=reliable)
+        subscription = None
+        if reliable:
+
+            def mark(producer: str, epoch: str, head: int) -> None:
+                inbox.put(MARK, producer, msgpack.packb([epoch, head]))
+
+            subscription = ReliableSubscription(
+                self.session, self.ns, subscriptions, inbox.put, mark,
+                settings=self.delivery, positions=positions,
+            )  # fmt: skip
+            self._subscribers.append(subscription)
+        else:
+            for kind, key in subscriptions.items():
+                self.declare_subscriber(key, callback(kind))
         self.spawn(work, name=name)
         return inbox
 
@@ -376,19 +408,9 @@ class ServiceRuntime:
         self.spawn(self._consume, subscriber, on_sample, name=f"{self.service}:{key}")
         return subscriber
 
-    def declare_subscriber(
-        self, key: str, handler: Any = None, *, reliable: bool = False, **kwargs: Any
-    ) -> Any:
-        """A subscriber (your handler or channel), undeclared first at close.
-
-        ``reliable``: an advanced subscriber that also gets the cached history of every
-        :meth:`reliable_publisher` on ``key`` and recovers what it missed (see
-        :mod:`services.runtime.delivery`); messages may then arrive more than once.
-        """
-        if reliable:
-            subscriber = declare_reliable_subscriber(self.session, key, handler)
-        else:
-            subscriber = self.session.declare_subscriber(key, handler, **kwargs)
+    def declare_subscriber(self, key: str, handler: Any = None, **kwargs: Any) -> Any:
+        """A subscriber (your handler or channel), undeclared first at close."""
+        subscriber = self.session.declare_subscriber(key, handler, **kwargs)
         self._subscribers.append(subscriber)
         return subscriber
 
@@ -411,14 +433,22 @@ class ServiceRuntime:
         """A long-lived publisher (do not declare one per changing key, see zenoh#1518)."""
         return self.undeclare_at_close(self.session.declare_publisher(key, **kwargs))
 
-    def reliable_publisher(self, cache_samples: int | None = None) -> ReliablePublisher:
-        """``put(key, payload)`` with a per-key cache for late and returning subscribers
-        (at-least-once, see :mod:`services.runtime.delivery`); BLOCK congestion control.
-        ``cache_samples`` overrides the configured cache size (messages kept per key)."""
-        settings = self.delivery
-        if cache_samples is not None:
-            settings = dataclasses.replace(settings, cache_samples=cache_samples)
-        return self.undeclare_at_close(ReliablePublisher(self.session, settings))
+    def reliable_publisher(
+        self, beside: Path | str | None = None, *, durable: bool = True
+    ) -> ReliablePublisher:
+        """``put(key, payload)`` recorded in this process's outbox
+        ``outbox-{service}-{instance}.sqlite`` and replayed to returning consumers (at least
+        once, see :mod:`services.runtime.delivery`); BLOCK congestion control. The file is
+        in ``services.delivery.outbox.dir`` if set, else in the directory of ``beside`` (the
+        service's store), else in ``var/``. ``durable=False``: an outbox in memory, for a
+        process whose messages need not outlive it (the simulator). One per process: the
+        outbox is the producer ``{service}/{instance}``."""
+        directory = Path(beside).parent if beside is not None else DEFAULT_OUTBOX_DIR
+        publisher = ReliablePublisher.open(
+            self.session, self.ns, self.service, self.instance, self.delivery,
+            directory if durable else None,
+        )  # fmt: skip
+        return self.undeclare_at_close(publisher)
 
     def undeclare_at_close(self, entity: _U) -> _U:
         """Undeclare ``entity`` at close (advanced subscribers, matching listeners, …)."""

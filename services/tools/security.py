@@ -26,10 +26,11 @@ from the router to the remote; a rule's key expression must *include* the messag
   ``liveliness_token`` egress on K (a service asks for its own token before closing);
 * watch liveliness K: ``declare_liveliness_subscriber`` and ``liveliness_query`` ingress,
   ``liveliness_token`` egress;
-* publish or subscribe K, the at-least-once machinery (:mod:`services.runtime.delivery`):
-  tokens, heartbeats, cache queries and their declarations under ``K/@adv/**`` both ways;
-  cached replies carry the sample's own key, so ``reply`` ingress on K for a publisher and
-  egress on K for a subscriber. All of it stays inside the keys the role already has.
+* the at-least-once replay (:mod:`services.runtime.delivery`): a service that publishes
+  answers queries on its outbox ``{ns}/q/outbox/{service}/*`` and holds a liveliness token
+  there; one that subscribes queries ``{ns}/q/outbox/**`` and watches those tokens. A
+  replayed message is a reply on its own key, so ``reply`` ingress on K for a publisher
+  and egress on K for a subscriber: a replay reaches a role only on the keys it may read.
 
 ``delete`` is never allowed: no TrackFusion key is ever deleted.
 """
@@ -54,17 +55,6 @@ DEFAULT_LISTEN = "tls/0.0.0.0:7447"
 CA_FILE = "ca.pem"
 ROUTER_CERT_FILE = "router.pem"
 ROUTER_KEY_FILE = "router-key.pem"
-#: What zenoh-ext's advanced publishers and subscribers exchange under ``{key}/@adv/**``.
-ADVANCED_MESSAGES = [
-    "put",
-    "declare_subscriber",
-    "query",
-    "declare_queryable",
-    "reply",
-    "liveliness_token",
-    "declare_liveliness_subscriber",
-    "liveliness_query",
-]
 
 
 @dataclass(frozen=True)
@@ -77,6 +67,7 @@ class Grant:
     answer: tuple[str, ...] = ()  # queryables
     tokens: tuple[str, ...] = ()  # liveliness tokens it declares (and queries back)
     watch: tuple[str, ...] = ()  # liveliness it subscribes to / queries
+    outbox: bool = True  # publishes through an outbox / replays from them (a service)
 
 
 def _service(
@@ -159,7 +150,7 @@ ROLES: Mapping[str, Grant] = {
 def gateway_grant(train: str) -> Grant:
     """The on-board gateway of ``train``: its own raw and GPS keys, nothing else."""
     check_id("train", train)
-    return Grant(publish=(f"{{ns}}/raw/{train}/**", f"{{ns}}/gps/{train}"))
+    return Grant(publish=(f"{{ns}}/raw/{train}/**", f"{{ns}}/gps/{train}"), outbox=False)
 
 
 def gateway_name(train: str) -> str:
@@ -188,14 +179,21 @@ def _rules(rule_id: str, grant: Grant, ns: str, service: str) -> list[dict[str, 
         }
 
     out: list[dict[str, Any]] = []
-    if grant.publish or grant.subscribe:
-        advanced = sorted(f"{k}/@adv/**" for k in keys((*grant.publish, *grant.subscribe)))
-        out.append(rule("adv-in", "ingress", ADVANCED_MESSAGES, advanced))
-        out.append(rule("adv-out", "egress", ADVANCED_MESSAGES, advanced))
+    if grant.outbox and grant.publish:
+        outbox = keys(("{ns}/q/outbox/{service}/*",))
+        messages = ["declare_queryable", "reply", "liveliness_token", "liveliness_query"]
+        out.append(rule("outbox", "ingress", messages, outbox))
+        out.append(rule("outbox-queries", "egress", ["query", "liveliness_token"], outbox))
+    if grant.outbox and grant.subscribe:
+        outboxes = keys(("{ns}/q/outbox/**",))
+        messages = ["query", "declare_liveliness_subscriber", "liveliness_query"]
+        out.append(rule("replay", "ingress", messages, outboxes))
+        messages = ["reply", "declare_queryable", "liveliness_token"]
+        out.append(rule("replay-replies", "egress", messages, outboxes))
     if grant.publish:
         published = keys(grant.publish)
         out.append(rule("put", "ingress", ["put"], published))
-        out.append(rule("cache-replies", "ingress", ["reply"], published))
+        out.append(rule("replayed", "ingress", ["reply"], published))
         subtrees = sorted({_subtree(ns, k) for k in published})
         out.append(rule("put-matching", "egress", ["declare_subscriber"], subtrees))
     if grant.subscribe:

@@ -1,34 +1,38 @@
 """At-least-once delivery (services/runtime/delivery.py) through a real router on loopback:
-a subscriber that was away — restarted, behind a restarted router, behind a cut link —
-gets every message published meanwhile, once the link is back, with no manual step."""
+a consumer that was away (restarted, behind a restarted router, behind a cut link) gets
+every message published meanwhile, on any number of keys, and a producer restarted on its
+outbox still serves what it published before."""
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 import zenoh
 
 from bench.linkproxy import LinkProxy
 from services.runtime.config import RuntimeConfig, zenoh_config
-from services.runtime.delivery import DeliverySettings, ReliablePublisher
+from services.runtime.delivery import DeliverySettings, OutboxSettings, ReliablePublisher
 from services.runtime.service import ServiceRuntime
 
-TIMEOUT_S = 20.0
+TIMEOUT_S = 30.0
 SEGMENTS = 40
+MANY_KEYS = 3000  # more keys than any per-key cache could hold
+REPLAY_S = 0.5
 
 
 class Received:
-    """(key, payload) pairs a subscriber got, with a wait for a set of them."""
+    """(key, payload) pairs a consumer's batches held, with a wait for a set of them."""
 
     def __init__(self) -> None:
         self.items: list[tuple[str, bytes]] = []
         self._cond = threading.Condition()
 
-    def __call__(self, sample: zenoh.Sample) -> None:
+    def __call__(self, batch: list[tuple[str, str, bytes]]) -> None:
         with self._cond:
-            self.items.append((str(sample.key_expr), sample.payload.to_bytes()))
+            self.items.extend((key, payload) for _, key, payload in batch)
             self._cond.notify_all()
 
     def wait_for(self, expected: set[tuple[str, bytes]], timeout: float = TIMEOUT_S) -> None:
@@ -38,21 +42,32 @@ class Received:
         assert ok, f"{len(missing)} of {len(expected)} never arrived, e.g. {sorted(missing)[:3]}"
 
 
-def batch(ns: str, round_: int) -> list[tuple[str, bytes]]:
-    return [
-        (f"{ns}/index/L1/s{i:03d}", f"round {round_} seg {i}".encode()) for i in range(SEGMENTS)
-    ]
+def batch(ns: str, round_: int, keys: int = SEGMENTS) -> list[tuple[str, bytes]]:
+    return [(f"{ns}/index/L1/s{i:04d}", f"round {round_} seg {i}".encode()) for i in range(keys)]
+
+
+def settings(tmp_path: Path) -> DeliverySettings:
+    return DeliverySettings(replay_s=REPLAY_S, outbox=OutboxSettings(dir=str(tmp_path / "ob")))
 
 
 def client_conf(ns: str, endpoint: str, instance: str) -> RuntimeConfig:
     return RuntimeConfig(
-        ns=ns, instance=instance, zenoh={"mode": "client", "connect": {"endpoints": [endpoint]}}
+        ns=ns,
+        instance=instance,
+        zenoh={"mode": "client", "connect": {"endpoints": [endpoint]}},
+        services={"delivery": {"replay_s": REPLAY_S}},
     )
 
 
+def consume(rt: ServiceRuntime, got: Received) -> None:
+    rt.subscribe_batches({"index": f"{rt.ns}/index/**"}, got, reliable=True)
+
+
 @pytest.fixture
-def publisher(open_session) -> Iterator[ReliablePublisher]:
-    publisher = ReliablePublisher(open_session(), DeliverySettings(cache_samples=8))
+def publisher(open_session, namespace: str, tmp_path: Path) -> Iterator[ReliablePublisher]:
+    publisher = ReliablePublisher.open(
+        open_session(), namespace, "extraction", "a", settings(tmp_path)
+    )
     yield publisher
     publisher.undeclare()
 
@@ -60,76 +75,72 @@ def publisher(open_session) -> Iterator[ReliablePublisher]:
 def put_all(publisher: ReliablePublisher, items: list[tuple[str, bytes]]) -> None:
     for key, payload in items:
         publisher.put(key, payload)
+    assert publisher.flush(TIMEOUT_S)
 
 
-def routed(session: zenoh.Session, listener: zenoh.Session, ns: str) -> None:
-    """Returns once everything ``session`` put so far has passed the router: a marker put
-    after it reaches ``listener`` (a session's puts of one priority leave, and are routed,
-    in order). Without it a put may still be in flight when a subscriber is declared."""
-    arrived = threading.Event()
-    subscriber = listener.declare_subscriber(f"{ns}/marker", lambda _sample: arrived.set())
-    try:
-        for _ in range(int(TIMEOUT_S / 0.2)):  # until the subscription has reached the router
-            session.put(f"{ns}/marker", b"")
-            if arrived.wait(0.2):
-                return
-        raise AssertionError("the marker never arrived")
-    finally:
-        subscriber.undeclare()
-
-
-def test_a_returning_subscriber_gets_what_it_missed_and_a_late_one_the_history(
+def test_a_returning_consumer_gets_what_it_missed_on_3000_keys(
     publisher: ReliablePublisher, router: str, namespace: str
 ) -> None:
-    first, second = batch(namespace, 1), batch(namespace, 2)
-    put_all(publisher, first)  # nobody listens yet: only the caches have them
+    first, second = batch(namespace, 1), batch(namespace, 2, MANY_KEYS)
+    put_all(publisher, first)  # nobody listens yet: only the outbox has them
     got = Received()
     with ServiceRuntime("filtering", client_conf(namespace, router, "a")) as rt:
-        rt.declare_subscriber(f"{namespace}/index/**", got, reliable=True)
+        consume(rt, got)
         got.wait_for(set(first))
-    put_all(publisher, second)  # published while the subscriber is down
+    put_all(publisher, second)  # published while the consumer is down
     again = Received()
     with ServiceRuntime("filtering", client_conf(namespace, router, "a")) as rt:
-        rt.declare_subscriber(f"{namespace}/index/**", again, reliable=True)
-        again.wait_for(set(first) | set(second))  # both rounds are within the cache (8 per key)
+        consume(rt, again)
+        again.wait_for(set(first) | set(second))
+    assert publisher.outbox.head == SEGMENTS + MANY_KEYS
 
 
-def test_the_cache_window_is_per_key_and_bounded(open_session, router: str, namespace: str) -> None:
-    publisher = ReliablePublisher(open_session(), DeliverySettings(cache_samples=2))
-    rounds = [batch(namespace, r) for r in range(4)]
-    for items in rounds:
-        put_all(publisher, items)
+def test_a_producer_restarted_on_its_outbox_serves_what_it_published_before(
+    open_session, router: str, namespace: str, tmp_path: Path
+) -> None:
+    session = open_session()
+    publisher = ReliablePublisher.open(session, namespace, "extraction", "a", settings(tmp_path))
+    first = batch(namespace, 1, 500)
+    put_all(publisher, first)
+    session.close()  # the process dies: nothing undeclared, the outbox file stays
+    publisher.outbox.close()
+    again = ReliablePublisher.open(open_session(), namespace, "extraction", "a", settings(tmp_path))
+    assert again.outbox.head == 500  # the numbering continues
     got = Received()
     with ServiceRuntime("filtering", client_conf(namespace, router, "a")) as rt:
-        rt.declare_subscriber(f"{namespace}/index/**", got, reliable=True)
-        got.wait_for(set(rounds[2]) | set(rounds[3]))  # the last two per key
-        assert not set(rounds[0]) & set(got.items)  # older than the window: gone
-    assert len(publisher) == SEGMENTS
-    publisher.undeclare()
+        consume(rt, got)
+        got.wait_for(set(first))
+        second = batch(namespace, 2)
+        put_all(again, second)
+        got.wait_for(set(second))
+    assert again.outbox.head == 500 + SEGMENTS
+    again.undeclare()
 
 
 def test_messages_published_while_the_router_restarts_arrive_after_it(
-    free_port: int, namespace: str
+    free_port: int, namespace: str, tmp_path: Path
 ) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port}"
-    settings = {"mode": "router", "listen": {"endpoints": [endpoint]}, "scouting": {"delay": 0}}
-    router = zenoh.open(zenoh_config(settings))
+    conf = {"mode": "router", "listen": {"endpoints": [endpoint]}, "scouting": {"delay": 0}}
+    router = zenoh.open(zenoh_config(conf))
     sessions: list[zenoh.Session] = []
     try:
         pub_session = zenoh.open(
             zenoh_config({"mode": "client", "connect": {"endpoints": [endpoint]}})
         )
         sessions.append(pub_session)
-        publisher = ReliablePublisher(pub_session, DeliverySettings(cache_samples=8))
+        publisher = ReliablePublisher.open(
+            pub_session, namespace, "extraction", "a", settings(tmp_path)
+        )
         got = Received()
         with ServiceRuntime("filtering", client_conf(namespace, endpoint, "a")) as rt:
-            rt.declare_subscriber(f"{namespace}/index/**", got, reliable=True)
+            consume(rt, got)
             put_all(publisher, batch(namespace, 1))
             got.wait_for(set(batch(namespace, 1)))
             router.close()
-            put_all(publisher, batch(namespace, 2))  # nobody can route these now
-            router = zenoh.open(zenoh_config(settings))  # same port: clients come back
-            got.wait_for(set(batch(namespace, 2)), timeout=30)
+            put_all(publisher, batch(namespace, 2, MANY_KEYS))  # nobody can route these now
+            router = zenoh.open(zenoh_config(conf))  # same port: clients come back
+            got.wait_for(set(batch(namespace, 2, MANY_KEYS)), timeout=60)
             put_all(publisher, batch(namespace, 3))
             got.wait_for(set(batch(namespace, 3)))
         publisher.undeclare()
@@ -148,7 +159,7 @@ def test_messages_published_while_a_link_is_cut_arrive_once_it_is_back(
     proxy = link_proxy(int(router.rsplit(":", 1)[1]))
     got = Received()
     with ServiceRuntime("filtering", client_conf(namespace, proxy.endpoint, "a")) as rt:
-        rt.declare_subscriber(f"{namespace}/index/**", got, reliable=True)
+        consume(rt, got)
         put_all(publisher, batch(namespace, 1))
         got.wait_for(set(batch(namespace, 1)))
         proxy.cut()
@@ -159,47 +170,17 @@ def test_messages_published_while_a_link_is_cut_arrive_once_it_is_back(
         got.wait_for(set(batch(namespace, 2)) | set(batch(namespace, 3)))
 
 
-def test_a_publisher_bounded_below_its_keys_delivers_every_key_live(
-    open_session, router: str, namespace: str
+def test_a_full_outbox_still_publishes_live(
+    publisher: ReliablePublisher, router: str, namespace: str
 ) -> None:
-    publisher = ReliablePublisher(
-        open_session(), DeliverySettings(cache_samples=8, max_publishers=10)
-    )
     got = Received()
     with ServiceRuntime("filtering", client_conf(namespace, router, "a")) as rt:
-        rt.declare_subscriber(f"{namespace}/index/**", got, reliable=True)
-        # a first message proves the subscription is routed before the rounds begin
-        publisher.put(f"{namespace}/index/L0/s000", b"hello")
-        got.wait_for({(f"{namespace}/index/L0/s000", b"hello")})
-        for r in range(3):  # 40 keys, 10 publishers: 9 keys cached, 31 put plainly
-            put_all(publisher, batch(namespace, r))
-        got.wait_for(set().union(*(batch(namespace, r) for r in range(3))))
-    assert len(publisher) == 10 and publisher.plain_puts == 3 * (SEGMENTS - 9)
-    publisher.undeclare()
-
-
-def test_a_returning_subscriber_recovers_the_keys_within_the_bound(
-    open_session, router: str, namespace: str
-) -> None:
-    session, listener = open_session(), open_session()
-    publisher = ReliablePublisher(session, DeliverySettings(cache_samples=8, max_publishers=10))
-    first, second = batch(namespace, 1), batch(namespace, 2)
-    put_all(publisher, first)  # nobody listens: only the first 10 keys have caches
-    routed(session, listener, namespace)
-    cached = {(key, payload) for key, payload in first if publisher.cached(key)}
-    assert len(cached) == 10
-    got = Received()
-    with ServiceRuntime("filtering", client_conf(namespace, router, "a")) as rt:
-        rt.declare_subscriber(f"{namespace}/index/**", got, reliable=True)
-        got.wait_for(cached)
-    put_all(publisher, second)  # published while the subscriber is down
-    routed(session, listener, namespace)
-    again = Received()
-    with ServiceRuntime("filtering", client_conf(namespace, router, "a")) as rt:
-        rt.declare_subscriber(f"{namespace}/index/**", again, reliable=True)
-        missed = {(key, payload) for key, payload in second if publisher.cached(key)}
-        again.wait_for(cached | missed)
-        # what was put plainly reached nobody and is not recovered
-        assert set(again.items) <= cached | missed
-    assert not set(got.items) - cached
-    publisher.undeclare()
+        consume(rt, got)
+        put_all(publisher, batch(namespace, 1, 1))
+        got.wait_for(set(batch(namespace, 1, 1)))  # the subscription is routed
+        (pages,) = publisher.outbox._db.execute("PRAGMA page_count").fetchone()
+        publisher.outbox._db.execute(f"PRAGMA max_page_count = {pages}")  # no room left
+        big = [(key, payload * 500) for key, payload in batch(namespace, 2)]
+        put_all(publisher, big)
+        got.wait_for(set(big))
+    assert publisher.unrecorded == SEGMENTS

@@ -60,7 +60,7 @@ def started_adapter(rt: ServiceRuntime, store: Store) -> service.FilteringAdapte
     empty, without its subscriptions: the test hands it the batches."""
     node = PersistentTracker(Tracker(LIMITS.for_line, LIMITS.levels), store)
     adapter = service.FilteringAdapter(rt, node, "**")
-    adapter.states_out = rt.reliable_publisher(service.STATE_CACHE)
+    adapter.states_out = rt.reliable_publisher()
     adapter.inbox = Inbox()
     return adapter
 

@@ -3,6 +3,11 @@ dead letters and the selector."""
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import sqlite3
+import threading
+import time
 from collections.abc import Callable, Iterator
 
 import numpy as np
@@ -27,6 +32,7 @@ from services.filtering import service
 from services.filtering.testing import example_models, onboard_index, sample_state
 from services.filtering.tracker import Tracker
 from services.limits import load_limits
+from services.runtime.delivery import DeliverySettings, OutboxSettings, ReliablePublisher
 
 T0 = 1_767_225_600.0
 NS = 30
@@ -56,11 +62,11 @@ def expected(messages) -> SegmentState:
 def start_filtering(service_config, tmp_path, service_thread) -> Callable[..., None]:
     """``start_filtering(selector)``: the service in a thread, ready when it returns."""
 
-    def start(selector: str = "**") -> None:
-        service_thread(
+    def start(selector: str = "**", conf=None):
+        return service_thread(
             "filtering",
             lambda stop: service.main(
-                service_config,
+                conf or service_config,
                 selector=selector,
                 db=tmp_path / "filtering.sqlite",
                 stop=stop,
@@ -257,3 +263,47 @@ def test_an_unreported_tamping_is_published_as_detected_maintenance(
     key, event = found.get()
     assert key == keys.maintenance(namespace, "L1", "s1") and event.detected
     assert event.t_start == T0 + 20 * DAY_S and event.t_end == T0 + 21 * DAY_S
+
+
+def test_a_restarted_instance_replays_from_the_positions_in_its_store(
+    namespace, open_session, collector, model_queryable, start_filtering, service_config, tmp_path
+):
+    """The replay positions are stored with the events they brought; the instance, stopped
+    and started again on its store, resumes from them: the event published while it was
+    down arrives by the replay, and every event is stored once."""
+    delivery = {"replay_s": 0.5, **service_config.services["delivery"]}
+    conf = dataclasses.replace(service_config, services={"delivery": delivery})
+    extraction = ReliablePublisher.open(
+        open_session(), namespace, "extraction", "a",
+        DeliverySettings(outbox=OutboxSettings(dir=str(tmp_path / "extraction"))),
+    )  # fmt: skip
+    states = collector(sample_state)
+    open_session().declare_subscriber(keys.segment_keys(namespace, "state"), states)
+    msgs = events()
+    running = start_filtering(conf=conf)
+    for m in msgs[:-1]:
+        extraction.put(keys.key_of(namespace, m), encode(m))
+    store = tmp_path / "filtering.sqlite"
+
+    def until_stored(seq: int) -> None:
+        """Until the store holds ``seq`` as the extraction's position (a replay round's
+        mark, committed with a batch), checked every 0.1 s for at most 30 s."""
+        deadline, found = time.monotonic() + 30, None
+        while found != (extraction.outbox.epoch, seq):
+            assert time.monotonic() < deadline, f"position {found}, not {seq}"
+            threading.Event().wait(0.1)
+            with contextlib.closing(sqlite3.connect(store)) as db:
+                found = db.execute("SELECT epoch, seq FROM delivery_positions").fetchone()
+
+    until_stored(len(msgs) - 1)
+    assert running.stop() == 0
+    extraction.put(keys.key_of(namespace, msgs[-1]), encode(msgs[-1]))  # while it is down
+    assert extraction.flush(10)
+    start_filtering(conf=conf)
+    while states.get().n_updates < len(msgs) - 1:  # the last index, replayed
+        pass
+    until_stored(len(msgs))
+    with contextlib.closing(sqlite3.connect(store)) as db:
+        (stored,) = db.execute("SELECT count(*) FROM events").fetchone()
+    assert stored == len(msgs)  # every event once
+    extraction.undeclare()

@@ -26,7 +26,12 @@ from support import closed_at_exit
 
 from services.cli import main as cli_main
 from services.runtime.config import RuntimeConfig, load_config, zenoh_config
-from services.runtime.delivery import ReliablePublisher, declare_reliable_subscriber
+from services.runtime.delivery import (
+    DeliverySettings,
+    OutboxSettings,
+    ReliablePublisher,
+    ReliableSubscription,
+)
 from services.runtime.service import ServiceRuntime
 from services.tools import security
 
@@ -142,9 +147,9 @@ class Keys:
         self.seen: list[str] = []
         self._cond = threading.Condition()
 
-    def __call__(self, sample: zenoh.Sample) -> None:
+    def __call__(self, sample: zenoh.Sample | str) -> None:
         with self._cond:
-            self.seen.append(str(sample.key_expr))
+            self.seen.append(str(getattr(sample, "key_expr", sample)))
             self._cond.notify_all()
 
     def wait_for(self, key: str, timeout: float = TIMEOUT_S) -> None:
@@ -374,34 +379,40 @@ def test_a_service_runtime_works_under_the_profile(
 
 
 def test_at_least_once_delivery_works_under_the_profile(
-    open_as: Callable[[str], zenoh.Session], namespace: str
+    open_as: Callable[[str], zenoh.Session], namespace: str, tmp_path: Path
 ) -> None:
-    """Cached history and its recovery queries are allowed inside a role's own keys:
-    filtering gets the indices extraction published before it subscribed; the viewer,
-    which may not read models, gets none of calibration's cached models."""
+    """Outbox queries and their replies are allowed inside a role's own keys: filtering
+    gets the indices and models published before it subscribed; the viewer, which may not
+    read models, gets none of calibration's models, even asking for every key."""
     ns = namespace
-    extraction = ReliablePublisher(open_as("extraction"))
-    models = ReliablePublisher(open_as("calibration"))
+    settings = DeliverySettings(replay_s=0.5, outbox=OutboxSettings(dir=str(tmp_path)))
+    extraction = ReliablePublisher.open(open_as("extraction"), ns, "extraction", "a", settings)
+    models = ReliablePublisher.open(open_as("calibration"), ns, "calibration", "a", settings)
     published = [f"{ns}/index/L1/s{i}" for i in range(3)]
     for key in published:
         extraction.put(key, b"index")
     models.put(f"{ns}/model/calibration", b"model v1")
+    assert extraction.flush(TIMEOUT_S) and models.flush(TIMEOUT_S)
+
+    def replaying(session: zenoh.Session, got: Keys, *kinds: str) -> ReliableSubscription:
+        subscriptions = {kind: f"{ns}/{kind}/**" for kind in kinds}
+        return ReliableSubscription(
+            session, ns, subscriptions, lambda _kind, key, _payload: got(key),
+            lambda producer, epoch, head: subscription_marks.append((producer, epoch, head)),
+            settings=settings,
+        )  # fmt: skip
+
+    subscription_marks: list[tuple[str, str, int]] = []
     got = Keys()
-    filtering = open_as("filtering")
-    subscribers = [
-        declare_reliable_subscriber(filtering, f"{ns}/index/**", got),
-        declare_reliable_subscriber(filtering, f"{ns}/model/**", got),
-    ]
+    subscriptions = [replaying(open_as("filtering"), got, "index", "model")]
     for key in (*published, f"{ns}/model/calibration"):
         got.wait_for(key)
     nosy = Keys()
-    viewer = open_as("viewer")
-    subscribers.append(declare_reliable_subscriber(viewer, f"{ns}/model/**", nosy))
-    subscribers.append(declare_reliable_subscriber(viewer, f"{ns}/index/**", nosy))
-    nosy.wait_for(published[0])  # the viewer may read indices, so their history arrives…
+    subscriptions.append(replaying(open_as("viewer"), nosy, "model", "index"))
+    nosy.wait_for(published[0])  # the viewer may read indices, so their replay arrives…
     assert not any("/model/" in key for key in nosy.seen)  # …but never a model
-    for subscriber in subscribers:
-        subscriber.undeclare()
+    for subscription in subscriptions:
+        subscription.undeclare()
     extraction.undeclare()
     models.undeclare()
 

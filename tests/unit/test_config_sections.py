@@ -45,7 +45,7 @@ KNOWN = {
     "filtering": "db, limits, network, selector",
     "calibration": ", ".join(sorted(calibration.OPTIONS)),
     "ingestion": None,  # IngestionConfig's fields, checked below
-    "delivery": "cache_samples, heartbeat_s, max_publishers",
+    "delivery": "outbox, replay_s, replay_timeout_s",
 }
 
 
@@ -125,7 +125,7 @@ def test_a_bad_network_file_exits_2_naming_the_file(tmp_path, capsys, argv):
 
 
 @pytest.mark.parametrize("bad", [0, -1, 2.5, "many"])
-def test_delivery_max_publishers_must_be_a_positive_integer(bad):
-    with pytest.raises(ValueError, match=r"services\.delivery\.max_publishers must be"):
-        DeliverySettings.from_options({"max_publishers": bad})
-    assert DeliverySettings.from_options({"max_publishers": 5}).max_publishers == 5
+def test_delivery_outbox_max_bytes_must_be_a_positive_integer(bad):
+    with pytest.raises(ValueError, match=r"services\.delivery\.outbox\.max_bytes must be"):
+        DeliverySettings.from_options({"outbox": {"max_bytes": bad}})
+    assert DeliverySettings.from_options({"outbox": {"max_bytes": 5}}).outbox.max_bytes == 5

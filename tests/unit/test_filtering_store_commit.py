@@ -141,3 +141,20 @@ def test_every_checkpoint_generation_writes_with_the_same_statements(tmp_path, m
         assert [c[2:3] + c[-1:] for c in store.checkpoints()] == [(5, 5)]  # seq, gen
     finally:
         store.close()
+
+
+@pytest.mark.parametrize("background", [False, True])
+def test_delivery_positions_are_stored_with_the_transaction(tmp_path, background):
+    store = Store(tmp_path / "f.sqlite")
+    with store.transaction(background=background):
+        store.put_positions([("extraction/a", "e1", 5), ("calibration/a", "e2", 2)])
+        store.add_events(rows(3))
+    with store.transaction(background=background):
+        store.put_positions([("extraction/a", "e1", 9)])
+    store.sync()
+    assert store.positions() == {"extraction/a": ("e1", 9), "calibration/a": ("e2", 2)}
+    with pytest.raises(RuntimeError), store.transaction():
+        store.put_positions([("extraction/a", "e3", 1)])
+        raise RuntimeError("the batch failed")
+    store.close()
+    assert Store(tmp_path / "f.sqlite").positions()["extraction/a"] == ("e1", 9)

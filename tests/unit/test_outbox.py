@@ -1,0 +1,87 @@
+"""The durable outbox: numbering, reading, restart continuity, retention, a full disk."""
+
+from __future__ import annotations
+
+import pytest
+
+from services.runtime.outbox import Outbox, OutboxFull
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_append_numbers_and_reads_in_order(tmp_path):
+    outbox = Outbox(tmp_path / "p.sqlite")
+    assert outbox.append_many([("a/1", b"x"), ("a/2", b"y")]) == [1, 2]
+    assert outbox.append("a/1", b"z") == 3
+    assert [(e.seq, e.key, e.payload) for e in outbox.entries(0)] == [
+        (1, "a/1", b"x"),
+        (2, "a/2", b"y"),
+        (3, "a/1", b"z"),
+    ]
+    assert [e.seq for e in outbox.entries(1, upto=2)] == [2]
+    assert outbox.head == 3
+    assert outbox.bytes == 3 * 4
+    outbox.close()
+
+
+def test_numbering_and_epoch_continue_after_a_restart(tmp_path):
+    outbox = Outbox(tmp_path / "p.sqlite")
+    outbox.append_many([("k", b"1"), ("k", b"2")])
+    epoch = outbox.epoch
+    outbox.close()
+    again = Outbox(tmp_path / "p.sqlite")
+    assert again.epoch == epoch
+    assert again.append("k", b"3") == 3
+    assert [e.payload for e in again.entries(0)] == [b"1", b"2", b"3"]
+    again.close()
+    assert Outbox(tmp_path / "other.sqlite").epoch != epoch  # a new file, a new numbering
+
+
+def test_retention_by_age_deletes_oldest_and_keeps_numbering(tmp_path):
+    clock = Clock()
+    outbox = Outbox(tmp_path / "p.sqlite", max_age_s=100.0, clock=clock)
+    outbox.append_many([("k", b"old")] * 3)
+    clock.now += 150.0
+    outbox.append("k", b"new")  # the commit that prunes the three old ones
+    assert [e.seq for e in outbox.entries(0)] == [4]
+    assert outbox.pruned_upto == 3
+    assert outbox.bytes == len("k") + len(b"new")
+    clock.now += 150.0
+    outbox.append("k", b"newer")
+    outbox.close()
+    reopened = Outbox(tmp_path / "p.sqlite", max_age_s=100.0, clock=clock)
+    assert reopened.pruned_upto == 4
+    assert reopened.append("k", b"after") == 6  # the numbering survives an emptied log
+    reopened.close()
+
+
+def test_retention_by_bytes_keeps_the_newest(tmp_path):
+    clock = Clock()
+    outbox = Outbox(tmp_path / "p.sqlite", max_bytes=50, clock=clock)
+    for _ in range(10):
+        clock.now += 2.0  # past the prune interval, so every commit prunes
+        outbox.append("k", bytes(9))  # 10 bytes each
+    assert outbox.bytes <= 50
+    assert [e.seq for e in outbox.entries(0)] == [6, 7, 8, 9, 10]
+    assert outbox.pruned_upto == 5
+    outbox.close()
+
+
+def test_a_full_disk_raises_and_leaves_the_log_consistent(tmp_path):
+    outbox = Outbox(tmp_path / "p.sqlite")
+    outbox.append("k", b"before")
+    (pages,) = outbox._db.execute("PRAGMA page_count").fetchone()
+    outbox._db.execute(f"PRAGMA max_page_count = {pages}")  # a disk with no room left
+    with pytest.raises(OutboxFull, match="full"):
+        outbox.append_many([("k", bytes(4096))] * 50)
+    assert outbox.head == 1
+    assert [e.payload for e in outbox.entries(0)] == [b"before"]
+    outbox._db.execute("PRAGMA max_page_count = 1000000")  # room again
+    assert outbox.append("k", b"after") == 2
+    outbox.close()
