@@ -448,7 +448,9 @@ class Calibrator:
         if mid in known and ev.rank <= known[mid].rank:
             self.stats["maintenance_duplicates"] += 1
             return False
-        if mid in known:  # a correction (MaintenanceEvent.rank): it replaces the report
+        # a correction or a withdrawal (MaintenanceEvent.rank): it replaces what is held, so
+        # of a detection and its withdrawal the higher revision holds in either order
+        if mid in known:
             self.stats["maintenance_corrections"] += 1
         known[mid] = ev
         self._changes.maintenance.append(ev)
@@ -696,7 +698,9 @@ class Calibrator:
             t = np.array([r.t / DAY_S for r in records])
             z = np.array([ln_mm(r) for r in records]).reshape(len(records), _N)
             tamping = sorted(
-                0.5 * (e.t_start + e.t_end) / DAY_S for e in self._maint.get(seg, {}).values()
+                0.5 * (e.t_start + e.t_end) / DAY_S
+                for e in self._maint.get(seg, {}).values()
+                if not e.withdrawn  # a withdrawn detection splits nothing
             )
             self._history[seg] = (records, t, z, tamping)
             self._raw[seg] = raw_pieces(t, z, tamping)
