@@ -5,7 +5,11 @@ each delivered in several orders (shuffled, duplicated, late), through one messa
 (:meth:`Tracker.step`), through batches (:meth:`PersistentTracker.handle_batch` on a real
 SQLite file) and after a restart from that file. Every delivery must end in the bytes of
 delivering the events in canonical order: the log's identities, the detected tampings
-held, and the packed state (:func:`pack_state`).
+held, and the packed state (:func:`pack_state`). The detections and withdrawals the batches
+publish (as the service numbers them, :class:`Revisions`), folded in a shuffled order by the
+consumers' rule (per ``event_id`` the highest ``MaintenanceEvent.rank``; a withdrawal is no
+tamping), must leave the same detected tampings since the latest TRC record (one before it
+was pruned by the record, not withdrawn: a consumer keeps it).
 
 ``tests/unit/test_filtering_order.py`` runs a few sequences; this runs many:
 ``python -m bench.order_check [sequences] [orders] [--seed S]``.
@@ -19,12 +23,14 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import msgspec
 import numpy as np
 
 from schemas import DAY_S, MaintenanceEvent, OnboardIndex, TrcRecord, encode, keys
 from services.filtering.coordinator import PersistentTracker
-from services.filtering.events import event_of
+from services.filtering.events import event_of, tamping_time
 from services.filtering.segment import is_detected
+from services.filtering.service import Revisions
 from services.filtering.state import pack_state
 from services.filtering.store import Store
 from services.filtering.testing import T0, example_models
@@ -182,13 +188,35 @@ def keyed(msg) -> tuple[str, bytes]:
     return key, encode(msg)
 
 
-def batched(models: list, msgs: list, rng, db: Path, seen: Counter) -> tuple[dict, dict]:
+def consumed(published: list[MaintenanceEvent], rng, trc_t: dict) -> dict:
+    """Per segment, the detected tampings a consumer holds after ``published`` in a
+    shuffled order (the highest rank per ``event_id``, withdrawals no tamping), as stored
+    by filtering (revision 0), from the segment's latest TRC record on (``trc_t``)."""
+    held: dict[tuple[str, str, str], MaintenanceEvent] = {}
+    for k in rng.permutation(len(published)):
+        msg = published[k]
+        key = (msg.line, msg.segment, msg.event_id)
+        if key not in held or msg.rank > held[key].rank:
+            held[key] = msg
+    out: dict = {}
+    for (line, segment, _), msg in sorted(held.items()):
+        since = trc_t.get((line, segment))
+        if not msg.withdrawn and (since is None or tamping_time(msg) >= since):
+            plain = msgspec.structs.replace(msg, revision=0)
+            out.setdefault((line, segment), []).append(bytes(encode(plain)))
+    return {sid: sorted(found) for sid, found in out.items()}
+
+
+def batched(models: list, msgs: list, rng, db: Path, seen: Counter) -> tuple[dict, dict, dict]:
     """In batches of random sizes through :meth:`PersistentTracker.handle_batch` on the
     SQLite file ``db``, each detection coming back as the bus would bring it (its echo),
-    then the instance restarted from the file: both fingerprints. ``seen`` counts the
-    detections found and withdrawn on the way."""
+    then the instance restarted from the file: both fingerprints, and the detections a
+    consumer holds from what the batches published (:func:`consumed`). ``seen`` counts
+    the detections found and withdrawn on the way."""
     node = PersistentTracker(new_tracker(), Store(db), checkpoint_s=0.0)
     node.handle_batch([keyed(m) for m in models])
+    revisions = Revisions()
+    published: list[MaintenanceEvent] = []
     at = 0
     while at < len(msgs):
         size = int(rng.integers(1, 12))
@@ -196,16 +224,21 @@ def batched(models: list, msgs: list, rng, db: Path, seen: Counter) -> tuple[dic
         at += size
         seen["detected"] += len(done.detected)
         seen["withdrawn"] += len(done.withdrawn)
-        if done.detected:
-            node.handle_batch([keyed(m) for m in done.detected])
+        out = [revisions.stamp(m, withdrawn=True) for m in done.withdrawn]
+        out += [revisions.stamp(m, withdrawn=False) for m in done.detected]
+        published += out
+        if out:  # what the service publishes comes back as its echo: no input
+            node.handle_batch([keyed(m) for m in out])
     live = fingerprint(node.tracker)
+    trc_t = {sid: node.tracker.histories[sid].trc_t for sid in node.tracker.histories}
+    consumers = consumed(published, rng, trc_t)
     node.close()
     node.store.close()
     again = PersistentTracker(new_tracker(), Store(db))
     again.restore()
     restarted = fingerprint(again.tracker)
     again.store.close()
-    return live, restarted
+    return live, restarted, consumers
 
 
 def check(seed: int, orders: int, tmp: Path, seen: Counter | None = None) -> list[str]:
@@ -220,11 +253,14 @@ def check(seed: int, orders: int, tmp: Path, seen: Counter | None = None) -> lis
     for k, msgs in enumerate(deliveries(rng, events, orders)):
         if stepped(models, msgs) != truth:
             bad.append(f"seed {seed} order {k}: step")
-        live, restarted = batched(models, msgs, rng, tmp / f"{seed}-{k}.sqlite", seen)
+        db = tmp / f"{seed}-{k}.sqlite"
+        live, restarted, consumers = batched(models, msgs, rng, db, seen)
         if live != truth:
             bad.append(f"seed {seed} order {k}: batch")
         if restarted != truth:
             bad.append(f"seed {seed} order {k}: restart")
+        if consumers != {sid: found for sid, (_, found, *_) in truth.items() if found}:
+            bad.append(f"seed {seed} order {k}: consumers")
     return bad
 
 
@@ -242,7 +278,7 @@ def main() -> None:
             bad.extend(check(seed, args.orders, Path(tmp), seen))
     took = time.perf_counter() - started
     print(
-        f"order check: {args.sequences} sequences × {args.orders} deliveries × 3 paths, "
+        f"order check: {args.sequences} sequences × {args.orders} deliveries × 4 paths, "
         f"{len(bad)} differ from the canonical order; on the way the batches detected "
         f"{seen['detected']} tampings and withdrew {seen['withdrawn']} ({took:.0f} s)"
     )

@@ -286,6 +286,9 @@ class MaintenanceEvent(Message, frozen=True, kw_only=True):
     t_end: float  # epoch s, >= t_start
     revision: int = 0  # a correction of the same event_id carries a higher revision
     detected: bool = False  # found by filtering in the on-board data, not reported by a feed
+    # a detected tamping filtering no longer finds: the detection of this event_id is void
+    # unless one of a higher rank (a higher revision) holds it again
+    withdrawn: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -293,15 +296,19 @@ class MaintenanceEvent(Message, frozen=True, kw_only=True):
         check_time("t_end", self.t_end)
         check_int("revision", self.revision)
         check(self.t_end >= self.t_start, f"t_end: {self.t_end} before t_start {self.t_start}")
+        check(self.detected or not self.withdrawn, "withdrawn: only a detected tamping is")
 
     @property
-    def rank(self) -> tuple[int, float, float, float]:
+    def rank(self) -> tuple[int, bool, float, float, float]:
         """Which of two reports of one ``event_id`` holds: the higher rank. A higher
-        ``revision`` first (an explicit correction), then the narrower interval (a known time
-        is an interval of width 0, so it replaces an interval-only report), then the later
-        ``(t_start, t_end)``. Equal ranks are the same report; the one held therefore does
-        not depend on which arrived first."""
-        return (self.revision, -(self.t_end - self.t_start), self.t_start, self.t_end)
+        ``revision`` first (an explicit correction; filtering numbers its detections and
+        withdrawals so), then a withdrawal over a detection, then the narrower interval (a
+        known time is an interval of width 0, so it replaces an interval-only report), then
+        the later ``(t_start, t_end)``. Equal ranks are the same report; the one held
+        therefore does not depend on which arrived first, and a withdrawal held makes the
+        ``event_id`` no tamping."""
+        width = self.t_end - self.t_start
+        return (self.revision, self.withdrawn, -width, self.t_start, self.t_end)
 
 
 class Calibration(Message, frozen=True, kw_only=True):

@@ -308,6 +308,9 @@ class AlertingCore:
         self.limits = limits
         self.raised: dict[AlertKey, Alert] = {}
         self.segments: dict[SegmentId, SegmentMemory] = {}
+        # per segment, the highest-ranked detected MaintenanceEvent of each event_id
+        # (MaintenanceEvent.rank): a withdrawal held there voids its detection in any order
+        self.detections: dict[SegmentId, dict[str, MaintenanceEvent]] = {}
         self.schedule = TrcSchedule(config.default_trc_interval_days)
         self._times = NewestTimes(config.watermark_quorum)
         self.approximated = 0  # probabilities recomputed because the state's limits differ
@@ -344,10 +347,27 @@ class AlertingCore:
 
     def on_maintenance(self, event: MaintenanceEvent) -> list[Alert]:
         """A detected tamping raises ``detected_maintenance`` for an operator to confirm; a
-        reported tamping of the segment within ``CONFIRM_DAYS`` of it clears it."""
+        reported tamping of the segment within ``CONFIRM_DAYS`` of it clears it, and so does
+        filtering's withdrawal of the segment's last detection still held.
+
+        Of each detected ``event_id`` the highest-ranked message holds (:attr:`detections`):
+        a detection that arrives after its withdrawal raises nothing, one found again
+        (a higher revision) raises again."""
         key = (event.line, event.segment, "detected_maintenance", "", "")
         held = self.raised.get(key)
         if event.detected:
+            if not self._hold_detection(event):
+                return []
+            if event.withdrawn:
+                standing = self.detections[(event.line, event.segment)].values()
+                if held is None or any(not e.withdrawn for e in standing):
+                    return []
+                return self._clear(
+                    held,
+                    max(held.t, event.t_end),
+                    0.0,
+                    f"Withdrawn: the on-board data no longer show {event.event_id}",
+                )
             if held is not None:
                 return []
             alert = Alert(
@@ -371,6 +391,15 @@ class AlertingCore:
         if held is None or abs(middle - held.t) > CONFIRM_DAYS * DAY_S:
             return []
         return self._clear(held, max(held.t, event.t_end), 1.0, f"Reported: {event.event_id}")
+
+    def _hold_detection(self, event: MaintenanceEvent) -> bool:
+        """Keep ``event`` if it outranks what is held of its ``event_id``; True if it did."""
+        known = self.detections.setdefault((event.line, event.segment), {})
+        prior = known.get(event.event_id)
+        if prior is not None and event.rank <= prior.rank:
+            return False
+        known[event.event_id] = event
+        return True
 
     def on_trc(self, record: TrcRecord) -> bool:
         """Learn the line's TRC schedule; True if it changed (to persist)."""
@@ -409,8 +438,12 @@ class AlertingCore:
         raised: Iterable[Alert],
         segments: Iterable[SegmentMemory],
         trc_runs: Iterable[tuple[str, str, float]],
+        detections: Iterable[MaintenanceEvent] = (),
     ) -> None:
-        """Reload what :attr:`raised`, :attr:`segments` and the schedule held (a restart)."""
+        """Reload what :attr:`raised`, :attr:`segments`, the schedule and
+        :attr:`detections` held (a restart)."""
+        for event in detections:
+            self._hold_detection(event)
         for alert in raised:
             self.raised[alert_key(alert)] = alert
         for memory in segments:

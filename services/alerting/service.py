@@ -110,6 +110,7 @@ class AlertingAdapter:
         with self.lock:
             run = None
             memory = None
+            detection = None
             match message:
                 case SegmentState():
                     alerts = self.core.on_state(message)
@@ -120,6 +121,9 @@ class AlertingAdapter:
                         run = (message.line, message.run_id, message.t)
                 case MaintenanceEvent():
                     alerts = self.core.on_maintenance(message)
+                    where = (message.line, message.segment)
+                    if self.core.detections.get(where, {}).get(message.event_id) is message:
+                        detection = message  # held now: persisted
             if self.core.newest_t is not None:
                 alerts += self.core.check_stale(self.core.newest_t)
         # publish, then persist: a kill in between repeats an alert rather than losing it
@@ -128,7 +132,7 @@ class AlertingAdapter:
             log.info("%s %s %s/%s: %s", alert.status, alert.kind, alert.line, alert.segment,
                      alert.message)  # fmt: skip
         self.published += len(alerts)
-        self.store.save(alerts, memory, run)
+        self.store.save(alerts, memory, run, detection)
         return alerts
 
     # --- queryables (callbacks: short, read under the lock) ------------------------------------

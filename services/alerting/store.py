@@ -1,4 +1,5 @@
-"""SQLite persistence of the alerting core: raised alerts, per-segment memory, TRC runs.
+"""SQLite persistence of the alerting core: raised alerts, per-segment memory, TRC runs,
+the detected tampings held (withdrawals included).
 
 One file per instance. Each message's changes are written in one transaction, so a restart
 (even after SIGKILL) reloads exactly what the core held after the last processed message:
@@ -12,7 +13,7 @@ import sqlite3
 from collections.abc import Iterable
 from pathlib import Path
 
-from schemas import Alert, SegmentState, decode, encode
+from schemas import Alert, MaintenanceEvent, SegmentState, decode, encode
 from services.alerting.core import SegmentMemory, alert_key
 
 _SCHEMA = """
@@ -32,6 +33,11 @@ CREATE TABLE IF NOT EXISTS trc_runs (
     t REAL NOT NULL,
     PRIMARY KEY (line, run_id)
 );
+CREATE TABLE IF NOT EXISTS detections (
+    line TEXT, segment TEXT, event_id TEXT,
+    event BLOB NOT NULL,
+    PRIMARY KEY (line, segment, event_id)
+);
 """
 
 
@@ -50,8 +56,10 @@ class AlertStore:
 
     def load(
         self,
-    ) -> tuple[list[Alert], list[SegmentMemory], list[tuple[str, str, float]]]:
-        """(raised alerts, segment memories, TRC runs as (line, run_id, t))."""
+    ) -> tuple[
+        list[Alert], list[SegmentMemory], list[tuple[str, str, float]], list[MaintenanceEvent]
+    ]:
+        """(raised alerts, segment memories, TRC runs as (line, run_id, t), detections held)."""
         alerts = [decode(row[0], Alert) for row in self._db.execute("SELECT alert FROM raised")]
         memories = [
             SegmentMemory(decode(state, SegmentState), int(calm))
@@ -61,16 +69,21 @@ class AlertStore:
             (str(line), str(run_id), float(t))
             for line, run_id, t in self._db.execute("SELECT line, run_id, t FROM trc_runs")
         ]
-        return alerts, memories, runs
+        detections = [
+            decode(row[0], MaintenanceEvent)
+            for row in self._db.execute("SELECT event FROM detections")
+        ]
+        return alerts, memories, runs, detections
 
     def save(
         self,
         alerts: Iterable[Alert] = (),
         memory: SegmentMemory | None = None,
         run: tuple[str, str, float] | None = None,
+        detection: MaintenanceEvent | None = None,
     ) -> None:
         """In one transaction: raised alerts stored, cleared ones deleted, the segment's
-        memory and a TRC run upserted."""
+        memory, a TRC run and a detected tamping held upserted."""
         with self._db:
             for alert in alerts:
                 key = alert_key(alert)
@@ -97,6 +110,11 @@ class AlertStore:
                 )
             if run is not None:
                 self._db.execute("INSERT OR REPLACE INTO trc_runs VALUES (?, ?, ?)", run)
+            if detection is not None:
+                self._db.execute(
+                    "INSERT OR REPLACE INTO detections VALUES (?, ?, ?, ?)",
+                    (detection.line, detection.segment, detection.event_id, encode(detection)),
+                )
 
     def close(self) -> None:
         self._db.close()

@@ -448,7 +448,7 @@ class Calibrator:
         if mid in known and ev.rank <= known[mid].rank:
             self.stats["maintenance_duplicates"] += 1
             return False
-        if mid in known:  # a correction (MaintenanceEvent.rank): it replaces the report
+        if mid in known:  # a correction or a withdrawal (MaintenanceEvent.rank) replaces it
             self.stats["maintenance_corrections"] += 1
         known[mid] = ev
         self._changes.maintenance.append(ev)
@@ -695,9 +695,8 @@ class Calibrator:
                 continue
             t = np.array([r.t / DAY_S for r in records])
             z = np.array([ln_mm(r) for r in records]).reshape(len(records), _N)
-            tamping = sorted(
-                0.5 * (e.t_start + e.t_end) / DAY_S for e in self._maint.get(seg, {}).values()
-            )
+            held = self._maint.get(seg, {}).values()  # a withdrawn detection splits nothing
+            tamping = sorted(0.5 * (e.t_start + e.t_end) / DAY_S for e in held if not e.withdrawn)
             self._history[seg] = (records, t, z, tamping)
             self._raw[seg] = raw_pieces(t, z, tamping)
         raw = [self._raw[s] for s in sorted(self._raw)]

@@ -71,9 +71,25 @@ class _Batch:
         self.states: dict[SegmentId, SegmentState] = {}  # the newest of each segment, last
         self.rejected = rejected  # (key, reason, payload): dead letters
         self.accepted = 0
-        self.detected: list[MaintenanceEvent] = []
-        self.withdrawn: list[MaintenanceEvent] = []
+        # per (segment, event_id) of a detected tamping the batch changed: the one the logs
+        # held before the batch and the one they hold now (None: none)
+        self._before: dict[tuple[SegmentId, str], MaintenanceEvent | None] = {}
+        self._now: dict[tuple[SegmentId, str], MaintenanceEvent | None] = {}
         self.changed: list[SegmentId] = []
+
+    def note(self, found: Iterable[MaintenanceEvent], withdrawn: Iterable[MaintenanceEvent]):
+        """Detected tampings taken out of the logs, then those put in them, by one step."""
+        for msg, now in [*((m, None) for m in withdrawn), *((m, m) for m in found)]:
+            key = ((msg.line, msg.segment), msg.event_id)
+            self._before.setdefault(key, None if now is not None else msg)
+            self._now[key] = now
+
+    def detected_changes(self) -> tuple[list[MaintenanceEvent], list[MaintenanceEvent]]:
+        """``(found, withdrawn)`` net over the batch: one found and withdrawn again within
+        it is in neither, one withdrawn and found again as it was is in neither."""
+        found = [m for k, m in self._now.items() if m is not None and m != self._before[k]]
+        withdrawn = [m for k, m in self._before.items() if m is not None and self._now[k] is None]
+        return found, withdrawn
 
     def keep(self, new_states: Iterable[SegmentState]) -> None:
         for state in new_states:
@@ -81,13 +97,14 @@ class _Batch:
             self.states[(state.line, state.segment)] = state
 
     def result(self) -> BatchResult:
+        found, withdrawn = self.detected_changes()
         return BatchResult(
             tuple(self.states.values()),
             tuple(self.rejected),
             self.accepted,
-            tuple(self.detected),
+            tuple(found),
             tuple(self.changed),
-            tuple(self.withdrawn),
+            tuple(withdrawn),
         )
 
 
@@ -259,8 +276,7 @@ class PersistentTracker:
         """Commit a folded batch's accepted events, after the changes of detected tampings
         it made (net over the batch)."""
         self._commit_detected(found, withdrawn)
-        batch.detected.extend(found)
-        batch.withdrawn.extend(withdrawn)
+        batch.note(found, withdrawn)
         taken = [
             (msg, key)
             for (msg, key, _payload), reason in zip(events, reasons, strict=True)
@@ -286,8 +302,7 @@ class PersistentTracker:
                 batch.accepted += 1
                 self._commit_detected(step.detected, step.withdrawn)
                 self._commit(msg, key)
-                batch.detected.extend(step.detected)
-                batch.withdrawn.extend(step.withdrawn)
+                batch.note(step.detected, step.withdrawn)
                 batch.keep(step.states)
 
     def _commit(self, msg: EventMessage | ModelMessage, key: str) -> None:

@@ -31,6 +31,7 @@ from services.filtering.state import Filtered
 
 SUPERSEDE_DAYS = 30.0  # a reported tamping this close to a detected one replaces it
 DERIVED = "a detected tamping is found in the segment's own log, not taken as an input"
+WITHDRAWAL = "a withdrawal is filtering's own output, not taken as an input"
 
 
 def publishable(log: Sequence[Event] | LogColumns, models: Models, started=False) -> bool:
@@ -183,7 +184,10 @@ def advance(hist: SegmentHistory, event: Event, models: Models, *, detecting: bo
     tamping) re-runs the walk from the log's start (:func:`redetect`), which withdraws the
     detections it invalidates. With ``detecting``, a detected tamping is not an input (the
     instance's own output coming back, or another instance's): refused with ``DERIVED``.
+    A withdrawal (``MaintenanceEvent.withdrawn``) is never an input: ``WITHDRAWAL``.
     """
+    if event.kind == TAMPING and event.message.withdrawn:
+        return Advanced(hist, WITHDRAWAL)
     if detecting and is_detected(event):
         return Advanced(hist, DERIVED)
     new, reason = add_event(hist, event)

@@ -45,6 +45,13 @@ newer one (a state committed but not yet published when the process died is then
 lost; a repeated state is harmless).
 Event time only: the wall clock is never used for a state.
 
+Detected tampings: each batch's net changes to the logs' detected tampings are published on
+``{ns}/maintenance/{line}/{segment}`` once committed, through the same cached publisher: a
+detection taken out of a log first, as the message it was with ``withdrawn`` true, then each
+one found. Both carry a ``revision`` (:class:`Revisions`) higher than any this instance
+published before, so a consumer that keeps the highest-ranked message per ``event_id``
+(``MaintenanceEvent.rank``) ends on filtering's last verdict whatever the order of delivery.
+
 Options (``services.filtering`` in the config file, overridden by the flags): ``selector``
 (default ``**``), ``db`` (default ``./var/filtering-{instance}.sqlite`` with the configured
 instance id, ``default`` without one, so a restarted process finds its file), ``limits``,
@@ -66,8 +73,9 @@ from contextlib import ExitStack
 from pathlib import Path
 
 import msgpack
+import msgspec
 
-from schemas import SegmentState, encode, keys
+from schemas import MaintenanceEvent, SegmentState, encode, keys
 from schemas.keys import SegmentId
 from services.defaults import add_network_argument
 from services.filtering.coordinator import PersistentTracker
@@ -158,6 +166,22 @@ def known_segments(network: str | Path | None) -> dict:
     return {"segments": ids, "network_name": f"the network {Path(network).name}"}
 
 
+class Revisions:
+    """The ``revision`` of each detection and withdrawal published: the wall clock in
+    microseconds, strictly increasing within the process. A later verdict on an ``event_id``
+    (withdrawn, found again) therefore outranks every earlier one, across restarts too as
+    long as the host's clock does not step back by more than the restart took. The revision
+    says which message is newer, nothing of the tamping (its times are event time); the
+    stored detection keeps revision 0."""
+
+    def __init__(self) -> None:
+        self._last = 0
+
+    def stamp(self, msg: MaintenanceEvent, *, withdrawn: bool) -> MaintenanceEvent:
+        self._last = max(self._last + 1, time.time_ns() // 1000)
+        return msgspec.structs.replace(msg, revision=self._last, withdrawn=withdrawn)
+
+
 class FilteringAdapter:
     """Zenoh plumbing around a :class:`PersistentTracker`: inbox, worker, puts, queryable."""
 
@@ -176,6 +200,7 @@ class FilteringAdapter:
         self.inbox: Inbox | None = None
         self.freeze_gc = freeze_gc  # only where the process is this service's own
         self._frozen_at = 0.0
+        self.revisions = Revisions()
 
     def start(self) -> None:
         ns = self.rt.ns
@@ -246,7 +271,7 @@ class FilteringAdapter:
             )
             self._batches += 1
             backlog = self.inbox is not None and len(self.inbox) >= BACKLOG
-            if done.states or done.detected or not backlog:
+            if done.states or done.detected or done.withdrawn or not backlog:
                 self.node.store.sync()  # what is published next is committed
         except Exception as e:
             self._store_failed(e)
@@ -262,23 +287,32 @@ class FilteringAdapter:
         else:
             self._publish_dirty(None)
         self._freeze()
-        for found in done.detected:  # stored with the batch; for alerting, calibration, viewer
-            key = keys.maintenance(self.rt.ns, found.line, found.segment)
-            self.states_out.put(key, encode(found))
-            log.info(
-                "detected an unreported tamping on %s/%s in [%s, %s]",
-                found.line,
-                found.segment,
-                found.t_start,
-                found.t_end,
-            )
-        for gone in done.withdrawn:  # not in the log any more, deleted with the batch
+        self._publish_detected(done.withdrawn, done.detected)
+
+    def _publish_detected(self, withdrawn, found) -> None:
+        """The batch's detected tampings taken out of the logs (deleted with the batch),
+        then those found (stored with it), for alerting, calibration and planning: the
+        withdrawals first, so a detection of the same ``event_id`` found anew outranks
+        its withdrawal."""
+        for gone in withdrawn:
+            key = keys.maintenance(self.rt.ns, gone.line, gone.segment)
+            self.states_out.put(key, encode(self.revisions.stamp(gone, withdrawn=True)))
             log.info(
                 "withdrew the detected tamping %s on %s/%s: %s",
                 gone.event_id,
                 gone.line,
                 gone.segment,
                 "the segment's events no longer show it",
+            )
+        for new in found:
+            key = keys.maintenance(self.rt.ns, new.line, new.segment)
+            self.states_out.put(key, encode(self.revisions.stamp(new, withdrawn=False)))
+            log.info(
+                "detected an unreported tamping on %s/%s in [%s, %s]",
+                new.line,
+                new.segment,
+                new.t_start,
+                new.t_end,
             )
 
     def _store_failed(self, e: Exception) -> None:

@@ -256,6 +256,8 @@ class PlanningCore:
         self.states: dict[int, SegmentState] = {}
         self.posteriors: dict[str, tuple[int, risk.Posterior]] = {}
         self.last_tamped: dict[int, float] = {}
+        # per segment, the highest-ranked MaintenanceEvent of each event_id (withdrawals too)
+        self.tampings: dict[int, dict[str, MaintenanceEvent]] = {}
         self._rows: dict[int, tuple[Any, np.ndarray, np.ndarray]] = {}  # i -> (key, cost, F)
         self._solved: dict[bytes, tuple] = {}  # regions' solutions by their problem's digest
         self.version = 0  # changes that can move the plan
@@ -321,14 +323,27 @@ class PlanningCore:
         return True
 
     def on_maintenance(self, event: MaintenanceEvent) -> bool:
-        """A tamping starts the minimum interval; True if it is the segment's newest."""
+        """A tamping starts the minimum interval; True if the segment's last tamping moved.
+
+        Of each ``event_id`` the highest-ranked message holds (``MaintenanceEvent.rank``),
+        whatever the order of arrival; one that is a withdrawal (a detection filtering no
+        longer makes) is no tamping. The last tamping is the latest middle of those held."""
         i = self.index.get((event.line, event.segment))
         if i is None:
             i = self._add(SegmentRef(event.line, event.segment, DEFAULT_SEGMENT_M))
-        t = 0.5 * (event.t_start + event.t_end)
-        if self.last_tamped.get(i, -math.inf) >= t:
+        known = self.tampings.setdefault(i, {})
+        held = known.get(event.event_id)
+        if held is not None and event.rank <= held.rank:
             return False
-        self.last_tamped[i] = t
+        known[event.event_id] = event
+        times = [0.5 * (e.t_start + e.t_end) for e in known.values() if not e.withdrawn]
+        last = max(times, default=None)
+        if last == self.last_tamped.get(i):
+            return False
+        if last is None:
+            del self.last_tamped[i]
+        else:
+            self.last_tamped[i] = last
         self.version += 1
         return True
 

@@ -10,6 +10,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 
+import msgspec
 import numpy as np
 import pytest
 import zenoh
@@ -263,6 +264,18 @@ def test_an_unreported_tamping_is_published_as_detected_maintenance(
     key, event = found.get()
     assert key == keys.maintenance(namespace, "L1", "s1") and event.detected
     assert event.t_start == T0 + 20 * DAY_S and event.t_end == T0 + 21 * DAY_S
+    assert not event.withdrawn and event.revision > 0
+
+    # a report of the tamping supersedes the detection: filtering publishes its withdrawal,
+    # the detection as published with a higher revision
+    at = T0 + 20.5 * DAY_S
+    report = MaintenanceEvent(line="L1", segment="s1", event_id="m1", t_start=at, t_end=at)
+    put_all(session, until_matched, [(keys.maintenance(namespace, "L1", "s1"), encode(report))])
+    assert found.get() == (key, report)  # the report itself, on the same key
+    key, gone = found.get()
+    assert key == keys.maintenance(namespace, "L1", "s1") and gone.withdrawn
+    assert msgspec.structs.replace(gone, withdrawn=False, revision=event.revision) == event
+    assert gone.rank > event.rank
 
 
 def test_a_restarted_instance_replays_from_the_positions_in_its_store(

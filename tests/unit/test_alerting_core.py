@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from schemas import DAY_S, Alert, SegmentState, TrcRecord
+from schemas import DAY_S, Alert, MaintenanceEvent, SegmentState, TrcRecord
 from services.alerting.core import (
     AlertingConfig,
     AlertingCore,
@@ -377,8 +377,6 @@ def test_restart_neither_reraises_nor_forgets(tmp_path):
 
 
 def test_a_detected_tamping_waits_for_an_operator_and_a_report_confirms_it(core):
-    from schemas import MaintenanceEvent
-
     t0 = 1_767_225_600.0
     detected = MaintenanceEvent(
         line="L1",
@@ -403,3 +401,80 @@ def test_a_detected_tamping_waits_for_an_operator_and_a_report_confirms_it(core)
     (cleared,) = core.on_maintenance(report)
     assert cleared.status == "cleared" and cleared.message == "Reported: m1"
     assert core.raised_alerts() == []
+
+
+def tamping(revision, *, withdrawn=False, event_id="detected-1", segment="s7", day=0.0):
+    """Filtering's detection (or withdrawal) of a tamping in the day after ``day``."""
+    t = T0 + day * DAY_S
+    return MaintenanceEvent(
+        line="L1", segment=segment, event_id=event_id, t_start=t, t_end=t + DAY_S,
+        detected=True, revision=revision, withdrawn=withdrawn,
+    )  # fmt: skip
+
+
+def raised_after(*events):
+    core = AlertingCore(AlertingConfig(), make_limits())
+    for event in events:
+        core.on_maintenance(event)
+    return [(a.segment, a.kind) for a in core.raised_alerts()]
+
+
+def test_a_withdrawn_detection_clears_its_alert_and_raises_nothing_arriving_first():
+    found, gone, again = tamping(1), tamping(2, withdrawn=True), tamping(3)
+    core = AlertingCore(AlertingConfig(), make_limits())
+    core.on_maintenance(found)
+    (cleared,) = core.on_maintenance(gone)
+    assert (cleared.kind, cleared.status) == ("detected_maintenance", "cleared")
+    assert "no longer show detected-1" in cleared.message
+    assert raised_after(found, gone) == raised_after(gone, found) == []
+    assert raised_after(gone, found, gone, found) == []  # duplicates change nothing
+    # found again after its withdrawal: raised again, in any order
+    assert (
+        raised_after(found, gone, again) == raised_after(again, gone, found) == raised_after(found)
+    )
+    assert raised_after(found) == [("s7", "detected_maintenance")]
+    # another detection of the segment still held keeps the alert
+    other = tamping(4, event_id="detected-2", day=40.0)
+    assert (
+        raised_after(found, other, gone) == raised_after(gone, other, found) == raised_after(other)
+    )
+
+
+def test_shuffled_detections_and_withdrawals_end_in_the_same_raised_alerts():
+    rng = np.random.default_rng(3)
+    for _ in range(30):
+        messages = [
+            tamping(
+                int(rng.integers(1, 5)), withdrawn=bool(rng.random() < 0.5),
+                event_id=f"detected-{rng.integers(3)}", segment=f"s{rng.integers(2)}",
+                day=float(rng.integers(0, 100)),
+            )
+            for _ in range(6)
+        ]  # fmt: skip
+        # what holds: per event_id the highest rank; raised where a detection is held
+        held = {}
+        for m in messages:
+            key = (m.segment, m.event_id)
+            if key not in held or m.rank > held[key].rank:
+                held[key] = m
+        expected = sorted(
+            {(s, "detected_maintenance") for (s, _), m in held.items() if not m.withdrawn}
+        )
+        for _ in range(6):
+            order = [messages[j] for j in rng.permutation(len(messages))]
+            assert raised_after(*order) == expected
+
+
+def test_the_detections_held_survive_a_restart(tmp_path):
+    path = tmp_path / "alerting.sqlite"
+    store = AlertStore(path)
+    first = AlertingCore(AlertingConfig(), make_limits())
+    gone = tamping(2, withdrawn=True)
+    store.save(first.on_maintenance(gone), detection=gone)
+    store.close()
+    store = AlertStore(path)
+    second = AlertingCore(AlertingConfig(), make_limits())
+    second.restore(*store.load())
+    assert second.on_maintenance(tamping(1)) == []  # withdrawn before the restart
+    assert second.on_maintenance(tamping(3)) != []  # found again since
+    store.close()

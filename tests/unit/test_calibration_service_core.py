@@ -300,6 +300,32 @@ def test_tamping_interval_mid_rule_and_rebuild_on_maintenance():
     assert core.stats["maintenance_duplicates"] == 1
 
 
+def test_a_withdrawn_detection_splits_no_increment_in_any_order_and_holds_when_found_again():
+    rng = np.random.default_rng(8)
+    events = histories(rng, lines=("L1",), segs=3, records=6, tamp_every=99)
+    s0 = sorted((e for e in events if e.segment == "s0"), key=lambda e: e.t)
+    found = MaintenanceEvent(
+        line="L1", segment="s0", event_id="detected-1", t_start=s0[2].t + DAY_S,
+        t_end=s0[3].t - DAY_S, detected=True, revision=1,
+    )  # fmt: skip
+    gone = msgspec.structs.replace(found, revision=2, withdrawn=True)
+    again = msgspec.structs.replace(found, revision=3)
+
+    def increments(*deliveries):
+        """The network's increments in the newest posterior after ``deliveries``."""
+        core = Calibrator(FleetOnly(samples=20, min_increments=4, **EVERY_CHANGE))
+        newest = {}
+        for batch in (events, *deliveries):
+            newest.update({m.group: m for m in core.step(batch) if hasattr(m, "n_increments")})
+        return newest["net"].n_increments
+
+    whole = increments()
+    assert increments([found]) == whole - 1
+    assert increments([found], [gone]) == increments([gone], [found]) == whole
+    assert increments([gone, found]) == increments([found, gone]) == whole
+    assert increments([found], [gone], [again]) == increments([again], [gone], [found]) == whole - 1
+
+
 # ---------------------------------------------------------------- persistence
 
 

@@ -13,13 +13,22 @@ import msgspec
 import numpy as np
 import pytest
 
-from schemas import DAY_S, Calibration, DegradationPosterior, SchemaError, encode, keys
+from schemas import (
+    DAY_S,
+    Calibration,
+    DegradationPosterior,
+    MaintenanceEvent,
+    SchemaError,
+    encode,
+    keys,
+)
 from services.filtering import store as store_module
 from services.filtering.banks import CUSUM_THRESHOLD
-from services.filtering.coordinator import PersistentTracker
+from services.filtering.coordinator import PersistentTracker, _Batch
 from services.filtering.events import event_of
 from services.filtering.payloads import decode_keyed
 from services.filtering.store import Store, index_identity
+from services.filtering.testing import T0
 from tests.unit.test_filtering_tracker import (
     MU,
     Z_PLUS,
@@ -269,3 +278,26 @@ def test_a_batch_refuses_its_bad_indices_with_the_reasons_of_one_at_a_time(tmp_p
     assert_same_states(one.tracker, batched.tracker)
     for node in (one, batched):
         node.store.close()
+
+
+def test_a_batch_publishes_its_net_detection_changes_whichever_path_made_them():
+    def detection(t_start):
+        return MaintenanceEvent(
+            line="L1", segment="s1", event_id="detected-9", t_start=t_start, t_end=T0 + 9 * DAY_S,
+            detected=True,
+        )  # fmt: skip
+
+    a, b = detection(T0 + 8 * DAY_S), detection(T0 + 7 * DAY_S)
+
+    def net(*steps):
+        batch = _Batch([])
+        for found, withdrawn in steps:
+            batch.note(found, withdrawn)
+        result = batch.result()
+        return result.detected, result.withdrawn
+
+    assert net(([a], [])) == ((a,), ())
+    assert net(([a], []), ([], [a])) == ((), ())  # found then withdrawn: nothing to say
+    assert net(([], [a]), ([a], [])) == ((), ())  # withdrawn then found as it was
+    assert net(([], [a])) == ((), (a,))
+    assert net(([], [a]), ([b], [])) == ((b,), ())  # found otherwise: b outranks a anew

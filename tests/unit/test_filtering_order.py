@@ -2,7 +2,8 @@
 arrival: seeded random sequences (TRC runs, unreported tampings under the indices, known and
 interval reports and corrections, ties) delivered shuffled, duplicated and late, one message
 at a time, in batches, and after a restart from the store, end in the bytes of the canonical
-order (``bench/order_check.py`` runs many more)."""
+order; the detections and withdrawals the batches publish, folded by a consumer in a shuffled
+order, leave the canonical detected tampings (``bench/order_check.py`` runs many more)."""
 
 from __future__ import annotations
 

@@ -29,7 +29,7 @@ from services.filtering.mixture import (
     summarize,
     weights_from_log,
 )
-from services.filtering.segment import DERIVED
+from services.filtering.segment import DERIVED, WITHDRAWAL
 from services.filtering.store import Store
 from services.filtering.summary import state_weights
 from services.filtering.testing import example_posterior, onboard_index
@@ -680,13 +680,21 @@ def test_a_reported_tamping_supersedes_a_detected_one_whatever_the_order(tmp_pat
     for msg in [*MODELS, record, *passes]:
         detected.extend(node.handle(*keyed(msg)).detected)
     assert len(detected) == 1
-    assert node.handle(*keyed(report)).accepted  # late report: replaces the detection
+    step = node.handle(*keyed(report))  # late report: replaces the detection
+    assert step.accepted and step.withdrawn == (detected[0],)
     assert_same_states(node.tracker, truth)
     rebuilt = PersistentTracker(new_tracker(), Store(db))
     rebuilt.rebuild()
     assert_same_states(rebuilt.tracker, truth)  # the detected row is gone from the store
     # a detection coming back (its own echo from the bus) is no input
     assert node.handle(*keyed(detected[0])).reason == DERIVED
+    # nor is its withdrawal, whether the instance detects or not
+    gone = msgspec.structs.replace(detected[0], revision=1, withdrawn=True)
+    assert node.handle(*keyed(gone)).reason == WITHDRAWAL
+    plain = Tracker(LIMITS.for_line, LIMITS.levels, detect_maintenance=False)
+    for msg in [*MODELS, record]:
+        plain.step(msg)
+    assert plain.step(gone).reason == WITHDRAWAL
     for n in (node, rebuilt):
         n.store.close()
 

@@ -78,6 +78,66 @@ def test_a_recent_tamping_holds_the_next_one_off_for_the_minimum_interval():
     assert min(r.week for r in plan.rows if r.week >= 0) >= 9
 
 
+def detection(revision: int, *, withdrawn=False, day=-50.0, event_id="detected-1", k=0):
+    """Filtering's detection (or withdrawal) of a tamping ending ``day`` days from T0."""
+    t = T0 + day * DAY_S
+    return MaintenanceEvent(
+        line="L1", segment=f"s{k:02d}", event_id=event_id, t_start=t - DAY_S, t_end=t,
+        detected=True, revision=revision, withdrawn=withdrawn,
+    )  # fmt: skip
+
+
+def test_a_withdrawn_detection_no_longer_holds_the_next_tamping_off_in_any_order():
+    found, gone, again = detection(1), detection(2, withdrawn=True), detection(3)
+    reported = MaintenanceEvent(
+        line="L1", segment="s00", event_id="r1", t_start=T0 - 400 * DAY_S, t_end=T0 - 400 * DAY_S
+    )
+
+    def last(*events):
+        core = line(5, range(5), config=PlanningConfig(min_interval_weeks=60.0))
+        for event in events:
+            core.on_maintenance(event)
+        return core.last_tamped.get(0), [(r.segment, r.week) for r in core.plan(T0).rows]
+
+    t_found = T0 - 50.5 * DAY_S
+    assert last(found)[0] == t_found
+    assert last(found, gone) == last(gone, found) == last()
+    assert last(reported, found, gone) == last(gone, reported, found) == last(reported)
+    assert last(reported)[0] == reported.t_end
+    assert last(found, gone, again) == last(again, gone, found) == last(gone, again) == last(found)
+    assert last(found, gone)[1] != last(found)[1]  # the minimum interval is lifted
+
+
+def test_shuffled_detections_and_withdrawals_end_in_the_same_last_tampings():
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        messages = [
+            detection(
+                int(rng.integers(1, 6)), withdrawn=bool(rng.random() < 0.5),
+                day=-float(rng.integers(10, 300)), event_id=f"detected-{rng.integers(3)}",
+                k=int(rng.integers(2)),
+            )
+            for _ in range(8)
+        ]  # fmt: skip
+        # what holds: per event_id, the highest revision, a withdrawal over a detection
+        expected = {}
+        for k in range(2):
+            held = {}
+            for m in messages:
+                if m.segment == f"s{k:02d}" and (
+                    m.event_id not in held or m.rank > held[m.event_id].rank
+                ):
+                    held[m.event_id] = m
+            times = [0.5 * (m.t_start + m.t_end) for m in held.values() if not m.withdrawn]
+            if times:
+                expected[k] = max(times)
+        for _ in range(6):
+            core = line(2, range(2))
+            for j in rng.permutation(len(messages)):
+                core.on_maintenance(messages[j])
+            assert core.last_tamped == expected
+
+
 def test_capacity_spreads_the_work_over_weeks():
     config = PlanningConfig(capacity_km_per_week=1.0)
     core = line(30, range(2, 28), config=config)

@@ -397,6 +397,21 @@ def test_constructing_an_invalid_message_raises_the_same_error():
         MaintenanceEvent(line="L1", segment="s1", event_id="e", t_start=T0, t_end=T0 - 1)
 
 
+def test_a_withdrawal_outranks_the_detection_it_withdraws_and_a_later_one_outranks_it():
+    found = MaintenanceEvent(
+        line="L1", segment="s1", event_id="detected-1", t_start=T0, t_end=T0 + 60, detected=True
+    )
+    gone = msgspec.structs.replace(found, revision=1, withdrawn=True)
+    again = msgspec.structs.replace(found, revision=2)
+    assert found.rank < gone.rank < again.rank
+    assert msgspec.structs.replace(found, withdrawn=True).rank > found.rank  # a tie: withdrawn
+    assert decode(encode(gone), MaintenanceEvent) == gone
+    with pytest.raises(SchemaError, match="withdrawn: only a detected tamping"):
+        MaintenanceEvent(
+            line="L1", segment="s1", event_id="e", t_start=T0, t_end=T0, withdrawn=True
+        )
+
+
 def test_an_unknown_field_is_refused_by_name():
     extra = _with_first(_gps(), msgpack.packb("extra"), b"\x91" * 30 + b"\x90")
     with pytest.raises(SchemaError, match="GpsFix: Object contains unknown field `extra`"):
