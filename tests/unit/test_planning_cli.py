@@ -46,6 +46,7 @@ def test_the_table_csv_and_json_show_the_worksite():
     tamped = [r for r in rows if int(r["week"]) >= 0]
     assert {r["segment"] for r in tamped} >= {"s03", "s04", "s05"}
     assert all(r["week_start"] for r in tamped)
+    assert {r["speed_class"] for r in rows} == {"80<v<=120"} and "80<v<=120" in text
     assert json.loads(to_json(plan))["possessions"] == plan.possessions
 
 
