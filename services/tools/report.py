@@ -37,6 +37,7 @@ from schemas import (
 )
 from schemas.keys import SegmentId
 from services.defaults import add_network_argument
+from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits, network_line_speeds
 from services.runtime.config import RuntimeConfig, config_from_args
 from services.tools import maintenance_plan, operator
 
@@ -76,6 +77,7 @@ class NetworkMap:
     chainage_m: dict[SegmentId, tuple[float, float]] = field(default_factory=dict)
     stations: list[Station] = field(default_factory=list)
     line_names: dict[str, str] = field(default_factory=dict)  # id -> the name operators use
+    line_speeds_kmh: dict[str, float] = field(default_factory=dict)  # id -> line speed
 
     def label(self, line: str) -> str:
         """A line as a planner knows it: ``id (name)``, or the id when it has no name."""
@@ -99,6 +101,7 @@ class ReportData:
     worst_n: int = WORST_N
     tamping: MaintenancePlan | None = None
     tamping_missing: str = ""
+    limits: Limits | None = None  # the limits file, with the network's line speeds
 
 
 def level_index(state: SegmentState, level: str = INTERVENTION) -> int:
@@ -170,6 +173,8 @@ def render(data: ReportData) -> str:
         _map(data, states),
         _legend(),
     ]
+    if data.limits is not None:
+        parts += ['<h2 id="limits">Limits by line</h2>', _limits(data, data.limits)]
     if data.missing:
         parts.append(f'<p class="note">{escape(data.missing)}</p>')
     parts += [
@@ -291,6 +296,41 @@ def _legend() -> str:
         + "".join(items)
         + "</p>"
     )
+
+
+def _limits(data: ReportData, limits: Limits) -> str:
+    """Per line: its speed class, where the class comes from, and the AL, IL and IAL of Top6
+    and Align10 of that class."""
+    lines = sorted({s.line for s in data.states} | set(data.lines))
+    names = ["AL", "IL"] if limits.levels == ("alert", "intervention") else list(limits.levels)
+    head = ["line", "speed class"] + [
+        f"{indicator} {level} mm"
+        for indicator in ("Top6", "Align10")
+        for level in (*names, *(["IAL"] if limits.immediate_action else []))
+    ]
+    out = [
+        "<p>EN 13848-5 levels per line speed class: AL (alert), IL (intervention), IAL "
+        "(immediate action). A line's class is the one the limits file names for it, else "
+        "the class holding its line speed in the network file, else the file's default.</p>",
+        '<table id="limits"><thead><tr>',
+        *(f"<th>{escape(h)}</th>" for h in head),
+        "</tr></thead><tbody>",
+    ]
+    for line in lines:
+        table, ial = limits.for_line(line), limits.immediate_action_for_line(line)
+        values = [
+            v
+            for i in range(table.shape[1])
+            for v in [*table[:, i], *([ial[i]] if ial is not None else [])]
+        ]
+        band = limits.describe(line).removeprefix("speed class ")
+        out.append(
+            f"<tr><td>{escape(data.network.label(line))}</td><td>{escape(band)}</td>"
+            + "".join(f'<td class="n">{v:g}</td>' for v in values)
+            + "</tr>"
+        )
+    out.append("</tbody></table>")
+    return "".join(out)
 
 
 def _mm(state: SegmentState, i: int) -> str:
@@ -429,11 +469,12 @@ def _alerts(data: ReportData) -> str:
     if not data.alerts:
         return "<p>No alert raised.</p>"
     rows = ['<table id="alerts"><thead><tr>']
-    head = ("time", "segment", "kind", "indicator", "level", "p", "message")
+    head = ("time", "segment", "kind", "indicator", "level", "speed class", "p", "message")
     rows += [f"<th>{h}</th>" for h in head]
     rows.append("</tr></thead><tbody>")
     for a in sorted(data.alerts, key=lambda a: (-a.probability, a.line, a.segment, a.kind)):
-        cells = [iso(a.t), f"{a.line}/{a.segment}", a.kind, a.indicator, a.level]
+        band = a.speed_class or "–"
+        cells = [iso(a.t), f"{a.line}/{a.segment}", a.kind, a.indicator, a.level, band]
         rows.append(
             "<tr>"
             + "".join(f"<td>{escape(c)}</td>" for c in cells)
@@ -679,7 +720,7 @@ def network_map(network_path: str | None = None) -> NetworkMap:
             label = str(names[k]) if k < len(names) else f"{line.id} km {c / 1e3:.1f}"
             stations.append(Station(line.id, lon, lat, label))
     names = {line.id: line.name for line in network.lines.values() if line.name}
-    return NetworkMap(polylines, chainage, stations, names)
+    return NetworkMap(polylines, chainage, stations, names, network_line_speeds(network))
 
 
 # --- the running system ---------------------------------------------------------------------
@@ -736,11 +777,14 @@ def main(
     line: str | None = None,
     network_path: str | None = None,
     worst_n: int = WORST_N,
+    limits_path: str | Path = DEFAULT_LIMITS_FILE,
     timeout: float = operator.QUERY_TIMEOUT_S,
     out: TextIO = sys.stdout,
 ) -> int:
-    """Ask the running system and write the report; SystemExit (1) without any state."""
+    """Ask the running system and write the report; SystemExit (1) without any state.
+    ``limits_path``: the limits file the services apply (the report shows each line's)."""
     network = network_map(network_path)
+    limits = load_limits(limits_path, network.line_speeds_kmh)
     with operator.open_session(conf) as session:
         states = operator.query_states(session, conf.ns, f"{line}/**" if line else "**", timeout)
         if not states:
@@ -763,6 +807,7 @@ def main(
         worst_n=worst_n,
         tamping=tamping,
         tamping_missing=tamping_missing,
+        limits=limits,
     )
     Path(out_path).write_text(render(data), encoding="utf-8")
     note = "".join(f" ({text})" for text in (missing, tamping_missing) if text)
@@ -778,7 +823,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--line", help="one line (default: all lines)")
     parser.add_argument("--out", default=DEFAULT_OUT, metavar="FILE.html", help="(%(default)s)")
-    add_network_argument(parser, "the geometry")
+    add_network_argument(parser, "the geometry and the line speeds")
+    parser.add_argument(
+        "--limits",
+        metavar="FILE",
+        type=Path,
+        default=DEFAULT_LIMITS_FILE,
+        help="the limits file the services apply (default: %(default)s)",
+    )
     parser.add_argument(
         "--worst", type=int, default=WORST_N, metavar="N", help="fans drawn (%(default)s)"
     )
@@ -792,5 +844,6 @@ def run(args: argparse.Namespace) -> int:
         line=args.line,
         network_path=args.network,
         worst_n=args.worst,
+        limits_path=args.limits,
         timeout=args.timeout,
     )
