@@ -21,6 +21,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TextIO
 
+import numpy as np
 import zenoh
 
 from schemas import (
@@ -37,6 +38,7 @@ from schemas import (
 )
 from schemas.keys import SegmentId
 from services.defaults import add_network_argument
+from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits, network_line_speeds
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 from services.tools import maintenance_plan
 from services.tools.query import QUERY_TIMEOUT_S, ask, open_session
@@ -81,9 +83,10 @@ def _alive_ids(tokens: Iterable[str]) -> Iterator[tuple[str, str]]:
 # --- state ----------------------------------------------------------------------------------
 
 
-def format_state(state: SegmentState, line_name: str = "") -> str:
+def format_state(state: SegmentState, line_name: str = "", limits: Limits | None = None) -> str:
     """A segment's state as an engineer reads it: estimate, 95 % interval, risk, forecasts;
-    ``line_name``: the line's name in the network file, shown after its id."""
+    ``line_name``: the line's name in the network file, shown after its id; ``limits``: the
+    limits file, whose speed class of the line and immediate-action limits are shown."""
     measured = " ".join(state.last_trc_indicators)
     last = _iso(state.last_trc_t) + (f", measured {measured}" if measured else "")
     named = f" ({line_name})" if line_name and line_name != state.line else ""
@@ -98,6 +101,8 @@ def format_state(state: SegmentState, line_name: str = "") -> str:
             for k, level in enumerate(levels)
         )
         lines.append(f"  {name:8} {mean_mm[i]:6.2f} mm  95% [{low[i]:.2f}, {high[i]:.2f}]  {risk}")
+    if limits is not None:
+        lines.append("  " + _limits_line(state, limits))
     fp = state.forecast_p_exceed.array()
     for h, days in enumerate(state.horizons_days.array()):
         parts = [
@@ -114,6 +119,34 @@ def format_state(state: SegmentState, line_name: str = "") -> str:
     return "\n".join(lines)
 
 
+def _limits_line(state: SegmentState, limits: Limits) -> str:
+    """The speed class of the state's line, its immediate-action limits, and whether the
+    state's limits are that class's."""
+    text = f"limits of {limits.describe(state.line)}"
+    ial = limits.immediate_action_for_line(state.line)
+    names = [n for n in state.indicators if n in INDICATORS]
+    if ial is not None:
+        text += "; immediate action " + ", ".join(
+            f"{n} {ial[INDICATORS.index(n)]:.1f} mm" for n in names
+        )
+    table = limits.for_line(state.line)
+    ours = [
+        table[limits.levels.index(level), INDICATORS.index(n)]
+        for level in state.limit_levels
+        if level in limits.levels
+        for n in names
+    ]
+    theirs = [
+        state.limits_mm.array()[k, state.indicators.index(n)]
+        for k, level in enumerate(state.limit_levels)
+        if level in limits.levels
+        for n in names
+    ]
+    if not np.allclose(ours, theirs):
+        text += "; the state's limits above are not this class's (another limits file)"
+    return text
+
+
 def query_states(
     session: zenoh.Session, ns: str, selector: str = "**", timeout: float = QUERY_TIMEOUT_S
 ) -> list[SegmentState]:
@@ -127,12 +160,16 @@ def main_state(
     timeout: float = QUERY_TIMEOUT_S,
     out: TextIO = sys.stdout,
     network_path: str | None = None,
+    limits_path: str | Path = DEFAULT_LIMITS_FILE,
 ) -> int:
     """`trackfusion state LINE/SEGMENT` (or `LINE/**` for a whole line); the lines' names
-    from the network file ``network_path`` (the demo network without one)."""
+    and speeds from the network file ``network_path`` (the demo network without one), the
+    speed classes from the limits file ``limits_path``."""
     from services.defaults import load_network
 
-    names = {line.id: line.name for line in load_network(network_path).lines.values()}
+    network = load_network(network_path)
+    names = {line.id: line.name for line in network.lines.values()}
+    limits = load_limits(limits_path, network_line_speeds(network))
     if segment.count("/") != 1:
         raise SystemExit(f"state: {segment!r} is not LINE/SEGMENT (e.g. L1/s00042)")
     with open_session(conf) as session:
@@ -141,7 +178,7 @@ def main_state(
         print(f"no state for {segment} (unknown segment, or no TRC record and model yet)", file=out)
         return 1
     for state in sorted(states, key=lambda s: (s.line, s.segment)):
-        print(format_state(state, names.get(state.line, "")), file=out)
+        print(format_state(state, names.get(state.line, ""), limits), file=out)
     return 0
 
 
@@ -425,12 +462,25 @@ def state_add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "segment", metavar="LINE/SEGMENT", help="e.g. L1/s00042, or L1/** for a line"
     )
-    add_network_argument(parser, "the lines' names")
+    add_network_argument(parser, "the lines' names and speeds")
+    parser.add_argument(
+        "--limits",
+        metavar="FILE",
+        type=Path,
+        default=DEFAULT_LIMITS_FILE,
+        help="the limits file the services apply: the lines' speed classes (default: %(default)s)",
+    )
     add_query_arguments(parser)
 
 
 def state_run(args: argparse.Namespace) -> int:
-    return main_state(config_from_args(args), args.segment, args.timeout, network_path=args.network)
+    return main_state(
+        config_from_args(args),
+        args.segment,
+        args.timeout,
+        network_path=args.network,
+        limits_path=args.limits,
+    )
 
 
 def alerts_run(args: argparse.Namespace) -> int:

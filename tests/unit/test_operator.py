@@ -9,6 +9,7 @@ import msgspec
 import numpy as np
 
 from schemas import NDArray, SegmentState, TrcRecord
+from services.limits import load_limits
 from services.tools.operator import (
     ALERT_COLUMNS,
     STATE_COLUMNS,
@@ -103,6 +104,19 @@ def test_format_state_reads_like_an_engineer_would():
     text = format_state(a_state())
     assert "L1/s00001" in text and "3.00 mm" in text and "95% [2.50, 3.60]" in text
     assert "P(>8.0 mm intervention)=0.00" in text and "in  180 d" in text
+
+
+def test_format_state_says_the_speed_class_of_its_line_and_its_ial():
+    limits = load_limits()
+    text = format_state(a_state(), limits=limits)  # L1: 80<v<=120 in the default file
+    assert "  limits of speed class 80<v<=120; immediate action top6 11.0 mm, align10 9.5 mm" in (
+        text.splitlines()
+    )
+    other = msgspec.structs.replace(a_state(), line="X1", limits_mm=f8([[5.0, 4.0], [6.5, 5.5]]))
+    text = format_state(other, limits=load_limits(line_speeds_kmh={"X1": 140.0}))
+    assert "limits of speed class 120<v<=160 (line speed 140 km/h);" in text
+    assert "not this class's" not in text
+    assert "not this class's" in format_state(other, limits=limits)  # the default class
 
 
 def test_exports():
