@@ -98,6 +98,15 @@ def format_plan(plan: MaintenancePlan) -> str:
     return "\n".join(lines)
 
 
+def ask_plan(
+    session, ns: str, timeout: float, weeks: int | None = None, budget: float | None = None
+) -> MaintenancePlan | None:
+    """The running planner's plan (made for ``weeks`` and ``budget`` when given); None when
+    no planning service answers."""
+    replies = list(ask(session, selector(ns, weeks, budget), timeout))
+    return decode(replies[0][1], MaintenancePlan) if replies else None
+
+
 def main(
     conf: RuntimeConfig,
     *,
@@ -108,10 +117,9 @@ def main(
     out: TextIO = sys.stdout,
 ) -> int:
     with open_session(conf) as session:
-        replies = list(ask(session, selector(conf.ns, weeks, budget), timeout))
-    if not replies:
+        plan = ask_plan(session, conf.ns, timeout, weeks, budget)
+    if plan is None:
         raise SystemExit("plan maintenance: no answer from the planning service (is it running?)")
-    plan = decode(replies[0][1], MaintenancePlan)
     text = {"json": to_json, "csv": to_csv}.get(fmt, format_plan)(plan)
     out.write(text if text.endswith("\n") else text + "\n")
     return 0

@@ -28,6 +28,7 @@ from schemas import (
     INDICATORS,
     Alert,
     InspectionPlan,
+    MaintenancePlan,
     RaisedAlerts,
     SchemaError,
     SegmentState,
@@ -209,25 +210,71 @@ def main_alerts(
     return 0
 
 
+def format_trc_ranking(plan: MaintenancePlan, limit: int = PLAN_ROWS) -> str:
+    """The planner's ranking of recording-car runs: lines by the value of information of a
+    run now (the expected fall of the plan's cost from the uncertainty the run removes)."""
+    made = _iso(plan.computed_at)
+    lines = [
+        f"TRC runs ranked by the planner's value of information (plan made from the states up "
+        f"to {made}): the expected fall of the tamping plan's cost from the uncertainty a run "
+        "removes",
+        f"{'rank':>4} {'line':16} {'value':>12} {'segments':>8}",
+    ]
+    for rank, run in enumerate(plan.trc_lines[:limit], 1):
+        lines.append(f"{rank:4d} {run.line:16} {run.value:12,.0f} {run.segments:8d}")
+    if not any(run.value > 0 for run in plan.trc_lines):
+        lines.append("no run would lower the plan's expected cost now")
+    return "\n".join(lines)
+
+
+def format_alerting_ranking(plan: InspectionPlan, why: str, limit: int = PLAN_ROWS) -> str:
+    """Alerting's ranking of segments, used when the planner gives none (``why``): by the
+    probability of exceeding the intervention limit before the line's next TRC run."""
+    lines = [
+        f"Segments ranked by P(exceeding the intervention limit before the line's next TRC "
+        f"run), alerting's ranking: {why}",
+        f"{'rank':>4} {'segment':16} {'P(exceed)':>9} {'indicator':9} {'limit':>7} "
+        f"{'speed class':11} next TRC",
+    ]
+    for rank, row in enumerate(plan.rows[:limit], 1):
+        lines.append(
+            f"{rank:4d} {row.line + '/' + row.segment:16} {row.probability:9.3f} "
+            f"{row.indicator:9} {row.limit_mm:4.1f} mm {row.speed_class or '-':11} "
+            f"{_iso(row.next_trc_t)}"
+        )
+    return "\n".join(lines)
+
+
+def why_no_trc_ranking(plan: MaintenancePlan | None) -> str:
+    """Why the planner's plan gives no TRC ranking; "" when it gives one."""
+    if plan is None:
+        return "no planning service answered"
+    if plan.status == "no_data":
+        return "the planner has no plan yet"
+    if not plan.trc_lines:
+        return "the planner ranks no TRC run (a network above its value-of-information size)"
+    return ""
+
+
 def main_plan(
     conf: RuntimeConfig,
     limit: int = PLAN_ROWS,
     timeout: float = QUERY_TIMEOUT_S,
     out: TextIO = sys.stdout,
 ) -> int:
-    """The TRC inspection plan: segments ranked by P(exceeding before the next TRC run)."""
+    """`trackfusion plan inspection`: where to send the recording car. The planner's ranking
+    of TRC runs by value of information when a planner answers with one; else alerting's
+    ranking of segments by P(exceeding before the next TRC run), saying why."""
     with open_session(conf) as session:
+        tamping = maintenance_plan.ask_plan(session, conf.ns, timeout)
+        why = why_no_trc_ranking(tamping)
+        if not why:
+            print(format_trc_ranking(tamping, limit), file=out)
+            return 0
         replies = list(ask(session, keys.q_plan(conf.ns), timeout))
     if not replies:
-        raise SystemExit("plan: no answer from the alerting service (is it running?)")
-    plan = decode(replies[0][1], InspectionPlan)
-    print(f"{'rank':>4} {'segment':16} {'P(exceed)':>9} {'indicator':9} next TRC", file=out)
-    for rank, row in enumerate(plan.rows[:limit], 1):
-        print(
-            f"{rank:4d} {row.line + '/' + row.segment:16} {row.probability:9.3f} "
-            f"{row.indicator:9} {_iso(row.next_trc_t)}",
-            file=out,
-        )
+        raise SystemExit(f"plan: {why}, and no answer from the alerting service (is it running?)")
+    print(format_alerting_ranking(decode(replies[0][1], InspectionPlan), why, limit), file=out)
     return 0
 
 
@@ -493,8 +540,9 @@ def plan_add_arguments(parser: argparse.ArgumentParser) -> None:
         nargs="?",
         choices=["inspection", "maintenance"],
         default="inspection",
-        help="inspection: the TRC inspection ranking (alerting, the default); maintenance: "
-        "the tamping plan (planning)",
+        help="inspection (the default): where to send the recording car, the planner's "
+        "ranking of TRC runs by value of information, or alerting's ranking of segments "
+        "without a planner; maintenance: the tamping plan (planning)",
     )
     parser.add_argument(
         "--limit", type=int, default=PLAN_ROWS, help="inspection rows to show (default %(default)s)"
