@@ -49,8 +49,9 @@ Options (``services.filtering`` in the config file, overridden by the flags): ``
 (default ``**``), ``db`` (default ``./var/filtering-{instance}.sqlite`` with the configured
 instance id, ``default`` without one, so a restarted process finds its file), ``limits``,
 ``network`` (a network GeoJSON file: events on segments it does not have are dead-lettered,
-so a sender cannot make the instance hold segment histories for ids that do not exist;
-default: none, every segment accepted).
+so a sender cannot make the instance hold segment histories for ids that do not exist, and
+its line speeds choose the speed class of lines the limits file does not name; default:
+none, every segment accepted).
 """
 
 from __future__ import annotations
@@ -409,7 +410,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"(default: {DEFAULT_SELECTOR})",
     )
     add_network_argument(
-        parser, "refuse events on segments this network does not have", default="accept any"
+        parser,
+        "refuse events on segments this network does not have; its line speeds choose the "
+        "speed class of lines the limits file does not name",
+        default="accept any",
     )
     add_db_argument(parser, SERVICE, "the accepted events and models")
     parser.add_argument(

@@ -17,9 +17,9 @@ from services.planning.service import to_message
 from services.planning.testing import T0, make_limits, make_posterior, make_state
 from services.tools.maintenance_plan import format_plan, selector, to_csv, to_json
 from services.tools.operator import (
-    why_no_trc_ranking,
     format_alerting_ranking,
     format_trc_ranking,
+    why_no_trc_ranking,
 )
 
 
