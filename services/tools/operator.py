@@ -375,7 +375,9 @@ STATE_COLUMNS = [
     for name in INDICATORS
     for what in ("mm", "ci_low_mm", "ci_high_mm", "p_exceed_intervention")
 ]
-ALERT_COLUMNS = ["line", "segment", "t", "kind", "status", "indicator", "level", "probability"]
+ALERT_COLUMNS = [
+    "line", "segment", "t", "kind", "status", "indicator", "level", "speed_class", "probability",
+]  # fmt: skip
 
 
 def state_row(state: SegmentState) -> dict:

@@ -8,12 +8,13 @@ import json
 import msgspec
 import numpy as np
 
-from schemas import NDArray, SegmentState, TrcRecord
+from schemas import Alert, NDArray, SegmentState, TrcRecord
 from services.limits import load_limits
 from services.tools.operator import (
     ALERT_COLUMNS,
     STATE_COLUMNS,
     RowError,
+    alert_row,
     format_state,
     parse_time,
     parse_trc_csv,
@@ -128,3 +129,6 @@ def test_exports():
     assert json.loads(json.dumps(geo))["features"][0]["properties"]["segment"] == "s00001"
     assert to_geojson([row], {})["features"] == []
     assert "probability" in ALERT_COLUMNS
+    alert = Alert(line="L3", segment="s1", t=1_767_225_600.0, kind="exceedance",
+                  status="raised", indicator="top6", level="alert", speed_class="v<=80")  # fmt: skip
+    assert alert_row(alert)["speed_class"] == "v<=80"
