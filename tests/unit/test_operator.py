@@ -129,6 +129,14 @@ def test_exports():
     assert json.loads(json.dumps(geo))["features"][0]["properties"]["segment"] == "s00001"
     assert to_geojson([row], {})["features"] == []
     assert "probability" in ALERT_COLUMNS
-    alert = Alert(line="L3", segment="s1", t=1_767_225_600.0, kind="exceedance",
-                  status="raised", indicator="top6", level="alert", speed_class="v<=80")  # fmt: skip
+    alert = Alert(
+        line="L3",
+        segment="s1",
+        t=1_767_225_600.0,
+        kind="exceedance",
+        status="raised",
+        indicator="top6",
+        level="alert",
+        speed_class="v<=80",
+    )
     assert alert_row(alert)["speed_class"] == "v<=80"
