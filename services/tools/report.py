@@ -14,11 +14,10 @@ Zenoh. Thin part: :func:`main` asks the running system like :mod:`services.tools
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from html import escape
 from pathlib import Path
@@ -35,11 +34,11 @@ from schemas import (
     decode,
     keys,
 )
-from schemas.keys import SegmentId
 from services.defaults import add_network_argument
-from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits, network_line_speeds
+from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits
 from services.runtime.config import RuntimeConfig, config_from_args
 from services.tools import maintenance_plan, operator
+from services.tools.network_map import NetworkMap, network_map
 
 INTERVENTION = "intervention"
 WORST_N = 6
@@ -58,31 +57,6 @@ MAP_W, MAP_H_MAX = 800, 560  # px
 
 
 # --- data -----------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Station:
-    line: str
-    lon: float
-    lat: float
-    label: str
-
-
-@dataclass(frozen=True)
-class NetworkMap:
-    """What the report draws of the network: each segment's polyline ([lon, lat] pairs) and
-    chainage range (m), and the stations."""
-
-    polylines: dict[SegmentId, list[tuple[float, float]]] = field(default_factory=dict)
-    chainage_m: dict[SegmentId, tuple[float, float]] = field(default_factory=dict)
-    stations: list[Station] = field(default_factory=list)
-    line_names: dict[str, str] = field(default_factory=dict)  # id -> the name operators use
-    line_speeds_kmh: dict[str, float] = field(default_factory=dict)  # id -> line speed
-
-    def label(self, line: str) -> str:
-        """A line as a planner knows it: ``id (name)``, or the id when it has no name."""
-        name = self.line_names.get(line)
-        return f"{line} ({name})" if name and name != line else line
 
 
 @dataclass(frozen=True)
@@ -684,43 +658,6 @@ def _trc_runs(plan: MaintenancePlan, wanted: set[str], network: NetworkMap) -> s
         )
     out.append("</tbody></table>")
     return "".join(out)
-
-
-# --- network --------------------------------------------------------------------------------
-
-
-def network_map(network_path: str | None = None) -> NetworkMap:
-    """Segment polylines and chainages, and stations, of a network file (default: the demo).
-
-    A line feature may name its stations with ``station_names`` (one per ``stations``
-    chainage); without names a station is labelled with its chainage in km.
-    """
-    from services.defaults import DEMO_NETWORK
-    from track.network import Network
-
-    path = Path(network_path or DEMO_NETWORK)
-    try:
-        raw = json.loads(path.read_text())
-        network = Network.from_geojson(raw)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"--network {path}: {exc}") from None  # the CLI exits 2
-    props = {
-        f["properties"]["id"]: f["properties"]
-        for f in raw["features"]
-        if isinstance(f.get("properties"), dict) and "id" in f["properties"]
-    }
-    polylines, chainage, stations = {}, {}, []
-    for line in network.lines.values():
-        for seg in line.segments:
-            polylines[(line.id, seg.id)] = [tuple(p) for p in line.segment_lonlat(seg).tolist()]
-            chainage[(line.id, seg.id)] = (seg.start_m, seg.end_m)
-        names = props.get(line.id, {}).get("station_names") or []
-        for k, c in enumerate(line.stations):
-            lon, lat = map(float, line.lonlat_at(c))
-            label = str(names[k]) if k < len(names) else f"{line.id} km {c / 1e3:.1f}"
-            stations.append(Station(line.id, lon, lat, label))
-    names = {line.id: line.name for line in network.lines.values() if line.name}
-    return NetworkMap(polylines, chainage, stations, names, network_line_speeds(network))
 
 
 # --- the running system ---------------------------------------------------------------------

@@ -17,7 +17,7 @@ from services.cli import main as cli_main
 from services.defaults import load_network
 from services.filtering.service import known_segments as filtering_segments
 from services.filtering.service import read_network
-from services.tools.report import network_map
+from services.tools.network_map import network_map
 from services.viewer.core import ViewerCore
 from services.viewer.testing import rrd_printout
 from track.network import Line, Network, check_id, lonlat_to_xy

@@ -10,6 +10,7 @@ import pytest
 from schemas import DAY_S, Alert, InspectionPlan, MaintenancePlan, PlannedTamping, TrcRunValue
 from services.alerting.testing import T0, forecast_top6, make_state, p_top6, plan_row
 from services.limits import load_limits
+from services.tools.network_map import NetworkMap, Station, network_map
 from services.tools.report import (
     BINS,
     DEADLINE,
@@ -19,11 +20,8 @@ from services.tools.report import (
     NO_STATE,
     PLANNED,
     WEEK_PX,
-    NetworkMap,
     ReportData,
-    Station,
     colour,
-    network_map,
     p_forecast,
     p_now,
     ranked,
