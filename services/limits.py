@@ -59,6 +59,11 @@ class Limits:
     immediate_action: dict[str, np.ndarray] = field(default_factory=dict)  # class -> (n,) mm
     line_speeds_kmh: dict[str, float] = field(default_factory=dict)  # line -> network speed
 
+    def __post_init__(self) -> None:
+        # (upper bound km/h, class) slowest first, read once from the class names
+        bands = sorted((speed_band(name)[1], name) for name in self.speed_classes)
+        object.__setattr__(self, "_bands", bands)
+
     def speed_class(self, line: str) -> str:
         """The speed class of ``line``: named in the file, else from the network's line speed,
         else the default (module docstring)."""
@@ -72,7 +77,7 @@ class Limits:
 
     def class_for_speed(self, speed_kmh: float) -> str:
         """The class whose band holds ``speed_kmh``; the fastest class above every band."""
-        bands = sorted((speed_band(name)[1], name) for name in self.speed_classes)
+        bands = self._bands
         return next((name for high, name in bands if speed_kmh <= high), bands[-1][1])
 
     def for_line(self, line: str) -> np.ndarray:
