@@ -9,8 +9,8 @@ From the bottom up:
   configuration every process uses), ``services.defaults`` (the packaged default files and how
   they are found and read), ``services.limits`` (the limits per line speed class that
   filtering, alerting and the planner apply) and ``services.drift_diffusion`` (the
-  degradation model's posterior, which calibration fits and the frequency study draws from). It imports ``schemas``, ``track``
-  and itself, no service.
+  degradation model's posterior, which calibration fits and the frequency study draws from).
+  It imports ``schemas``, ``track`` and itself, no service.
 - A service (``services/<name>/`` of :data:`SERVICES`) imports the shared layer, ``schemas``,
   ``track`` and itself: no service imports another one, so each deploys and changes alone.
 - The commands (``services/tools``, ``services/cli.py``) put the services together: they may
