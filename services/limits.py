@@ -87,10 +87,6 @@ class Limits:
         """``(n,)`` mm, None when the file has no ``immediate_action`` table."""
         return self.immediate_action.get(self.speed_class(line))
 
-    def with_line_speeds(self, speeds_kmh: Mapping[str, float]) -> Limits:
-        """These limits with the network's line speeds (:func:`network_line_speeds`)."""
-        return replace(self, line_speeds_kmh=dict(speeds_kmh))
-
     def describe(self, line: str) -> str:
         """``"speed class 80<v<=120"`` and where it comes from when not named in the file."""
         name = self.speed_class(line)
