@@ -467,6 +467,7 @@ class Alert(Message, frozen=True, kw_only=True):
     probability: float = 0.0  # [0, 1]
     horizon_days: float | None = None  # predicted_exceedance only
     message: str = ""
+    speed_class: str = ""  # the speed class whose limit `level` is; "" for other kinds
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -563,6 +564,7 @@ class PlanRow(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
     estimate_mm: float  # exp(mixture mean of ln mm): the median estimate
     ci_low_mm: float  # 95 % credible interval at state_t
     ci_high_mm: float
+    speed_class: str = ""  # the line's speed class `limit_mm` belongs to
 
     def __post_init__(self) -> None:
         check_id("line", self.line)
@@ -605,6 +607,7 @@ class PlannedTamping(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     risk_met: bool  # p_reach_ial <= the plan's eps
     cost: float  # expected cost of the segment under the plan
     cost_untamped: float  # expected cost of not tamping it in the horizon
+    speed_class: str = ""  # the line's speed class (services/defaults/limits.json5)
 
     def __post_init__(self) -> None:
         check_id("line", self.line)

@@ -66,8 +66,9 @@ COMMANDS = (
     Command("state", "state and forecast of a segment (LINE/SEGMENT)",
             "services.tools.operator:state_"),
     Command("alerts", "the alerts raised now", "services.tools.operator:alerts_"),
-    Command("plan", "the TRC inspection plan (segments most likely to exceed), or `plan "
-            "maintenance`: the tamping plan",
+    Command("plan", "where to send the recording car (the planner's TRC runs by value of "
+            "information; without a planner, alerting's segments most likely to exceed), or "
+            "`plan maintenance`: the tamping plan",
             "services.tools.operator:plan_"),
     Command("import-trc", "publish a TRC export (CSV: line,segment,t,top6_mm,align10_mm,run_id)",
             "services.tools.trc_import"),

@@ -517,6 +517,7 @@ class AlertingCore:
                     estimate_mm=float(np.exp(state.mean.array()[i])),
                     ci_low_mm=float(state.ci_low_mm.array()[i]),
                     ci_high_mm=float(state.ci_high_mm.array()[i]),
+                    speed_class=self.limits.speed_class(ln),
                 )
             )
         rows.sort(key=lambda r: (-r.probability, r.line, r.segment))
@@ -526,11 +527,12 @@ class AlertingCore:
 
     def _exceedance(self, state: SegmentState, level: str, hyst: Hysteresis) -> list[Alert]:
         limit, p_now, _, names = self._probabilities(state, level)
+        band = self.limits.describe(state.line)
         out: list[Alert] = []
         for i, name in enumerate(names):
             p = float(p_now[i])
             key = (state.line, state.segment, "exceedance", name, level)
-            what = f"{_label(name)} {{}} {level} limit {limit[i]:.1f} mm (p={p:.2f})"
+            what = f"{_label(name)} {{}} {level} limit {limit[i]:.1f} mm (p={p:.2f}), {band}"
             if key in self.raised:
                 if p <= hyst.clear_at:
                     out += self._clear(self.raised[key], state.t, p, what.format("back below"))
@@ -543,6 +545,7 @@ class AlertingCore:
     def _predicted(self, state: SegmentState) -> list[Alert]:
         level, hyst = self.config.predicted_level, self.config.predicted
         limit, _, p_fc, names = self._probabilities(state, level)
+        band = self.limits.describe(state.line)
         horizons = state.horizons_days.array()
         within = horizons <= self.config.predicted_within_days
         if not within.any():
@@ -557,7 +560,7 @@ class AlertingCore:
                     msg = (
                         f"{_label(name)} no longer forecast above {level} limit "
                         f"{limit[i]:.1f} mm within {self.config.predicted_within_days:g} days "
-                        f"(p={p_max:.2f})"
+                        f"(p={p_max:.2f}), {band}"
                     )
                     out += self._clear(self.raised[key], state.t, p_max, msg)
             elif p_max >= hyst.raise_at:
@@ -565,7 +568,7 @@ class AlertingCore:
                 h, p = float(horizons[k]), float(p_fc[k, i])
                 msg = (
                     f"{_label(name)} likely above {level} limit {limit[i]:.1f} mm "
-                    f"within {h:g} days (p={p:.2f})"
+                    f"within {h:g} days (p={p:.2f}), {band}"
                 )
                 out += self._raise(
                     state, state.t, "predicted_exceedance", name, level, p, msg, horizon_days=h
@@ -653,6 +656,7 @@ class AlertingCore:
             probability=min(max(p, 0.0), 1.0),
             horizon_days=horizon_days,
             message=message,
+            speed_class=self.limits.speed_class(state.line) if level else "",
         )
         self.raised[alert_key(alert)] = alert
         return [alert]
@@ -671,5 +675,6 @@ class AlertingCore:
                 probability=min(max(p, 0.0), 1.0),
                 horizon_days=raised.horizon_days,
                 message=message,
+                speed_class=raised.speed_class,
             )
         ]

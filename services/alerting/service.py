@@ -35,8 +35,8 @@ from schemas import (
 )
 from services.alerting.core import AlertingConfig, AlertingCore
 from services.alerting.store import AlertStore
-from services.defaults import default_file
-from services.limits import DEFAULT_LIMITS_FILE, load_limits
+from services.defaults import add_network_argument, default_file, load_network
+from services.limits import DEFAULT_LIMITS_FILE, load_limits, network_line_speeds
 from services.runtime.config import (
     RuntimeConfig,
     add_db_argument,
@@ -165,14 +165,18 @@ def main(
     *,
     alerting_config: str | Path | None = None,
     limits: str | Path | None = None,
+    network: str | Path | None = None,
     db: str | Path | None = None,
     stop: threading.Event | None = None,
     handle_signals: bool = True,
 ) -> int:
-    """Run the alerting service until ``stop`` is set or SIGINT/SIGTERM; 0."""
+    """Run the alerting service until ``stop`` is set or SIGINT/SIGTERM; 0. ``network``: the
+    network file whose line speeds choose the speed class of lines the limits file does not
+    name (``services.limits``)."""
+    speeds = network_line_speeds(load_network(network)) if network is not None else None
     core = AlertingCore(
         load_alerting_config(alerting_config or DEFAULT_ALERTING_FILE),
-        load_limits(limits or DEFAULT_LIMITS_FILE),
+        load_limits(limits or DEFAULT_LIMITS_FILE, speeds),
     )
     db_path = Path(db) if db is not None else default_db(SERVICE, conf.instance)
     store = AlertStore(db_path)
@@ -212,11 +216,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=DEFAULT_LIMITS_FILE,
         help="alert and intervention limits per line, JSON5 (default: %(default)s)",
     )
+    add_network_argument(
+        parser,
+        "its line speeds choose the speed class of lines the limits do not name",
+        default="the limits file's default class",
+    )
     add_db_argument(parser, SERVICE, "the raised alerts")
     add_zenoh_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     return run_command(
-        args, main, alerting_config=args.config_alerting, limits=args.limits, db=args.db
+        args,
+        main,
+        alerting_config=args.config_alerting,
+        limits=args.limits,
+        network=args.network,
+        db=args.db,
     )

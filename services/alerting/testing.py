@@ -14,7 +14,7 @@ HORIZONS = (30.0, 90.0, 180.0)
 
 def make_limits() -> Limits:
     """One speed class for every line, with :data:`LIMITS_MM`."""
-    return Limits(LEVELS, {"c": LIMITS_MM}, "c", {})
+    return Limits(LEVELS, {"80<v<=120": LIMITS_MM}, "80<v<=120", {})
 
 
 def make_state(

@@ -56,8 +56,9 @@ Options (``services.filtering`` in the config file, overridden by the flags): ``
 (default ``**``), ``db`` (default ``./var/filtering-{instance}.sqlite`` with the configured
 instance id, ``default`` without one, so a restarted process finds its file), ``limits``,
 ``network`` (a network GeoJSON file: events on segments it does not have are dead-lettered,
-so a sender cannot make the instance hold segment histories for ids that do not exist;
-default: none, every segment accepted).
+so a sender cannot make the instance hold segment histories for ids that do not exist, and
+its line speeds choose the speed class of lines the limits file does not name; default:
+none, every segment accepted).
 """
 
 from __future__ import annotations
@@ -81,7 +82,7 @@ from services.defaults import add_network_argument
 from services.filtering.coordinator import PersistentTracker
 from services.filtering.store import Store
 from services.filtering.tracker import Tracker
-from services.limits import DEFAULT_LIMITS_FILE, load_limits
+from services.limits import DEFAULT_LIMITS_FILE, load_limits, network_line_speeds
 from services.runtime import systemd
 from services.runtime.config import (
     RuntimeConfig,
@@ -94,6 +95,7 @@ from services.runtime.delivery import MARK
 from services.runtime.inbox import Inbox
 from services.runtime.latest import LatestValues
 from services.runtime.service import ServiceRuntime, run_command
+from track.network import Network
 
 log = logging.getLogger(__name__)
 
@@ -135,13 +137,17 @@ def main(
     options = conf.options(SERVICE, OPTIONS)
     selector = selector or options.get("selector") or DEFAULT_SELECTOR
     network = network or options.get("network")
-    limits_table = load_limits(limits or options.get("limits") or DEFAULT_LIMITS_FILE)
+    loaded = read_network(network)
+    limits_table = load_limits(
+        limits or options.get("limits") or DEFAULT_LIMITS_FILE,
+        network_line_speeds(loaded) if loaded is not None else None,
+    )
     db = db or options.get("db") or default_db(SERVICE, conf.instance)
     with ExitStack() as stack:
         store = Store(db, migrating=extend_start_timeout)
         stack.callback(store.close)  # after the runtime has joined the worker
         tracker = Tracker(limits_table.for_line, limits_table.levels)
-        node = PersistentTracker(tracker, store, ns=conf.ns, **known_segments(network))
+        node = PersistentTracker(tracker, store, ns=conf.ns, **known_segments(loaded, network))
         stack.callback(node.close)  # checkpoint at a clean stop, once the worker is joined
         rt = stack.enter_context(
             ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop)
@@ -152,18 +158,24 @@ def main(
     return 0  # unreachable; for type checkers
 
 
-def known_segments(network: str | Path | None) -> dict:
-    """``PersistentTracker`` keywords: the (line, segment) ids of a network file, if given."""
+def read_network(network: str | Path | None) -> Network | None:
+    """The network file ``network``, None without one; ValueError saying what to fix."""
     if network is None:
-        return {}
-    from track.segments import SegmentTable
-
+        return None
     try:
-        table = SegmentTable.from_geojson(network)
+        return Network.from_geojson(Path(network))
     except (OSError, ValueError) as exc:
         raise ValueError(f"network {network}: {exc}") from None
-    ids = [(line, seg) for line, segs in table.lines.items() for seg in segs.ids]
-    return {"segments": ids, "network_name": f"the network {Path(network).name}"}
+
+
+def known_segments(network: Network | None, path: str | Path | None = None) -> dict:
+    """``PersistentTracker`` keywords: the (line, segment) ids of a network (read from the
+    file ``path``), if given."""
+    if network is None:
+        return {}
+    ids = [(line.id, seg.id) for line, seg in network.segments()]
+    name = f"the network {Path(path).name}" if path is not None else "the network"
+    return {"segments": ids, "network_name": name}
 
 
 class Revisions:
@@ -432,7 +444,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"(default: {DEFAULT_SELECTOR})",
     )
     add_network_argument(
-        parser, "refuse events on segments this network does not have", default="accept any"
+        parser,
+        "refuse events on segments this network does not have; its line speeds choose the "
+        "speed class of lines the limits file does not name",
+        default="accept any",
     )
     add_db_argument(parser, SERVICE, "the accepted events and models")
     parser.add_argument(

@@ -208,6 +208,7 @@ class PlannedSegment:
     risk_met: bool
     cost: float  # expected cost of the chosen option
     cost_untamped: float  # expected cost of not tamping it in the horizon
+    speed_class: str  # the line's speed class: the intervention and immediate-action limits
 
 
 @dataclass(frozen=True)
@@ -673,6 +674,7 @@ class PlanningCore:
             risk_met=p <= self.config.eps,
             cost=float(cost_row[weeks if week == NONE else week]),
             cost_untamped=float(cost_row[weeks]),
+            speed_class=self.limits.speed_class(ref.line),
         )
 
     def _result(self, t0, weeks, planned, costs, fp, problem, order, solution, without_model):

@@ -39,7 +39,12 @@ from schemas import (
     keys,
 )
 from services.defaults import default_file, load_network
-from services.limits import DEFAULT_LIMITS_FILE, load_immediate_action, load_limits
+from services.limits import (
+    DEFAULT_LIMITS_FILE,
+    load_immediate_action,
+    load_limits,
+    network_line_speeds,
+)
 from services.planning.core import Plan, PlanningConfig, PlanningCore, SegmentRef
 from services.runtime.config import (
     RuntimeConfig,
@@ -68,9 +73,8 @@ def load_planning_config(path: str | Path = DEFAULT_PLANNING_FILE) -> PlanningCo
         raise ValueError(f"planning config {path}: {exc}") from None
 
 
-def network_segments(path: str | Path | None) -> list[SegmentRef]:
-    """The segments of a network file (the demo network without one), lines in chainage order."""
-    network = load_network(path)
+def network_segments(network) -> list[SegmentRef]:
+    """The segments of a network, lines in chainage order."""
     return [SegmentRef(line.id, seg.id, seg.length_m) for line, seg in network.segments()]
 
 
@@ -308,12 +312,13 @@ def main(
 ) -> int:
     """Run the planner until ``stop`` is set or SIGINT/SIGTERM; 0."""
     limits_path = limits or DEFAULT_LIMITS_FILE
-    table = load_limits(limits_path)
+    loaded = load_network(network)
+    table = load_limits(limits_path, network_line_speeds(loaded))
     core = PlanningCore(
         load_planning_config(planning_config or DEFAULT_PLANNING_FILE),
         table,
         load_immediate_action(limits_path, table),
-        network_segments(network),
+        network_segments(loaded),
     )
     with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
         PlanningAdapter(rt, core).start()

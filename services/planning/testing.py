@@ -20,7 +20,7 @@ Z_PLUS_SD = np.array([0.08, 0.08])
 
 def make_limits() -> tuple[Limits, dict[str, np.ndarray]]:
     """One speed class for every line: :data:`LIMITS_MM` and the IAL :data:`IAL_MM`."""
-    return Limits(LEVELS, {"c": LIMITS_MM}, "c", {}), {"c": IAL_MM}
+    return Limits(LEVELS, {"80<v<=120": LIMITS_MM}, "80<v<=120", {}), {"80<v<=120": IAL_MM}
 
 
 def make_posterior(

@@ -19,7 +19,7 @@ from services.tools.query import ask, open_session
 
 CSV_COLUMNS = [
     "line", "segment", "week", "week_start", "worksite", "length_km", "deadline_week",
-    "p_reach_ial", "risk_met", "cost", "cost_untamped",
+    "p_reach_ial", "risk_met", "cost", "cost_untamped", "speed_class",
 ]  # fmt: skip
 
 
@@ -66,14 +66,17 @@ def format_plan(plan: MaintenancePlan) -> str:
     for row in plan.rows:
         if row.week >= 0:
             sites.setdefault(row.worksite, []).append(row)
-    lines.append(f"{'week':>4} {'starts':10} {'worksite':24} {'km':>5} {'deadline':>8} max P(IAL)")
+    lines.append(
+        f"{'week':>4} {'starts':10} {'worksite':24} {'speed class':11} {'km':>5} "
+        f"{'deadline':>8} max P(IAL)"
+    )
     for rows in sorted(sites.values(), key=lambda r: (r[0].week, r[0].line, r[0].segment)):
         first, last = rows[0], rows[-1]
         deadline = min(r.deadline_week for r in rows)
         lines.append(
             f"{first.week:4d} {_day(plan.t + first.week * 7 * DAY_S):10} "
             f"{first.line + '/' + first.segment + '-' + last.segment:24} "
-            f"{sum(r.length_km for r in rows):5.1f} "
+            f"{first.speed_class or '-':11} {sum(r.length_km for r in rows):5.1f} "
             f"{'-' if deadline >= plan.horizon_weeks else deadline:>8} "
             f"{max(r.p_reach_ial for r in rows):.3f}"
         )
@@ -88,8 +91,20 @@ def format_plan(plan: MaintenancePlan) -> str:
             when = "not tamped" if r.week < 0 else f"tamped week {r.week}"
             if r.deadline_week < 0:
                 when += ", overdue at week 0"
-            lines.append(f"  {r.line}/{r.segment}: P(IAL first) {r.p_reach_ial:.2f}, {when}")
+            lines.append(
+                f"  {r.line}/{r.segment}: P(IAL first) {r.p_reach_ial:.2f}, {when}"
+                + (f" (speed class {r.speed_class})" if r.speed_class else "")
+            )
     return "\n".join(lines)
+
+
+def ask_plan(
+    session, ns: str, timeout: float, weeks: int | None = None, budget: float | None = None
+) -> MaintenancePlan | None:
+    """The running planner's plan (made for ``weeks`` and ``budget`` when given); None when
+    no planning service answers."""
+    replies = list(ask(session, selector(ns, weeks, budget), timeout))
+    return decode(replies[0][1], MaintenancePlan) if replies else None
 
 
 def main(
@@ -102,10 +117,9 @@ def main(
     out: TextIO = sys.stdout,
 ) -> int:
     with open_session(conf) as session:
-        replies = list(ask(session, selector(conf.ns, weeks, budget), timeout))
-    if not replies:
+        plan = ask_plan(session, conf.ns, timeout, weeks, budget)
+    if plan is None:
         raise SystemExit("plan maintenance: no answer from the planning service (is it running?)")
-    plan = decode(replies[0][1], MaintenancePlan)
     text = {"json": to_json, "csv": to_csv}.get(fmt, format_plan)(plan)
     out.write(text if text.endswith("\n") else text + "\n")
     return 0

@@ -21,12 +21,14 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TextIO
 
+import numpy as np
 import zenoh
 
 from schemas import (
     INDICATORS,
     Alert,
     InspectionPlan,
+    MaintenancePlan,
     RaisedAlerts,
     SchemaError,
     SegmentState,
@@ -37,6 +39,7 @@ from schemas import (
 )
 from schemas.keys import SegmentId
 from services.defaults import add_network_argument
+from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits, network_line_speeds
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 from services.tools import maintenance_plan
 from services.tools.query import QUERY_TIMEOUT_S, ask, open_session
@@ -81,9 +84,10 @@ def _alive_ids(tokens: Iterable[str]) -> Iterator[tuple[str, str]]:
 # --- state ----------------------------------------------------------------------------------
 
 
-def format_state(state: SegmentState, line_name: str = "") -> str:
+def format_state(state: SegmentState, line_name: str = "", limits: Limits | None = None) -> str:
     """A segment's state as an engineer reads it: estimate, 95 % interval, risk, forecasts;
-    ``line_name``: the line's name in the network file, shown after its id."""
+    ``line_name``: the line's name in the network file, shown after its id; ``limits``: the
+    limits file, whose speed class of the line and immediate-action limits are shown."""
     measured = " ".join(state.last_trc_indicators)
     last = _iso(state.last_trc_t) + (f", measured {measured}" if measured else "")
     named = f" ({line_name})" if line_name and line_name != state.line else ""
@@ -98,6 +102,8 @@ def format_state(state: SegmentState, line_name: str = "") -> str:
             for k, level in enumerate(levels)
         )
         lines.append(f"  {name:8} {mean_mm[i]:6.2f} mm  95% [{low[i]:.2f}, {high[i]:.2f}]  {risk}")
+    if limits is not None:
+        lines.append("  " + _limits_line(state, limits))
     fp = state.forecast_p_exceed.array()
     for h, days in enumerate(state.horizons_days.array()):
         parts = [
@@ -114,6 +120,34 @@ def format_state(state: SegmentState, line_name: str = "") -> str:
     return "\n".join(lines)
 
 
+def _limits_line(state: SegmentState, limits: Limits) -> str:
+    """The speed class of the state's line, its immediate-action limits, and whether the
+    state's limits are that class's."""
+    text = f"limits of {limits.describe(state.line)}"
+    ial = limits.immediate_action_for_line(state.line)
+    names = [n for n in state.indicators if n in INDICATORS]
+    if ial is not None:
+        text += "; immediate action " + ", ".join(
+            f"{n} {ial[INDICATORS.index(n)]:.1f} mm" for n in names
+        )
+    table = limits.for_line(state.line)
+    ours = [
+        table[limits.levels.index(level), INDICATORS.index(n)]
+        for level in state.limit_levels
+        if level in limits.levels
+        for n in names
+    ]
+    theirs = [
+        state.limits_mm.array()[k, state.indicators.index(n)]
+        for k, level in enumerate(state.limit_levels)
+        if level in limits.levels
+        for n in names
+    ]
+    if not np.allclose(ours, theirs):
+        text += "; the state's limits above are not this class's (another limits file)"
+    return text
+
+
 def query_states(
     session: zenoh.Session, ns: str, selector: str = "**", timeout: float = QUERY_TIMEOUT_S
 ) -> list[SegmentState]:
@@ -127,12 +161,16 @@ def main_state(
     timeout: float = QUERY_TIMEOUT_S,
     out: TextIO = sys.stdout,
     network_path: str | None = None,
+    limits_path: str | Path = DEFAULT_LIMITS_FILE,
 ) -> int:
     """`trackfusion state LINE/SEGMENT` (or `LINE/**` for a whole line); the lines' names
-    from the network file ``network_path`` (the demo network without one)."""
+    and speeds from the network file ``network_path`` (the demo network without one), the
+    speed classes from the limits file ``limits_path``."""
     from services.defaults import load_network
 
-    names = {line.id: line.name for line in load_network(network_path).lines.values()}
+    network = load_network(network_path)
+    names = {line.id: line.name for line in network.lines.values()}
+    limits = load_limits(limits_path, network_line_speeds(network))
     if segment.count("/") != 1:
         raise SystemExit(f"state: {segment!r} is not LINE/SEGMENT (e.g. L1/s00042)")
     with open_session(conf) as session:
@@ -141,7 +179,7 @@ def main_state(
         print(f"no state for {segment} (unknown segment, or no TRC record and model yet)", file=out)
         return 1
     for state in sorted(states, key=lambda s: (s.line, s.segment)):
-        print(format_state(state, names.get(state.line, "")), file=out)
+        print(format_state(state, names.get(state.line, ""), limits), file=out)
     return 0
 
 
@@ -172,25 +210,71 @@ def main_alerts(
     return 0
 
 
+def format_trc_ranking(plan: MaintenancePlan, limit: int = PLAN_ROWS) -> str:
+    """The planner's ranking of recording-car runs: lines by the value of information of a
+    run now (the expected fall of the plan's cost from the uncertainty the run removes)."""
+    made = _iso(plan.computed_at)
+    lines = [
+        f"TRC runs ranked by the planner's value of information (plan made from the states up "
+        f"to {made}): the expected fall of the tamping plan's cost from the uncertainty a run "
+        "removes",
+        f"{'rank':>4} {'line':16} {'value':>12} {'segments':>8}",
+    ]
+    for rank, run in enumerate(plan.trc_lines[:limit], 1):
+        lines.append(f"{rank:4d} {run.line:16} {run.value:12,.0f} {run.segments:8d}")
+    if not any(run.value > 0 for run in plan.trc_lines):
+        lines.append("no run would lower the plan's expected cost now")
+    return "\n".join(lines)
+
+
+def format_alerting_ranking(plan: InspectionPlan, why: str, limit: int = PLAN_ROWS) -> str:
+    """Alerting's ranking of segments, used when the planner gives none (``why``): by the
+    probability of exceeding the intervention limit before the line's next TRC run."""
+    lines = [
+        f"Segments ranked by P(exceeding the intervention limit before the line's next TRC "
+        f"run), alerting's ranking: {why}",
+        f"{'rank':>4} {'segment':16} {'P(exceed)':>9} {'indicator':9} {'limit':>7} "
+        f"{'speed class':11} next TRC",
+    ]
+    for rank, row in enumerate(plan.rows[:limit], 1):
+        lines.append(
+            f"{rank:4d} {row.line + '/' + row.segment:16} {row.probability:9.3f} "
+            f"{row.indicator:9} {row.limit_mm:4.1f} mm {row.speed_class or '-':11} "
+            f"{_iso(row.next_trc_t)}"
+        )
+    return "\n".join(lines)
+
+
+def why_no_trc_ranking(plan: MaintenancePlan | None) -> str:
+    """Why the planner's plan gives no TRC ranking; "" when it gives one."""
+    if plan is None:
+        return "no planning service answered"
+    if plan.status == "no_data":
+        return "the planner has no plan yet"
+    if not plan.trc_lines:
+        return "the planner ranks no TRC run (a network above its value-of-information size)"
+    return ""
+
+
 def main_plan(
     conf: RuntimeConfig,
     limit: int = PLAN_ROWS,
     timeout: float = QUERY_TIMEOUT_S,
     out: TextIO = sys.stdout,
 ) -> int:
-    """The TRC inspection plan: segments ranked by P(exceeding before the next TRC run)."""
+    """`trackfusion plan inspection`: where to send the recording car. The planner's ranking
+    of TRC runs by value of information when a planner answers with one; else alerting's
+    ranking of segments by P(exceeding before the next TRC run), saying why."""
     with open_session(conf) as session:
+        tamping = maintenance_plan.ask_plan(session, conf.ns, timeout)
+        why = why_no_trc_ranking(tamping)
+        if not why:
+            print(format_trc_ranking(tamping, limit), file=out)
+            return 0
         replies = list(ask(session, keys.q_plan(conf.ns), timeout))
     if not replies:
-        raise SystemExit("plan: no answer from the alerting service (is it running?)")
-    plan = decode(replies[0][1], InspectionPlan)
-    print(f"{'rank':>4} {'segment':16} {'P(exceed)':>9} {'indicator':9} next TRC", file=out)
-    for rank, row in enumerate(plan.rows[:limit], 1):
-        print(
-            f"{rank:4d} {row.line + '/' + row.segment:16} {row.probability:9.3f} "
-            f"{row.indicator:9} {_iso(row.next_trc_t)}",
-            file=out,
-        )
+        raise SystemExit(f"plan: {why}, and no answer from the alerting service (is it running?)")
+    print(format_alerting_ranking(decode(replies[0][1], InspectionPlan), why, limit), file=out)
     return 0
 
 
@@ -291,7 +375,9 @@ STATE_COLUMNS = [
     for name in INDICATORS
     for what in ("mm", "ci_low_mm", "ci_high_mm", "p_exceed_intervention")
 ]
-ALERT_COLUMNS = ["line", "segment", "t", "kind", "status", "indicator", "level", "probability"]
+ALERT_COLUMNS = [
+    "line", "segment", "t", "kind", "status", "indicator", "level", "speed_class", "probability",
+]  # fmt: skip
 
 
 def state_row(state: SegmentState) -> dict:
@@ -425,12 +511,25 @@ def state_add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "segment", metavar="LINE/SEGMENT", help="e.g. L1/s00042, or L1/** for a line"
     )
-    add_network_argument(parser, "the lines' names")
+    add_network_argument(parser, "the lines' names and speeds")
+    parser.add_argument(
+        "--limits",
+        metavar="FILE",
+        type=Path,
+        default=DEFAULT_LIMITS_FILE,
+        help="the limits file the services apply: the lines' speed classes (default: %(default)s)",
+    )
     add_query_arguments(parser)
 
 
 def state_run(args: argparse.Namespace) -> int:
-    return main_state(config_from_args(args), args.segment, args.timeout, network_path=args.network)
+    return main_state(
+        config_from_args(args),
+        args.segment,
+        args.timeout,
+        network_path=args.network,
+        limits_path=args.limits,
+    )
 
 
 def alerts_run(args: argparse.Namespace) -> int:
@@ -443,8 +542,9 @@ def plan_add_arguments(parser: argparse.ArgumentParser) -> None:
         nargs="?",
         choices=["inspection", "maintenance"],
         default="inspection",
-        help="inspection: the TRC inspection ranking (alerting, the default); maintenance: "
-        "the tamping plan (planning)",
+        help="inspection (the default): where to send the recording car, the planner's "
+        "ranking of TRC runs by value of information, or alerting's ranking of segments "
+        "without a planner; maintenance: the tamping plan (planning)",
     )
     parser.add_argument(
         "--limit", type=int, default=PLAN_ROWS, help="inspection rows to show (default %(default)s)"

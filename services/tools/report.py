@@ -14,11 +14,10 @@ Zenoh. Thin part: :func:`main` asks the running system like :mod:`services.tools
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from html import escape
 from pathlib import Path
@@ -35,10 +34,11 @@ from schemas import (
     decode,
     keys,
 )
-from schemas.keys import SegmentId
 from services.defaults import add_network_argument
+from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits
 from services.runtime.config import RuntimeConfig, config_from_args
 from services.tools import maintenance_plan, operator
+from services.tools.network_map import NetworkMap, network_map
 
 INTERVENTION = "intervention"
 WORST_N = 6
@@ -60,30 +60,6 @@ MAP_W, MAP_H_MAX = 800, 560  # px
 
 
 @dataclass(frozen=True)
-class Station:
-    line: str
-    lon: float
-    lat: float
-    label: str
-
-
-@dataclass(frozen=True)
-class NetworkMap:
-    """What the report draws of the network: each segment's polyline ([lon, lat] pairs) and
-    chainage range (m), and the stations."""
-
-    polylines: dict[SegmentId, list[tuple[float, float]]] = field(default_factory=dict)
-    chainage_m: dict[SegmentId, tuple[float, float]] = field(default_factory=dict)
-    stations: list[Station] = field(default_factory=list)
-    line_names: dict[str, str] = field(default_factory=dict)  # id -> the name operators use
-
-    def label(self, line: str) -> str:
-        """A line as a planner knows it: ``id (name)``, or the id when it has no name."""
-        name = self.line_names.get(line)
-        return f"{line} ({name})" if name and name != line else line
-
-
-@dataclass(frozen=True)
 class ReportData:
     """Everything one report shows. ``alerts``/``plan`` are None when alerting did not
     answer; ``missing`` then says why. ``tamping`` is None when the planner did not
@@ -99,6 +75,7 @@ class ReportData:
     worst_n: int = WORST_N
     tamping: MaintenancePlan | None = None
     tamping_missing: str = ""
+    limits: Limits | None = None  # the limits file, with the network's line speeds
 
 
 def level_index(state: SegmentState, level: str = INTERVENTION) -> int:
@@ -170,6 +147,8 @@ def render(data: ReportData) -> str:
         _map(data, states),
         _legend(),
     ]
+    if data.limits is not None:
+        parts += ['<h2 id="limits">Limits by line</h2>', _limits(data, data.limits)]
     if data.missing:
         parts.append(f'<p class="note">{escape(data.missing)}</p>')
     parts += [
@@ -291,6 +270,41 @@ def _legend() -> str:
         + "".join(items)
         + "</p>"
     )
+
+
+def _limits(data: ReportData, limits: Limits) -> str:
+    """Per line: its speed class, where the class comes from, and the AL, IL and IAL of Top6
+    and Align10 of that class."""
+    lines = sorted({s.line for s in data.states} | set(data.lines))
+    names = ["AL", "IL"] if limits.levels == ("alert", "intervention") else list(limits.levels)
+    head = ["line", "speed class"] + [
+        f"{indicator} {level} mm"
+        for indicator in ("Top6", "Align10")
+        for level in (*names, *(["IAL"] if limits.immediate_action else []))
+    ]
+    out = [
+        "<p>EN 13848-5 levels per line speed class: AL (alert), IL (intervention), IAL "
+        "(immediate action). A line's class is the one the limits file names for it, else "
+        "the class holding its line speed in the network file, else the file's default.</p>",
+        '<table id="limits"><thead><tr>',
+        *(f"<th>{escape(h)}</th>" for h in head),
+        "</tr></thead><tbody>",
+    ]
+    for line in lines:
+        table, ial = limits.for_line(line), limits.immediate_action_for_line(line)
+        values = [
+            v
+            for i in range(table.shape[1])
+            for v in [*table[:, i], *([ial[i]] if ial is not None else [])]
+        ]
+        band = limits.describe(line).removeprefix("speed class ")
+        out.append(
+            f"<tr><td>{escape(data.network.label(line))}</td><td>{escape(band)}</td>"
+            + "".join(f'<td class="n">{v:g}</td>' for v in values)
+            + "</tr>"
+        )
+    out.append("</tbody></table>")
+    return "".join(out)
 
 
 def _mm(state: SegmentState, i: int) -> str:
@@ -429,11 +443,12 @@ def _alerts(data: ReportData) -> str:
     if not data.alerts:
         return "<p>No alert raised.</p>"
     rows = ['<table id="alerts"><thead><tr>']
-    head = ("time", "segment", "kind", "indicator", "level", "p", "message")
+    head = ("time", "segment", "kind", "indicator", "level", "speed class", "p", "message")
     rows += [f"<th>{h}</th>" for h in head]
     rows.append("</tr></thead><tbody>")
     for a in sorted(data.alerts, key=lambda a: (-a.probability, a.line, a.segment, a.kind)):
-        cells = [iso(a.t), f"{a.line}/{a.segment}", a.kind, a.indicator, a.level]
+        band = a.speed_class or "–"
+        cells = [iso(a.t), f"{a.line}/{a.segment}", a.kind, a.indicator, a.level, band]
         rows.append(
             "<tr>"
             + "".join(f"<td>{escape(c)}</td>" for c in cells)
@@ -645,43 +660,6 @@ def _trc_runs(plan: MaintenancePlan, wanted: set[str], network: NetworkMap) -> s
     return "".join(out)
 
 
-# --- network --------------------------------------------------------------------------------
-
-
-def network_map(network_path: str | None = None) -> NetworkMap:
-    """Segment polylines and chainages, and stations, of a network file (default: the demo).
-
-    A line feature may name its stations with ``station_names`` (one per ``stations``
-    chainage); without names a station is labelled with its chainage in km.
-    """
-    from services.defaults import DEMO_NETWORK
-    from track.network import Network
-
-    path = Path(network_path or DEMO_NETWORK)
-    try:
-        raw = json.loads(path.read_text())
-        network = Network.from_geojson(raw)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"--network {path}: {exc}") from None  # the CLI exits 2
-    props = {
-        f["properties"]["id"]: f["properties"]
-        for f in raw["features"]
-        if isinstance(f.get("properties"), dict) and "id" in f["properties"]
-    }
-    polylines, chainage, stations = {}, {}, []
-    for line in network.lines.values():
-        for seg in line.segments:
-            polylines[(line.id, seg.id)] = [tuple(p) for p in line.segment_lonlat(seg).tolist()]
-            chainage[(line.id, seg.id)] = (seg.start_m, seg.end_m)
-        names = props.get(line.id, {}).get("station_names") or []
-        for k, c in enumerate(line.stations):
-            lon, lat = map(float, line.lonlat_at(c))
-            label = str(names[k]) if k < len(names) else f"{line.id} km {c / 1e3:.1f}"
-            stations.append(Station(line.id, lon, lat, label))
-    names = {line.id: line.name for line in network.lines.values() if line.name}
-    return NetworkMap(polylines, chainage, stations, names)
-
-
 # --- the running system ---------------------------------------------------------------------
 
 
@@ -736,11 +714,14 @@ def main(
     line: str | None = None,
     network_path: str | None = None,
     worst_n: int = WORST_N,
+    limits_path: str | Path = DEFAULT_LIMITS_FILE,
     timeout: float = operator.QUERY_TIMEOUT_S,
     out: TextIO = sys.stdout,
 ) -> int:
-    """Ask the running system and write the report; SystemExit (1) without any state."""
+    """Ask the running system and write the report; SystemExit (1) without any state.
+    ``limits_path``: the limits file the services apply (the report shows each line's)."""
     network = network_map(network_path)
+    limits = load_limits(limits_path, network.line_speeds_kmh)
     with operator.open_session(conf) as session:
         states = operator.query_states(session, conf.ns, f"{line}/**" if line else "**", timeout)
         if not states:
@@ -763,6 +744,7 @@ def main(
         worst_n=worst_n,
         tamping=tamping,
         tamping_missing=tamping_missing,
+        limits=limits,
     )
     Path(out_path).write_text(render(data), encoding="utf-8")
     note = "".join(f" ({text})" for text in (missing, tamping_missing) if text)
@@ -778,7 +760,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--line", help="one line (default: all lines)")
     parser.add_argument("--out", default=DEFAULT_OUT, metavar="FILE.html", help="(%(default)s)")
-    add_network_argument(parser, "the geometry")
+    add_network_argument(parser, "the geometry and the line speeds")
+    parser.add_argument(
+        "--limits",
+        metavar="FILE",
+        type=Path,
+        default=DEFAULT_LIMITS_FILE,
+        help="the limits file the services apply (default: %(default)s)",
+    )
     parser.add_argument(
         "--worst", type=int, default=WORST_N, metavar="N", help="fans drawn (%(default)s)"
     )
@@ -792,5 +781,6 @@ def run(args: argparse.Namespace) -> int:
         line=args.line,
         network_path=args.network,
         worst_n=args.worst,
+        limits_path=args.limits,
         timeout=args.timeout,
     )

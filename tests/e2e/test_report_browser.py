@@ -12,6 +12,7 @@ from browser import CHROMIUM, MIN_PIXELS, DevTools, hue_pixels
 
 from services.alerting.testing import T0, make_state, p_top6
 from services.tools import report
+from services.tools.network_map import network_map
 
 pytestmark = pytest.mark.skipif(
     not CHROMIUM.exists(), reason="no /usr/bin/chromium (apt-get install -y chromium)"
@@ -40,7 +41,7 @@ def screenshot_of_the_map(browser: DevTools, path: Path) -> bytes:
 
 
 def test_chromium_draws_the_map_in_the_colours_of_p_exceed(tmp_path: Path):
-    network = report.network_map(None)
+    network = network_map(None)
     l1 = sorted(seg for line, seg in network.polylines if line == "L1")
 
     def write(name: str, p_of) -> Path:

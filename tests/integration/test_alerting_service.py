@@ -81,7 +81,10 @@ def test_state_raises_alert_queryables_answer_and_restart_keeps_it(
             "top6",
             "intervention",
         )
-        assert alert.message == "Top6 likely above intervention limit 8.0 mm (p=0.72)"
+        assert alert.message == (
+            "Top6 likely above intervention limit 8.0 mm (p=0.72), speed class 80<v<=120"
+        )
+        assert alert.speed_class == "80<v<=120"
 
         (body,) = query(client, keys.q_alerts(ns))
         assert decode(body, RaisedAlerts).alerts == [alert]

@@ -8,8 +8,8 @@ import threading
 import zenoh
 from support import run_cli
 
-from schemas import encode, keys
-from services.alerting.testing import make_state
+from schemas import DAY_S, InspectionPlan, MaintenancePlan, TrcRunValue, encode, keys
+from services.alerting.testing import T0, make_state, plan_row
 from services.cli import build_parser
 from services.tools.operator import QUERY_TIMEOUT_S
 
@@ -48,3 +48,34 @@ def test_timeout_flag_default_and_bad_values():
     for bad in ("0", "-1", "nan", "inf", "soon"):
         refused = run_cli("alerts", "--timeout", bad)
         assert refused.returncode == 2 and "positive number of seconds" in refused.stderr
+
+
+def test_plan_inspection_is_the_planners_trc_ranking_else_alerting_s(
+    open_session, router, namespace
+):
+    session = open_session()
+    wiring = ("--connect", router, "--ns", namespace)
+    row = plan_row("L1", "s2", 0.8, T0 + 30 * DAY_S, speed_class="80<v<=120")
+    alerting = session.declare_queryable(
+        keys.q_plan(namespace),
+        lambda q: q.reply(keys.q_plan(namespace), encode(InspectionPlan(t=T0, rows=[row]))),
+    )
+    without = run_cli("plan", *wiring)
+    assert without.returncode == 0, without.stderr
+    assert "alerting's ranking: no planning service answered" in without.stdout
+    assert "L1/s2" in without.stdout and "80<v<=120" in without.stdout
+
+    plan = MaintenancePlan(
+        t=T0, computed_at=T0, horizon_weeks=26, eps=0.05, status="optimal", objective=1.0,
+        bound=1.0, gap=0.0, solve_s=0.1, km_per_week=[0.0] * 26, possessions=0, money=0.0,
+        budget=None, segments=3, without_model=0, rows=[],
+        trc_lines=[TrcRunValue(line="L2", value=900.0, segments=3)],
+    )  # fmt: skip
+    key = keys.q_maintenance_plan(namespace)
+    planner = session.declare_queryable(key, lambda q: q.reply(key, encode(plan)))
+    with_planner = run_cli("plan", "inspection", *wiring)
+    assert with_planner.returncode == 0, with_planner.stderr
+    assert "ranked by the planner's value of information" in with_planner.stdout
+    assert with_planner.stdout.splitlines()[2].split() == ["1", "L2", "900", "3"]
+    planner.undeclare()
+    alerting.undeclare()

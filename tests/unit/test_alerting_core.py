@@ -3,6 +3,8 @@ restart from the SQLite store; states built directly with schemas."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -43,15 +45,43 @@ def summary(alerts: list[Alert]) -> list[tuple[str, str, str, str]]:
 def test_exceedance_raises_once_and_clears_with_operator_message(core):
     raised = core.on_state(make_state(T0, p_exceed=p_top6(1, 0.72)))
     assert summary(raised) == [("exceedance", "raised", "top6", "intervention")]
-    assert raised[0].message == "Top6 likely above intervention limit 8.0 mm (p=0.72)"
+    assert (
+        raised[0].message
+        == "Top6 likely above intervention limit 8.0 mm (p=0.72), speed class 80<v<=120 (default)"
+    )
     assert raised[0].probability == pytest.approx(0.72)
+    assert raised[0].speed_class == "80<v<=120"
     assert core.on_state(make_state(T0 + DAY_S, p_exceed=p_top6(1, 0.9))) == []  # no repeat
     assert core.raised_alerts() == raised
 
     cleared = core.on_state(make_state(T0 + 2 * DAY_S, p_exceed=p_top6(1, 0.1)))
     assert summary(cleared) == [("exceedance", "cleared", "top6", "intervention")]
-    assert cleared[0].message == "Top6 back below intervention limit 8.0 mm (p=0.10)"
+    assert cleared[0].message == (
+        "Top6 back below intervention limit 8.0 mm (p=0.10), speed class 80<v<=120 (default)"
+    )
+    assert cleared[0].speed_class == "80<v<=120"
     assert core.raised_alerts() == []
+
+
+def test_exceedance_uses_and_names_the_speed_class_of_its_line():
+    """L1 is named in the file, L2 takes its class from the network's line speed; the slower
+    class's looser limit is the one compared with and said."""
+    slow = LIMITS_MM * 1.5
+    limits = replace(
+        make_limits(),
+        speed_classes={"v<=80": slow, "80<v<=120": LIMITS_MM},
+        lines={"L1": "80<v<=120"},
+        line_speeds_kmh={"L2": 60.0},
+    )
+    core = AlertingCore(AlertingConfig(), limits)
+    fast = core.on_state(make_state(T0, line="L1", p_exceed=p_top6(1, 0.9)))
+    assert [a.speed_class for a in fast] == ["80<v<=120"]
+    assert fast[0].message.endswith("limit 8.0 mm (p=0.90), speed class 80<v<=120")
+    # the state was computed on other limits: alerting recomputes against L2's class
+    mean_mm = (9.0, 3.0)  # above 8.0 (80<v<=120), below 12.0 (v<=80)
+    out = core.on_state(make_state(T0, line="L2", mean_mm=mean_mm, p_exceed=p_top6(1, 0.9)))
+    assert [a for a in out if a.level == "intervention"] == []
+    assert {r.line: r.speed_class for r in core.plan()} == {"L1": "80<v<=120", "L2": "v<=80"}
 
 
 def test_exceedance_per_indicator_and_level(core):
@@ -117,7 +147,8 @@ def test_predicted_exceedance_reports_first_horizon_within(core, forecast, horiz
     assert summary(out) == [("predicted_exceedance", "raised", "top6", "intervention")]
     assert out[0].horizon_days == horizon and out[0].probability == pytest.approx(p)
     assert out[0].message == (
-        f"Top6 likely above intervention limit 8.0 mm within {horizon:g} days (p={p:.2f})"
+        f"Top6 likely above intervention limit 8.0 mm within {horizon:g} days (p={p:.2f}), "
+        "speed class 80<v<=120 (default)"
     )
     assert core.on_state(make_state(T0 + DAY_S, forecast=forecast_top6(0.1, 0.2, 0.9))) == []
     cleared = core.on_state(make_state(T0 + 2 * DAY_S, forecast=forecast_top6(0.1, 0.15, 0.9)))

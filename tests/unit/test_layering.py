@@ -7,10 +7,10 @@ From the bottom up:
   the simulators; whoever wants a packaged network passes its path.
 - The shared layer of the services: ``services.runtime`` (the bus, delivery, inboxes and
   configuration every process uses), ``services.defaults`` (the packaged default files and how
-  they are found and read), ``services.limits`` (the alert limits filtering and alerting
-  both apply) and ``services.drift_diffusion`` (the degradation model's posterior, which
-  calibration fits and the frequency study draws from). It imports ``schemas``, ``track``
-  and itself, no service.
+  they are found and read), ``services.limits`` (the limits per line speed class that
+  filtering, alerting and the planner apply) and ``services.drift_diffusion`` (the
+  degradation model's posterior, which calibration fits and the frequency study draws from).
+  It imports ``schemas``, ``track`` and itself, no service.
 - A service (``services/<name>/`` of :data:`SERVICES`) imports the shared layer, ``schemas``,
   ``track`` and itself: no service imports another one, so each deploys and changes alone.
 - The commands (``services/tools``, ``services/cli.py``) put the services together: they may

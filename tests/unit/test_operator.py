@@ -8,11 +8,13 @@ import json
 import msgspec
 import numpy as np
 
-from schemas import NDArray, SegmentState, TrcRecord
+from schemas import Alert, NDArray, SegmentState, TrcRecord
+from services.limits import load_limits
 from services.tools.operator import (
     ALERT_COLUMNS,
     STATE_COLUMNS,
     RowError,
+    alert_row,
     format_state,
     parse_time,
     parse_trc_csv,
@@ -105,6 +107,19 @@ def test_format_state_reads_like_an_engineer_would():
     assert "P(>8.0 mm intervention)=0.00" in text and "in  180 d" in text
 
 
+def test_format_state_says_the_speed_class_of_its_line_and_its_ial():
+    limits = load_limits()
+    text = format_state(a_state(), limits=limits)  # L1: 80<v<=120 in the default file
+    assert "  limits of speed class 80<v<=120; immediate action top6 11.0 mm, align10 9.5 mm" in (
+        text.splitlines()
+    )
+    other = msgspec.structs.replace(a_state(), line="X1", limits_mm=f8([[5.0, 4.0], [6.5, 5.5]]))
+    text = format_state(other, limits=load_limits(line_speeds_kmh={"X1": 140.0}))
+    assert "limits of speed class 120<v<=160 (line speed 140 km/h);" in text
+    assert "not this class's" not in text
+    assert "not this class's" in format_state(other, limits=limits)  # the default class
+
+
 def test_exports():
     row = state_row(a_state())
     assert set(row) == set(STATE_COLUMNS) and row["top6_mm"] == 3.0
@@ -114,3 +129,14 @@ def test_exports():
     assert json.loads(json.dumps(geo))["features"][0]["properties"]["segment"] == "s00001"
     assert to_geojson([row], {})["features"] == []
     assert "probability" in ALERT_COLUMNS
+    alert = Alert(
+        line="L3",
+        segment="s1",
+        t=1_767_225_600.0,
+        kind="exceedance",
+        status="raised",
+        indicator="top6",
+        level="alert",
+        speed_class="v<=80",
+    )
+    assert alert_row(alert)["speed_class"] == "v<=80"

@@ -16,7 +16,8 @@ from services.calibration.service import known_segments as calibration_segments
 from services.cli import main as cli_main
 from services.defaults import load_network
 from services.filtering.service import known_segments as filtering_segments
-from services.tools.report import network_map
+from services.filtering.service import read_network
+from services.tools.network_map import network_map
 from services.viewer.core import ViewerCore
 from services.viewer.testing import rrd_printout
 from track.network import Line, Network, check_id, lonlat_to_xy
@@ -385,7 +386,7 @@ def test_the_written_file_reads_back_in_every_reader(imported, tmp_path):
     assert Network.from_geojson(path).origin_lonlat == network.origin_lonlat
     ids = {(line.id, seg.id) for line, seg in network.segments()}
     assert calibration_segments(path) == ids
-    assert set(filtering_segments(path)["segments"]) == ids
+    assert set(filtering_segments(read_network(path), path)["segments"]) == ids
     assert SegmentTable.from_geojson(path).n_segments == network.n_segments
     stations = network_map(str(path)).stations
     assert {s.label for s in stations} == {"Westbrook", "Lakeside Halt", "Eastfield", "Valley"}

@@ -212,6 +212,7 @@ def test_the_plan_message_carries_the_rows():
                          version=3)  # fmt: skip
     assert message.version == 3 and len(message.km_per_week) == 26
     assert {r.segment for r in message.rows if r.week >= 0} >= {"s06", "s07", "s08"}
+    assert {r.speed_class for r in message.rows} == {"80<v<=120"}
 
 
 def test_a_trc_run_is_worth_most_on_the_line_whose_levels_are_uncertain_near_a_limit():

@@ -9,6 +9,8 @@ import pytest
 
 from schemas import DAY_S, Alert, InspectionPlan, MaintenancePlan, PlannedTamping, TrcRunValue
 from services.alerting.testing import T0, forecast_top6, make_state, p_top6, plan_row
+from services.limits import load_limits
+from services.tools.network_map import NetworkMap, Station, network_map
 from services.tools.report import (
     BINS,
     DEADLINE,
@@ -18,11 +20,8 @@ from services.tools.report import (
     NO_STATE,
     PLANNED,
     WEEK_PX,
-    NetworkMap,
     ReportData,
-    Station,
     colour,
-    network_map,
     p_forecast,
     p_now,
     ranked,
@@ -284,3 +283,29 @@ def test_the_names_of_two_tracks_starting_together_do_not_overlap():
     (x1, y1, first), (x2, y2, second) = names
     assert (first, second) == ("L1 (track 1)", "L2 (track 2)")
     assert x1 == x2 and float(y2) - float(y1) == 16
+
+
+def test_each_line_shows_its_speed_class_and_its_al_il_ial():
+    limits = load_limits(line_speeds_kmh={"L9": 150.0})
+    states = [*some_states(), make_state(T0, line="L9", segment="s1")]
+    html = a_report(states=states, limits=limits)
+    table = re.search(r'<table id="limits">.*?</table>', html).group(0)
+    assert "<th>Top6 AL mm</th><th>Top6 IL mm</th><th>Top6 IAL mm</th>" in table
+    cells = '<td class="n">{:g}</td>' * 6
+    assert (
+        "<tr><td>L1</td><td>80&lt;v&lt;=120</td>" + cells.format(6, 8, 11, 5, 7, 9.5) + "</tr>"
+    ) in table
+    assert (
+        "<tr><td>L9</td><td>120&lt;v&lt;=160 (line speed 150 km/h)</td>"
+        + cells.format(5, 6.5, 9, 4, 5.5, 7.5)
+        + "</tr>"
+    ) in table
+
+
+def test_the_alert_table_says_the_speed_class():
+    stale = an_alert(kind="stale", indicator="", level="")
+    html = a_report(alerts=[an_alert(speed_class="80<v<=120"), stale])
+    table = re.search(r'<table id="alerts">.*?</table>', html).group(0)
+    assert "<th>speed class</th>" in table
+    assert "<td>intervention</td><td>80&lt;v&lt;=120</td>" in table
+    assert "<td>stale</td><td></td><td></td><td>–</td>" in table

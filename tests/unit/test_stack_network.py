@@ -28,8 +28,8 @@ def test_every_process_of_the_default_stack_reads_the_network_given(tmp_path):
     network = tmp_path / "network.geojson"
     options = network_options(load_stack(DEFAULT_STACK, network=network))
     assert set(options) == {
-        "calibration", "filtering", "planning", "ingestion", "extraction", "viewer",
-        "simulator", "fleet",
+        "calibration", "filtering", "alerting", "planning", "ingestion", "extraction",
+        "viewer", "simulator", "fleet",
     }  # fmt: skip
     assert set(options.values()) == {str(network)}
 
