@@ -547,4 +547,4 @@ class ReliableSubscription:
                     end["lost"], producer,
                 )  # fmt: skip
             self._pending.add((producer, epoch, end["head"]))
-            self._mark(producer, epoch, end["head"])
+        self._mark(producer, epoch, end["head"])  # after the replay's entries (same thread)
