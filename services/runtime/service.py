@@ -451,7 +451,7 @@ class ServiceRuntime:
         return self.undeclare_at_close(publisher)
 
     def undeclare_at_close(self, entity: _U) -> _U:
-        """Undeclare ``entity`` at close (advanced subscribers, matching listeners, …)."""
+        """Undeclare ``entity`` at close (reliable publishers, matching listeners, …)."""
         self._declared.append(entity)
         return entity
 
