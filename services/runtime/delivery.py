@@ -43,10 +43,10 @@ is idempotent (the filtering fold, calibration's pairing, alerting's hysteresis,
 planner's newest state per segment), so the effect is exactly once. Order across keys and
 between a live message and a replayed one is not kept.
 
-A consumer that persists W (filtering, in the transaction of the folds that consumed the
-replay, see :meth:`services.runtime.service.ServiceRuntime.subscribe_batches`'s
+A consumer that persists W (filtering and calibration, in the transaction of what the
+replay brought, see :meth:`services.runtime.service.ServiceRuntime.subscribe_batches`'s
 ``positions``) replays after a restart only what came after; one that does not (alerting,
-planning, calibration) replays everything retained when it starts.
+planning) replays everything retained when it starts.
 
 Settings (``services.delivery``): ``replay_s`` (10 s: the longest a message missed live
 waits for its replay), ``replay_timeout_s`` (120 s for one replay query) and ``outbox``:

@@ -706,3 +706,17 @@ def test_a_partial_trc_record_makes_no_pair_and_no_increment():
     assert core.stats["trc_partial"] == 1 and core.stats["trc"] == 0
     core.ingest(make_index(t))
     assert core.stats["pairs"] == 0
+
+
+@pytest.mark.parametrize("make_store", [lambda _p: MemoryStore(), SqliteStore])
+def test_replay_positions_are_stored_with_the_changes_and_loaded_back(tmp_path, make_store):
+    from services.calibration.state import Changes
+
+    store = make_store(tmp_path / "cal.sqlite")
+    assert Changes(positions={"extraction/a": ("e1", 4)})  # positions alone are a change
+    store.apply(Changes(positions={"extraction/a": ("e1", 4), "filtering/a": ("e2", 1)}))
+    store.apply(Changes(positions={"extraction/a": ("e1", 9)}))
+    assert store.load().positions == {"extraction/a": ("e1", 9), "filtering/a": ("e2", 1)}
+    if isinstance(store, SqliteStore):
+        store.close()
+        assert SqliteStore(tmp_path / "cal.sqlite").load().positions["extraction/a"] == ("e1", 9)
