@@ -535,7 +535,18 @@ class ServiceRuntime:
                 systemd.ping_watchdog()
 
     def _report_backlog(self) -> None:
-        """A log line per inbox that has a backlog or spilled since the last line."""
+        """A log line per inbox that has a backlog or spilled since the last line, and one
+        per reliable publisher or subscription that delivery lost messages on (published
+        without a record, deleted by a producer's retention before this consumer got them)."""
+        for entity in self._declared + self._subscribers:
+            unrecorded = getattr(entity, "unrecorded", 0)
+            lost = getattr(entity, "lost", 0)
+            if unrecorded or lost:
+                log.warning(
+                    "%s delivery: %d messages published without a record (at most once), "
+                    "%d lost beyond a producer's retention, since the start",
+                    self.service, unrecorded, lost,
+                )  # fmt: skip
         for i, inbox in enumerate(self._inboxes):
             stats = inbox.stats()
             if stats.depth or stats.spilled:
