@@ -49,9 +49,10 @@ replay brought, see :meth:`services.runtime.service.ServiceRuntime.subscribe_bat
 planning) replays everything retained when it starts.
 
 Settings (``services.delivery``): ``replay_s`` (10 s: the longest a message missed live
-waits for its replay), ``replay_timeout_s`` (120 s for one replay query) and ``outbox``:
-``dir`` (default: beside the service's store, ``var/`` for one without),
-``max_bytes`` (2 GB per producer), ``max_age_s`` (7 days).
+waits for its replay), ``replay_timeout_s`` (600 s: the longest one replay may take; an
+unfinished replay is asked again whole, so raise it for a consumer that replays a whole
+retention at national scale) and ``outbox``: ``dir`` (default: beside the service's store,
+``var/`` for one without), ``max_bytes`` (2 GB per producer), ``max_age_s`` (7 days).
 """
 
 from __future__ import annotations
@@ -99,7 +100,7 @@ class DeliverySettings:
     """Where producers keep their outboxes and how often consumers replay."""
 
     replay_s: float = 10.0
-    replay_timeout_s: float = 120.0
+    replay_timeout_s: float = 600.0
     outbox: OutboxSettings = field(default_factory=OutboxSettings)
 
     @classmethod
