@@ -60,7 +60,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -68,7 +68,13 @@ from typing import Any
 import msgpack
 import zenoh
 
-from services.runtime.outbox import DEFAULT_MAX_AGE_S, DEFAULT_MAX_BYTES, Outbox, OutboxFull
+from services.runtime.outbox import (
+    DEFAULT_MAX_AGE_S,
+    DEFAULT_MAX_BYTES,
+    Outbox,
+    OutboxBusy,
+    OutboxFull,
+)
 
 log = logging.getLogger(__name__)
 
@@ -267,6 +273,24 @@ class ReliablePublisher:
             path, max_bytes=settings.outbox.max_bytes, max_age_s=settings.outbox.max_age_s
         )
         return cls(session, ns, f"{service}/{instance}", outbox)
+
+    @classmethod
+    def open_named(
+        cls,
+        session: zenoh.Session,
+        ns: str,
+        service: str,
+        names: Sequence[str],
+        settings: DeliverySettings = DeliverySettings(),
+        directory: Path | str | None = DEFAULT_OUTBOX_DIR,
+    ) -> ReliablePublisher:
+        """:meth:`open` under the first of ``names`` whose outbox no other process holds."""
+        for name in names[:-1]:
+            try:
+                return cls.open(session, ns, service, name, settings, directory)
+            except OutboxBusy as e:
+                log.warning("%s; publishing as %s/%s", e, service, names[-1])
+        return cls.open(session, ns, service, names[-1], settings, directory)
 
     def put(self, key: str, payload: bytes) -> None:
         with self._cond:

@@ -442,10 +442,13 @@ class ServiceRuntime:
         in ``services.delivery.outbox.dir`` if set, else in the directory of ``beside`` (the
         service's store), else in ``var/``. ``durable=False``: an outbox in memory, for a
         process whose messages need not outlive it (the simulator). One per process: the
-        outbox is the producer ``{service}/{instance}``."""
+        outbox is the producer ``{service}/{instance}``, with the configured instance id, else
+        ``default`` (so that a restart finds its outbox again), else, when another process
+        of this service holds that one, this process's own ``{hostname}-{pid}``."""
         directory = Path(beside).parent if beside is not None else DEFAULT_OUTBOX_DIR
-        publisher = ReliablePublisher.open(
-            self.session, self.ns, self.service, self.instance, self.delivery,
+        names = [self.conf.instance or "default", self.instance]
+        publisher = ReliablePublisher.open_named(
+            self.session, self.ns, self.service, names, self.delivery,
             directory if durable else None,
         )  # fmt: skip
         return self.undeclare_at_close(publisher)
