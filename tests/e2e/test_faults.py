@@ -17,7 +17,7 @@ from datetime import datetime
 
 import zenoh
 from linkproxy import LinkProxy
-from support import accepts_connections, wait_for
+from support import accepts_connections, outbox_config, wait_for
 
 from schemas import (
     DAY_S,
@@ -255,7 +255,7 @@ def test_every_fault_in_turn_leaves_the_uninterrupted_states(
 
 
 def test_the_signal_chain_resumes_after_each_of_its_services_is_killed(
-    router, namespace, open_session, collector, liveliness_events, spawn
+    router, namespace, open_session, collector, liveliness_events, spawn, tmp_path
 ):
     """Raw data (1 train, 15 simulated minutes at 60×): SIGKILL ingestion, then extraction,
     each restarted at once; indices flow again after each restart with no other step.
@@ -268,7 +268,8 @@ def test_the_signal_chain_resumes_after_each_of_its_services_is_killed(
     wiring = ["--connect", router, "--ns", namespace]
 
     def start(name: str):
-        return spawn(name, name, "--instance", name, *wiring)
+        outboxes = ("--config", str(outbox_config(tmp_path)))
+        return spawn(name, name, "--instance", name, *outboxes, *wiring)
 
     def next_change(name: str):
         return alive.next_change(keys.alive(namespace, name, name), WAIT_S)
