@@ -445,10 +445,6 @@ class ReliableSubscription:
             if not self._pending:
                 self.rounds += 1
 
-    def replay_now(self) -> None:
-        """Start a replay round now (it still waits for the previous one's confirmation)."""
-        self._wake.set()
-
     def undeclare(self) -> None:
         self._stop.set()
         self._wake.set()
