@@ -8,6 +8,7 @@ up after them; a module that manages its own (the fuzz harness) uses the classes
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import queue
 import signal
@@ -251,3 +252,11 @@ def closed_at_exit(open_: Callable[..., Any]) -> Iterator[Callable[..., Any]]:
     finally:
         for session in reversed(sessions):
             session.close()
+
+
+def outbox_config(directory: Path) -> Path:
+    """A service configuration file (``--config``) that keeps producers' outboxes in
+    ``directory`` rather than in ``./var`` of the checkout."""
+    path = directory / "outbox.json5"
+    path.write_text(json.dumps({"services": {"delivery": {"outbox": {"dir": str(directory)}}}}))
+    return path

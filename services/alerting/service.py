@@ -7,8 +7,8 @@ worker, so the core sees one ordered stream and needs no lock of its own (the qu
 adapter's lock to read it). Alerts go out with ``session.put`` on ``{ns}/alert/{line}/{segment}``;
 ``{ns}/q/alerts`` and ``{ns}/q/plan`` answer from the core with a RaisedAlerts and an
 InspectionPlan (schemas/README.md). At start it also asks ``{ns}/q/state/**`` for every
-segment's newest state and queues the replies like publications (states past filtering's
-cached publishers have no history to recover; a repeated state changes nothing).
+segment's newest state and queues the replies like publications (also the states filtering's
+outbox no longer retains; a repeated state changes nothing).
 The raised set, the segments' last states and the TRC runs persist in SQLite
 (``./var/alerting-{instance}.sqlite`` by default).
 """

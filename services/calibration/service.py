@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
+import msgpack
+
 from schemas import (
     MaintenanceEvent,
     OnboardIndex,
@@ -54,6 +56,7 @@ from services.runtime.config import (
     flag_values,
     read_json5,
 )
+from services.runtime.delivery import MARK
 from services.runtime.latest import LatestValues
 from services.runtime.service import ServiceRuntime, run_command
 
@@ -168,7 +171,8 @@ def main(
         db = settings.db or default_db(SERVICE, conf.instance)
         store = SqliteStore(db)
         try:
-            core = Calibrator(settings.core, state=store.load())
+            state = store.load()
+            core = Calibrator(settings.core, state=state)
             log.info(
                 "store %s: %d pairs, %d pending indices, models %s",
                 db,
@@ -183,7 +187,7 @@ def main(
                     log.info("initial models installed: %d", len(installed))
             store.apply(core.drain_changes())
             segments = known_segments(settings.network)
-            return _serve(rt, core, store, segments, settings.network)
+            return _serve(rt, core, store, segments, settings.network, state.positions)
         finally:
             store.close()
 
@@ -194,6 +198,7 @@ def _serve(
     store: SqliteStore,
     segments: frozenset[SegmentId] | None = None,
     network: Path | None = None,
+    positions: Mapping[str, tuple[str, int]] | None = None,
 ) -> int:
     ns = rt.ns
     latest = LatestValues()
@@ -221,13 +226,20 @@ def _serve(
         core.ingest(decode_sample(key, payload))
 
     def handle_batch(batch: list[tuple[str, str, bytes]]) -> None:
+        replayed: dict[str, tuple[str, int]] = {}
         for kind, key, payload in batch:  # a bad one: a dead letter (ValueError: its reason)
+            if kind == MARK:  # a producer's replay is in: stored with what it brought
+                epoch, head = msgpack.unpackb(payload)
+                replayed[key] = (epoch, head)
+                continue
             rt.guarded(ingest, kind, key, payload, refusals=(SchemaError, ValueError))
         log.debug("batch of %d", len(batch))
         try:
             models = core.flush()
         finally:
-            store.apply(core.drain_changes())  # persisted before anyone sees the models
+            changes = core.drain_changes()
+            changes.positions.update(replayed)
+            store.apply(changes)  # persisted before anyone sees the models
         for q in core.drain_quarantined():
             payload = encode(q.message) if q.message is not None else None
             rt.deadletters.reject(quarantine_key(ns, q), q.reason, payload)
@@ -236,7 +248,9 @@ def _serve(
     publish(core.models())  # restored and initial models, for those already listening
     rt.declare_queryable(keys.model_all(ns), latest.on_query)
     subscriptions = {kind: keys.segment_keys(ns, kind) for kind in _KINDS}
-    rt.subscribe_batches(subscriptions, handle_batch, max_batch=BATCH, reliable=True)
+    rt.subscribe_batches(
+        subscriptions, handle_batch, max_batch=BATCH, reliable=True, positions=positions or {}
+    )
     return rt.run()  # leaving: the worker handles what is queued, persists, then ends
 
 

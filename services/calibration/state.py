@@ -86,6 +86,9 @@ class StoredState:
     models: list[ModelEntry] = field(default_factory=list)  # in force (published)
     held: list[ModelEntry] = field(default_factory=list)  # accepted, not (yet) published
     meta: dict[str, Any] = field(default_factory=dict)
+    # producer -> (epoch, seq): where the replay of its outbox resumes (the service's, not
+    # the core's: services.runtime.delivery)
+    positions: dict[str, tuple[str, int]] = field(default_factory=dict)
 
 
 @dataclass
@@ -102,6 +105,7 @@ class Changes:
     models: list[ModelEntry] = field(default_factory=list)  # published, in order
     held: dict[str, ModelEntry | None] = field(default_factory=dict)  # key -> held now, or None
     meta: dict[str, Any] | None = None  # the whole meta when it changed
+    positions: dict[str, tuple[str, int]] = field(default_factory=dict)  # replay positions
 
     def __bool__(self) -> bool:
         return bool(
@@ -115,6 +119,7 @@ class Changes:
             or self.models
             or self.held
             or self.meta is not None
+            or self.positions
         )
 
 

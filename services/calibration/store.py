@@ -61,6 +61,11 @@ CREATE TABLE IF NOT EXISTS held (
     key TEXT PRIMARY KEY, payload BLOB NOT NULL, fingerprint TEXT NOT NULL, prior INTEGER NOT NULL
 );
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+-- per producer, the seq up to which its outbox's messages are in this store: the replay
+-- resumes there (services.runtime.delivery)
+CREATE TABLE IF NOT EXISTS delivery_positions (
+    producer TEXT PRIMARY KEY, epoch TEXT NOT NULL, seq INTEGER NOT NULL
+);
 """
 
 
@@ -90,6 +95,7 @@ class MemoryStore:
         s.held = [e for e in held.values() if e is not None]
         if changes.meta is not None:
             s.meta = copy.deepcopy(changes.meta)
+        s.positions.update(changes.positions)
 
     def load(self) -> StoredState:
         return copy.deepcopy(self._state)
@@ -176,6 +182,10 @@ class SqliteStore:
                 db.execute(
                     "INSERT OR REPLACE INTO meta VALUES ('state', ?)", (json.dumps(changes.meta),)
                 )
+            db.executemany(
+                "INSERT OR REPLACE INTO delivery_positions VALUES (?, ?, ?)",
+                [(p, epoch, seq) for p, (epoch, seq) in changes.positions.items()],
+            )
             db.execute("COMMIT")
         except BaseException:
             db.execute("ROLLBACK")
@@ -221,6 +231,10 @@ class SqliteStore:
         row = db.execute("SELECT value FROM meta WHERE key = 'state'").fetchone()
         if row is not None:
             state.meta = json.loads(row[0])
+        state.positions = {
+            p: (epoch, seq)
+            for p, epoch, seq in db.execute("SELECT producer, epoch, seq FROM delivery_positions")
+        }
         return state
 
     def close(self) -> None:

@@ -43,15 +43,16 @@ is idempotent (the filtering fold, calibration's pairing, alerting's hysteresis,
 planner's newest state per segment), so the effect is exactly once. Order across keys and
 between a live message and a replayed one is not kept.
 
-A consumer that persists W (filtering, in the transaction of the folds that consumed the
-replay, see :meth:`services.runtime.service.ServiceRuntime.subscribe_batches`'s
+A consumer that persists W (filtering and calibration, in the transaction of what the
+replay brought, see :meth:`services.runtime.service.ServiceRuntime.subscribe_batches`'s
 ``positions``) replays after a restart only what came after; one that does not (alerting,
-planning, calibration) replays everything retained when it starts.
+planning) replays everything retained when it starts.
 
 Settings (``services.delivery``): ``replay_s`` (10 s: the longest a message missed live
-waits for its replay), ``replay_timeout_s`` (120 s for one replay query) and ``outbox``:
-``dir`` (default: beside the service's store, ``var/`` for one without),
-``max_bytes`` (2 GB per producer), ``max_age_s`` (7 days).
+waits for its replay), ``replay_timeout_s`` (600 s: the longest one replay may take; an
+unfinished replay is asked again whole, so raise it for a consumer that replays a whole
+retention at national scale) and ``outbox``: ``dir`` (default: beside the service's store,
+``var/`` for one without), ``max_bytes`` (2 GB per producer), ``max_age_s`` (7 days).
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -67,7 +68,13 @@ from typing import Any
 import msgpack
 import zenoh
 
-from services.runtime.outbox import DEFAULT_MAX_AGE_S, DEFAULT_MAX_BYTES, Outbox, OutboxFull
+from services.runtime.outbox import (
+    DEFAULT_MAX_AGE_S,
+    DEFAULT_MAX_BYTES,
+    Outbox,
+    OutboxBusy,
+    OutboxFull,
+)
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +106,7 @@ class DeliverySettings:
     """Where producers keep their outboxes and how often consumers replay."""
 
     replay_s: float = 10.0
-    replay_timeout_s: float = 120.0
+    replay_timeout_s: float = 600.0
     outbox: OutboxSettings = field(default_factory=OutboxSettings)
 
     @classmethod
@@ -267,6 +274,24 @@ class ReliablePublisher:
         )
         return cls(session, ns, f"{service}/{instance}", outbox)
 
+    @classmethod
+    def open_named(
+        cls,
+        session: zenoh.Session,
+        ns: str,
+        service: str,
+        names: Sequence[str],
+        settings: DeliverySettings = DeliverySettings(),
+        directory: Path | str | None = DEFAULT_OUTBOX_DIR,
+    ) -> ReliablePublisher:
+        """:meth:`open` under the first of ``names`` whose outbox no other process holds."""
+        for name in names[:-1]:
+            try:
+                return cls.open(session, ns, service, name, settings, directory)
+            except OutboxBusy as e:
+                log.warning("%s; publishing as %s/%s", e, service, names[-1])
+        return cls.open(session, ns, service, names[-1], settings, directory)
+
     def put(self, key: str, payload: bytes) -> None:
         with self._cond:
             while len(self._queue) >= QUEUE_LIMIT and not self._closed:
@@ -420,10 +445,6 @@ class ReliableSubscription:
             if not self._pending:
                 self.rounds += 1
 
-    def replay_now(self) -> None:
-        """Start a replay round now (it still waits for the previous one's confirmation)."""
-        self._wake.set()
-
     def undeclare(self) -> None:
         self._stop.set()
         self._wake.set()
@@ -547,4 +568,4 @@ class ReliableSubscription:
                     end["lost"], producer,
                 )  # fmt: skip
             self._pending.add((producer, epoch, end["head"]))
-            self._mark(producer, epoch, end["head"])
+        self._mark(producer, epoch, end["head"])  # after the replay's entries (same thread)

@@ -11,7 +11,8 @@ appends to a spill file on local disk (an anonymous temporary file, gone with th
 process), which the worker reads back in order once memory has drained. Back-pressure is
 therefore disk, not the network: the session keeps its lease under any backlog, and nothing
 is dropped. What is in the inbox when the process dies is lost like any in-flight message;
-the at-least-once streams recover it from their publishers' caches.
+the at-least-once streams replay it from their producers' outboxes
+(:mod:`services.runtime.delivery`).
 
 Order: FIFO over every ``put``; Zenoh calls each subscription's callback on its own thread,
 so order holds per key, not across keys.

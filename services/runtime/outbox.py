@@ -1,6 +1,7 @@
 """A producer's durable outbox: every message it publishes, numbered, in a SQLite file.
 
-One file per producer identity ``{service}/{instance}``
+One file per producer identity ``{service}/{instance}``, held by one process at a time (an
+exclusive lock on ``{file}.lock``; a second process gets :class:`OutboxBusy`)
 (``{dir}/{service}-{instance}.sqlite``): an append-only log ``entries(seq, key, payload,
 t_wall)``. ``seq`` numbers the producer's messages 1, 2, 3 … and continues after a restart
 on the same file (the last number is kept in ``meta`` even when retention emptied the log),
@@ -28,6 +29,7 @@ the batch live without sequence numbers and counts it (at most once for those me
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import sqlite3
 import threading
@@ -46,6 +48,10 @@ CREATE TABLE IF NOT EXISTS entries (
 );
 CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value);
 """
+
+
+class OutboxBusy(Exception):
+    """Another process holds this outbox (two producers may not share a numbering)."""
 
 
 class OutboxFull(Exception):
@@ -72,11 +78,18 @@ class Outbox:
         max_age_s: float = DEFAULT_MAX_AGE_S,
         clock: Callable[[], float] = time.time,
     ) -> None:
+        self._lockfile = None
         if path is None:  # in memory: as long as the process lives (one URI, two connections)
             self.path, uri = None, f"file:outbox-{os.urandom(8).hex()}?mode=memory&cache=shared"
         else:
             self.path, uri = Path(path), f"file:{path}"
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._lockfile = open(f"{path}.lock", "a")  # noqa: SIM115 (held until close)
+            try:
+                fcntl.flock(self._lockfile, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                self._lockfile.close()
+                raise OutboxBusy(f"outbox {path}: held by another process") from None
         self.max_bytes = max_bytes
         self.max_age_s = max_age_s
         self._clock = clock
@@ -205,3 +218,5 @@ class Outbox:
         with self._lock, self._read_lock:
             self._reader.close()
             self._db.close()
+            if self._lockfile is not None:
+                self._lockfile.close()  # releases the lock

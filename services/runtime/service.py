@@ -442,16 +442,19 @@ class ServiceRuntime:
         in ``services.delivery.outbox.dir`` if set, else in the directory of ``beside`` (the
         service's store), else in ``var/``. ``durable=False``: an outbox in memory, for a
         process whose messages need not outlive it (the simulator). One per process: the
-        outbox is the producer ``{service}/{instance}``."""
+        outbox is the producer ``{service}/{instance}``, with the configured instance id, else
+        ``default`` (so that a restart finds its outbox again), else, when another process
+        of this service holds that one, this process's own ``{hostname}-{pid}``."""
         directory = Path(beside).parent if beside is not None else DEFAULT_OUTBOX_DIR
-        publisher = ReliablePublisher.open(
-            self.session, self.ns, self.service, self.instance, self.delivery,
+        names = [self.conf.instance or "default", self.instance]
+        publisher = ReliablePublisher.open_named(
+            self.session, self.ns, self.service, names, self.delivery,
             directory if durable else None,
         )  # fmt: skip
         return self.undeclare_at_close(publisher)
 
     def undeclare_at_close(self, entity: _U) -> _U:
-        """Undeclare ``entity`` at close (advanced subscribers, matching listeners, …)."""
+        """Undeclare ``entity`` at close (reliable publishers, matching listeners, …)."""
         self._declared.append(entity)
         return entity
 
@@ -535,7 +538,18 @@ class ServiceRuntime:
                 systemd.ping_watchdog()
 
     def _report_backlog(self) -> None:
-        """A log line per inbox that has a backlog or spilled since the last line."""
+        """A log line per inbox that has a backlog or spilled since the last line, and one
+        per reliable publisher or subscription that delivery lost messages on (published
+        without a record, deleted by a producer's retention before this consumer got them)."""
+        for entity in self._declared + self._subscribers:
+            unrecorded = getattr(entity, "unrecorded", 0)
+            lost = getattr(entity, "lost", 0)
+            if unrecorded or lost:
+                log.warning(
+                    "%s delivery: %d messages published without a record (at most once), "
+                    "%d lost beyond a producer's retention, since the start",
+                    self.service, unrecorded, lost,
+                )  # fmt: skip
         for i, inbox in enumerate(self._inboxes):
             stats = inbox.stats()
             if stats.depth or stats.spilled:

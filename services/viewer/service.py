@@ -219,7 +219,7 @@ class ViewerAdapter:
         """Once at start, after subscribing: the newest state of every segment from
         filtering's ``q/state``, taken like publications, so that the map is coloured at
         once rather than segment by segment as states change (a segment changing rarely,
-        or past filtering's cached publishers, would stay grey until then). A reply that
+        would stay grey until then). A reply that
         does not decode or disagrees with its key is a dead letter."""
         ns = self.rt.ns
         for key, payload in self.rt.ask(keys.q_state_all(ns), STATE_QUERY_TIMEOUT_S):

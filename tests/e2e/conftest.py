@@ -11,6 +11,7 @@ from typing import Any, NamedTuple
 import json5
 import pytest
 import zenoh
+from support import outbox_config
 
 from schemas import keys
 from services.filtering.testing import EVENT_TYPES, LastEvents
@@ -108,14 +109,15 @@ def fast_mode_world(
 
 
 @pytest.fixture
-def signal_chain(namespace, liveliness_events, spawn) -> Callable[..., tuple]:
+def signal_chain(namespace, liveliness_events, spawn, tmp_path) -> Callable[..., tuple]:
     """``signal_chain(session, wiring)``: ingestion and extraction processes, once both are
     alive."""
 
     def start(session: zenoh.Session, wiring: list[str]) -> tuple:
         alive = liveliness_events(session, keys.alive_all(namespace))
         ingestion = spawn("ingestion", "ingestion", "--instance", "ing", *wiring)
-        extraction = spawn("extraction", "extraction", "--instance", "ext", *wiring)
+        outboxes = ("--config", str(outbox_config(tmp_path)))
+        extraction = spawn("extraction", "extraction", "--instance", "ext", *outboxes, *wiring)
         alive.until_alive(
             keys.alive(namespace, "ingestion", "ing"),
             keys.alive(namespace, "extraction", "ext"),

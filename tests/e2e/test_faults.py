@@ -16,7 +16,7 @@ from collections.abc import Callable
 from datetime import datetime
 
 import zenoh
-from support import accepts_connections, wait_for
+from support import accepts_connections, outbox_config, wait_for
 
 from bench.linkproxy import LinkProxy
 from schemas import (
@@ -38,7 +38,7 @@ from services.filtering.testing import states_by_instance
 from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_limits
 from services.runtime.config import zenoh_config
-from services.runtime.delivery import declare_reliable_subscriber
+from services.runtime.delivery import ReliableSubscription
 from simulators.network import generate_network
 from simulators.run import DEFAULT_START
 from simulators.truth import load_config
@@ -78,9 +78,9 @@ class Progress:
         self.seen: set[bytes] = set()
         self._cond = threading.Condition()
 
-    def __call__(self, sample: zenoh.Sample) -> None:
+    def __call__(self, _kind: str, _key: str, payload: bytes) -> None:
         with self._cond:
-            self.seen.add(sample.payload.to_bytes())
+            self.seen.add(payload)
             self._cond.notify_all()
 
     def reach(self, n: int, timeout: float = WAIT_S) -> None:
@@ -139,9 +139,12 @@ def test_every_fault_in_turn_leaves_the_uninterrupted_states(
     session = zenoh.open(zenoh_config({"mode": "client", "connect": {"endpoints": [endpoint]}}))
     progress = Progress()
     watched = [
-        declare_reliable_subscriber(session, keys.segment_keys(ns, kind), progress)
-        for kind in ("index", "trc", "maintenance")
-    ]
+        ReliableSubscription(
+            session, ns,
+            {kind: keys.segment_keys(ns, kind) for kind in ("index", "trc", "maintenance")},
+            progress, lambda *mark: watched[0].confirm(*mark),
+        )
+    ]  # fmt: skip
     alive_now: set[str] = set()
     alive_changed = threading.Condition()
 
@@ -252,7 +255,7 @@ def test_every_fault_in_turn_leaves_the_uninterrupted_states(
 
 
 def test_the_signal_chain_resumes_after_each_of_its_services_is_killed(
-    router, namespace, open_session, collector, liveliness_events, spawn
+    router, namespace, open_session, collector, liveliness_events, spawn, tmp_path
 ):
     """Raw data (1 train, 15 simulated minutes at 60×): SIGKILL ingestion, then extraction,
     each restarted at once; indices flow again after each restart with no other step.
@@ -265,7 +268,8 @@ def test_the_signal_chain_resumes_after_each_of_its_services_is_killed(
     wiring = ["--connect", router, "--ns", namespace]
 
     def start(name: str):
-        return spawn(name, name, "--instance", name, *wiring)
+        outboxes = ("--config", str(outbox_config(tmp_path)))
+        return spawn(name, name, "--instance", name, *outboxes, *wiring)
 
     def next_change(name: str):
         return alive.next_change(keys.alive(namespace, name, name), WAIT_S)

@@ -721,3 +721,17 @@ def test_service_network_setting_and_dead_letter_keys():
     q = Quarantine("trc", "L1", "s00042", "why")
     assert service.quarantine_key("tf", q) == "tf/trc/L1/s00042"
     assert service.quarantine_key("tf", Quarantine("index", "L1", "s1", "")) == "tf/index/L1/s1"
+
+
+@pytest.mark.parametrize("make_store", [lambda _p: MemoryStore(), SqliteStore])
+def test_replay_positions_are_stored_with_the_changes_and_loaded_back(tmp_path, make_store):
+    from services.calibration.state import Changes
+
+    store = make_store(tmp_path / "cal.sqlite")
+    assert Changes(positions={"extraction/a": ("e1", 4)})  # positions alone are a change
+    store.apply(Changes(positions={"extraction/a": ("e1", 4), "filtering/a": ("e2", 1)}))
+    store.apply(Changes(positions={"extraction/a": ("e1", 9)}))
+    assert store.load().positions == {"extraction/a": ("e1", 9), "filtering/a": ("e2", 1)}
+    if isinstance(store, SqliteStore):
+        store.close()
+        assert SqliteStore(tmp_path / "cal.sqlite").load().positions["extraction/a"] == ("e1", 9)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.runtime.outbox import Outbox, OutboxFull
+from services.runtime.outbox import Outbox, OutboxBusy, OutboxFull
 
 
 class Clock:
@@ -40,7 +40,9 @@ def test_numbering_and_epoch_continue_after_a_restart(tmp_path):
     assert again.append("k", b"3") == 3
     assert [e.payload for e in again.entries(0)] == [b"1", b"2", b"3"]
     again.close()
-    assert Outbox(tmp_path / "other.sqlite").epoch != epoch  # a new file, a new numbering
+    other = Outbox(tmp_path / "other.sqlite")
+    assert other.epoch != epoch  # a new file, a new numbering
+    other.close()
 
 
 def test_retention_by_age_deletes_oldest_and_keeps_numbering(tmp_path):
@@ -85,3 +87,11 @@ def test_a_full_disk_raises_and_leaves_the_log_consistent(tmp_path):
     outbox._db.execute("PRAGMA max_page_count = 1000000")  # room again
     assert outbox.append("k", b"after") == 2
     outbox.close()
+
+
+def test_one_process_at_a_time_holds_an_outbox(tmp_path):
+    outbox = Outbox(tmp_path / "p.sqlite")
+    with pytest.raises(OutboxBusy, match="held by another process"):
+        Outbox(tmp_path / "p.sqlite")  # another open file description: as another process
+    outbox.close()
+    Outbox(tmp_path / "p.sqlite").close()  # released with its holder
