@@ -99,6 +99,12 @@ class Outbox:
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.executescript(_SCHEMA)
         self._reader = self._connect(uri)
+        if path is None:
+            # A shared-cache database locks per table: a replay reading while an append
+            # writes would fail one of them ("database table is locked"). Reading
+            # uncommitted rows is safe here: a reader stops at the head committed before it
+            # started, and rows past it are never asked for.
+            self._reader.execute("PRAGMA read_uncommitted = 1")
         self._read_lock = threading.Lock()
         meta = dict(self._db.execute("SELECT name, value FROM meta"))
         if "epoch" not in meta:

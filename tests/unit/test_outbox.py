@@ -95,3 +95,20 @@ def test_one_process_at_a_time_holds_an_outbox(tmp_path):
         Outbox(tmp_path / "p.sqlite")  # another open file description: as another process
     outbox.close()
     Outbox(tmp_path / "p.sqlite").close()  # released with its holder
+
+
+@pytest.mark.parametrize("where", ["memory", "file"])
+def test_appends_go_on_while_a_replay_reads(tmp_path, where):
+    """A replay holds its read open across appends (as a slow consumer's replay does):
+    neither side fails, and the reader sees every entry up to the head it started from."""
+    outbox = Outbox(None if where == "memory" else tmp_path / "p.sqlite")
+    outbox.append_many([("k", b"%d" % i) for i in range(100)])
+    reading = outbox.entries(0)
+    first = next(reading)
+    for i in range(50):  # appends while the read is open
+        outbox.append("k", b"late %d" % i)
+    rest = list(reading)
+    assert [first.seq, *(e.seq for e in rest)] == list(range(1, 101))
+    assert outbox.head == 150
+    assert [e.seq for e in outbox.entries(100)] == list(range(101, 151))
+    outbox.close()
