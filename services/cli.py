@@ -70,8 +70,8 @@ COMMANDS = (
             "information; without a planner, alerting's segments most likely to exceed), or "
             "`plan maintenance`: the tamping plan",
             "services.tools.operator:plan_"),
-    Command("import-trc", "publish a TRC export (CSV: line,segment,t,top6_mm,align10_mm,run_id)",
-            "services.tools.trc_import"),
+    Command("import-trc", "publish a TRC export (CSV: line,segment,t,top6_mm,align10_mm,run_id) "
+            "and wait until filtering holds it", "services.tools.trc_import"),
     Command("export", "export states or raised alerts as CSV or GeoJSON",
             "services.tools.operator:export_"),
     Command("report", "a self-contained HTML report for maintenance planners",

@@ -1,7 +1,7 @@
 """Questions an engineer asks the running system: `trackfusion status|state|alerts|plan|
-export`. Each opens a short-lived Zenoh session, asks, prints, and closes. The publishing
-part of `trackfusion import-trc FILE.csv` is here too; the command itself, with its
-``--profile`` form, is :mod:`services.tools.trc_import`.
+export`. Each opens a short-lived Zenoh session, asks, prints, and closes. The parser of
+`trackfusion import-trc FILE.csv` is here too; the command itself, with its ``--profile``
+form, is :mod:`services.tools.trc_import`.
 
 Pure parts (CSV parsing, formatting, GeoJSON building) are plain functions, tested without
 Zenoh; the thin part is ``main_*``, asking through :mod:`services.tools.query`.
@@ -34,7 +34,6 @@ from schemas import (
     SegmentState,
     TrcRecord,
     decode,
-    encode,
     keys,
 )
 from schemas.keys import SegmentId
@@ -334,30 +333,6 @@ def parse_trc_csv(text: TextIO) -> Iterator[TrcRecord | RowError]:
             )
         except (SchemaError, ValueError, TypeError, AttributeError) as exc:
             yield RowError(line_no, str(exc))
-
-
-def main_import_trc(conf: RuntimeConfig, path: str, out: TextIO = sys.stdout) -> int:
-    """Publish the good rows of a TRC CSV export; report bad rows with their line numbers."""
-    try:
-        text = Path(path).read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SystemExit(f"import-trc: cannot read {path}: {exc}") from None
-    published, errors = 0, []
-    with open_session(conf) as session:
-        for item in parse_trc_csv(io.StringIO(text, newline="")):
-            if isinstance(item, RowError):
-                errors.append(item)
-                continue
-            session.put(
-                keys.trc(conf.ns, item.line, item.segment),
-                encode(item),
-                congestion_control=zenoh.CongestionControl.BLOCK,
-            )
-            published += 1
-    for error in errors:
-        print(f"{path}:{error.line_no}: {error.reason}", file=sys.stderr)
-    print(f"published {published} TRC records, {len(errors)} bad rows", file=out)
-    return 1 if errors else 0
 
 
 # --- export ---------------------------------------------------------------------------------

@@ -140,8 +140,9 @@ ROLES: Mapping[str, Grant] = {
         publish=("{ns}/deadletter/deadletters",),
         tokens=("{ns}/alive/deadletters/*",),
     ),
-    # `trackfusion import-trc`: publishes TRC records, nothing else.
-    "trc-import": Grant(publish=("{ns}/trc/**",)),
+    # `trackfusion import-trc`: publishes TRC records and asks filtering's states whether
+    # it holds them.
+    "trc-import": Grant(publish=("{ns}/trc/**",), query=("{ns}/q/state/**",)),
     # Whatever feeds tamping and other maintenance events.
     "maintenance-feed": Grant(publish=("{ns}/maintenance/**",)),
 }

@@ -1,6 +1,15 @@
 """`trackfusion import-trc`: TRC records onto the bus, from a per-segment CSV export
-(:func:`services.tools.operator.main_import_trc`) or, with ``--profile FILE.csv --line L
---run-id R --t ISO``, from a sampled TRC run.
+(:func:`main_import_trc_csv`) or, with ``--profile FILE.csv --line L --run-id R --t ISO``,
+from a sampled TRC run.
+
+The records are put plainly (no outbox): the command itself then waits until filtering
+holds them (:func:`confirm`). Unless ``--no-wait``, it asks ``{ns}/q/state/{line}/{segment}``
+for each record's segment until the state's ``last_trc_t`` is the record's ``t`` or later
+(a newer TRC record of the segment holds it too: filtering's fold does not depend on the
+order of events), puts the records still missing again every ``RESEND_S`` seconds (filtering
+refuses a record it already holds), and after ``--wait-s`` seconds at most prints
+``confirmed N of M TRC records``, the segments not confirmed, and exits with
+``EXIT_UNCONFIRMED``: running the same import again is then the remedy.
 
 The thin part around :mod:`track.trc_profile` (parse, align, statistic per segment): read
 the file, take the reference run from the archive, publish one TrcRecord per covered
@@ -22,9 +31,11 @@ refers to (the car passes 2 km in about a minute).
 from __future__ import annotations
 
 import argparse
+import io
 import math
 import sqlite3
 import sys
+import time
 from collections.abc import Iterator
 from contextlib import ExitStack, closing, contextmanager
 from dataclasses import dataclass
@@ -34,16 +45,18 @@ from typing import TextIO
 import numpy as np
 import zenoh
 
-from schemas import INDICATORS, SchemaError, TrcRecord, encode, keys
+from schemas import INDICATORS, SchemaError, SegmentState, TrcRecord, decode, encode, keys
 from schemas.wire import check_time
 from services.defaults import add_network_argument, load_network
 from services.runtime.config import RuntimeConfig, config_from_args
 from services.tools.operator import (
+    RowError,
     add_query_arguments,
-    main_import_trc,
     open_session,
     parse_time,
+    parse_trc_csv,
 )
+from services.tools.query import QUERY_TIMEOUT_S
 from track.network import check_id
 from track.segments import SegmentTable
 from track.trc_profile import (
@@ -58,6 +71,12 @@ from track.trc_profile import (
     parse_profile_csv,
     process_run,
 )
+
+WAIT_S = 120.0  # `--wait-s`: the longest the command waits for filtering to hold its records
+RESEND_S = 5.0  # seconds between two puts of the records filtering does not hold yet
+POLL_S = 1.0  # seconds between two questions to filtering while records are missing
+QUERY_BATCH = 256  # q/state questions in flight at once
+EXIT_UNCONFIRMED = 3  # some records were not confirmed by filtering within --wait-s
 
 
 def default_archive() -> Path:
@@ -233,6 +252,120 @@ def format_report(
     return "\n".join(out)
 
 
+def publish(session: zenoh.Session, ns: str, records: list[TrcRecord]) -> None:
+    for record in records:
+        session.put(
+            keys.trc(ns, record.line, record.segment),
+            encode(record),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+
+
+def held(state: SegmentState | None, record: TrcRecord) -> bool:
+    """Whether filtering's state of the record's segment has folded the record: its last
+    TRC restart is at the record's time or later."""
+    return state is not None and state.last_trc_t is not None and state.last_trc_t >= record.t
+
+
+def query_segment_states(
+    session: zenoh.Session, ns: str, segments: list[tuple[str, str]], timeout: float
+) -> dict[tuple[str, str], SegmentState]:
+    """The state filtering answers for each of ``segments`` on ``q/state/{line}/{segment}``;
+    a segment without an answer (no instance owns it, none is up, no complete answer in
+    ``timeout``) is left out. Of several answers, the one with the latest TRC restart."""
+    out: dict[tuple[str, str], SegmentState] = {}
+    block = zenoh.CongestionControl.BLOCK
+    for start in range(0, len(segments), QUERY_BATCH):
+        asked = [
+            session.get(
+                keys.q_state_keys(ns, f"{line}/{segment}"),
+                timeout=timeout,
+                congestion_control=block,
+            )
+            for line, segment in segments[start : start + QUERY_BATCH]
+        ]
+        for replies in asked:
+            for reply in replies:
+                if reply.ok is None:
+                    continue
+                state = decode(reply.ok.payload.to_bytes(), SegmentState)
+                sid = (state.line, state.segment)
+                if sid not in out or (state.last_trc_t or -math.inf) > (
+                    out[sid].last_trc_t or -math.inf
+                ):
+                    out[sid] = state
+    return out
+
+
+def confirm(
+    session: zenoh.Session,
+    ns: str,
+    records: list[TrcRecord],
+    wait_s: float,
+    out: TextIO = sys.stdout,
+) -> int:
+    """Wait until filtering holds every one of ``records`` (published already), putting
+    the missing ones again every ``RESEND_S`` s; print what was confirmed. 0 when every
+    record was, else ``EXIT_UNCONFIRMED`` with what to do on stderr."""
+    print(
+        f"waiting up to {wait_s:g} s for filtering to confirm {len(records)} TRC records",
+        file=out,
+        flush=True,
+    )
+    deadline = time.monotonic() + wait_s
+    resend_at = time.monotonic() + RESEND_S
+    missing = list(records)
+    while missing:
+        segments = sorted({(r.line, r.segment) for r in missing})
+        left = deadline - time.monotonic()
+        states = query_segment_states(session, ns, segments, max(1.0, min(QUERY_TIMEOUT_S, left)))
+        missing = [r for r in missing if not held(states.get((r.line, r.segment)), r)]
+        now = time.monotonic()
+        if not missing or now >= deadline:
+            break
+        if now >= resend_at:
+            publish(session, ns, missing)
+            resend_at = now + RESEND_S
+        time.sleep(min(POLL_S, deadline - now))
+    print(f"confirmed {len(records) - len(missing)} of {len(records)} TRC records", file=out)
+    if not missing:
+        return 0
+    segments = sorted({f"{r.line}/{r.segment}" for r in missing})
+    print(f"not confirmed: {', '.join(segments)}", file=out)
+    print(
+        f"filtering did not confirm {len(missing)} TRC records within {wait_s:g} s: check "
+        "that a filtering instance owns those segments and is up (`trackfusion status`), "
+        "then run the same import again (filtering refuses the records it holds already)",
+        file=sys.stderr,
+    )
+    return EXIT_UNCONFIRMED
+
+
+def main_import_trc_csv(
+    conf: RuntimeConfig,
+    path: str,
+    *,
+    wait_s: float | None = WAIT_S,
+    out: TextIO = sys.stdout,
+) -> int:
+    """Publish the good rows of a TRC CSV export, report bad rows with their line numbers,
+    and (``wait_s`` not None) wait for filtering to confirm the records."""
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SystemExit(f"import-trc: cannot read {path}: {exc}") from None
+    records, errors = [], []
+    for item in parse_trc_csv(io.StringIO(text, newline="")):
+        (errors if isinstance(item, RowError) else records).append(item)
+    for error in errors:
+        print(f"{path}:{error.line_no}: {error.reason}", file=sys.stderr)
+    with open_session(conf) as session:
+        publish(session, conf.ns, records)
+        print(f"published {len(records)} TRC records, {len(errors)} bad rows", file=out, flush=True)
+        code = 0 if wait_s is None else confirm(session, conf.ns, records, wait_s, out)
+    return code or (1 if errors else 0)
+
+
 @contextmanager
 def _archive(path: Path) -> Iterator[ProfileArchive]:
     archive = ProfileArchive(path)
@@ -252,9 +385,11 @@ def main_import_trc_profile(
     align: bool = True,
     max_offset_m: float = MAX_OFFSET_M,
     dry_run: bool = False,
+    wait_s: float | None = WAIT_S,
     out: TextIO = sys.stdout,
 ) -> int:
-    """Parse, align, compute and (unless ``dry_run``) publish and archive one TRC run."""
+    """Parse, align, compute and (unless ``dry_run``) publish and archive one TRC run, then
+    (``wait_s`` not None) wait for filtering to confirm its records."""
     check_id("--line", line)
     check_id("--run-id", run_id)
     network = load_network(network_path)
@@ -296,19 +431,17 @@ def main_import_trc_profile(
             print("dry run: nothing published, nothing archived", file=out)
             return 0
         with open_session(conf) as session:
-            for record in records:
-                session.put(
-                    keys.trc(conf.ns, line, record.segment),
-                    encode(record),
-                    congestion_control=zenoh.CongestionControl.BLOCK,
-                )
-        kept = archive.add(line, run_id, t, result.grid)
-    print(
-        f"published {len(records)} TRC records; "
-        + (f"profile archived in {archive.path}" if kept else "run already in the archive"),
-        file=out,
-    )
-    return 0
+            publish(session, conf.ns, records)
+            # archived once published, confirmed or not: importing the run again (what an
+            # unconfirmed import asks for) keeps the archive as it is and still publishes
+            kept = archive.add(line, run_id, t, result.grid)
+            print(
+                f"published {len(records)} TRC records; "
+                + (f"profile archived in {archive.path}" if kept else "run already in the archive"),
+                file=out,
+                flush=True,
+            )
+            return 0 if wait_s is None else confirm(session, conf.ns, records, wait_s, out)
 
 
 def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
@@ -366,6 +499,7 @@ def run_profile(args: argparse.Namespace, conf: RuntimeConfig) -> int:
         align=not args.no_align,
         max_offset_m=args.max_offset,
         dry_run=args.dry_run,
+        wait_s=wait_seconds(args),
     )
 
 
@@ -374,11 +508,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "Publish every good row of a TRC CSV export as a TrcRecord; bad rows are reported "
         "with their line numbers (exit code 1 when there were any). With --profile, a "
         "sampled TRC run instead: aligned to the line's previous run, Top6/Align10 computed "
-        "per segment, published and archived."
+        "per segment, published and archived. Then wait until filtering confirms it holds "
+        "every record."
     )
     parser.add_argument("file", metavar="FILE.csv", nargs="?", help="per-segment TRC export")
     add_profile_arguments(parser)
+    group = parser.add_argument_group(
+        "confirmation: after publishing, wait until filtering holds every record (its "
+        f"q/state), putting the missing ones again every {RESEND_S:g} s; exit code "
+        f"{EXIT_UNCONFIRMED} when some are still missing"
+    )
+    group.add_argument(
+        "--wait-s",
+        type=float,
+        default=WAIT_S,
+        metavar="S",
+        help="wait at most S seconds (default: %(default)g)",
+    )
+    group.add_argument(
+        "--no-wait", action="store_true", help="publish and exit, without confirmation"
+    )
     add_query_arguments(parser, timeout=False)
+
+
+def wait_seconds(args: argparse.Namespace) -> float | None:
+    """``--wait-s``, None with ``--no-wait``."""
+    if args.no_wait:
+        return None
+    if not 0 < args.wait_s < math.inf:
+        raise ValueError(f"--wait-s {args.wait_s:g}: give a number of seconds > 0")
+    return args.wait_s
 
 
 def run(args: argparse.Namespace) -> int:
@@ -386,4 +545,4 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("give either FILE.csv (per-segment values) or --profile FILE.csv")
     if args.profile is not None:
         return run_profile(args, config_from_args(args))
-    return main_import_trc(config_from_args(args), args.file)
+    return main_import_trc_csv(config_from_args(args), args.file, wait_s=wait_seconds(args))

@@ -1,6 +1,8 @@
 """`trackfusion import-trc` as a real process: good rows of a per-segment export arrive and
 bad rows are reported; with ``--profile``, two runs of a line, the second aligned to the
-first, their TrcRecords on the bus; the archive keeps each run once."""
+first, their TrcRecords on the bus; the archive keeps each run once. With a filtering
+service in a thread: the import is confirmed when filtering holds its records, also when
+filtering starts while the import waits; without filtering it exits 3 naming the segments."""
 
 from __future__ import annotations
 
@@ -9,10 +11,13 @@ from contextlib import closing
 from pathlib import Path
 
 import pytest
+import zenoh
 from support import run_cli
 
-from schemas import TrcRecord, decode
-from services.tools.trc_import import ProfileArchive
+from schemas import TrcRecord, decode, encode, keys
+from services.filtering import service
+from services.filtering.testing import example_models
+from services.tools.trc_import import EXIT_UNCONFIRMED, ProfileArchive
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "docs" / "examples"
 SEGMENTS = [f"s000{k}" for k in range(15, 21)]  # what the 1.3 km of the examples cover
@@ -37,7 +42,7 @@ def test_import_trc_publishes_good_rows_and_reports_bad_ones(
         "L1,s00002,2026-03-01T10:00:09Z,0,3.1,r1\n"
         "L1,s00003,2026-03-01T10:00:18Z,3.9,2.8,r1\n"
     )
-    wiring = ("--connect", router, "--ns", namespace)
+    wiring = ("--connect", router, "--ns", namespace, "--no-wait")
     result = run_cli("import-trc", str(export), *wiring, timeout=60)
     assert result.returncode == 1, result.stderr  # bad rows were reported
     assert f"{export}:3: TrcRecord" not in result.stderr  # the reason is the message's own
@@ -53,7 +58,7 @@ def test_two_runs_are_published_the_second_aligned_to_the_first(
     published, router, namespace, tmp_path
 ):
     archive = tmp_path / "trc-profiles.sqlite"
-    wiring = ("--connect", router, "--ns", namespace, "--archive", str(archive))
+    wiring = ("--connect", router, "--ns", namespace, "--archive", str(archive), "--no-wait")
 
     def import_run(name: str, run_id: str, t: str):
         result = run_cli(
@@ -113,3 +118,79 @@ def test_a_bad_profile_is_refused_with_its_line_numbers_and_nothing_is_archived(
     assert f"{export}:6: level_left_mm: 'oops' is not a finite number" in result.stderr
     assert result.stderr.strip().splitlines()[-1].startswith("trackfusion import-trc: --profile")
     assert not archive.exists()
+
+
+EXPORT = (
+    "line,segment,t,top6_mm,align10_mm,run_id\n"
+    "L1,s00001,2026-03-01T10:00:00Z,4.2,3.1,r1\n"
+    "L1,s00002,2026-03-01T10:00:09Z,3.9,2.8,r1\n"
+)
+
+
+@pytest.fixture
+def start_filtering(open_session, service_config, tmp_path, service_thread):
+    """``start_filtering()``: a filtering instance in a thread, with the example models
+    answered on model/** (for calibration), ready when it returns."""
+    models = [(keys.key_of(service_config.ns, m), encode(m)) for m in example_models(30, seed=0)]
+
+    def on_query(query: zenoh.Query) -> None:
+        for key, payload in models:
+            if query.key_expr.intersects(zenoh.KeyExpr(key)):
+                query.reply(key, payload)
+
+    queryable = open_session().declare_queryable(keys.model_all(service_config.ns), on_query)
+
+    def start():
+        return service_thread(
+            "filtering",
+            lambda stop: service.main(
+                service_config,
+                db=tmp_path / "filtering.sqlite",
+                stop=stop,
+                handle_signals=False,
+            ),
+            alive=keys.alive(service_config.ns, service.SERVICE, "test"),
+        )
+
+    yield start
+    queryable.undeclare()
+
+
+def test_a_profile_import_is_confirmed_by_the_running_filtering(
+    start_filtering, router, namespace, tmp_path
+):
+    start_filtering()
+    result = run_cli(
+        "import-trc", "--profile", str(EXAMPLES / "trc-L1-run1.csv"), "--line", "L1",
+        "--run-id", "r1", "--t", "2026-03-02T09:00:00Z", "--connect", router, "--ns", namespace,
+        "--archive", str(tmp_path / "trc-profiles.sqlite"), timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert f"confirmed {len(SEGMENTS)} of {len(SEGMENTS)} TRC records" in result.stdout
+
+
+def test_an_import_is_put_again_until_filtering_starts_and_holds_it(
+    start_filtering, spawn, router, namespace, tmp_path
+):
+    export = tmp_path / "trc.csv"
+    export.write_text(EXPORT)
+    wiring = ("--connect", router, "--ns", namespace)
+    importing = spawn("import", "import-trc", str(export), *wiring, "--wait-s", "120")
+    assert importing.line(60) == "published 2 TRC records, 0 bad rows"
+    assert importing.line(60).startswith("waiting up to 120 s for filtering to confirm 2")
+    start_filtering()  # after the records went out: it gets them from the command's puts
+    assert importing.wait(120) == 0, importing.log()
+    assert "confirmed 2 of 2 TRC records" in importing.stdout()
+
+
+def test_an_import_no_filtering_holds_names_its_segments_and_fails(router, namespace, tmp_path):
+    export = tmp_path / "trc.csv"
+    export.write_text(EXPORT)
+    result = run_cli(
+        "import-trc", str(export), "--connect", router, "--ns", namespace, "--wait-s", "2",
+        timeout=60,
+    )  # fmt: skip
+    assert result.returncode == EXIT_UNCONFIRMED, result.stderr
+    assert "confirmed 0 of 2 TRC records" in result.stdout
+    assert "not confirmed: L1/s00001, L1/s00002" in result.stdout
+    assert "run the same import again" in result.stderr

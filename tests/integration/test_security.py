@@ -349,6 +349,17 @@ def test_queries_reach_only_the_services_allowed_to_ask(
     assert not answered.is_set()
     queryable.undeclare()
 
+    # `import-trc` asks filtering's states whether it holds its records.
+    states = filtering.declare_queryable(
+        f"{ns}/q/state/**", lambda query: query.reply(f"{ns}/q/state/L1/s1", b"state")
+    )
+    trc_import = open_as("trc-import")
+    replies = [
+        r.ok.key_expr for r in trc_import.get(f"{ns}/q/state/L1/s1", timeout=TIMEOUT_S) if r.ok
+    ]
+    assert [str(k) for k in replies] == [f"{ns}/q/state/L1/s1"]
+    states.undeclare()
+
 
 def test_a_service_runtime_works_under_the_profile(
     ca: CertificateAuthority,
