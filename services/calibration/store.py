@@ -14,6 +14,7 @@ import copy
 import json
 import math
 import sqlite3
+import threading
 from pathlib import Path
 
 from schemas import (
@@ -118,10 +119,18 @@ class SqliteStore:
         columns = {row[1] for row in self._db.execute("PRAGMA table_info(models)")}
         if "published_at" not in columns:  # a file from before publication times were kept
             self._db.execute("ALTER TABLE models ADD COLUMN published_at REAL")
+        # close() may come from the opening thread while the worker is still in apply() (a
+        # worker that did not stop within the runtime's grace): closing a connection in use
+        # crashes the interpreter, so both hold this lock; apply() after close() raises.
+        self._lock = threading.Lock()
 
     def apply(self, changes: Changes) -> None:
         if not changes:
             return
+        with self._lock:
+            self._apply(changes)
+
+    def _apply(self, changes: Changes) -> None:
         db = self._db
         db.execute("BEGIN")
         try:
@@ -238,4 +247,5 @@ class SqliteStore:
         return state
 
     def close(self) -> None:
-        self._db.close()
+        with self._lock:
+            self._db.close()
