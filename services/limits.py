@@ -31,6 +31,18 @@ DEFAULT_LIMITS_FILE = default_file("limits.json5")
 _BAND = re.compile(r"^(?:(\d+(?:\.\d+)?)<)?v<=(\d+(?:\.\d+)?)$")
 
 
+def add_limits_argument(parser, what: str) -> None:
+    """``--limits FILE``: the limits file, read with :func:`load_limits`; ``what`` says what
+    the command takes from it."""
+    parser.add_argument(
+        "--limits",
+        metavar="FILE",
+        type=Path,
+        default=DEFAULT_LIMITS_FILE,
+        help=f"{what} (default: %(default)s)",
+    )
+
+
 def speed_band(name: str) -> tuple[float, float]:
     """``(low, high]`` km/h of a speed class name (``"v<=80"``: (0, 80]); ValueError when the
     name is not of that form."""

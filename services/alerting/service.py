@@ -36,7 +36,12 @@ from schemas import (
 from services.alerting.core import AlertingConfig, AlertingCore
 from services.alerting.store import AlertStore
 from services.defaults import add_network_argument, default_file, load_network
-from services.limits import DEFAULT_LIMITS_FILE, load_limits, network_line_speeds
+from services.limits import (
+    DEFAULT_LIMITS_FILE,
+    add_limits_argument,
+    load_limits,
+    network_line_speeds,
+)
 from services.runtime.config import (
     RuntimeConfig,
     add_db_argument,
@@ -209,13 +214,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=DEFAULT_ALERTING_FILE,
         help="alerting thresholds, JSON5 (default: %(default)s)",
     )
-    parser.add_argument(
-        "--limits",
-        metavar="FILE",
-        type=Path,
-        default=DEFAULT_LIMITS_FILE,
-        help="alert and intervention limits per line, JSON5 (default: %(default)s)",
-    )
+    add_limits_argument(parser, "alert and intervention limits per line, JSON5")
     add_network_argument(
         parser,
         "its line speeds choose the speed class of lines the limits do not name",

@@ -41,6 +41,7 @@ from schemas import (
 from services.defaults import default_file, load_network
 from services.limits import (
     DEFAULT_LIMITS_FILE,
+    add_limits_argument,
     load_immediate_action,
     load_limits,
     network_line_speeds,
@@ -338,13 +339,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=DEFAULT_PLANNING_FILE,
         help="costs, capacity, risk limit, horizon, JSON5 (default: %(default)s)",
     )
-    parser.add_argument(
-        "--limits",
-        metavar="FILE",
-        type=Path,
-        default=DEFAULT_LIMITS_FILE,
-        help="intervention and immediate-action limits per line, JSON5 (default: %(default)s)",
-    )
+    add_limits_argument(parser, "intervention and immediate-action limits per line, JSON5")
     parser.add_argument(
         "--network", metavar="FILE.geojson", help="segments and their order (default: the demo)"
     )

@@ -38,7 +38,13 @@ from schemas import (
 )
 from schemas.keys import SegmentId
 from services.defaults import add_network_argument
-from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits, network_line_speeds
+from services.limits import (
+    DEFAULT_LIMITS_FILE,
+    Limits,
+    add_limits_argument,
+    load_limits,
+    network_line_speeds,
+)
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, config_from_args
 from services.tools import maintenance_plan
 from services.tools.query import QUERY_TIMEOUT_S, ask, open_session
@@ -487,13 +493,7 @@ def state_add_arguments(parser: argparse.ArgumentParser) -> None:
         "segment", metavar="LINE/SEGMENT", help="e.g. L1/s00042, or L1/** for a line"
     )
     add_network_argument(parser, "the lines' names and speeds")
-    parser.add_argument(
-        "--limits",
-        metavar="FILE",
-        type=Path,
-        default=DEFAULT_LIMITS_FILE,
-        help="the limits file the services apply: the lines' speed classes (default: %(default)s)",
-    )
+    add_limits_argument(parser, "the limits file the services apply: the lines' speed classes")
     add_query_arguments(parser)
 
 

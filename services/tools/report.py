@@ -35,7 +35,7 @@ from schemas import (
     keys,
 )
 from services.defaults import add_network_argument
-from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits
+from services.limits import DEFAULT_LIMITS_FILE, Limits, add_limits_argument, load_limits
 from services.runtime.config import RuntimeConfig, config_from_args
 from services.tools import maintenance_plan, operator
 from services.tools.network_map import NetworkMap, network_map
@@ -761,13 +761,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--line", help="one line (default: all lines)")
     parser.add_argument("--out", default=DEFAULT_OUT, metavar="FILE.html", help="(%(default)s)")
     add_network_argument(parser, "the geometry and the line speeds")
-    parser.add_argument(
-        "--limits",
-        metavar="FILE",
-        type=Path,
-        default=DEFAULT_LIMITS_FILE,
-        help="the limits file the services apply (default: %(default)s)",
-    )
+    add_limits_argument(parser, "the limits file the services apply")
     parser.add_argument(
         "--worst", type=int, default=WORST_N, metavar="N", help="fans drawn (%(default)s)"
     )
