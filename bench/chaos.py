@@ -273,13 +273,24 @@ class SmallDisk:
             subprocess.run(["umount", "-l", str(self.path)], capture_output=True)
 
 
-def the_world(args: argparse.Namespace, network: Path) -> list:
-    """What the simulator publishes with these flags (same seed, same bytes)."""
+def simulated_world(network: str | Path, days: float, seed: int, trains: int) -> list:
+    """The events ``trackfusion simulate --fidelity index`` publishes with these flags (same
+    seed, same bytes)."""
     start = datetime.fromisoformat(DEFAULT_START).timestamp()
-    spec = WorldSpec(
-        load_network(str(network)), load_config(None), start, args.days, args.seed, args.trains
-    )
+    spec = WorldSpec(load_network(str(network)), load_config(None), start, days, seed, trains)
     return [m for _, batch in world_events(spec) for m in batch if isinstance(m, EVENTS)]
+
+
+def undisturbed_states(ns: str, world: list, models: dict[str, bytes]) -> dict[str, bytes]:
+    """``{q/state key: payload}`` one filtering instance reaches on ``world`` with ``models``
+    (``{model key: payload}``, as calibration answers them)."""
+    limits = load_limits(DEFAULT_LIMITS_FILE)
+    decoded = [
+        decode(p, Calibration if keys.model_kind(k) == "calibration" else DegradationPosterior)
+        for k, p in models.items()
+    ]
+    tracker = Tracker(limits.for_line, limits.levels)
+    return {keys.q_state(ns, s.line, s.segment): encode(s) for s in tracker.load(decoded, world)}
 
 
 def inject(
@@ -352,23 +363,13 @@ class Reference:
 
     def __init__(self, ns: str, world: list) -> None:
         self.ns, self.world = ns, world
-        self.limits = load_limits(DEFAULT_LIMITS_FILE)
         self._models: dict[str, bytes] = {}
         self.states: dict[str, bytes] = {}
 
     def update(self, models: dict[str, bytes]) -> None:
-        if models == self._models:
-            return
-        decoded = [
-            decode(p, Calibration if keys.model_kind(k) == "calibration" else DegradationPosterior)
-            for k, p in models.items()
-        ]
-        tracker = Tracker(self.limits.for_line, self.limits.levels)
-        self.states = {
-            keys.q_state(self.ns, s.line, s.segment): encode(s)
-            for s in tracker.load(decoded, self.world)
-        }
-        self._models = models
+        if models != self._models:
+            self.states = undisturbed_states(self.ns, self.world, models)
+            self._models = models
 
 
 def answers(session: zenoh.Session, selector: str) -> dict[str, bytes]:
@@ -431,7 +432,7 @@ def run(args: argparse.Namespace) -> dict:
     out = Path(args.out or tempfile.mkdtemp(prefix="chaos-"))
     out.mkdir(parents=True, exist_ok=True)
     network, line = network_file(args, out)
-    world = the_world(args, network)
+    world = simulated_world(network, args.days, args.seed, args.trains)
     args.speedup = args.speedup or args.days * 86400 / (0.7 * args.minutes * 60)
     disk = SmallDisk(out / "store", args.store_mb)
     stack = Stack(args, out, network, disk.path)

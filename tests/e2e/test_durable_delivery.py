@@ -15,16 +15,16 @@ from __future__ import annotations
 
 import signal
 import sys
-import threading
 from pathlib import Path
 
 import zenoh
 from outbox_producer import flood
 
-from schemas import SegmentState, decode, encode, keys
+from schemas import encode, keys
 from services.filtering.tracker import Tracker
 from services.limits import load_limits
 from services.runtime.config import zenoh_config
+from tests.e2e.stacks import FoldProgress
 
 READY_S = 60.0
 SEGMENTS, PASSES = 3000, 2  # 9,000 events on 3,000 keys of each kind
@@ -54,21 +54,8 @@ def test_kills_during_a_flood_change_no_final_state(
     alive = liveliness_events(session, alive_key)
     config = tmp_path / "filtering.json5"
     config.write_text("{services: {delivery: {replay_s: 1}}}")
-    folded: dict[str, int] = {}  # segment -> n_updates of its newest state
-    lock = threading.Lock()
-    indexed = threading.Event()  # a first state with an index folded
-    done = threading.Event()
-
-    def on_state(sample: zenoh.Sample) -> None:
-        state = decode(sample.payload.to_bytes(), SegmentState)
-        with lock:
-            folded[state.segment] = max(folded.get(state.segment, 0), state.n_updates)
-            if len(folded) == SEGMENTS and min(folded.values()) == PASSES:
-                done.set()
-        if state.n_updates:
-            indexed.set()
-
-    subscriber = session.declare_subscriber(keys.segment_keys(namespace, "state"), on_state)
+    progress = FoldProgress(SEGMENTS, PASSES)
+    subscriber = session.declare_subscriber(keys.segment_keys(namespace, "state"), progress)
     stack.callback(subscriber.undeclare)
 
     def start_filtering():
@@ -100,12 +87,12 @@ def test_kills_during_a_flood_change_no_final_state(
     filtering = start_filtering()
     producer = start_producer(2)  # on its outbox: phases 0 and 1 only there
     assert producer.line(READY_S) == "phase 2", producer.log()
-    assert indexed.wait(FOLD_S), filtering.log()
+    assert progress.indexed.wait(FOLD_S), filtering.log()
     kill_filtering(filtering)
     filtering = start_filtering()
-    assert done.wait(FOLD_S), (
-        f"{len(folded)} segments with a state, "
-        f"{sum(n < PASSES for n in folded.values())} short of {PASSES} updates{filtering.log()}"
+    assert progress.done.wait(FOLD_S), (
+        f"{len(progress.folded)} segments with a state, "
+        f"{len(progress.short())} short of {PASSES} updates{filtering.log()}"
     )
     replies = session.get(keys.q_state_all(namespace), timeout=10)
     got = {

@@ -13,61 +13,29 @@ import json
 import signal
 import threading
 from collections.abc import Callable
-from datetime import datetime
 
 import zenoh
 from support import accepts_connections, outbox_config, wait_for
 
+from bench.chaos import simulated_world, undisturbed_states
 from bench.linkproxy import LinkProxy
 from schemas import (
     DAY_S,
-    Calibration,
-    DegradationPosterior,
     InspectionPlan,
-    MaintenanceEvent,
     OnboardIndex,
     SegmentState,
-    TrcRecord,
     decode,
     encode,
     keys,
 )
 from schemas.keys import SegmentId
-from services.defaults import load_network
 from services.filtering.testing import states_by_instance
-from services.filtering.tracker import Tracker
-from services.limits import DEFAULT_LIMITS_FILE, load_limits
 from services.runtime.config import zenoh_config
 from services.runtime.delivery import ReliableSubscription
 from simulators.network import generate_network
-from simulators.run import DEFAULT_START
-from simulators.truth import load_config
-from simulators.world import WorldSpec, world_events
 
 DAYS, TRAINS, SPEEDUP = 100, 2, 120_000.0  # ≈ 72 s of publishing
 WAIT_S = 120.0
-EVENTS = (OnboardIndex, TrcRecord, MaintenanceEvent)
-
-
-def the_world(network_path: str) -> list[OnboardIndex | TrcRecord | MaintenanceEvent]:
-    """What `trackfusion simulate` publishes with these flags (same seed, same bytes)."""
-    start = datetime.fromisoformat(DEFAULT_START).timestamp()
-    spec = WorldSpec(load_network(network_path), load_config(None), start, DAYS, 1, TRAINS)
-    return [m for _, batch in world_events(spec) for m in batch if isinstance(m, EVENTS)]
-
-
-def uninterrupted_states(ns: str, world, models: dict[str, bytes]) -> dict[str, bytes]:
-    """The states one filtering instance reaches on the whole world with these models."""
-    limits = load_limits(DEFAULT_LIMITS_FILE)
-    tracker = Tracker(limits.for_line, limits.levels)
-    decoded = [
-        decode(
-            payload, Calibration if keys.model_kind(key) == "calibration" else DegradationPosterior
-        )
-        for key, payload in models.items()
-    ]
-    states = tracker.load(decoded, world)
-    return {keys.q_state(ns, s.line, s.segment): encode(s) for s in states}
 
 
 class Progress:
@@ -110,7 +78,7 @@ def test_every_fault_in_turn_leaves_the_uninterrupted_states(
     ns = namespace
     network = tmp_path / "net.geojson"
     network.write_text(json.dumps(generate_network(1, 6.0, seed=3).to_geojson()))
-    world = the_world(str(network))
+    world = simulated_world(network, DAYS, 1, TRAINS)
     distinct = len({encode(m) for m in world})
     endpoint = f"tcp/127.0.0.1:{free_port}"
     wiring = ["--connect", endpoint, "--ns", ns]
@@ -218,7 +186,7 @@ def test_every_fault_in_turn_leaves_the_uninterrupted_states(
 
         def converged() -> bool:
             nonlocal reference, replies
-            reference = uninterrupted_states(ns, world, models_of(session, ns))
+            reference = undisturbed_states(ns, world, models_of(session, ns))
             replies = states_by_instance(session, ns)
             return len(replies) == 2 and all(states == reference for states in replies.values())
 

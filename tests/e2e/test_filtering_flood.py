@@ -11,15 +11,15 @@ withdrawn 8 s in; with the inbox every index is folded and the token stays.
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
 import zenoh
 
-from schemas import Calibration, OnboardIndex, SegmentState, TrcRecord, decode, encode, keys
+from schemas import Calibration, OnboardIndex, TrcRecord, encode, keys
 from services.filtering.testing import example_models
 from services.runtime.config import zenoh_config
+from tests.e2e.stacks import FoldProgress
 
 READY_S = 30.0
 SEGMENTS, PASSES = 1000, 30  # 30,000 indices: a service that drops under load loses most
@@ -37,18 +37,8 @@ def test_a_flood_is_folded_whole_and_the_instance_stays_alive(
     session = stack.enter_context(zenoh.open(zenoh_config(settings)))
     alive_key = keys.alive(namespace, "filtering", "flood")
     alive = liveliness_events(session, alive_key)
-    folded = {}  # segment -> n_updates of its newest state
-    done = threading.Event()
-    lock = threading.Lock()
-
-    def on_state(sample: zenoh.Sample) -> None:
-        state = decode(sample.payload.to_bytes(), SegmentState)
-        with lock:
-            folded[state.segment] = max(folded.get(state.segment, 0), state.n_updates)
-            if len(folded) == SEGMENTS and min(folded.values()) == PASSES:
-                done.set()
-
-    subscriber = session.declare_subscriber(keys.segment_keys(namespace, "state"), on_state)
+    progress = FoldProgress(SEGMENTS, PASSES)
+    subscriber = session.declare_subscriber(keys.segment_keys(namespace, "state"), progress)
     stack.callback(subscriber.undeclare)
     filtering = spawn(
         "filtering",
@@ -87,13 +77,12 @@ def test_a_flood_is_folded_whole_and_the_instance_stays_alive(
             )
 
     deadline = time.monotonic() + FOLD_S
-    while not done.wait(1.0) and time.monotonic() < deadline:
+    while not progress.done.wait(1.0) and time.monotonic() < deadline:
         # a withdrawn token is the loss itself: fail at once, not at the deadline
         assert alive.empty(), f"the token was withdrawn during the flood{filtering.log()}"
-    with lock:
-        short = {s: n for s, n in folded.items() if n < PASSES}
+    short = progress.short()
     assert alive.empty(), f"the token was withdrawn during the flood{filtering.log()}"
-    assert done.is_set(), (
-        f"{len(folded)} segments with a state, {len(short)} short of {PASSES} updates "
+    assert progress.done.is_set(), (
+        f"{len(progress.folded)} segments with a state, {len(short)} short of {PASSES} updates "
         f"(e.g. {dict(list(short.items())[:5])}){filtering.log()}"
     )
