@@ -201,6 +201,9 @@ class Calibrator:
         self._clock_top = [(float(t), line, seg) for t, line, seg in state.meta.get("clock", [])]
         self._reported = set(state.meta.get("reported", []))
         self._attempt_at = int(state.meta.get("attempt_at", 0))
+        # without them a restart refits every unit on the fleet model then in force: versions
+        # an undisturbed run never publishes
+        self._unit_fit_at = {(t, u): int(n) for t, u, n in state.meta.get("unit_fit_at", [])}
         self.stats.update(state.meta.get("stats", {}))
         self.rejections.extend(state.meta.get("rejections", []))
         self._dirty = set(self._trc) | set(self._maint)
@@ -210,6 +213,7 @@ class Calibrator:
     def _meta(self) -> dict[str, Any]:
         return {
             "attempt_at": self._attempt_at,
+            "unit_fit_at": [[t, u, n] for (t, u), n in sorted(self._unit_fit_at.items())],
             "now": self._now if math.isfinite(self._now) else None,
             "clock": [list(c) for c in self._clock_top],
             "reported": sorted(self._reported),
@@ -638,6 +642,7 @@ class Calibrator:
         base: Calibration = fleet.message  # type: ignore[assignment]
         for (train, unit), ps in sorted(due.items()):
             self._unit_fit_at[(train, unit)] = len(ps)
+            self._changes.meta = {}  # the units' fit positions are part of meta
             key = unit_key(train, unit)
             try:
                 fit, cal = unit_calibration(

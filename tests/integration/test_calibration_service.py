@@ -24,6 +24,7 @@ from schemas import (
 )
 from services.calibration import service
 from services.calibration.config import CalibratorConfig
+from services.calibration.store import SqliteStore
 
 BLOCK = zenoh.CongestionControl.BLOCK  # a fast burst of puts is otherwise dropped
 T0 = 1_735_689_600.0  # 2025-01-01
@@ -144,20 +145,20 @@ def test_models_from_data_late_joiners_dead_letters_and_restart(
 
     n_pairs = len(LINES) * SEGMENTS * RUNS
     n_increments = len(LINES) * SEGMENTS * (RUNS - 2)  # one spans the tamping
-    latest: dict[str, Calibration | DegradationPosterior] = {}
+    latest: dict[str, Calibration | DegradationPosterior] = {}  # by key: units have theirs
     while not (
-        isinstance(cal := latest.get("calibration"), Calibration)
+        isinstance(cal := latest.get(keys.calibration(ns)), Calibration)
         and cal.n_pairs > n_pairs - settings.core.refit_every  # the last refit
-        and getattr(latest.get("net"), "n_increments", 0) == n_increments
+        and getattr(latest.get(keys.degradation(ns, "net")), "n_increments", 0) == n_increments
     ):
         model = models.get()
-        latest["calibration" if isinstance(model, Calibration) else model.group] = model
+        latest[keys.key_of(ns, model)] = model
 
-    cal = latest["calibration"]
+    cal = latest[keys.calibration(ns)]
     np.testing.assert_allclose(cal.H.array(), H, atol=0.15)
     np.testing.assert_allclose(cal.b.array(), B, atol=0.2)
     np.testing.assert_allclose(cal.R.array(), R, atol=0.01)
-    net = latest["net"]
+    net = latest[keys.degradation(ns, "net")]
     assert net.n_levels == len(LINES) * SEGMENTS and net.mu.shape == [50, 2]
     assert np.all(np.abs(net.mu.array().mean(axis=0) - MU) < 5e-4)
 
@@ -168,6 +169,11 @@ def test_models_from_data_late_joiners_dead_letters_and_restart(
     assert {k.rsplit("/", 1)[1] for k in replies} >= {"calibration", "net", "line.L1"}
     assert running.stop() == 0
 
-    # restart on the same file: the same models, versions and samples
+    # restart on the same file: the same models, versions and samples as the stopped service
+    # last published (a unit's refit may have come after the late join above)
+    store = SqliteStore(settings.db)
+    stored = {keys.key_of(ns, e.message): encode(e.message) for e in store.load().models}
+    store.close()
+    assert stored.keys() == replies.keys()
     run_service(settings)
-    assert late_join(open_session(), ns) == replies
+    assert late_join(open_session(), ns) == stored

@@ -105,6 +105,9 @@ def test_unit_models_survive_a_restart(tmp_path):
     ).load())  # fmt: skip
     assert again.unit_calibrations == core.unit_calibrations
     assert unit_key("TA", "u1") in again.published_at
+    # and it goes on as if never stopped: the same next events publish the same models
+    more = unit_pairs(rng, 3, [0.2, 0.0], train="TA", start=300)
+    assert again.step(more) == core.step(more)
 
 
 def test_a_tamping_correction_replaces_the_report_in_calibration_whatever_the_order(tmp_path):
