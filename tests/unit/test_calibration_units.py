@@ -179,3 +179,30 @@ def test_a_vertical_only_unit_gets_its_model_from_its_pairs_and_keeps_it(tmp_pat
     assert np.isnan(again._partial_pairs[0].y[1])
     assert again.ingest(events[-1]) is False  # a paired index is known after a restart
     store.close()
+
+
+def test_a_restart_after_any_batch_publishes_what_the_undisturbed_run_publishes(tmp_path):
+    """Fleet, units, posteriors and tampings in batches; stopped after batch k and restarted
+    on its store, the core publishes, batch by batch, the same models as if never stopped."""
+    from tests.unit.test_calibration_service_core import histories
+
+    rng = np.random.default_rng(4)
+    events = campaign(35, rng) + histories(rng, segs=3, records=6)
+    events += unit_pairs(rng, 25, [0.2, -0.1], train="TA") + campaign(30, rng, start=35)
+    events += unit_pairs(rng, 25, [0.2, -0.1], train="TA", start=100)
+    batches = [events[k : k + 9] for k in range(0, len(events), 9)]
+    cfg = CalibratorConfig(min_pairs=30, refit_every=10, samples=30, seed=5, **ONE_AT_A_TIME)
+    undisturbed = Calibrator(cfg)
+    published = [undisturbed.step(b) for b in batches]
+    assert sum(map(len, published)) > 10
+    for cut in rng.choice(np.arange(1, len(batches)), size=4, replace=False):
+        store = SqliteStore(tmp_path / f"cut{cut}.sqlite")
+        core = Calibrator(cfg, store.load())
+        for b in batches[:cut]:
+            core.step(b)
+            store.apply(core.drain_changes())
+        store.close()
+        store = SqliteStore(tmp_path / f"cut{cut}.sqlite")
+        again = Calibrator(cfg, store.load())
+        assert [again.step(b) for b in batches[cut:]] == published[cut:], f"cut after {cut}"
+        store.close()
