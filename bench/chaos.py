@@ -387,16 +387,26 @@ def compare(session: zenoh.Session, reference: Reference) -> dict:
     missing = [k for k in expected if k not in states]
     differ = [k for k in expected if k in states and states[k] != expected[k]]
     fewer_updates = 0
+    how: Counter[str] = Counter()  # what a differing state differs in, to find the cause
     for k in differ:
         ref, got = decode(expected[k], SegmentState), decode(states[k], SegmentState)
         if ref.last_trc_t == got.last_trc_t:
             fewer_updates += max(0, ref.n_updates - got.n_updates)
+        how.update(
+            name
+            for name in ("t", "last_trc_t", "n_updates", "calibration_version",
+                         "posterior_version", "posterior_group")
+            if getattr(ref, name) != getattr(got, name)
+        )  # fmt: skip
+        if ref.n_updates != got.n_updates:
+            how["more_updates" if got.n_updates > ref.n_updates else "fewer_updates"] += 1
     return {
         "segments": len(expected),
         "answered": len(states),
         "missing": len(missing),
         "differ": len(differ),
         "updates_missing_on_same_trc": fewer_updates,
+        "differ_in": dict(sorted(how.items())),
         "examples": (missing + differ)[:5],
     }
 

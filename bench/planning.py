@@ -6,11 +6,16 @@ tampings are off. Each line is recorded by a TRC run every ``--trc-weeks`` weeks
 noise sd 0.02). A reached immediate-action limit (IAL) forces an unplanned tamping a week
 later. Policies, on the same world (paired seeds):
 
-- ``planner``: the planning core, re-planned weekly from the last TRC record of every
-  segment and the population's degradation posterior (the simulator's classes and spread),
-  tamping what week 0 of its plan says;
-- ``point``: the same optimiser on point forecasts (the posterior's mean parameters, the
-  record taken as exact);
+- ``planner``: the planning core, re-planned weekly from the live fused estimate of every
+  segment, as in production: the filtering core (:class:`~services.filtering.tracker.Tracker`)
+  folds every TRC record, every tamping record and ``--passes`` on-board indices a segment a
+  day (the simulator's observation model ``y = H z + b + e``, whose H, b, R it is given), over
+  the population's degradation posterior (the simulator's classes and spread); it tamps what
+  week 0 of its plan says;
+- ``planner-trc``: the same, from the last TRC record of every segment only (no on-board
+  data: what the planner is worth without the fusion);
+- ``point``: the same optimiser on point forecasts: the same fused estimates' means taken as
+  exact, the posterior's mean parameters;
 - ``threshold``: tamp (the shortest worksite around it) when the last TRC record exceeds the
   intervention limit, within the week's capacity;
 - ``cycle``: every section of 25 segments tamped every ``--cycle-years``, staggered;
@@ -34,17 +39,29 @@ from collections import defaultdict
 
 import numpy as np
 
-from schemas import DAY_S, INDICATORS, DegradationPosterior, MaintenanceEvent
+from schemas import (
+    DAY_S,
+    INDICATORS,
+    Calibration,
+    DegradationPosterior,
+    MaintenanceEvent,
+    OnboardIndex,
+    SegmentState,
+    TrcRecord,
+)
 from services.defaults import load_network
+from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_immediate_action, load_limits
 from services.planning.core import Costs, PlanningConfig, PlanningCore, SegmentRef, week_start
 from services.planning.testing import f8, make_state
 from simulators.network import generate_network, stable_rng
+from simulators.index_model import IndexSensorModel
 from simulators.truth import Truth, load_config
 
 START = 1_767_571_200.0  # 2026-01-05T00:00:00Z, a Monday
 TRC_NOISE = 0.02
-POLICIES = ("planner", "point", "threshold", "cycle", "oracle")
+POLICIES = ("planner", "planner-trc", "point", "threshold", "cycle", "oracle")
+FUSED = ("planner", "point")  # the policies that plan from the filtering core's states
 
 
 def world_config() -> dict:
@@ -80,6 +97,64 @@ def _posterior(group, mu, sigma, zp, szp) -> DegradationPosterior:
     )  # fmt: skip
 
 
+class FusedStates:
+    """The filtering core on one world: fed what the network would tell it, asked weekly for
+    every segment's SegmentState (the planner's input in production)."""
+
+    def __init__(self, refs, cfg: dict, seed: int, posterior: DegradationPosterior, limits,
+                 passes: int) -> None:  # fmt: skip
+        self.refs = refs
+        self.sids = [(r.line, r.segment) for r in refs]
+        self.sensor = IndexSensorModel.from_config(cfg)
+        self.passes = passes
+        self.rng = stable_rng(seed, "bench-onboard")
+        self.tracker = Tracker(limits.for_line, limits.levels, detect_maintenance=False)
+        calibration = Calibration(
+            version=1, t=START, indicators=list(INDICATORS), indices=list(INDICATORS),
+            H=f8(self.sensor.H), b=f8(self.sensor.b), R=f8(self.sensor.R), n_pairs=1000,
+            r2=f8([0.9, 0.9]),
+        )  # fmt: skip
+        self.tracker.update_models([calibration, posterior])
+        self.pending: list = []
+
+    def trc(self, rows, z_seen: np.ndarray, t: float, run_id: str) -> None:
+        for i in rows:
+            top, align = np.exp(z_seen[i])
+            ref = self.refs[i]
+            self.pending.append(TrcRecord(line=ref.line, segment=ref.segment, t=t,
+                                          top6_mm=float(top), align10_mm=float(align),
+                                          run_id=run_id))  # fmt: skip
+
+    def tamping(self, event: MaintenanceEvent) -> None:
+        self.pending.append(event)
+
+    def onboard(self, z: np.ndarray, t: float) -> None:
+        """``passes`` indices of every segment of the state ``z`` at ``t``, a minute apart
+        (the truth steps a day at a time)."""
+        for k in range(self.passes):
+            at = t - 60.0 * (self.passes - 1 - k)
+            y = self.sensor.indices(z, self.rng)
+            for (line, segment), (top, align) in zip(self.sids, y, strict=True):
+                self.pending.append(OnboardIndex(
+                    line=line, segment=segment, train="T1", unit="u1", t=at,
+                    top6_mm=float(top), align10_mm=float(align), speed_mps=30.0, coverage=1.0,
+                ))  # fmt: skip
+
+    def states(self) -> list[SegmentState]:
+        pending, self.pending = self.pending, []
+        reasons, *_ = self.tracker.fold_events(pending)
+        refused = [r for r in reasons if r]
+        if refused:
+            raise RuntimeError(f"the filter refused {len(refused)} events: {refused[0]}")
+        return self.tracker.states_of(self.sids)
+
+
+def exact(state: SegmentState) -> SegmentState:
+    """``state`` with its mean taken as exact (the point forecasts' input)."""
+    return make_state(state.line, state.segment, state.t, mean_mm=np.exp(state.mean.array()),
+                      sd_log=(1e-4, 1e-4), group=state.posterior_group)  # fmt: skip
+
+
 class Loop:
     """One policy on one seed's world for ``weeks`` weeks."""
 
@@ -110,8 +185,11 @@ class Loop:
         self.trc_t = np.full(len(self.refs), np.nan)
         self.trc_rng = stable_rng(seed, "bench-trc-noise")
         self.trc_runs = 0
-        if policy in ("planner", "point"):
+        self.fused: FusedStates | None = None
+        if policy in ("planner", "planner-trc", "point"):
             post = population_posterior(cfg, args.samples, seed)
+            if policy in FUSED:
+                self.fused = FusedStates(self.refs, cfg, seed, post, self.limits, args.passes)
             if policy == "point":
                 mean = lambda a: a.array().mean(axis=0, keepdims=True)  # noqa: E731
                 post = _posterior("net", mean(post.mu), mean(post.sigma), mean(post.z_plus),
@@ -145,10 +223,15 @@ class Loop:
             z = self.truth.z[rows]
             self.trc_seen[rows] = z + TRC_NOISE * self.trc_rng.standard_normal(z.shape)
             self.trc_t[rows] = self.truth.t
+            if self.fused is not None:
+                self.fused.trc(rows, self.trc_seen, self.truth.t, f"{line}-w{week}")
 
     def feed(self) -> None:
-        exact = self.policy in ("point", "oracle")
-        sd = 1e-4 if exact else TRC_NOISE
+        if self.fused is not None:
+            for state in self.fused.states():
+                self.core.on_state(exact(state) if self.policy == "point" else state)
+            return
+        sd = 1e-4 if self.policy == "oracle" else TRC_NOISE
         for i, ref in enumerate(self.refs):
             if self.policy == "oracle":
                 z, t, group = self.truth.z[i], self.truth.t, f"g{i}"
@@ -163,7 +246,7 @@ class Loop:
 
     def decide(self, week: int) -> np.ndarray:
         now = self.truth.t
-        if self.policy in ("planner", "point", "oracle"):
+        if self.policy in ("planner", "planner-trc", "point", "oracle"):
             self.feed()
             plan = self.core.plan(now)
             index = {(r.line, r.segment): i for i, r in enumerate(self.refs)}
@@ -198,6 +281,8 @@ class Loop:
         self.tamp(tamp, t_mid, planned=True)
         for _ in range(7):
             self.truth.step()
+            if self.fused is not None:
+                self.fused.onboard(self.truth.z, self.truth.t)
             above_il = (self.truth.z > self.log_il).any(axis=1)
             above_ial = (self.truth.z > self.log_ial).any(axis=1)
             self.figures["days_il"] += above_il.sum()
@@ -234,9 +319,11 @@ class Loop:
         tells the planner (it starts the minimum interval)."""
         self.last_tamped[i] = t
         ref = self.refs[i]
-        self.core.on_maintenance(MaintenanceEvent(line=ref.line, segment=ref.segment,
-                                                  event_id=f"b{i}-{t:.0f}", t_start=t,
-                                                  t_end=t))  # fmt: skip
+        event = MaintenanceEvent(line=ref.line, segment=ref.segment, event_id=f"b{i}-{t:.0f}",
+                                 t_start=t, t_end=t)  # fmt: skip
+        self.core.on_maintenance(event)
+        if self.fused is not None:
+            self.fused.tamping(event)
 
     def wear_left(self) -> float:
         """What the track is worth less at the end than freshly tamped, by the planner's
@@ -260,6 +347,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--trc-weeks", type=int, default=9)
     parser.add_argument("--cycle-years", type=float, default=4.0)
     parser.add_argument("--samples", type=int, default=64)
+    parser.add_argument("--passes", type=int, default=1,
+                        help="on-board indices a segment a day (the fused policies)")  # fmt: skip
     parser.add_argument("--milp-s", type=float, default=1.0, help="HiGHS time per plan")
     parser.add_argument("--policies", default=",".join(POLICIES))
     parser.add_argument("--eps", type=float, default=PlanningConfig.eps, help="the risk limit")
