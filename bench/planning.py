@@ -54,8 +54,8 @@ from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_immediate_action, load_limits
 from services.planning.core import Costs, PlanningConfig, PlanningCore, SegmentRef, week_start
 from services.planning.testing import f8, make_state
-from simulators.network import generate_network, stable_rng
 from simulators.index_model import IndexSensorModel
+from simulators.network import generate_network, stable_rng
 from simulators.truth import Truth, load_config
 
 START = 1_767_571_200.0  # 2026-01-05T00:00:00Z, a Monday
