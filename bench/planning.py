@@ -175,6 +175,7 @@ class Loop:
             capacity_km_per_week=args.capacity,
             milp_s=args.milp_s,
             eps=args.eps,
+            min_interval_weeks=args.min_interval_weeks,
             costs=Costs(risk_violation_per_km=args.risk_violation_per_km),
         )
         self.core = PlanningCore(self.config, self.limits, ial, self.refs)
@@ -351,6 +352,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="on-board indices a segment a day (the fused policies)")  # fmt: skip
     parser.add_argument("--milp-s", type=float, default=1.0, help="HiGHS time per plan")
     parser.add_argument("--policies", default=",".join(POLICIES))
+    parser.add_argument(
+        "--min-interval-weeks",
+        type=float,
+        default=PlanningConfig.min_interval_weeks,
+        help="between two tampings of a segment (every policy but the cycle)",
+    )
     parser.add_argument("--eps", type=float, default=PlanningConfig.eps, help="the risk limit")
     parser.add_argument("--risk-violation-per-km", type=float,
                         default=Costs.risk_violation_per_km,

@@ -410,10 +410,18 @@ class SegmentState(Message, frozen=True, kw_only=True):
     # the indicators the last TRC record measured (the others evolved from their own state);
     # empty before any TRC record
     last_trc_indicators: list[str] = []
+    # (Ns,) f4: log w_j - max_j log w_j, the mixture weight of each sample j of the group's
+    # posterior from the segment's own on-board data since its last TRC record (the filter's
+    # departure from Eq. 13's equal weights); None: equal weights
+    log_weights: NDArray | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()
         self.check_scalars()
+        if self.log_weights is not None:
+            check_array("log_weights", self.log_weights, (None,))
+            lw = self.log_weights.array()
+            check(lw.size > 0 and bool((lw <= 0).all()), "log_weights: must be <= 0, not empty")
         n, levels = len(self.indicators), len(self.limit_levels)
         check(n > 0, "indicators: must not be empty")
         for name in ("mean", "ci_low_mm", "ci_high_mm"):

@@ -182,15 +182,10 @@ class Calibrator:
                 known[maintenance_id(ev)] = ev
         for idx in state.pending:
             self._pending.setdefault((idx.line, idx.segment), {})[index_id(idx)] = idx
-        for pair in state.pairs:
-            self._pairs.append(pair)
-            self._paired.add(pair.index_id)
-        for pair in state.quarantined:
-            self._quarantined.append(pair)
-            self._paired.add(pair.index_id)
-        for pair in state.partial_pairs:
-            self._partial_pairs.append(pair)
-            self._paired.add(pair.index_id)
+        stored = (self._pairs, state.pairs), (self._quarantined, state.quarantined)
+        for kept, pairs in (*stored, (self._partial_pairs, state.partial_pairs)):
+            kept.extend(pairs)
+            self._paired.update(pair.index_id for pair in pairs)
         for entry in state.models:
             self._models[entry.key] = entry
         for entry in state.held:
@@ -201,8 +196,7 @@ class Calibrator:
         self._clock_top = [(float(t), line, seg) for t, line, seg in state.meta.get("clock", [])]
         self._reported = set(state.meta.get("reported", []))
         self._attempt_at = int(state.meta.get("attempt_at", 0))
-        # without them a restart refits every unit on the fleet model then in force: versions
-        # an undisturbed run never publishes
+        # kept, or a restart refits every unit: versions an undisturbed run never publishes
         self._unit_fit_at = {(t, u): int(n) for t, u, n in state.meta.get("unit_fit_at", [])}
         self.stats.update(state.meta.get("stats", {}))
         self.rejections.extend(state.meta.get("rejections", []))
@@ -642,7 +636,7 @@ class Calibrator:
         base: Calibration = fleet.message  # type: ignore[assignment]
         for (train, unit), ps in sorted(due.items()):
             self._unit_fit_at[(train, unit)] = len(ps)
-            self._changes.meta = {}  # the units' fit positions are part of meta
+            self._changes.meta = {}  # part of meta
             key = unit_key(train, unit)
             try:
                 fit, cal = unit_calibration(

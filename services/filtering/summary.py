@@ -109,6 +109,7 @@ def summarize_states(
             "nis": state.nis,
             "posterior_version": posterior_versions[row],
             "posterior_group": hist.group,
+            "log_weights": _log_weights(state.log_w),
         }
         if out and checked:
             first = out[0]
@@ -129,6 +130,16 @@ def summarize_states(
             )
         out.append(summary)
     return out
+
+
+def _log_weights(log_w: np.ndarray) -> NDArray | None:
+    """The state's log weights relative to the largest, as SegmentState carries them (None
+    when they are equal: no on-board update since the TRC restart)."""
+    log_w = np.asarray(log_w, dtype=np.float64)
+    if not log_w.size or (log_w == log_w[0]).all():
+        return None
+    rel = np.maximum(log_w - log_w.max(), np.finfo(np.float32).min)  # -inf: not expected
+    return NDArray.of(rel, "f4")
 
 
 def _f8_bytes(a: np.ndarray) -> bytes:

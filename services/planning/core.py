@@ -391,19 +391,20 @@ class PlanningCore:
         mid = 7.0 * week + 3.5
         ends = 7.0 * np.arange(weeks + 1)
         for group, rows in groups.items():
-            post = self.posteriors[group][1]
+            version, post = self.posteriors[group]
             r = np.array(rows)
+            w = self._weights([idx[k] for k in rows], post, version)
             tau_mid = np.maximum(offset[r, None] + mid[None, :], 0.0)
             tau_end = np.maximum(offset[r, None] + ends[None, :], 1e-6)
-            p_il = risk.above_any(m[r], v[r], post, tau_mid, log_il[r])
+            p_il = risk.above_any(m[r], v[r], post, tau_mid, log_il[r], w)
             fp = np.zeros((len(r), weeks + 1))
-            bound = 2.0 * risk.above_each(m[r], v[r], post, tau_end[:, -1], log_ial[r]).sum(-1)
+            bound = 2.0 * risk.above_each(m[r], v[r], post, tau_end[:, -1], log_ial[r], w).sum(-1)
             hot = (bound >= risk.NEGLIGIBLE) | (not post.drift_nonnegative)
             hot |= (m[r] >= log_ial[r]).any(axis=1)
             if hot.any():
                 fp[hot] = risk.first_passage(
                     m[r][hot], v[r][hot], post, tau_end[hot], log_ial[r][hot],
-                    cfg.quadrature_nodes,
+                    cfg.quadrature_nodes, w[hot],
                 )  # fmt: skip
             fp[:, 0] = np.where((m[r] >= log_ial[r]).any(axis=1), fp[:, 0], 0.0)
             # reaching the IAL forces an unplanned tamping unplanned_delay_days later: that
@@ -416,19 +417,19 @@ class PlanningCore:
             )
             # after a tamping: per pair of limits (one per speed class), ages at mid-week;
             # a tamping in week w leaves W - w - 1 weeks, the first ones after a tamping
-            post_sum = self._cost_after_tamping(post, log_il[r], log_ial[r], weeks)
+            post_sum = self._cost_after_tamping(post, log_il[r], log_ial[r], weeks, w)
             cum_pre = np.cumsum(pre, axis=1)  # cost of weeks 0..w untamped
             tamp = c.tamping_per_km * km[r]
-            zp = post.z_plus.mean(axis=0)
-            mu = post.mu.mean(axis=0)
-            span = np.maximum(log_il[r] - zp[None, :], 1e-6)
+            zp = w @ post.z_plus  # (rows, n): each segment's mixture
+            mu = w @ post.mu
+            span = np.maximum(log_il[r] - zp, 1e-6)
             wear_tamped = np.clip(
-                (mu[None, None, :] * 7.0 * (weeks - week - 1)[None, :, None]) / span[:, None, :],
+                (mu[:, None, :] * 7.0 * (weeks - week - 1)[None, :, None]) / span[:, None, :],
                 0.0,
                 1.0,
             ).max(axis=-1)
-            end_mean = m[r] + mu[None, :] * tau_end[:, -1:]
-            wear_none = np.clip((end_mean - zp[None, :]) / span, 0.0, 1.0).max(axis=-1)
+            end_mean = m[r] + mu * tau_end[:, -1:]
+            wear_none = np.clip((end_mean - zp) / span, 0.0, 1.0).max(axis=-1)
             unplanned = c.unplanned_per_km * km[r]
             late = self._weeks_late(fp, earliest[r], weeks)
             violation = c.risk_violation_per_km * km[r, None] * late
@@ -498,22 +499,38 @@ class PlanningCore:
             groups.setdefault(group or next(iter(self.posteriors)), []).append(r)
         return m, v, offset, log_il, log_ial, km, earliest, groups
 
-    def _cost_after_tamping(self, post, log_il, log_ial, weeks: int) -> np.ndarray:
+    def _weights(self, idx: Sequence[int], post: risk.Posterior, version: int) -> np.ndarray:
+        """(len(idx), S): each segment's mixture weights over ``post``'s samples, from its
+        state's ``log_weights`` when they are of this posterior version (equal otherwise)."""
+        out = np.empty((len(idx), post.mu.shape[0]))
+        for r, i in enumerate(idx):
+            s = self.states[i]
+            lw = s.log_weights
+            same = lw is not None and s.posterior_version == version
+            out[r] = post.weights(lw.array() if same else None)  # type: ignore[union-attr]
+        return out
+
+    def _cost_after_tamping(self, post, log_il, log_ial, weeks: int, w) -> np.ndarray:
         """(rows, W): the limit costs a km from a tamping in week w to the horizon's end, per
-        pair of limits (one pair per speed class), at mid-week ages after the tamping."""
+        pair of limits (one pair per speed class), at mid-week ages after the tamping, under
+        each segment's mixture weights ``w`` (rows, S): a tamping keeps them, as the filter
+        does."""
         c = self.config.costs
         week = np.arange(weeks)
         mid = 7.0 * week + 3.5
         pairs, inverse = np.unique(np.c_[log_il, log_ial], axis=0, return_inverse=True)
-        post_sum = np.empty((len(pairs), weeks))
+        inverse = inverse.ravel()
+        out = np.empty((len(log_il), weeks))
         for k, pair in enumerate(pairs):
-            q_il = risk.above_any_after_tamping(post, mid, pair[:2])
+            q_il = risk.above_any_after_tamping(post, mid, pair[:2])  # (S, W)
             q_ial = risk.above_any_after_tamping(post, mid, pair[2:])
             per_week = 7.0 * (
                 c.intervention_per_km_day * q_il + c.immediate_action_per_km_day * q_ial
             )
-            post_sum[k] = np.r_[0.0, np.cumsum(per_week)][weeks - week - 1]
-        return post_sum[inverse.ravel()]
+            cum = np.c_[np.zeros(len(per_week)), np.cumsum(per_week, axis=1)]  # (S, W + 1)
+            rows = inverse == k
+            out[rows] = w[rows] @ cum[:, weeks - week - 1]
+        return out
 
     def trc_value(
         self, now_t: float, *, weeks: int | None = None, nodes: int = 3, noise_sd: float = 0.02

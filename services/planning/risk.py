@@ -3,13 +3,17 @@ r"""Forecasts of a segment under the degradation model, as the planner needs the
 Pure numpy/scipy. A segment's state is its filter's mixture summary, ``mean`` and ``cov`` of
 ``z = [ln Top6_mm, ln Align10_mm]`` at event time ``t_s``; the degradation posterior of its
 group gives samples ``j`` of :math:`(\mu_j, \Sigma_j, z^+_j, \Sigma_{z^+,j})` (per day).
-The forecast is the mixture over ``j`` (equal weights) of
+The forecast is the mixture over ``j`` of
 
 .. math::
 
     z(t_s + \tau) \sim N(m + \mu_j \tau,\; P + \Sigma_j \tau)               \quad\text{untamped,}
 
     z(t_m + a) \sim N(z^+_j + \mu_j a,\; \Sigma_{z^+,j} + \Sigma_j a)    \quad\text{tamped at } t_m.
+
+with the segment's own weights :math:`w_j` (``SegmentState.log_weights``: the likelihood
+of its on-board data since its last TRC record, so a segment that degrades faster than its
+group is forecast with the samples that explain it; equal weights when it has none).
 
 What the planner asks of it, per indicator ``i`` and then over the indicators:
 
@@ -56,6 +60,8 @@ class Posterior:
     var: np.ndarray  # diagonal of Sigma, per day
     z_plus: np.ndarray  # mean level after tamping
     var_plus: np.ndarray  # diagonal of Sigma_z+
+    source_samples: int = 0  # samples of the posterior these were taken from (0: these)
+    step: int = 1  # every step-th of them
 
     @classmethod
     def from_samples(cls, mu, sigma, z_plus, sigma_z_plus, max_samples: int) -> Posterior:
@@ -68,11 +74,32 @@ class Posterior:
             np.diagonal(np.asarray(sigma, float), axis1=-2, axis2=-1)[take].copy(),
             np.asarray(z_plus, float)[take],
             np.diagonal(np.asarray(sigma_z_plus, float), axis1=-2, axis2=-1)[take].copy(),
+            source_samples=mu.shape[0],
+            step=step,
         )
 
     @property
     def drift_nonnegative(self) -> bool:
         return bool((self.mu >= 0).all())
+
+    def weights(self, log_weights: np.ndarray | None) -> np.ndarray:
+        """(S,) mixture weights of these samples for a segment whose state carries
+        ``log_weights`` over the posterior's samples (None, or of another posterior's
+        length: equal weights). The kept samples' weights, normalised: Bayes' rule on the
+        thinned prior sample."""
+        s = self.mu.shape[0]
+        source = self.source_samples or s
+        if log_weights is None or len(log_weights) != source:
+            return np.full(s, 1.0 / s)
+        kept = np.asarray(log_weights, float)[:: self.step][:s]
+        w = np.exp(kept - kept.max())
+        return w / w.sum()
+
+
+def equal_weights(n_rows: int, post: Posterior) -> np.ndarray:
+    """(n_rows, S) equal mixture weights."""
+    s = post.mu.shape[0]
+    return np.full((n_rows, s), 1.0 / s)
 
 
 def _above(mean, var, log_limit):
@@ -80,54 +107,62 @@ def _above(mean, var, log_limit):
     return ndtr((mean - log_limit) / np.sqrt(var))
 
 
-def above_any(m, v, post: Posterior, tau, log_limit) -> np.ndarray:
+def _rows_weights(w, n_rows: int, post: Posterior) -> np.ndarray:
+    return equal_weights(n_rows, post) if w is None else np.ascontiguousarray(w, float)
+
+
+def above_any(m, v, post: Posterior, tau, log_limit, w=None) -> np.ndarray:
     """P(any indicator above its limit) at times ``tau`` (days after the state), untamped.
 
     ``m``, ``v`` (N, n): state mean and variances; ``tau`` (N, T) days >= 0; ``log_limit``
-    (N, n). Returns (N, T).
+    (N, n); ``w`` (N, S) each segment's mixture weights (None: equal). Returns (N, T).
     """
     return _above_any_kernel(
         np.ascontiguousarray(m, float), np.ascontiguousarray(v, float),
         np.ascontiguousarray(tau, float), np.ascontiguousarray(log_limit, float),
-        post.mu, post.var,
+        post.mu, post.var, _rows_weights(w, len(m), post),
     )  # fmt: skip
 
 
-def above_each(m, v, post: Posterior, tau, log_limit) -> np.ndarray:
+def above_each(m, v, post: Posterior, tau, log_limit, w=None) -> np.ndarray:
     """P(indicator above its limit) per indicator at one time per segment, ``tau`` (N,) days,
     untamped: (N, n)."""
     t = np.asarray(tau, float)[:, None, None]
     mean = m[:, None, :] + post.mu[None] * t
     var = v[:, None, :] + post.var[None] * t
-    return _above(mean, np.maximum(var, 1e-12), log_limit[:, None, :]).mean(axis=1)
+    p = _above(mean, np.maximum(var, 1e-12), log_limit[:, None, :])  # (N, S, n)
+    return np.einsum("isk,is->ik", p, _rows_weights(w, len(m), post))
 
 
 def above_any_after_tamping(post: Posterior, age, log_limit) -> np.ndarray:
-    """P(any indicator above ``log_limit`` (n,)) at ages ``age`` (A,) days after a tamping."""
+    """P(any indicator above ``log_limit`` (n,)) at ages ``age`` (A,) days after a tamping,
+    per sample: (S, A) (a segment's forecast: its weights times these)."""
     a = np.asarray(age, float)[None, :, None]
     mean = post.z_plus[:, None, :] + post.mu[:, None, :] * a
     var = post.var_plus[:, None, :] + post.var[:, None, :] * a
     p = _above(mean, np.maximum(var, 1e-12), np.asarray(log_limit)[None, None, :])
-    return (1.0 - np.prod(1.0 - p, axis=-1)).mean(axis=0)
+    return 1.0 - np.prod(1.0 - p, axis=-1)
 
 
-def first_passage(m, v, post: Posterior, tau, log_limit, nodes: int = 5) -> np.ndarray:
+def first_passage(m, v, post: Posterior, tau, log_limit, nodes: int = 5, w=None) -> np.ndarray:
     """P(some indicator reaches its limit within ``tau`` days), untamped: module docstring.
 
-    ``m``, ``v`` (N, n), ``tau`` (N, T) days, ``log_limit`` (N, n). Returns (N, T), the union
-    bound over indicators of the mixture's first-passage probabilities. The start above the
-    limit counts exactly; below it, Gauss-Legendre quadrature over the start's quantile.
+    ``m``, ``v`` (N, n), ``tau`` (N, T) days, ``log_limit`` (N, n), ``w`` (N, S) mixture
+    weights (None: equal). Returns (N, T), the union bound over indicators of the mixture's
+    first-passage probabilities. The start above the limit counts exactly; below it,
+    Gauss-Legendre quadrature over the start's quantile.
     """
-    x, w = leggauss(nodes)
+    x, gl = leggauss(nodes)
     sd0 = np.sqrt(np.maximum(v, 0.0))
     safe = np.maximum(sd0, 1e-12)
     below = np.where(sd0 > 0, ndtr((log_limit - m) / safe), (m < log_limit).astype(float))
     u = below[..., None] * (x + 1.0) / 2.0  # (N, n, K) quantiles of the start below the limit
     z0 = m[..., None] + sd0[..., None] * ndtri(np.clip(u, 1e-300, 1.0))
-    weight = below[..., None] * w / 2.0
+    weight = below[..., None] * gl / 2.0
     return _first_passage_kernel(
         np.ascontiguousarray(log_limit[..., None] - z0), np.ascontiguousarray(weight),
         1.0 - below, np.ascontiguousarray(tau, float), post.mu, post.var,
+        _rows_weights(w, len(m), post),
     )  # fmt: skip
 
 
@@ -150,7 +185,7 @@ def _log_ndtr(x):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _above_any_kernel(m, v, tau, log_limit, mu, var):  # pragma: no cover - compiled
+def _above_any_kernel(m, v, tau, log_limit, mu, var, w):  # pragma: no cover - compiled
     n_seg, n_t = tau.shape
     n_s, n = mu.shape
     out = np.empty((n_seg, n_t))
@@ -163,13 +198,13 @@ def _above_any_kernel(m, v, tau, log_limit, mu, var):  # pragma: no cover - comp
                 for k in range(n):
                     sd = math.sqrt(max(v[i, k] + var[j, k] * t, 1e-12))
                     below *= 1.0 - _ndtr((m[i, k] + mu[j, k] * t - log_limit[i, k]) / sd)
-                total += 1.0 - below
-            out[i, u] = total / n_s
+                total += w[i, j] * (1.0 - below)
+            out[i, u] = total
     return out
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _first_passage_kernel(dist, weight, above, tau, mu, var):  # pragma: no cover
+def _first_passage_kernel(dist, weight, above, tau, mu, var, w):  # pragma: no cover
     n_seg, n_t = tau.shape
     n_s, n = mu.shape
     out = np.empty((n_seg, n_t))
@@ -191,7 +226,7 @@ def _first_passage_kernel(dist, weight, above, tau, mu, var):  # pragma: no cove
                         drift = mu[j, k] * t
                         first = _ndtr((drift - d) / st)
                         log_second = 2.0 * mu[j, k] * d / s2 + _log_ndtr((-d - drift) / st)
-                        f += min(first + math.exp(min(log_second, 0.0)), 1.0)
-                    total += weight[i, k, q] * f / n_s
+                        f += w[i, j] * min(first + math.exp(min(log_second, 0.0)), 1.0)
+                    total += weight[i, k, q] * f
             out[i, u] = min(total, 1.0)
     return out

@@ -273,3 +273,31 @@ def test_a_segment_reaching_the_ial_costs_the_days_to_its_unplanned_tamping_not_
         assert fp[0, weeks] > 0.9
         untamped[weeks] = cost[0, weeks]
     assert 0.9 * most < untamped[4] <= untamped[26] <= most * (1 + 1e-9)
+
+
+def test_a_segment_whose_weights_favour_fast_samples_has_an_earlier_deadline():
+    """Two segments at the same level: one whose state's log weights (its on-board data)
+    favour the group's fastest drifts reaches its deadline sooner; weights of another
+    posterior version are not used."""
+    import msgspec
+
+    from schemas import NDArray
+
+    limits, ial = make_limits()
+    refs = [SegmentRef("L1", name, 200.0) for name in ("fast", "pooled", "stale")]
+    core = PlanningCore(PlanningConfig(), limits, ial, refs)
+    posterior = make_posterior(mu_spread=0.8)
+    core.on_posterior(posterior)
+    mu = posterior.mu.array()[:, 0]
+    log_w = np.where(mu >= np.quantile(mu, 0.9), 0.0, -30.0).astype(np.float32)
+    for name, version in (("fast", 1), ("pooled", 0), ("stale", 2)):
+        state = make_state("L1", name, T0, mean_mm=(8.5, 5.0))
+        if version:
+            state = msgspec.structs.replace(
+                state, log_weights=NDArray.of(log_w, "f4"), posterior_version=version
+            )
+        core.on_state(state)
+    core.posteriors["net"] = (1, core.posteriors["net"][1])
+    rows = {r.segment: r for r in core.plan(T0).rows}
+    assert rows["fast"].deadline_week < rows["pooled"].deadline_week
+    assert rows["stale"].deadline_week == rows["pooled"].deadline_week

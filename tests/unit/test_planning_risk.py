@@ -69,7 +69,7 @@ def test_after_tamping_matches_monte_carlo():
     j = rng.integers(0, post.mu.shape[0], N_PATHS)
     age = np.array([30.0, 180.0, 720.0])
     log_limit = np.log([3.0, 2.6])
-    p = above_any_after_tamping(post, age, log_limit)
+    p = above_any_after_tamping(post, age, log_limit).mean(axis=0)  # equal weights
     z0 = post.z_plus[j] + np.sqrt(post.var_plus[j]) * rng.standard_normal((N_PATHS, 2))
     for a, expected in zip(age, p, strict=True):
         z = z0 + post.mu[j] * a + np.sqrt(post.var[j] * a) * rng.standard_normal((N_PATHS, 2))
@@ -81,3 +81,39 @@ def test_a_level_already_above_the_limit_has_reached_it():
     fp = first_passage(np.log([[12.0, 3.0]]), np.full((1, 2), 1e-6), post, np.array([[1.0]]),
                        np.log([[11.0, 9.5]]))  # fmt: skip
     assert fp[0, 0] == pytest.approx(1.0)
+
+
+def test_a_segments_weights_forecast_with_the_samples_they_favour():
+    """Weights all on one sample: the forecast of that sample alone; weights from log
+    weights over a thinned posterior: the kept samples' weights, normalised."""
+    post = posterior(5)
+    m = np.log(np.array([[8.0, 6.0], [8.0, 6.0]]))
+    v = np.full((2, 2), 0.05**2)
+    log_limit = np.log(np.array([[11.0, 9.5]] * 2))
+    days = np.array([[28.0, 91.0]] * 2)
+    k = int(np.argmax(post.mu[:, 0]))  # the fastest sample
+    w = np.zeros((2, post.mu.shape[0]))
+    w[0, k] = 1.0
+    w[1] = 1.0 / post.mu.shape[0]
+    alone = Posterior(post.mu[k : k + 1], post.var[k : k + 1], post.z_plus[k : k + 1],
+                      post.var_plus[k : k + 1])  # fmt: skip
+    fp = first_passage(m, v, post, days, log_limit, w=w)
+    np.testing.assert_allclose(fp[0], first_passage(m[:1], v[:1], alone, days[:1],
+                                                    log_limit[:1])[0], rtol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(fp[1], first_passage(m[1:], v[1:], post, days[1:],
+                                                    log_limit[1:])[0], rtol=1e-12)  # fmt: skip
+    assert fp[0, -1] > fp[1, -1]  # the fastest sample reaches the limit sooner
+    marginal = above_any(m, v, post, days, log_limit, w=w)
+    np.testing.assert_allclose(marginal[0], above_any(m[:1], v[:1], alone, days[:1],
+                                                      log_limit[:1])[0], rtol=1e-12)  # fmt: skip
+
+    thinned = Posterior.from_samples(
+        np.repeat(post.mu, 3, 0), np.repeat(np.eye(2)[None] * 1e-4, 24, 0),
+        np.repeat(post.z_plus, 3, 0), np.repeat(np.eye(2)[None] * 1e-2, 24, 0), 8,
+    )  # fmt: skip
+    assert (thinned.source_samples, thinned.step) == (24, 3)
+    log_w = -np.arange(24.0)
+    kept = np.exp(-np.arange(0.0, 24.0, 3.0))
+    np.testing.assert_allclose(thinned.weights(log_w), kept / kept.sum())
+    np.testing.assert_allclose(thinned.weights(None), np.full(8, 1 / 8))
+    np.testing.assert_allclose(thinned.weights(log_w[:10]), np.full(8, 1 / 8))  # other posterior
