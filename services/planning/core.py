@@ -83,7 +83,7 @@ class PlanningConfig:
 
     horizon_weeks: int = 26
     eps: float = 0.05
-    min_interval_weeks: float = 52.0
+    min_interval_weeks: float = 26.0  # the horizon: one tamping per segment in it, exactly
     min_worksite_m: float = 1000.0
     costs: Costs = field(default_factory=Costs)
     capacity_km_per_week: float | None = 2.0  # of a region `regions` does not name
