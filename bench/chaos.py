@@ -26,8 +26,12 @@ Every input is recorded: the world is a pure function of the simulator's flags
 kept here. Afterwards the final models are read from calibration, the world is folded by
 :class:`services.filtering.tracker.Tracker` in this process with them (what an undisturbed
 filtering instance holds), and every segment's ``q/state`` reply is compared with it byte
-for byte; alerting must hold the newest state of every segment. *Recovered* is the time
-from a fault's end until every service's liveliness token is back.
+for byte. Alerting's raised set (``q/alerts``) is checked against those states: every
+exceedance and predicted alert a segment's final state decides on its own
+(:meth:`services.alerting.core.AlertingCore.implied`: a probability at or above the raise
+threshold, or at or below the clear one) must be raised or not as it says; between the
+two thresholds the path of states decides, and such alerts are counted, not compared.
+*Recovered* is the time from a fault's end until every service's liveliness token is back.
 
 Run: ``python -m bench.chaos [--network demo|SEGMENTS] [--minutes 30] [--seed 1]
 [--out DIR] [--json FILE]``; ``make soak-chaos`` runs the demo network and a generated
@@ -63,12 +67,15 @@ from schemas import (
     GpsFix,
     MaintenanceEvent,
     OnboardIndex,
+    RaisedAlerts,
     SegmentState,
     TrcRecord,
     decode,
     encode,
     keys,
 )
+from services.alerting.core import AlertingCore, alert_key
+from services.alerting.service import load_alerting_config
 from services.defaults import default_file, load_network
 from services.filtering.tracker import Tracker
 from services.limits import DEFAULT_LIMITS_FILE, load_limits
@@ -411,6 +418,32 @@ def compare(session: zenoh.Session, reference: Reference) -> dict:
     }
 
 
+def compare_alerts(session: zenoh.Session, reference: Reference) -> dict:
+    """Alerting's raised set against what the reference's final states imply."""
+    replies = answers(session, keys.q_alerts(reference.ns))
+    if not replies:
+        return {"answered": False}
+    raised = {alert_key(a) for p in replies.values() for a in decode(p, RaisedAlerts).alerts}
+    judge = AlertingCore(load_alerting_config(), load_limits(DEFAULT_LIMITS_FILE))
+    implied: dict = {}
+    for payload in reference.states.values():
+        implied.update(judge.implied(decode(payload, SegmentState)))
+    missing = [k for k, must in implied.items() if must is True and k not in raised]
+    stale = [k for k, must in implied.items() if must is False and k in raised]
+    return {
+        "answered": True,
+        "raised": len(raised),
+        "implied_raised": sum(must is True for must in implied.values()),
+        "missing": len(missing),
+        "stale": len(stale),
+        "in_band": sum(must is None for must in implied.values()),
+        "other_kinds_raised": sum(
+            k[2] not in ("exceedance", "predicted_exceedance") for k in raised
+        ),  # fmt: skip
+        "examples": ["/".join(k) for k in (missing + stale)[:5]],
+    }
+
+
 def settle(session, stack: Stack, world: list, tokens: Tokens) -> dict:
     """Compare until equal, or until ``SETTLE_TIMEOUT_S`` (the last comparison)."""
     reference = Reference(stack.ns, world)
@@ -418,7 +451,13 @@ def settle(session, stack: Stack, world: list, tokens: Tokens) -> dict:
     while True:
         tokens.until(SERVICES, RECOVER_TIMEOUT_S)
         result = compare(session, reference)
-        if (result["missing"] == result["differ"] == 0) or time.monotonic() > deadline:
+        if result["missing"] == result["differ"] == 0 or time.monotonic() > deadline:
+            alerts = compare_alerts(session, reference)
+            late = alerts.get("missing") or alerts.get("stale")
+            if late and time.monotonic() <= deadline:  # alerting may still be folding states
+                time.sleep(10.0)
+                continue
+            result["alerts"] = alerts
             result["settled_s"] = round(SETTLE_TIMEOUT_S - (deadline - time.monotonic()), 1)
             return result
         time.sleep(10.0)

@@ -456,6 +456,31 @@ class AlertingCore:
 
     # --- outputs -------------------------------------------------------------------------
 
+    def implied(self, state: SegmentState) -> dict[AlertKey, bool | None]:
+        """What ``state`` alone decides of its segment's exceedance and predicted alerts, by
+        key: True raised (p at or above the raise threshold), False not (at or below the
+        clear threshold), None either (between them, the segment's history decides). The
+        raised set of a core whose newest state of the segment is ``state`` agrees with
+        every True and False, whatever states came before (the check ``bench.chaos`` runs
+        on the alerts)."""
+        out: dict[AlertKey, bool | None] = {}
+
+        def verdict(p: float, hyst: Hysteresis) -> bool | None:
+            return True if p >= hyst.raise_at else False if p <= hyst.clear_at else None
+
+        for level, hyst in self.config.exceedance.items():
+            _, p_now, _, names = self._probabilities(state, level)
+            for i, name in enumerate(names):
+                key = (state.line, state.segment, "exceedance", name, level)
+                out[key] = verdict(float(p_now[i]), hyst)
+        level, hyst = self.config.predicted_level, self.config.predicted
+        _, _, p_fc, names = self._probabilities(state, level)
+        within = state.horizons_days.array() <= self.config.predicted_within_days
+        for i, name in enumerate(names):
+            key = (state.line, state.segment, "predicted_exceedance", name, level)
+            out[key] = verdict(float(p_fc[within, i].max()), hyst) if within.any() else False
+        return out
+
     def raised_alerts(self, line: str | None = None) -> list[Alert]:
         """The currently raised alerts (their raise messages), by line, segment, kind."""
         return [a for k, a in sorted(self.raised.items()) if line is None or a.line == line]

@@ -509,3 +509,28 @@ def test_the_detections_held_survive_a_restart(tmp_path):
     assert second.on_maintenance(tamping(1)) == []  # withdrawn before the restart
     assert second.on_maintenance(tamping(3)) != []  # found again since
     store.close()
+
+
+def test_what_a_state_implies_agrees_with_the_raised_set_after_any_path():
+    """Random paths of states of one segment: after each, every alert the newest state
+    implies (True or False) is what the core holds; the band in between is left open."""
+    from services.alerting.core import alert_key
+
+    rng = np.random.default_rng(11)
+    for _ in range(30):
+        core = AlertingCore(AlertingConfig(), make_limits())
+        for i in range(12):
+            p, f = rng.uniform(0, 1, 2)
+            state = make_state(
+                T0 + i * DAY_S, p_exceed=p_top6(1, p), forecast=forecast_top6(0, f, f)
+            )
+            core.on_state(state)
+            raised = {alert_key(a) for a in core.raised_alerts()}
+            implied = core.implied(state)
+            assert implied  # the exceedance and predicted keys of the segment
+            for key, must in implied.items():
+                if must is not None:
+                    assert (key in raised) == must, (key, p, f)
+    middle = make_state(T0, p_exceed=p_top6(1, 0.4))
+    key = (middle.line, middle.segment, "exceedance", "top6", "intervention")
+    assert core.implied(middle)[key] is None  # between clear 0.3 and raise 0.5
