@@ -502,12 +502,11 @@ class PlanningCore:
     def _weights(self, idx: Sequence[int], post: risk.Posterior, version: int) -> np.ndarray:
         """(len(idx), S): each segment's mixture weights over ``post``'s samples, from its
         state's ``log_weights`` when they are of this posterior version (equal otherwise)."""
-        out = np.empty((len(idx), post.mu.shape[0]))
+        out = np.full((len(idx), post.mu.shape[0]), 1.0 / post.mu.shape[0])
         for r, i in enumerate(idx):
             s = self.states[i]
-            lw = s.log_weights
-            same = lw is not None and s.posterior_version == version
-            out[r] = post.weights(lw.array() if same else None)  # type: ignore[union-attr]
+            if s.log_weights is not None and s.posterior_version == version:
+                out[r] = post.weights(s.log_weights.array())
         return out
 
     def _cost_after_tamping(self, post, log_il, log_ial, weeks: int, w) -> np.ndarray:
