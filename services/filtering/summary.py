@@ -69,7 +69,9 @@ def summarize_states(
     state_list = [hist.state for hist in hists]
     z = stack_rows([state.z for state in state_list])[:, None]  # (S, 1, Ns, n)
     P = stack_rows([state.P for state in state_list])[:, None]
-    w = weights_from_log(stack_rows([state.log_w for state in state_list]))[:, None]
+    log_w = stack_rows([state.log_w for state in state_list])
+    w = weights_from_log(log_w)[:, None]
+    rel_log_w = _relative_log_weights(log_w)
     h = np.concatenate(([0.0], horizons_days))
     z_all, P_all = transition_unchecked(z, P, _stacked(params), h)  # (S, 1 + h, Ns, n)
     limits = np.stack(limits_mm, axis=1)[:, :, None, :]  # (L, S, 1, n)
@@ -109,7 +111,7 @@ def summarize_states(
             "nis": state.nis,
             "posterior_version": posterior_versions[row],
             "posterior_group": hist.group,
-            "log_weights": _log_weights(state.log_w),
+            "log_weights": rel_log_w[row],
         }
         if out and checked:
             first = out[0]
@@ -132,14 +134,12 @@ def summarize_states(
     return out
 
 
-def _log_weights(log_w: np.ndarray) -> NDArray | None:
-    """The state's log weights relative to the largest, as SegmentState carries them (None
-    when they are equal: no on-board update since the TRC restart)."""
-    log_w = np.asarray(log_w, dtype=np.float64)
-    if not log_w.size or (log_w == log_w[0]).all():
-        return None
-    rel = np.maximum(log_w - log_w.max(), np.finfo(np.float32).min)  # -inf: not expected
-    return NDArray.of(rel, "f4")
+def _relative_log_weights(log_w: np.ndarray) -> list[NDArray | None]:
+    """Each row's log weights (S, Ns) relative to its largest, as SegmentState carries them
+    (None for a row whose weights are equal: no on-board update since its TRC restart)."""
+    rel = np.maximum(log_w - log_w.max(axis=1, keepdims=True), np.finfo(np.float32).min)
+    equal = (log_w == log_w[:, :1]).all(axis=1)
+    return [None if same else NDArray.of(r, "f4") for r, same in zip(rel, equal, strict=True)]
 
 
 def _f8_bytes(a: np.ndarray) -> bytes:

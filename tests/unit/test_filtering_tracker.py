@@ -758,3 +758,17 @@ def test_a_units_calibration_key_carries_its_ids():
         keys.check_key(keys.calibration("tf"), own)  # a unit's model on the fleet's key
     with pytest.raises(SchemaError, match="both given or both empty"):
         Calibration(**{**msgspec.structs.asdict(own), "unit": ""})
+
+
+def test_the_state_carries_its_mixture_weights_after_on_board_updates_only():
+    """``log_weights`` softmax to the weights the summary used; a TRC restart makes them equal
+    again (None)."""
+    tracker, states = run([*MODELS, trc(0.0), index(3.0, 2.0, 2.0), index(6.0, 2.6, 1.9)])
+    assert states[0].log_weights is None  # the TRC record: equal weights
+    carried = states[-1].log_weights.array().astype(float)
+    assert carried.max() == 0.0 and carried.shape == (NS,)
+    w = np.exp(carried) / np.exp(carried).sum()
+    used = state_weights(tracker.histories[("L1", "s1")].state)
+    np.testing.assert_allclose(w, used, rtol=1e-5, atol=1e-9)
+    (after,) = tracker.step(trc(20.0, 4.0, 3.0)).states
+    assert after.log_weights is None
