@@ -78,7 +78,7 @@ from services.alerting.core import AlertingCore, alert_key
 from services.alerting.service import load_alerting_config
 from services.defaults import default_file, load_network
 from services.filtering.tracker import Tracker
-from services.limits import DEFAULT_LIMITS_FILE, load_limits
+from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits, network_line_speeds
 from simulators.gateway import key_and_payload
 from simulators.network import DEFAULT_ORIGIN, generate_network
 from simulators.run import DEFAULT_START
@@ -170,7 +170,7 @@ class Stack:
                 via = ["--connect", self.proxy.endpoint, "--ns", self.ns, "--instance", name]
                 return ["filtering", "--db", str(self.store / "filtering.sqlite"), *net, *via]
             case "alerting":
-                return ["alerting", "--db", str(self.out / "alerting.sqlite"), *wiring]
+                return ["alerting", "--db", str(self.out / "alerting.sqlite"), *net, *wiring]
             case "ingestion":
                 return ["ingestion", *net, *wiring]
             case "simulator":
@@ -288,16 +288,30 @@ def simulated_world(network: str | Path, days: float, seed: int, trains: int) ->
     return [m for _, batch in world_events(spec) for m in batch if isinstance(m, EVENTS)]
 
 
-def undisturbed_states(ns: str, world: list, models: dict[str, bytes]) -> dict[str, bytes]:
-    """``{q/state key: payload}`` one filtering instance reaches on ``world`` with ``models``
-    (``{model key: payload}``, as calibration answers them)."""
-    limits = load_limits(DEFAULT_LIMITS_FILE)
+def network_limits(network: str | Path | None) -> Limits:
+    """The default limits with ``network``'s line speeds, as a service given ``--network``
+    reads them (the speed class of a line the limits file does not name)."""
+    speeds = None if network is None else network_line_speeds(load_network(str(network)))
+    return load_limits(DEFAULT_LIMITS_FILE, speeds)
+
+
+def undisturbed_states(
+    ns: str, world: list, models: dict[str, bytes], network: str | Path | None = None
+) -> dict[str, bytes]:
+    """``{q/state key: payload}`` one filtering instance (given ``network``) reaches on
+    ``world`` with ``models`` (``{model key: payload}``, as calibration answers them): the
+    models installed, then the world folded as the live service folds it, detection of
+    unreported tampings included."""
+    limits = network_limits(network)
     decoded = [
         decode(p, Calibration if keys.model_kind(k) == "calibration" else DegradationPosterior)
         for k, p in models.items()
     ]
     tracker = Tracker(limits.for_line, limits.levels)
-    return {keys.q_state(ns, s.line, s.segment): encode(s) for s in tracker.load(decoded, world)}
+    tracker.update_models(decoded)
+    tracker.fold_events(world)
+    states = tracker.states_of(list(tracker.histories))
+    return {keys.q_state(ns, s.line, s.segment): encode(s) for s in states}
 
 
 def inject(
@@ -368,14 +382,15 @@ class Reference:
     """The states an undisturbed filter reaches on the world with the given models (folded
     again only when the models change)."""
 
-    def __init__(self, ns: str, world: list) -> None:
+    def __init__(self, ns: str, world: list, network: Path | None = None) -> None:
+        self.network = network
         self.ns, self.world = ns, world
         self._models: dict[str, bytes] = {}
         self.states: dict[str, bytes] = {}
 
     def update(self, models: dict[str, bytes]) -> None:
         if models != self._models:
-            self.states = undisturbed_states(self.ns, self.world, models)
+            self.states = undisturbed_states(self.ns, self.world, models, self.network)
             self._models = models
 
 
@@ -424,7 +439,7 @@ def compare_alerts(session: zenoh.Session, reference: Reference) -> dict:
     if not replies:
         return {"answered": False}
     raised = {alert_key(a) for p in replies.values() for a in decode(p, RaisedAlerts).alerts}
-    judge = AlertingCore(load_alerting_config(), load_limits(DEFAULT_LIMITS_FILE))
+    judge = AlertingCore(load_alerting_config(), network_limits(reference.network))
     implied: dict = {}
     for payload in reference.states.values():
         implied.update(judge.implied(decode(payload, SegmentState)))
@@ -446,7 +461,7 @@ def compare_alerts(session: zenoh.Session, reference: Reference) -> dict:
 
 def settle(session, stack: Stack, world: list, tokens: Tokens) -> dict:
     """Compare until equal, or until ``SETTLE_TIMEOUT_S`` (the last comparison)."""
-    reference = Reference(stack.ns, world)
+    reference = Reference(stack.ns, world, stack.network)
     deadline = time.monotonic() + SETTLE_TIMEOUT_S
     while True:
         tokens.until(SERVICES, RECOVER_TIMEOUT_S)
