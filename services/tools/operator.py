@@ -299,7 +299,12 @@ def parse_time(text: str) -> float:
         return float(text)
     except ValueError:
         pass
-    value = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    try:
+        value = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise ValueError(
+            f"t: {text!r} is neither epoch seconds nor an ISO 8601 time (e.g. 2026-01-05T08:30:00Z)"
+        ) from None
     if value.tzinfo is None:
         value = value.replace(tzinfo=UTC)
     return value.timestamp()

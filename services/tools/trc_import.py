@@ -307,6 +307,8 @@ def confirm(
     """Wait until filtering holds every one of ``records`` (published already), putting
     the missing ones again every ``RESEND_S`` s; print what was confirmed. 0 when every
     record was, else ``EXIT_UNCONFIRMED`` with what to do on stderr."""
+    if not records:
+        return 0  # nothing published: nothing to wait for
     print(
         f"waiting up to {wait_s:g} s for filtering to confirm {len(records)} TRC records",
         file=out,

@@ -7,6 +7,7 @@ import json
 
 import msgspec
 import numpy as np
+import pytest
 
 from schemas import Alert, NDArray, SegmentState, TrcRecord
 from services.limits import load_limits
@@ -58,6 +59,8 @@ def test_parse_time_accepts_epoch_and_iso():
     assert parse_time("1767225600") == 1_767_225_600.0
     assert parse_time("2026-01-01T00:00:00Z") == 1_767_225_600.0
     assert parse_time("2026-01-01T00:00:00") == 1_767_225_600.0  # no zone: UTC
+    with pytest.raises(ValueError, match="'yesterday' is neither epoch seconds nor an ISO 8601"):
+        parse_time("yesterday")
 
 
 def test_bad_rows_are_reported_with_line_numbers_and_good_rows_kept():
