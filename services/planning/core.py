@@ -502,7 +502,7 @@ class PlanningCore:
     def _weights(self, idx: Sequence[int], post: risk.Posterior, version: int) -> np.ndarray:
         """(len(idx), S): each segment's mixture weights over ``post``'s samples, from its
         state's ``log_weights`` when they are of this posterior version (equal otherwise)."""
-        out = np.full((len(idx), post.mu.shape[0]), 1.0 / post.mu.shape[0])
+        out = risk.equal_weights(len(idx), post)
         for r, i in enumerate(idx):
             s = self.states[i]
             if s.log_weights is not None and s.posterior_version == version:

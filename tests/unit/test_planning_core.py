@@ -297,7 +297,6 @@ def test_a_segment_whose_weights_favour_fast_samples_has_an_earlier_deadline():
                 state, log_weights=NDArray.of(log_w, "f4"), posterior_version=version
             )
         core.on_state(state)
-    core.posteriors["net"] = (1, core.posteriors["net"][1])
     rows = {r.segment: r for r in core.plan(T0).rows}
     assert rows["fast"].deadline_week < rows["pooled"].deadline_week
     assert rows["stale"].deadline_week == rows["pooled"].deadline_week
