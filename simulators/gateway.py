@@ -91,6 +91,7 @@ def publish(
     events: Iterable[tuple[float, list[Message]]],
     *,
     reliable: ReliablePublisher | None = None,
+    gateway: ReliablePublisher | None = None,
     speedup: float = math.inf,
     stop: threading.Event | None = None,
     on_batch: Callable[[float, list[Message]], None] | None = None,
@@ -98,15 +99,20 @@ def publish(
     """Put every message of ``events`` on its key; returns how many were published.
 
     With ``reliable``, the event streams (OnboardIndex, TrcRecord, MaintenanceEvent) go
-    through it (cached for subscribers that return, see :mod:`services.runtime.delivery`);
-    raw chunks and GPS fixes are plain puts, as a fleet gateway sends them.
+    through it (recorded for subscribers that return, see :mod:`services.runtime.delivery`).
+    With ``gateway`` (producer ``gateway/{id}``), raw chunks and GPS fixes go through it, as
+    a fleet gateway with an outbox sends them: ingestion reads them in order and none it
+    acknowledged is lost; without, they are plain puts (at most once).
     """
     stop = stop or threading.Event()
     count = 0
     for t, messages in paced(events, speedup, stop):
         for message in messages:
             key, payload = key_and_payload(ns, message)
-            if reliable is not None and not isinstance(message, RawChunk | GpsFix):
+            raw = isinstance(message, RawChunk | GpsFix)
+            if raw and gateway is not None:
+                gateway.put(key, payload)
+            elif reliable is not None and not raw:
                 reliable.put(key, payload)
             else:
                 # BLOCK: a simulated gateway waits for the network rather than dropping data.

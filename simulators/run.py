@@ -86,6 +86,10 @@ def main_simulate(
             rt.ns,
             events,
             reliable=rt.reliable_publisher(durable=False),
+            # the fleet's gateway keeps its outbox on disk, as a train's gateway would
+            gateway=rt.reliable_publisher(service="gateway", raw=True)
+            if fidelity == "raw"
+            else None,
             speedup=speedup,
             stop=rt.stop_event,
             on_batch=on_batch,

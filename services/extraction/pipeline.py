@@ -84,6 +84,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections import deque
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -163,6 +164,7 @@ class ExtractionConfig:
 # paper states them.
 BANDS_HZ = {TOP_CHORD_M: 0.8, ALIGN_CHORD_M: 0.5}
 INDICATOR_CHORDS_M = (TOP_CHORD_M, ALIGN_CHORD_M)
+RECENT_CHUNKS = 256  # per unit, the chunk identities a duplicate is looked for among
 
 
 @dataclass
@@ -176,7 +178,9 @@ class Counters:
     ``samples`` (rows of 6 accelerometer channels) processed; ``resets`` restarts of the
     streaming state (gap_before, first chunk, line change, time running backwards);
     ``reversals`` changes of the direction of travel; ``unknown_line`` chunks on a line
-    the segment table does not know (dropped).
+    the segment table does not know (dropped); ``duplicates`` chunks dropped because the
+    unit's chunk with the same ``seq`` and ``t0`` was processed already (a restarted
+    ingestion sends again what it sent after its last checkpoint).
     """
 
     passes_indexed: int = 0
@@ -189,6 +193,7 @@ class Counters:
     resets: int = 0
     reversals: int = 0
     unknown_line: int = 0
+    duplicates: int = 0
 
     def add(self, other: Counters) -> None:
         for f in fields(self):
@@ -513,6 +518,7 @@ class UnitPipeline:
         self.fir_delay_s = (cfg.fir_taps - 1) / 2 / cfg.rate_hz
         self.chains = [_IndicatorChain(cfg, i) for i in range(len(INDICATOR_CHORDS_M))]
         self.counters = Counters()
+        self._recent: deque[tuple[int, float]] = deque(maxlen=RECENT_CHUNKS)  # (seq, t0) seen
         # channel names -> (their columns in the order of _INDICATOR_COLUMNS, -1 absent;
         # the indicators they allow)
         self._columns: tuple[tuple[str, ...], np.ndarray, tuple[int, ...]] | None = None
@@ -583,6 +589,11 @@ class UnitPipeline:
         if abs(chunk.rate_hz - cfg.rate_hz) > 1e-6 * cfg.rate_hz:
             raise SchemaError(f"rate_hz: {chunk.rate_hz} Hz, extraction expects {cfg.rate_hz} Hz")
         cols, measured = self._columns_of(chunk)
+        identity = (chunk.seq, chunk.t0)  # after the checks: a refused chunk is not seen
+        if identity in self._recent:
+            self.counters.duplicates += 1
+            return []
+        self._recent.append(identity)
         line = self.segments.lines.get(chunk.line)
         if line is None:
             self.counters.unknown_line += 1
@@ -752,7 +763,9 @@ class Extractor:
 
     ``process(chunk)`` returns the OnboardIndex messages the chunk completed. Chunks of one
     unit must come in order (ingestion reorders and drops duplicates; it marks a gap with
-    ``gap_before``, which restarts that unit's state).
+    ``gap_before``, which restarts that unit's state). A chunk with the ``(seq, t0)`` of one
+    of the unit's last ``RECENT_CHUNKS`` is dropped and counted (``duplicates``): a
+    restarted ingestion sends again, identical, what it sent after its last checkpoint.
     """
 
     def __init__(self, segments: SegmentTable, config: ExtractionConfig | None = None) -> None:

@@ -1,18 +1,23 @@
 """`trackfusion extraction`: the thin adapter around :mod:`services.extraction.pipeline`.
 
-Subscribes ``{ns}/accel/**`` (PositionedChunk from ingestion), runs every chunk through the
-:class:`~services.extraction.pipeline.Extractor` in ONE worker thread (pipelines per
-(train, unit) created on demand; no lock needed), and publishes each OnboardIndex on
-``{ns}/index/{line}/{segment}`` through the runtime's at-least-once publisher (cached per
-key for consumers that come back; congestion control BLOCK: an index is never dropped, a
-slow consumer slows extraction down). A malformed chunk becomes a dead
-letter. The counters (passes indexed, skipped by reason) are logged every
-``LOG_EVERY_S`` and at exit.
+Reads ``{ns}/accel/**`` (PositionedChunk) from ingestion's outbox (producers
+``ingestion/{instance}``) in ingestion's order, once each message, live or fetched after a gap
+or a restart (:class:`~services.runtime.ordered.OrderedSubscription`), and runs every chunk
+through the :class:`~services.extraction.pipeline.Extractor` in ONE worker thread (pipelines
+per (train, unit) created on demand; no lock needed). Each OnboardIndex goes out on
+``{ns}/index/{line}/{segment}`` through this process's outbox (at least once to calibration
+and filtering; congestion control BLOCK: an index is never dropped, a slow consumer slows
+extraction down). The extractor's state and the position in ingestion's stream are saved
+together every few seconds (:mod:`services.runtime.checkpoint`, the file
+``checkpoint-extraction-{instance}.sqlite`` beside the outboxes, or ``--db``), so a
+restarted extraction resumes mid-pass. A malformed chunk becomes a dead letter. The counters
+(passes indexed, skipped by reason) are logged every ``LOG_EVERY_S`` and at exit.
 """
 
 from __future__ import annotations
 
 import logging
+import pickle
 import threading
 import time
 from pathlib import Path
@@ -20,13 +25,15 @@ from pathlib import Path
 from schemas import PositionedChunk, decode, encode, keys
 from services.defaults import load_network
 from services.extraction.pipeline import ExtractionConfig, Extractor
+from services.runtime.checkpoint import CheckpointStore, fingerprint
 from services.runtime.config import RuntimeConfig
-from services.runtime.service import ServiceRuntime, network_stage_command
+from services.runtime.service import ServiceRuntime, network_stage_command, open_checkpoint
 from track.segments import SegmentTable
 
 log = logging.getLogger(__name__)
 
 SERVICE = "extraction"
+INGESTION_PRODUCER = "ingestion/"  # the outbox producers read in order
 LOG_EVERY_S = 60.0  # wall clock: only for the log line, never for the data
 
 
@@ -39,11 +46,34 @@ class ExtractionAdapter:
         self.published = 0
         self._next_log = time.monotonic() + LOG_EVERY_S
 
-    def start(self) -> None:
-        self.indices = self.rt.reliable_publisher()  # at-least-once to calibration, filtering
-        self.rt.subscribe_in_order(
+    def start(self, checkpoint: CheckpointStore, fingerprint: str) -> None:
+        """Resume from ``checkpoint`` (the extractor too, when it was saved on the same
+        network and configuration ``fingerprint``), then read ingestion's stream."""
+        saved = checkpoint.load()
+        positions = {}
+        if saved is not None:
+            positions = saved.positions
+            if saved.fingerprint == fingerprint:
+                self.extractor = pickle.loads(saved.state)
+                log.info("%s: resumed from its checkpoint", SERVICE)
+            else:
+                log.warning(
+                    "%s: the checkpoint was saved on another network or configuration: "
+                    "resuming ingestion's stream with new pipelines", SERVICE,
+                )  # fmt: skip
+        # at least once to calibration and filtering
+        self.indices = self.rt.reliable_publisher(
+            checkpoint.path, durable=checkpoint.path is not None
+        )
+        self.rt.subscribe_checkpointed(
             {"accel": keys.accel_all(self.rt.ns)},
             lambda _kind, key, payload: self.handle(key, payload),
+            producers=lambda producer: producer.startswith(INGESTION_PRODUCER),
+            checkpoint=checkpoint,
+            positions=positions,
+            snapshot=lambda: pickle.dumps(self.extractor, protocol=pickle.HIGHEST_PROTOCOL),
+            fingerprint=fingerprint,
+            outputs=self.indices,
         )
 
     def handle(self, key: str, payload: bytes) -> None:
@@ -61,10 +91,11 @@ def log_counters(extractor: Extractor) -> None:
     c = extractor.counters()
     log.info(
         "%s: %d units, %d passes indexed, skipped: position %d, slow %d, coverage %d, "
-        "implausible %d; %d chunks, %d resets, %d reversals, %d on unknown lines",
+        "implausible %d; %d chunks, %d resets, %d reversals, %d on unknown lines, "
+        "%d duplicates",
         SERVICE, len(extractor.pipelines), c.passes_indexed, c.skipped_position,
         c.skipped_slow, c.skipped_coverage, c.skipped_implausible, c.chunks, c.resets,
-        c.reversals, c.unknown_line,
+        c.reversals, c.unknown_line, c.duplicates,
     )  # fmt: skip
 
 
@@ -73,6 +104,7 @@ def main(
     network_path: str | Path | None = None,
     *,
     config: ExtractionConfig | None = None,
+    db: str | Path | None = None,
     stop: threading.Event | None = None,
     handle_signals: bool = True,
 ) -> int:
@@ -81,11 +113,12 @@ def main(
     extractor = Extractor(segments, config)
     log.info("%s: %d lines, %d segments", SERVICE, len(segments.lines), segments.n_segments)
     with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
-        ExtractionAdapter(rt, extractor).start()
+        adapter = ExtractionAdapter(rt, extractor)
+        adapter.start(open_checkpoint(rt, db), fingerprint(network_path, extractor.config))
         try:
             return rt.run()
         finally:
-            log_counters(extractor)
+            log_counters(adapter.extractor)
 
 
 add_arguments, run = network_stage_command(
@@ -93,4 +126,5 @@ add_arguments, run = network_stage_command(
     "Subscribe to {ns}/accel/** (PositionedChunk), publish one OnboardIndex per segment "
     "pass on {ns}/index/{line}/{segment}.",
     network="the segment bounds",
+    db="the checkpoint (the extractor's state and ingestion's position)",
 )

@@ -1,36 +1,43 @@
 """`trackfusion ingestion`: the thin adapter around :mod:`services.ingestion.core`.
 
-Subscribes ``{ns}/raw/**`` (RawChunk) and ``{ns}/gps/*`` (GpsFix); both subscriptions feed
-the runtime's inbox, drained by ONE worker (order kept per key), so the core is
-single-threaded and no Zenoh callback waits for it.
+Reads ``{ns}/raw/**`` (RawChunk) and ``{ns}/gps/*`` (GpsFix) into ONE worker, so the core is
+single-threaded and no Zenoh callback waits for it. A gateway that keeps an outbox (producer
+``gateway/{id}``, see :mod:`services.runtime.delivery`) is read in its own order, once each
+message, live or fetched from the outbox after a gap or a restart
+(:class:`~services.runtime.ordered.OrderedSubscription`); a gateway that keeps none is read
+as it comes, at most once. The core's state and the position in each gateway's stream are
+saved together every few seconds (:mod:`services.runtime.checkpoint`, the file
+``checkpoint-ingestion-{instance}.sqlite`` beside the outboxes, or ``--db``): a restarted
+ingestion resumes where the checkpoint stopped, and a gateway's message the checkpoint
+counts is never lost.
+
 Payloads are decoded with ``schemas.decode`` (a malformed one is a dead letter with the
-decoder's reason); PositionedChunks go out with ``session.put`` on
-``{ns}/accel/{train}/{unit}`` (congestion control BLOCK: extraction must not lose samples);
-the core's rejections go to ``{ns}/deadletter/ingestion``. When the subscriptions end
-(shutdown), the held chunks are flushed (``position_ok`` False where their knots are
-missing) before the worker exits.
+decoder's reason); PositionedChunks go out on ``{ns}/accel/{train}/{unit}`` through this
+process's outbox (producer ``ingestion/{instance}``, the raw chain's retention), which
+extraction reads in order; the core's rejections go to ``{ns}/deadletter/ingestion``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import pickle
 import threading
 import time
 from pathlib import Path
-
-import zenoh
 
 from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode, keys
 from services.defaults import load_network
 from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore, Output, Rejection
+from services.runtime.checkpoint import CheckpointStore, fingerprint
 from services.runtime.config import RuntimeConfig
-from services.runtime.service import ServiceRuntime, network_stage_command
+from services.runtime.service import ServiceRuntime, network_stage_command, open_checkpoint
 
 log = logging.getLogger(__name__)
 
 SERVICE = "ingestion"
+GATEWAY_PRODUCER = "gateway/"  # the outbox producers read in order: gateway/{id}
 
 
 def decode_gateway(kind: str, key: str, payload: bytes) -> RawChunk | GpsFix:
@@ -49,22 +56,34 @@ class IngestionAdapter:
         self.core = core
         self.published = 0
 
-    def start(self) -> None:
+    def start(self, checkpoint: CheckpointStore, fingerprint: str) -> None:
+        """Resume from ``checkpoint`` (the core too, when it was saved on the same network
+        and configuration ``fingerprint``), then read the gateways."""
+        saved = checkpoint.load()
+        positions = {}
+        if saved is not None:
+            positions = saved.positions
+            if saved.fingerprint == fingerprint:
+                self.core = pickle.loads(saved.state)
+                log.info("%s: resumed from the checkpoint of %s", SERVICE, _when(saved.saved_at))
+            else:
+                log.warning(
+                    "%s: the checkpoint was saved on another network or configuration: "
+                    "resuming the gateways' streams with a new core", SERVICE,
+                )  # fmt: skip
+        self.outputs = self.rt.reliable_publisher(
+            checkpoint.path, durable=checkpoint.path is not None, raw=True
+        )
         ns = self.rt.ns
-        self.rt.subscribe_in_order(
+        self.rt.subscribe_checkpointed(
             {"raw": keys.raw_all(ns), "gps": keys.gps_all(ns)},
             lambda kind, key, payload: self.publish(self.handle(kind, key, payload)),
-            on_end=self._finish,
-        )
-
-    def _finish(self) -> None:
-        """Every subscription has ended: release the held chunks and say what was done."""
-        self.publish(self.core.flush())
-        log.info(
-            "%s: %d positioned chunks published, %d dead letters",
-            SERVICE,
-            self.published,
-            self.rt.deadletters.total,
+            producers=lambda producer: producer.startswith(GATEWAY_PRODUCER),
+            checkpoint=checkpoint,
+            positions=positions,
+            snapshot=lambda: pickle.dumps(self.core, protocol=pickle.HIGHEST_PROTOCOL),
+            fingerprint=fingerprint,
+            outputs=self.outputs,
         )
 
     def handle(self, kind: str, key: str, payload: bytes) -> list[Output]:
@@ -73,15 +92,11 @@ class IngestionAdapter:
         return self.core.step(decode_gateway(kind, key, payload), time.time())
 
     def publish(self, outputs: list[Output]) -> None:
-        ns, session = self.rt.ns, self.rt.session
+        ns = self.rt.ns
         for out in outputs:
             match out:
                 case PositionedChunk():
-                    session.put(
-                        keys.accel(ns, out.train, out.unit),
-                        encode(out),
-                        congestion_control=zenoh.CongestionControl.BLOCK,
-                    )
+                    self.outputs.put(keys.accel(ns, out.train, out.unit), encode(out))
                     self.published += 1
                 case Rejection(reason=reason, message=message):
                     if isinstance(message, RawChunk):
@@ -89,6 +104,10 @@ class IngestionAdapter:
                     else:
                         key = keys.gps(ns, message.train)
                     self.rt.deadletters.reject(key, reason, encode(message)[:256])
+
+
+def _when(t: float) -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t))
 
 
 def ingestion_config(conf: RuntimeConfig) -> IngestionConfig:
@@ -105,20 +124,23 @@ def main(
     conf: RuntimeConfig,
     network_path: str | Path | None = None,
     *,
+    db: str | Path | None = None,
     stop: threading.Event | None = None,
     handle_signals: bool = True,
 ) -> int:
     """Run the ingestion service until ``stop`` is set or SIGINT/SIGTERM; 0.
 
     Thresholds come from the config file's ``services.ingestion`` section
-    (:class:`services.ingestion.config.IngestionConfig` field names).
+    (:class:`services.ingestion.config.IngestionConfig` field names); ``db``: the checkpoint
+    file (default: ``checkpoint-ingestion-{instance}.sqlite`` beside the outboxes).
     """
     config = ingestion_config(conf)
     network = load_network(network_path)
     core = IngestionCore(network, config)
     log.info("%s: %r", SERVICE, network)
     with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
-        IngestionAdapter(rt, core).start()
+        checkpoint = open_checkpoint(rt, db)
+        IngestionAdapter(rt, core).start(checkpoint, fingerprint(network_path, config))
         return rt.run()
 
 
@@ -127,4 +149,5 @@ add_arguments, run = network_stage_command(
     "Subscribe to {ns}/raw/** and {ns}/gps/*, publish PositionedChunks on "
     "{ns}/accel/{train}/{unit}; thresholds in the config file's services.ingestion.",
     network="the lines to map-match on",
+    db="the checkpoint (the core's state and the gateways' positions)",
 )

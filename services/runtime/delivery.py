@@ -57,10 +57,12 @@ retention at national scale) and ``outbox``: ``dir`` (default: beside the servic
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
 import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -101,6 +103,10 @@ class OutboxSettings:
     max_age_s: float = DEFAULT_MAX_AGE_S
 
 
+RAW_MAX_BYTES = 1_000_000_000  # the raw chain's outboxes: 1 GB per producer …
+RAW_MAX_AGE_S = 3600.0  # … and one hour (raw data is ~50 kB/s per unit)
+
+
 @dataclass(frozen=True)
 class DeliverySettings:
     """Where producers keep their outboxes and how often consumers replay."""
@@ -108,33 +114,44 @@ class DeliverySettings:
     replay_s: float = 10.0
     replay_timeout_s: float = 600.0
     outbox: OutboxSettings = field(default_factory=OutboxSettings)
+    # the raw chain (gateways, ingestion): the dir is outbox.dir's, retention its own
+    raw_outbox: OutboxSettings = field(
+        default_factory=lambda: OutboxSettings(max_bytes=RAW_MAX_BYTES, max_age_s=RAW_MAX_AGE_S)
+    )
 
     @classmethod
     def from_options(cls, options: Mapping[str, Any]) -> DeliverySettings:
         """From the ``services.delivery`` section (its keys checked by the config loader);
         ValueError says which value to fix."""
         options = dict(options)
-        outbox = dict(options.pop("outbox", {}))
-        known = {f for f in OutboxSettings.__dataclass_fields__}
-        for key in outbox:
-            if key not in known:
-                raise ValueError(
-                    f"services.delivery.outbox: unknown key {key!r}; known keys: "
-                    f"{', '.join(sorted(known))}"
-                )
-        settings = cls(**options, outbox=OutboxSettings(**outbox))
+        sections = {}
+        for name, default in (("outbox", OutboxSettings()), ("raw_outbox", cls().raw_outbox)):
+            section = dict(options.pop(name, {}))
+            known = {f for f in OutboxSettings.__dataclass_fields__}
+            for key in section:
+                if key not in known:
+                    raise ValueError(
+                        f"services.delivery.{name}: unknown key {key!r}; known keys: "
+                        f"{', '.join(sorted(known))}"
+                    )
+            sections[name] = dataclasses.replace(default, **section)
+        settings = cls(**options, **sections)
         for name, value in (
             ("replay_s", settings.replay_s),
             ("replay_timeout_s", settings.replay_timeout_s),
             ("outbox.max_age_s", settings.outbox.max_age_s),
+            ("raw_outbox.max_age_s", settings.raw_outbox.max_age_s),
         ):
             if not (isinstance(value, int | float) and value > 0):
                 raise ValueError(f"services.delivery.{name} must be a number > 0, got {value!r}")
-        max_bytes = settings.outbox.max_bytes
-        if not (isinstance(max_bytes, int) and max_bytes >= 1):
-            raise ValueError(
-                f"services.delivery.outbox.max_bytes must be an integer ≥ 1, got {max_bytes!r}"
-            )
+        for name, max_bytes in (
+            ("outbox", settings.outbox.max_bytes),
+            ("raw_outbox", settings.raw_outbox.max_bytes),
+        ):
+            if not (isinstance(max_bytes, int) and max_bytes >= 1):
+                raise ValueError(
+                    f"services.delivery.{name}.max_bytes must be an integer ≥ 1, got {max_bytes!r}"
+                )
         return settings
 
 
@@ -152,22 +169,40 @@ class Replay:
 
 
 def serve_replay(
-    outbox: Outbox, position: list[Any] | None, matches: Callable[[str], bool]
+    outbox: Outbox,
+    position: list[Any] | None,
+    matches: Callable[[str], bool],
+    limit: int | None = None,
 ) -> Replay:
     """What ``outbox`` sends a consumer at ``position`` (``[epoch, W, M, C]`` or None for
     none): the matching entries above M when the consumer has all C matching entries of
-    (W, M], else above W; from the start when the epoch is not this outbox's."""
+    (W, M], else above W; from the start when the epoch is not this outbox's. With
+    ``limit``, at most that many entries, and the head is the seq of the last entry looked
+    at (every matching entry up to it is sent): the consumer asks again from there."""
     head, pruned = outbox.head, outbox.pruned_upto
+    lost = 0
     if position is None or position[0] != outbox.epoch:
-        return Replay(outbox.epoch, _matching(outbox.entries(0, head), matches), head, 0)
-    _, after, upto, count = position
-    upto = min(upto, head)
-    lost = max(0, pruned - after)
-    if upto > after and count > 0:
-        have = sum(1 for e in outbox.entries(after, upto) if matches(e.key))
-        if have == count and not lost:
-            after = upto
-    return Replay(outbox.epoch, _matching(outbox.entries(after, head), matches), head, lost)
+        after = 0
+    else:
+        _, after, upto, count = position
+        upto = min(upto, head)
+        lost = max(0, pruned - after)
+        if upto > after and count > 0:
+            have = sum(1 for e in outbox.entries(after, upto) if matches(e.key))
+            if have == count and not lost:
+                after = upto
+    if limit is None:
+        return Replay(outbox.epoch, _matching(outbox.entries(after, head), matches), head, lost)
+    sent: list[tuple[int, str, bytes]] = []
+    last = head
+    with closing(outbox.entries(after, head)) as entries:  # closed: frees the read connection
+        for entry in entries:
+            if matches(entry.key):
+                sent.append((entry.seq, entry.key, entry.payload))
+                if len(sent) == limit:
+                    last = entry.seq
+                    break
+    return Replay(outbox.epoch, iter(sent), last, lost)
 
 
 def _matching(entries: Iterable[Any], matches: Callable[[str], bool]) -> Iterator[Any]:
@@ -262,16 +297,17 @@ class ReliablePublisher:
         instance: str,
         settings: DeliverySettings = DeliverySettings(),
         directory: Path | str | None = DEFAULT_OUTBOX_DIR,
+        *,
+        raw: bool = False,
     ) -> ReliablePublisher:
         """The publisher of ``service/instance`` on its outbox file
         ``{dir}/outbox-{service}-{instance}.sqlite``: ``settings.outbox.dir`` if set, else
         ``directory``; with neither (``directory`` None), an outbox in memory that lives as
-        long as the process."""
+        long as the process. ``raw``: the raw chain's retention (``settings.raw_outbox``)."""
         where = settings.outbox.dir or directory
         path = None if where is None else Path(where) / f"outbox-{service}-{instance}.sqlite"
-        outbox = Outbox(
-            path, max_bytes=settings.outbox.max_bytes, max_age_s=settings.outbox.max_age_s
-        )
+        retention = settings.raw_outbox if raw else settings.outbox
+        outbox = Outbox(path, max_bytes=retention.max_bytes, max_age_s=retention.max_age_s)
         return cls(session, ns, f"{service}/{instance}", outbox)
 
     @classmethod
@@ -283,14 +319,16 @@ class ReliablePublisher:
         names: Sequence[str],
         settings: DeliverySettings = DeliverySettings(),
         directory: Path | str | None = DEFAULT_OUTBOX_DIR,
+        *,
+        raw: bool = False,
     ) -> ReliablePublisher:
         """:meth:`open` under the first of ``names`` whose outbox no other process holds."""
         for name in names[:-1]:
             try:
-                return cls.open(session, ns, service, name, settings, directory)
+                return cls.open(session, ns, service, name, settings, directory, raw=raw)
             except OutboxBusy as e:
                 log.warning("%s; publishing as %s/%s", e, service, names[-1])
-        return cls.open(session, ns, service, names[-1], settings, directory)
+        return cls.open(session, ns, service, names[-1], settings, directory, raw=raw)
 
     def put(self, key: str, payload: bytes) -> None:
         with self._cond:
@@ -374,7 +412,7 @@ class ReliablePublisher:
             ke = zenoh.KeyExpr(key)
             return any(e.intersects(ke) for e in exprs)
 
-        replay = serve_replay(self.outbox, request.get("at"), matches)
+        replay = serve_replay(self.outbox, request.get("at"), matches, request.get("limit"))
         for seq, key, payload in replay.entries:
             # on the entry's own key, so the router's access control applies to a replay
             # as it does to the live message

@@ -32,6 +32,7 @@ import zenoh
 from schemas import SchemaError, keys
 from services.defaults import add_network_argument
 from services.runtime import systemd
+from services.runtime.checkpoint import CheckpointBusy, CheckpointStore
 from services.runtime.config import (
     RuntimeConfig,
     add_zenoh_arguments,
@@ -49,6 +50,7 @@ from services.runtime.delivery import (
     ReliableSubscription,
 )
 from services.runtime.inbox import DEFAULT_MEMORY_BYTES, Inbox, Item
+from services.runtime.ordered import OrderedSubscription
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +66,8 @@ HUNG_AFTER_S = 300.0  # a worker on one batch for longer stops feeding the syste
 BACKLOG_REPORT_S = 60.0  # how often a backlog is logged
 EXIT_SESSION_LOST = 75  # EX_TEMPFAIL: a supervisor should restart the process
 _IDLE_POLL_S = 1.0  # an idle worker wakes this often (watchdog bookkeeping, stop)
+MAX_ORDERED_BATCH = 64  # items a raw-chain worker takes at once
+CHECKPOINT_S = 2.0  # a stage of the raw chain saves its checkpoint this often while it works
 
 
 class _Undeclarable(Protocol):
@@ -368,6 +372,68 @@ class ServiceRuntime:
         self.spawn(work, name=name)
         return inbox
 
+    def subscribe_checkpointed(
+        self,
+        subscriptions: Mapping[str, str],
+        handle: Callable[[str, str, bytes], object],
+        *,
+        producers: Callable[[str], bool],
+        checkpoint: CheckpointStore,
+        positions: Mapping[str, tuple[str, int]],
+        snapshot: Callable[[], bytes],
+        fingerprint: str,
+        outputs: ReliablePublisher | None,
+        every_s: float = CHECKPOINT_S,
+    ) -> OrderedSubscription:
+        """A stage of the raw chain: the messages of the producers accepted by ``producers``
+        in each producer's order, once each (:class:`~services.runtime.ordered.
+        OrderedSubscription`, resuming after ``positions``), to ``handle(kind, key,
+        payload)`` in ONE worker thread, as :meth:`subscribe_in_order` does.
+
+        Every ``every_s`` while it works, and when it stops, the worker waits until
+        ``outputs`` has recorded what the handler put, then saves ``snapshot()`` (the core's
+        state) and the last seq handled per producer in ``checkpoint``, in one transaction:
+        what the checkpoint counts is acknowledged (see :mod:`services.runtime.checkpoint`).
+        """
+        subscription = OrderedSubscription(
+            self.session, self.ns, subscriptions, producers,
+            settings=self.delivery, positions=positions,
+        )  # fmt: skip
+        self._subscribers.append(subscription)
+        handled = dict(positions)
+        name = f"{self.service}:worker"
+
+        def save() -> None:
+            if outputs is not None and not outputs.flush(FLUSH_TIMEOUT_S):
+                log.warning("%s: outputs not recorded yet; checkpoint postponed", self.service)
+                return
+            checkpoint.save(snapshot(), fingerprint, handled)
+
+        def work() -> None:
+            dirty, saved = False, time.monotonic()
+            try:
+                while not self.stopping:
+                    items = subscription.take(MAX_ORDERED_BATCH, timeout=_IDLE_POLL_S)
+                    if items is None:
+                        break
+                    self._busy_since[name] = time.monotonic()
+                    for item in items:
+                        self.guarded(handle, item.kind, item.key, item.payload)
+                        if item.producer is not None:
+                            handled[item.producer] = (item.epoch, item.seq)
+                            dirty = True
+                    self._busy_since.pop(name, None)
+                    if dirty and time.monotonic() - saved >= every_s:
+                        self.guarded(save)
+                        dirty, saved = False, time.monotonic()
+                if dirty:
+                    self.guarded(save)
+            finally:
+                checkpoint.close()
+
+        self.spawn(work, name=name)
+        return subscription
+
     def guarded(
         self,
         handle: Callable[..., object],
@@ -434,22 +500,29 @@ class ServiceRuntime:
         return self.undeclare_at_close(self.session.declare_publisher(key, **kwargs))
 
     def reliable_publisher(
-        self, beside: Path | str | None = None, *, durable: bool = True
+        self,
+        beside: Path | str | None = None,
+        *,
+        durable: bool = True,
+        service: str | None = None,
+        raw: bool = False,
     ) -> ReliablePublisher:
         """``put(key, payload)`` recorded in this process's outbox
         ``outbox-{service}-{instance}.sqlite`` and replayed to returning consumers (at least
         once, see :mod:`services.runtime.delivery`); BLOCK congestion control. The file is
         in ``services.delivery.outbox.dir`` if set, else in the directory of ``beside`` (the
         service's store), else in ``var/``. ``durable=False``: an outbox in memory, for a
-        process whose messages need not outlive it (the simulator). One per process: the
+        process whose messages need not outlive it (the simulator). One per process and producer: the
         outbox is the producer ``{service}/{instance}``, with the configured instance id, else
         ``default`` (so that a restart finds its outbox again), else, when another process
-        of this service holds that one, this process's own ``{hostname}-{pid}``."""
+        of this service holds that one, this process's own ``{hostname}-{pid}``. ``service``:
+        publish as another producer than this service (the simulator's gateway); ``raw``:
+        with the raw chain's retention (``services.delivery.raw_outbox``)."""
         directory = Path(beside).parent if beside is not None else DEFAULT_OUTBOX_DIR
         names = [self.conf.instance or "default", self.instance]
         publisher = ReliablePublisher.open_named(
-            self.session, self.ns, self.service, names, self.delivery,
-            directory if durable else None,
+            self.session, self.ns, service or self.service, names, self.delivery,
+            directory if durable else None, raw=raw,
         )  # fmt: skip
         return self.undeclare_at_close(publisher)
 
@@ -619,20 +692,45 @@ def run_command(args: argparse.Namespace, main: Callable[..., int], **options: A
 
 
 def network_stage_command(
-    main: Callable[..., int], description: str, network: str
+    main: Callable[..., int], description: str, network: str, db: str
 ) -> tuple[Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]:
-    """``(add_arguments, run)`` of a stage whose only flags are ``--network`` (``network``
-    says what it is for) and the Zenoh flags: ``run`` calls ``main(conf, network_path=…)``."""
+    """``(add_arguments, run)`` of a stage of the raw chain, whose flags are ``--network``
+    (``network`` says what it is for), ``--db`` (its checkpoint: ``db`` says what it holds)
+    and the Zenoh flags: ``run`` calls ``main(conf, network_path=…, db=…)``."""
 
     def add_arguments(parser: argparse.ArgumentParser) -> None:
         parser.description = description
         add_network_argument(parser, network)
+        parser.add_argument(
+            "--db",
+            metavar="FILE",
+            type=Path,
+            help=f"SQLite file of {db} (default: checkpoint-{{service}}-{{instance}}.sqlite "
+            "beside the outboxes, services.delivery.outbox.dir or ./var)",
+        )
         add_zenoh_arguments(parser)
 
     def run(args: argparse.Namespace) -> int:
-        return run_command(args, main, network_path=args.network)
+        return run_command(args, main, network_path=args.network, db=args.db)
 
     return add_arguments, run
+
+
+def open_checkpoint(rt: ServiceRuntime, db: str | Path | None) -> CheckpointStore:
+    """The checkpoint of a stage of the raw chain: ``db``, else
+    ``checkpoint-{service}-{instance}.sqlite`` in the outboxes' directory, with the
+    configured instance id, else ``default``, else (another process holds that one) this
+    process's own ``{hostname}-{pid}``, as the outboxes are named."""
+    if db is not None:
+        return CheckpointStore(db)
+    directory = Path(rt.delivery.outbox.dir or DEFAULT_OUTBOX_DIR)
+    names = [rt.conf.instance or "default", rt.instance]
+    for name in names[:-1]:
+        try:
+            return CheckpointStore(directory / f"checkpoint-{rt.service}-{name}.sqlite")
+        except CheckpointBusy as e:
+            log.warning("%s; checkpointing as %s", e, names[-1])
+    return CheckpointStore(directory / f"checkpoint-{rt.service}-{names[-1]}.sqlite")
 
 
 def _undeclare(entity: _Undeclarable) -> None:

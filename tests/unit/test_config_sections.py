@@ -45,7 +45,7 @@ KNOWN = {
     "filtering": "db, limits, network, selector",
     "calibration": ", ".join(sorted(calibration.OPTIONS)),
     "ingestion": None,  # IngestionConfig's fields, checked below
-    "delivery": "outbox, replay_s, replay_timeout_s",
+    "delivery": "outbox, raw_outbox, replay_s, replay_timeout_s",
 }
 
 

@@ -1,0 +1,99 @@
+"""The checkpoint of a stateful stage of the raw chain: its core's state and, per producer,
+how far into that producer's outbox the core has read, saved together in one SQLite row.
+
+A stage that reads an ordered stream (:class:`~services.runtime.ordered.OrderedSubscription`)
+and keeps state between messages (ingestion's reorder buffers and trajectories, extraction's
+filters and passes) cannot rebuild that state from its outputs. It saves
+``(state, positions)`` in one transaction every few seconds, after its outputs up to that
+point are in its own outbox; a restarted stage loads them and asks each producer for what
+came after its position. The messages it handled between the checkpoint and its end are
+handled again from the same state, so they give the same outputs again, which the next
+stage drops as duplicates. A message is **acknowledged** once a checkpoint counts it: it is
+then in the stage's state or in its outbox, and no restart loses it.
+
+The file is held with an exclusive lock: two processes never write one checkpoint.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import sqlite3
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS checkpoint (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    saved_at REAL NOT NULL,
+    fingerprint TEXT NOT NULL,
+    positions TEXT NOT NULL,
+    state BLOB NOT NULL
+)
+"""
+
+
+def fingerprint(network_path: Path | str | None, config: object) -> str:
+    """What a stage's saved state was built on: the network file's bytes (the packaged demo
+    network when None) and its configuration's repr. A checkpoint with another one keeps its
+    positions and drops its state."""
+    data = Path(network_path).read_bytes() if network_path is not None else b"demo"
+    return hashlib.sha256(data + repr(config).encode()).hexdigest()[:16]
+
+
+class CheckpointBusy(Exception):
+    """Another process holds the checkpoint file."""
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    state: bytes
+    fingerprint: str  # what the state was built on (the network); another one discards it
+    positions: dict[str, tuple[str, int]]  # {producer: (epoch, last seq handled)}
+    saved_at: float
+
+
+class CheckpointStore:
+    """One stage's checkpoint in ``path`` (None: in memory, for a stage run in a test)."""
+
+    def __init__(self, path: Path | str | None) -> None:
+        self._lockfile = None
+        if path is None:
+            self.path, target = None, ":memory:"
+        else:
+            self.path = Path(path)
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._lockfile = open(f"{path}.lock", "a")  # noqa: SIM115 (held until close)
+            try:
+                fcntl.flock(self._lockfile, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                self._lockfile.close()
+                raise CheckpointBusy(f"checkpoint {path}: held by another process") from None
+            target = str(path)
+        self._db = sqlite3.connect(target, isolation_level=None, check_same_thread=False)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.executescript(_SCHEMA)
+
+    def load(self) -> Checkpoint | None:
+        row = self._db.execute(
+            "SELECT state, fingerprint, positions, saved_at FROM checkpoint WHERE id = 1"
+        ).fetchone()
+        if row is None:
+            return None
+        state, fingerprint, positions, saved_at = row
+        decoded = {p: (e, int(s)) for p, (e, s) in json.loads(positions).items()}
+        return Checkpoint(bytes(state), fingerprint, decoded, saved_at)
+
+    def save(self, state: bytes, fingerprint: str, positions: dict[str, tuple[str, int]]) -> None:
+        """Replace the checkpoint (one transaction: state and positions never disagree)."""
+        self._db.execute(
+            "INSERT OR REPLACE INTO checkpoint VALUES (1, ?, ?, ?, ?)",
+            (time.time(), fingerprint, json.dumps(positions, sort_keys=True), state),
+        )
+
+    def close(self) -> None:
+        self._db.close()
+        if self._lockfile is not None:
+            self._lockfile.close()
