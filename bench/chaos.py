@@ -4,9 +4,12 @@ byte for byte, with the same inputs folded by an undisturbed filter: ``make soak
 The stack, each part its own process as deployed: a router (``trackfusion router``),
 calibration, filtering (its store on a small filesystem of its own when this process may
 mount one, its link to the router through a proxy that can be cut), alerting, ingestion,
-and the simulator publishing a seeded index-fidelity world (the on-board indices, TRC runs
-and tampings a fleet and its recording car would send) paced to end before the faults do.
-A supervisor here starts again any process that exits, as ``trackfusion up`` does.
+extraction, the simulator publishing a seeded index-fidelity world (the on-board indices, TRC
+runs and tampings a fleet and its recording car would send) paced to end before the faults
+do, and a raw fleet (``--raw-trains``, ``simulate --fidelity raw --gateway-only`` in real
+time, its gateway's outbox on disk) whose chunks and fixes go through ingestion and
+extraction into the same filtering. A supervisor here starts again any process that exits,
+as ``trackfusion up`` does.
 
 While the world is published, faults are drawn from ``random.Random(--seed)`` at
 exponential intervals (mean ``--mean-gap-s``):
@@ -23,10 +26,13 @@ exponential intervals (mean ``--mean-gap-s``):
 
 Every input is recorded: the world is a pure function of the simulator's flags
 (:func:`simulators.world.world_events`, the same bytes), and the injected messages are
-kept here. Afterwards the final models are read from calibration, the world is folded by
-:class:`services.filtering.tracker.Tracker` in this process with them (what an undisturbed
-filtering instance holds), and every segment's ``q/state`` reply is compared with it byte
-for byte. Alerting's raised set (``q/alerts``) is checked against those states: every
+kept here; the raw fleet's messages are what its gateway recorded in its outbox. Afterwards
+the gateway's messages go, in its order, through the ingestion and extraction cores in this
+process (an undisturbed raw chain), and the indices extraction published (its outbox) are
+compared with those: none missing, none extra. The final models are read from calibration,
+the world and those indices are folded by :class:`services.filtering.tracker.Tracker` in
+this process with them (what an undisturbed filtering instance holds), and every segment's
+``q/state`` reply is compared with it byte for byte. Alerting's raised set (``q/alerts``) is checked against those states: every
 exceedance and predicted alert a segment's final state decides on its own
 (:meth:`services.alerting.core.AlertingCore.implied`: a probability at or above the raise
 threshold, or at or below the clear one) must be raised or not as it says; between the
@@ -46,6 +52,7 @@ import json
 import os
 import random
 import signal
+import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -60,13 +67,14 @@ import zenoh
 
 from bench.hostile import hostile_messages
 from bench.linkproxy import LinkProxy
-from bench.soak import Child, connect, free_port, pct
+from bench.soak import Child, connect, free_port, outbox_config, pct
 from schemas import (
     Calibration,
     DegradationPosterior,
     GpsFix,
     MaintenanceEvent,
     OnboardIndex,
+    PositionedChunk,
     RaisedAlerts,
     SegmentState,
     TrcRecord,
@@ -77,16 +85,24 @@ from schemas import (
 from services.alerting.core import AlertingCore, alert_key
 from services.alerting.service import load_alerting_config
 from services.defaults import default_file, load_network
+from services.extraction.pipeline import Extractor
 from services.filtering.tracker import Tracker
+from services.ingestion.config import IngestionConfig
+from services.ingestion.core import IngestionCore
+from services.ingestion.service import decode_gateway
 from services.limits import DEFAULT_LIMITS_FILE, Limits, load_limits, network_line_speeds
 from simulators.gateway import key_and_payload
 from simulators.network import DEFAULT_ORIGIN, generate_network
 from simulators.run import DEFAULT_START
 from simulators.truth import load_config
 from simulators.world import WorldSpec, world_events
+from track.segments import SegmentTable
 
-SERVICES = ("calibration", "filtering", "alerting", "ingestion")
+SERVICES = ("calibration", "filtering", "alerting", "ingestion", "extraction")
 KILLABLE = (*SERVICES, "router", "simulator")
+# The raw fleet's world starts a month before the index world's: no index identity shared.
+FLEET_START = "2025-12-01T00:00:00+00:00"
+FLEET_PART = 0.7  # the fleet publishes in real time for this part of the faults' duration
 EVENTS = (OnboardIndex, TrcRecord, MaintenanceEvent)
 FAULT_WEIGHTS = {
     "kill": 4,
@@ -150,6 +166,7 @@ class Stack:
         self.restarts: Counter[str] = Counter()
         self.held: set[str] = set()  # stopped or killed on purpose: the fault restarts them
         self.simulator_done = False
+        self.fleet_done = not args.raw_trains
         self.world_s = args.days * 86400 / args.speedup  # wall time of the first publication
         self.world_started = time.monotonic()
         self._lock = threading.Lock()
@@ -171,8 +188,14 @@ class Stack:
                 return ["filtering", "--db", str(self.store / "filtering.sqlite"), *net, *via]
             case "alerting":
                 return ["alerting", "--db", str(self.out / "alerting.sqlite"), *net, *wiring]
-            case "ingestion":
-                return ["ingestion", *net, *wiring]
+            case "ingestion" | "extraction":
+                db = str(self.out / f"{name}.sqlite")  # its checkpoint, outbox beside it
+                return [name, "--db", db, *net, *wiring]
+            case "fleet":
+                # the gateways, in real time, their outbox in the output directory
+                config = ("--config", str(outbox_config(self.out)))
+                return ["simulate", *self.fleet_flags(), "--speedup", "1", "--linger", "86400",
+                        "--no-progress", *config, *net, *wiring]  # fmt: skip
             case "simulator":
                 world = self.world_flags()
                 # a restarted simulator publishes its whole world again, ten times faster:
@@ -181,6 +204,12 @@ class Stack:
                 return ["simulate", *world, "--speedup", str(speedup), "--linger", "86400",
                         "--no-progress", *net, *wiring]  # fmt: skip
         raise ValueError(name)
+
+    def fleet_flags(self) -> list[str]:
+        a = self.args
+        days = FLEET_PART * a.minutes * 60 / 86400
+        return ["--fidelity", "raw", "--gateway-only", "--trains", str(a.raw_trains),
+                "--days", f"{days:.6f}", "--seed", str(a.seed), "--start", FLEET_START]  # fmt: skip
 
     def world_flags(self) -> list[str]:
         a = self.args
@@ -191,6 +220,8 @@ class Stack:
         """Start ``name`` (its log ``{name}.{n}.log``, n its restarts so far)."""
         if name == "simulator":
             self.simulator_done = False
+        if name == "fleet":
+            self.fleet_done = False
         log_name = f"{name}.{self.restarts[name]}"
         self.children[name] = Child(log_name, self.out, self.command(name))
 
@@ -201,6 +232,8 @@ class Stack:
         if not tokens.until(SERVICES, RECOVER_TIMEOUT_S):
             raise RuntimeError(f"the services did not start: alive {sorted(tokens.alive)}")
         self.start("simulator")
+        if self.args.raw_trains:
+            self.start("fleet")
         self.world_started = time.monotonic()
         self._thread.start()
 
@@ -211,7 +244,7 @@ class Stack:
                 for name, child in self.children.items()
                 if name not in self.held
                 and child.popen.poll() is not None
-                and not (name == "simulator" and child.popen.returncode == 0)
+                and not (name in ("simulator", "fleet") and child.popen.returncode == 0)
             ]
 
     def _supervise(self) -> None:
@@ -226,6 +259,13 @@ class Stack:
             simulator = self.children["simulator"].log_path
             if not self.simulator_done and PUBLISHED in simulator.read_text(errors="replace"):
                 self.simulator_done = True
+            fleet = self.children.get("fleet")
+            if (
+                fleet
+                and not self.fleet_done
+                and PUBLISHED in fleet.log_path.read_text(errors="replace")
+            ):
+                self.fleet_done = True
 
     def hold(self, name: str) -> None:
         with self._lock:
@@ -246,7 +286,7 @@ class Stack:
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(5)
-        for name in ("simulator", *SERVICES, "router"):
+        for name in ("simulator", "fleet", *SERVICES, "router"):
             if name in self.children:
                 self.signal(name, signal.SIGCONT)
                 self.children[name].stop()
@@ -312,6 +352,43 @@ def undisturbed_states(
     tracker.fold_events(world)
     states = tracker.states_of(list(tracker.histories))
     return {keys.q_state(ns, s.line, s.segment): encode(s) for s in states}
+
+
+def gateway_entries(path: Path) -> list[tuple[str, bytes]]:
+    """``(key, payload)`` of what a gateway recorded in its outbox, in its order (read only:
+    the gateway may still be up)."""
+    db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    try:
+        return db.execute("SELECT key, payload FROM entries ORDER BY seq").fetchall()
+    finally:
+        db.close()
+
+
+def raw_chain_indices(entries: list[tuple[str, bytes]], network: str | Path) -> set[bytes]:
+    """The encoded OnboardIndex messages the ingestion and extraction cores give, in one
+    undisturbed pass, for a gateway's recorded messages in its order."""
+    net = load_network(str(network))
+    core = IngestionCore(net, IngestionConfig())
+    extractor = Extractor(SegmentTable.from_network(net))
+    out: set[bytes] = set()
+    for key, payload in entries:
+        kind = "raw" if key.split("/")[1] == "raw" else "gps"
+        for chunk in core.step(decode_gateway(kind, key, payload), time.time()):
+            if isinstance(chunk, PositionedChunk):
+                out |= {encode(index) for index in extractor.process(chunk)}
+    return out
+
+
+def compare_raw_chain(out: Path, expected: set[bytes]) -> dict:
+    """Extraction's published indices (its outbox) against the undisturbed raw chain's."""
+    path = out / "outbox-extraction-extraction.sqlite"
+    published = {p for _, p in gateway_entries(path)} if path.exists() else set()
+    return {
+        "indices": len(expected),
+        "published": len(published),
+        "missing": len(expected - published),
+        "extra": len(published - expected),
+    }
 
 
 def inject(
@@ -459,20 +536,25 @@ def compare_alerts(session: zenoh.Session, reference: Reference) -> dict:
     }
 
 
-def settle(session, stack: Stack, world: list, tokens: Tokens) -> dict:
+def settle(
+    session, stack: Stack, world: list, tokens: Tokens, raw_expected: set[bytes] | None
+) -> dict:
     """Compare until equal, or until ``SETTLE_TIMEOUT_S`` (the last comparison)."""
     reference = Reference(stack.ns, world, stack.network)
     deadline = time.monotonic() + SETTLE_TIMEOUT_S
     while True:
         tokens.until(SERVICES, RECOVER_TIMEOUT_S)
         result = compare(session, reference)
-        if result["missing"] == result["differ"] == 0 or time.monotonic() > deadline:
+        raw = None if raw_expected is None else compare_raw_chain(stack.out, raw_expected)
+        raw_done = raw is None or raw["missing"] == 0
+        if (result["missing"] == result["differ"] == 0 and raw_done) or time.monotonic() > deadline:
             alerts = compare_alerts(session, reference)
             late = alerts.get("missing") or alerts.get("stale")
             if late and time.monotonic() <= deadline:  # alerting may still be folding states
                 time.sleep(10.0)
                 continue
             result["alerts"] = alerts
+            result["raw_chain"] = raw
             result["settled_s"] = round(SETTLE_TIMEOUT_S - (deadline - time.monotonic()), 1)
             return result
         time.sleep(10.0)
@@ -527,12 +609,19 @@ def run(args: argparse.Namespace) -> dict:
             fault.recovered_s = round(time.monotonic() - ended, 2) if recovered else None
             faults.append(fault)
             print(f"{at:7.0f} s  {kind}:{target}  {note}", file=sys.stderr)
-        if not stack.simulator_done:
-            wait_s = stack.world_s * 10 + RECOVER_TIMEOUT_S
-            deadline = time.monotonic() + wait_s
-            while not stack.simulator_done and time.monotonic() < deadline:
-                time.sleep(1.0)
-        result = settle(session, stack, world, stack_tokens)
+        wait_s = stack.world_s * 10 + RECOVER_TIMEOUT_S
+        deadline = time.monotonic() + wait_s
+        while not (stack.simulator_done and stack.fleet_done) and time.monotonic() < deadline:
+            time.sleep(1.0)
+        reference_world, raw_expected = world, None
+        if args.raw_trains:  # the raw chain's indices, from what the gateway recorded
+            entries = gateway_entries(out / "outbox-gateway-fleet.sqlite")
+            raw_expected = raw_chain_indices(entries, network)
+            raw_world = [decode(p, OnboardIndex) for p in sorted(raw_expected)]
+            reference_world = [*world, *raw_world]
+            print(f"raw chain: {len(entries)} gateway messages, {len(raw_expected)} indices",
+                  file=sys.stderr)  # fmt: skip
+        result = settle(session, stack, reference_world, stack_tokens, raw_expected)
         liveliness.undeclare()
     finally:
         if session is not None:
@@ -549,6 +638,7 @@ def run(args: argparse.Namespace) -> dict:
         "world": {
             "days": args.days,
             "trains": args.trains,
+            "raw_trains": args.raw_trains,
             "events": len(world),
             "speedup": round(args.speedup, 1),
         },  # fmt: skip
@@ -574,6 +664,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--days", type=float, default=365.0, help="simulated days")
     parser.add_argument("--trains", type=int, default=4)
+    parser.add_argument(
+        "--raw-trains", type=int, default=1, help="trains of raw data through the raw chain"
+    )
     parser.add_argument("--speedup", type=float, help="default: the world ends at 70 %% of it")
     parser.add_argument("--mean-gap-s", type=float, default=20.0, help="between two faults")
     parser.add_argument("--store-mb", type=int, default=2048, help="filtering's filesystem")
@@ -586,7 +679,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         Path(args.json).write_text(text)
     states = summary["states"]
-    ok = states["missing"] == states["differ"] == 0 and not summary["not_recovered"]
+    raw = states.get("raw_chain") or {"missing": 0, "extra": 0}
+    ok = (
+        states["missing"] == states["differ"] == 0
+        and raw["missing"] == raw["extra"] == 0
+        and not summary["not_recovered"]
+    )
     return 0 if ok else 1
 
 

@@ -57,6 +57,12 @@ def hostile_messages(ns: str, line: str, t: float) -> list[Hostile]:
                 "top6_mm": -1.0, "align10_mm": 1.0, "speed_mps": 20.0, "coverage": 1.0}  # fmt: skip
     return [
         Hostile("not MessagePack", keys.index(ns, line, a), b"\xc1garbage"),
+        Hostile("a raw chunk not MessagePack", keys.raw(ns, "T000", "u0"), b"\xc1garbage"),
+        Hostile(
+            "a positioned chunk missing fields",
+            keys.accel(ns, "T000", "u0"),
+            msgpack.packb({"v": 1, "train": "T000", "unit": "u0"}),
+        ),
         Hostile(
             "a map missing fields", keys.index(ns, line, a), msgpack.packb({"v": 1, "line": line})
         ),

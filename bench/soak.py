@@ -288,6 +288,13 @@ def threads_each(instances: int) -> int:
     return max(1, (os.cpu_count() or 1) // instances)
 
 
+def outbox_config(directory: Path) -> Path:
+    """A config file that keeps a process's outboxes in ``directory``."""
+    path = directory / "outbox.json5"
+    path.write_text(json.dumps({"services": {"delivery": {"outbox": {"dir": str(directory)}}}}))
+    return path
+
+
 class Child:
     """One ``trackfusion`` process in its own process group, output to a log file."""
 
@@ -455,8 +462,7 @@ def run(args: argparse.Namespace, trains: int, stop: threading.Event) -> dict:
             summary["ingestion_settings"] = args.ingestion
         for name in SERVICES:
             extra = service_args.get(name, [])
-            if name in ("calibration", "filtering", "alerting"):
-                extra = [*extra, "--db", db[name]]
+            extra = [*extra, "--db", db[name]]  # outboxes beside it, in the log directory
             children[name] = Child(name, logdir, [name, *extra, "--instance", name, *wiring])
         if not wait_for(lambda: set(SERVICES) <= alive, 60, stop):
             raise RuntimeError(f"services not alive within 60 s: {sorted(alive)}")
@@ -522,6 +528,7 @@ def run(args: argparse.Namespace, trains: int, stop: threading.Event) -> dict:
                 "--no-progress",
                 "--instance",
                 "fleet",
+                *("--config", str(outbox_config(logdir))),  # the gateway's outbox here
                 *wiring,
             ],
         )

@@ -11,7 +11,7 @@ import time
 from datetime import datetime
 from pathlib import Path
 
-from schemas import DAY_S
+from schemas import DAY_S, GpsFix, RawChunk
 from services.defaults import add_network_argument, load_network
 from services.runtime.config import RuntimeConfig, add_zenoh_arguments, flag_values
 from services.runtime.service import run_command
@@ -43,8 +43,10 @@ def main_simulate(
     from_day: float = 0.0,
     to_day: float | None = None,
     linger_s: float = 0.0,
+    gateway_only: bool = False,
 ) -> int:
     """Publish the simulated world on Zenoh (and write its ground truth to ``truth_path``).
+    ``gateway_only``: only what the trains' gateways send (raw chunks and GPS fixes).
 
     Only the events in ``[from_day, to_day)`` days of the world are published: a world cut
     in two such runs publishes exactly what one run would (the world itself is the same).
@@ -81,6 +83,8 @@ def main_simulate(
         rt.announce()
         lo, hi = start_t + from_day * DAY_S, start_t + (days if to_day is None else to_day) * DAY_S
         events = ((t, m) for t, m in world_events(spec) if lo <= t < hi)
+        if gateway_only:
+            events = ((t, [m for m in ms if isinstance(m, RawChunk | GpsFix)]) for t, ms in events)
         total = publish(
             rt.session,
             rt.ns,
@@ -165,6 +169,11 @@ def simulate_add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--sim-config", metavar="FILE.json5", help="default: services/defaults/simulator.json5"
     )
+    parser.add_argument(
+        "--gateway-only",
+        action="store_true",
+        help="raw: publish only the gateways' raw chunks and GPS fixes (no TRC, no tamping)",
+    )
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument(
         "--linger",
@@ -196,6 +205,7 @@ def simulate_run(args: argparse.Namespace) -> int:
         config_path=args.sim_config,
         progress=not args.no_progress and sys.stderr.isatty(),
         linger_s=args.linger,
+        gateway_only=args.gateway_only,
     )
 
 

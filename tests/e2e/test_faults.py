@@ -12,35 +12,32 @@ from __future__ import annotations
 import json
 import signal
 import threading
-import time
 from collections.abc import Callable
 
 import zenoh
 from support import accepts_connections, outbox_config, wait_for
 
-from bench.chaos import simulated_world, undisturbed_states
+from bench.chaos import (
+    gateway_entries,
+    raw_chain_indices,
+    simulated_world,
+    undisturbed_states,
+)
 from bench.linkproxy import LinkProxy
 from schemas import (
     DAY_S,
     InspectionPlan,
-    PositionedChunk,
     SegmentState,
     decode,
     encode,
     keys,
 )
 from schemas.keys import SegmentId
-from services.defaults import demo_network
-from services.extraction.pipeline import Extractor
+from services.defaults import default_file
 from services.filtering.testing import states_by_instance
-from services.ingestion.config import IngestionConfig
-from services.ingestion.core import IngestionCore
-from services.ingestion.service import decode_gateway
 from services.runtime.config import zenoh_config
 from services.runtime.delivery import ReliableSubscription
-from services.runtime.outbox import Outbox
 from simulators.network import generate_network
-from track.segments import SegmentTable
 
 DAYS, TRAINS, SPEEDUP = 100, 2, 120_000.0  # ≈ 72 s of publishing
 WAIT_S = 120.0
@@ -230,24 +227,6 @@ def test_every_fault_in_turn_leaves_the_uninterrupted_states(
         session.close()
 
 
-def undisturbed_indices(gateway_outbox) -> set[bytes]:
-    """The encoded OnboardIndex messages that the ingestion and extraction cores give, in
-    one undisturbed pass, for what the gateway recorded in its outbox, in its order."""
-    core = IngestionCore(demo_network(), IngestionConfig())
-    extractor = Extractor(SegmentTable.from_network(demo_network()))
-    out: set[bytes] = set()
-    outbox = Outbox(gateway_outbox)
-    try:
-        for entry in outbox.entries(0):
-            kind = "raw" if "/raw/" in entry.key else "gps"
-            for chunk in core.step(decode_gateway(kind, entry.key, entry.payload), time.time()):
-                if isinstance(chunk, PositionedChunk):
-                    out |= {encode(index) for index in extractor.process(chunk)}
-    finally:
-        outbox.close()
-    return out
-
-
 def test_the_signal_chain_loses_nothing_when_its_services_are_killed(
     router, namespace, open_session, collector, liveliness_events, spawn, tmp_path
 ):
@@ -286,7 +265,8 @@ def test_the_signal_chain_loses_nothing_when_its_services_are_killed(
             assert next_change(name) == zenoh.SampleKind.PUT
         got.add(indices.get(timeout=WAIT_S))  # indices flow again
     assert simulate.wait(120) == 0, simulate.log()
-    expected = undisturbed_indices(tmp_path / "outbox-gateway-default.sqlite")
+    gateway = gateway_entries(tmp_path / "outbox-gateway-default.sqlite")
+    expected = raw_chain_indices(gateway, default_file("demo-network.geojson"))
     assert len(expected) >= 20, "the scenario should index many passes"
     while not expected <= got:
         try:

@@ -85,3 +85,18 @@ def test_delivery_settings_check_their_values():
         DeliverySettings.from_options({"outbox": {"size": 1}})
     with pytest.raises(ValueError, match="outbox.max_bytes must be an integer"):
         DeliverySettings.from_options({"outbox": {"max_bytes": 0.5}})
+
+
+def test_a_limited_replay_stops_at_the_limit_and_says_how_far_it_looked(outbox):
+    replay = serve_replay(outbox, None, on_line("L2"), limit=2)
+    assert seqs(replay) == [2, 4]
+    assert replay.head == 4  # the consumer asks again after 4
+    rest = serve_replay(outbox, [outbox.epoch, 4, 4, 0], on_line("L2"), limit=10)
+    assert seqs(rest) == [6, 8, 10, 12]
+    assert rest.head == 12
+
+
+def test_a_limit_not_reached_reports_the_producers_head(outbox):
+    replay = serve_replay(outbox, [outbox.epoch, 9, 9, 0], on_line("L1"), limit=5)
+    assert seqs(replay) == [11]
+    assert replay.head == 12

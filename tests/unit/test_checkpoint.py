@@ -1,0 +1,39 @@
+"""The checkpoint of a raw-chain stage: state and positions saved and loaded together."""
+
+from __future__ import annotations
+
+import pytest
+
+from services.runtime.checkpoint import CheckpointBusy, CheckpointStore, fingerprint
+
+
+def test_state_and_positions_come_back_as_saved(tmp_path):
+    store = CheckpointStore(tmp_path / "c.sqlite")
+    assert store.load() is None
+    store.save(b"one", "f1", {"gateway/a": ("e1", 7)})
+    store.save(b"two", "f1", {"gateway/a": ("e1", 9), "gateway/b": ("e2", 3)})
+    store.close()
+    reopened = CheckpointStore(tmp_path / "c.sqlite")
+    saved = reopened.load()
+    reopened.close()
+    assert (saved.state, saved.fingerprint) == (b"two", "f1")
+    assert saved.positions == {"gateway/a": ("e1", 9), "gateway/b": ("e2", 3)}
+
+
+def test_a_second_process_cannot_write_the_same_checkpoint(tmp_path):
+    store = CheckpointStore(tmp_path / "c.sqlite")
+    try:
+        with pytest.raises(CheckpointBusy, match="held by another process"):
+            CheckpointStore(tmp_path / "c.sqlite")
+    finally:
+        store.close()
+
+
+def test_the_fingerprint_changes_with_the_network_and_the_configuration(tmp_path):
+    network = tmp_path / "n.geojson"
+    network.write_text('{"type": "FeatureCollection", "features": []}')
+    base = fingerprint(network, {"a": 1})
+    assert fingerprint(network, {"a": 2}) != base
+    assert fingerprint(None, {"a": 1}) != base
+    network.write_text('{"type": "FeatureCollection", "features": [ ]}')
+    assert fingerprint(network, {"a": 1}) != base
