@@ -4,7 +4,9 @@ A simulated year (``simulators.truth.Truth``: the model's degradation and tampin
 whose tampings are decided by a policy, week by week; the world's own limit and scheduled
 tampings are off. Each line is recorded by a TRC run every ``--trc-weeks`` weeks (log-space
 noise sd 0.02). A reached immediate-action limit (IAL) forces an unplanned tamping a week
-later. Policies, on the same world (paired seeds):
+later. Every line's last TRC run before the year is its record at week 0 (a network has a
+recording history: without it no policy knows a segment's level until its line's first run).
+Policies, on the same world (paired seeds):
 
 - ``planner``: the planning core, re-planned weekly from the live fused estimate of every
   segment, as in production: the filtering core (:class:`~services.filtering.tracker.Tracker`)
@@ -217,7 +219,8 @@ class Loop:
 
     def trc(self, week: int) -> None:
         for line, phase in self.trc_phase.items():
-            if week % self.args.trc_weeks != phase:
+            # week 0: the line's last recording before the year (a network has a history)
+            if week % self.args.trc_weeks != phase and week != 0:
                 continue
             self.trc_runs += 1
             rows = [i for i, r in enumerate(self.refs) if r.line == line]
