@@ -104,6 +104,7 @@ class OrderedSubscription:
         self._ready_bytes = 0
         self._closed = False
         self._wake = threading.Event()
+        self._silent: set[str] = set()  # producers that did not answer their last fetch
         self.lost = 0  # entries a producer's retention deleted before this consumer got them
         self.fetched = 0  # entries that came by a fetch rather than live
         self.dropped_plain = 0  # plain puts not queued, the queue being full
@@ -276,7 +277,15 @@ class OrderedSubscription:
             if kind is not None:
                 entries.append((seq, kind, key, sample.payload.to_bytes()))
         if end is None:  # no answer: the producer is gone (its token will bring it back)
+            if producer not in self._silent:
+                self._silent.add(producer)
+                log.warning(
+                    "producer %s does not answer on %s: its messages wait until it does (a "
+                    "sender without an outbox must not attach a position)",
+                    producer, outbox_key(self._ns, producer),
+                )  # fmt: skip
             return
+        self._silent.discard(producer)
         with self._cond:
             if stream.epoch != epoch:
                 if stream.epoch is not None:

@@ -329,7 +329,7 @@ def parse_trc_csv(text: TextIO) -> Iterator[TrcRecord | RowError]:
     for row in reader:
         line_no = reader.line_num
         try:
-            measured = {c: float(row[c]) for c in values if (row[c] or "").strip()}
+            measured = {c: _number(c, row[c]) for c in values if (row[c] or "").strip()}
             if not measured:
                 raise ValueError(f"no value in {values}")
             yield TrcRecord(
@@ -344,6 +344,13 @@ def parse_trc_csv(text: TextIO) -> Iterator[TrcRecord | RowError]:
             )
         except (SchemaError, ValueError, TypeError, AttributeError) as exc:
             yield RowError(line_no, str(exc))
+
+
+def _number(column: str, cell: str) -> float:
+    try:
+        return float(cell)
+    except ValueError:
+        raise ValueError(f"{column}: {cell.strip()!r} is not a number (mm)") from None
 
 
 # --- export ---------------------------------------------------------------------------------

@@ -143,3 +143,9 @@ def test_exports():
         speed_class="v<=80",
     )
     assert alert_row(alert)["speed_class"] == "v<=80"
+
+
+def test_a_value_that_is_not_a_number_is_named_by_its_column():
+    text = "line,segment,t,top6_mm,align10_mm,run_id\nL1,s00002,2026-02-01,abc,0.8,r1\n"
+    (error,) = list(parse_trc_csv(io.StringIO(text)))
+    assert (error.line_no, error.reason) == (2, "top6_mm: 'abc' is not a number (mm)")
