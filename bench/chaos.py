@@ -32,8 +32,10 @@ process (an undisturbed raw chain), and the indices extraction published (its ou
 compared with those: none missing, none extra. The final models are read from calibration,
 the world and those indices are folded by :class:`services.filtering.tracker.Tracker` in
 this process with them (what an undisturbed filtering instance holds), and every segment's
-``q/state`` reply is compared with it byte for byte. Alerting's raised set (``q/alerts``) is checked against those states: every
-exceedance and predicted alert a segment's final state decides on its own
+``q/state`` reply is compared with it byte for byte (a differing pair is written to
+``differ.jsonl`` in the output directory). Alerting's raised set (``q/alerts``) is checked
+against those states: every exceedance and predicted alert a segment's final state decides
+on its own
 (:meth:`services.alerting.core.AlertingCore.implied`: a probability at or above the raise
 threshold, or at or below the clear one) must be raised or not as it says; between the
 two thresholds the path of states decides, and such alerts are counted, not compared.
@@ -63,6 +65,7 @@ from dataclasses import asdict, dataclass
 from datetime import datetime
 from pathlib import Path
 
+import msgspec
 import zenoh
 
 from bench.hostile import hostile_messages
@@ -459,8 +462,8 @@ class Reference:
     """The states an undisturbed filter reaches on the world with the given models (folded
     again only when the models change)."""
 
-    def __init__(self, ns: str, world: list, network: Path | None = None) -> None:
-        self.network = network
+    def __init__(self, ns: str, world: list, network: Path | None, out: Path) -> None:
+        self.network, self.out = network, out
         self.ns, self.world = ns, world
         self._models: dict[str, bytes] = {}
         self.states: dict[str, bytes] = {}
@@ -499,6 +502,12 @@ def compare(session: zenoh.Session, reference: Reference) -> dict:
         )  # fmt: skip
         if ref.n_updates != got.n_updates:
             how["more_updates" if got.n_updates > ref.n_updates else "fewer_updates"] += 1
+    if differ:  # the evidence, for finding the cause after the stack is gone
+        with (reference.out / "differ.jsonl").open("w") as f:
+            for k in differ:
+                both = {"live": states[k], "reference": expected[k]}
+                pairs = {w: msgspec.to_builtins(decode(p, SegmentState)) for w, p in both.items()}
+                f.write(json.dumps({"key": k, **pairs}) + "\n")
     return {
         "segments": len(expected),
         "answered": len(states),
@@ -540,7 +549,7 @@ def settle(
     session, stack: Stack, world: list, tokens: Tokens, raw_expected: set[bytes] | None
 ) -> dict:
     """Compare until equal, or until ``SETTLE_TIMEOUT_S`` (the last comparison)."""
-    reference = Reference(stack.ns, world, stack.network)
+    reference = Reference(stack.ns, world, stack.network, stack.out)
     deadline = time.monotonic() + SETTLE_TIMEOUT_S
     while True:
         tokens.until(SERVICES, RECOVER_TIMEOUT_S)
