@@ -17,7 +17,6 @@ restarted extraction resumes mid-pass. A malformed chunk becomes a dead letter. 
 from __future__ import annotations
 
 import logging
-import pickle
 import threading
 import time
 from pathlib import Path
@@ -25,7 +24,7 @@ from pathlib import Path
 from schemas import PositionedChunk, decode, encode, keys
 from services.defaults import load_network
 from services.extraction.pipeline import ExtractionConfig, Extractor
-from services.runtime.checkpoint import CheckpointStore, fingerprint
+from services.runtime.checkpoint import CheckpointStore, dumps, fingerprint, loads
 from services.runtime.config import RuntimeConfig
 from services.runtime.service import ServiceRuntime, network_stage_command, open_checkpoint
 from track.segments import SegmentTable
@@ -54,7 +53,7 @@ class ExtractionAdapter:
         if saved is not None:
             positions = saved.positions
             if saved.fingerprint == fingerprint:
-                self.extractor = pickle.loads(saved.state)
+                self.extractor = loads(saved.state, shared(self.extractor))
                 log.info("%s: resumed from its checkpoint", SERVICE)
             else:
                 log.warning(
@@ -71,7 +70,7 @@ class ExtractionAdapter:
             producers=lambda producer: producer.startswith(INGESTION_PRODUCER),
             checkpoint=checkpoint,
             positions=positions,
-            snapshot=lambda: pickle.dumps(self.extractor, protocol=pickle.HIGHEST_PROTOCOL),
+            snapshot=lambda: dumps(self.extractor, shared(self.extractor)),
             fingerprint=fingerprint,
             outputs=self.indices,
         )
@@ -85,6 +84,12 @@ class ExtractionAdapter:
         if time.monotonic() >= self._next_log:
             self._next_log = time.monotonic() + LOG_EVERY_S
             log_counters(self.extractor)
+
+
+def shared(extractor: Extractor) -> dict[str, object]:
+    """What the checkpoint names rather than holds: the segment table and its lines."""
+    table = extractor.segments
+    return {"segments": table, **{f"line/{k}": line for k, line in table.lines.items()}}
 
 
 def log_counters(extractor: Extractor) -> None:

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import pickle
 import threading
 import time
 from pathlib import Path
@@ -30,7 +29,7 @@ from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode, keys
 from services.defaults import load_network
 from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore, Output, Rejection
-from services.runtime.checkpoint import CheckpointStore, fingerprint
+from services.runtime.checkpoint import CheckpointStore, dumps, fingerprint, loads
 from services.runtime.config import RuntimeConfig
 from services.runtime.service import ServiceRuntime, network_stage_command, open_checkpoint
 
@@ -64,7 +63,7 @@ class IngestionAdapter:
         if saved is not None:
             positions = saved.positions
             if saved.fingerprint == fingerprint:
-                self.core = pickle.loads(saved.state)
+                self.core = loads(saved.state, self.shared())
                 log.info("%s: resumed from the checkpoint of %s", SERVICE, _when(saved.saved_at))
             else:
                 log.warning(
@@ -81,10 +80,15 @@ class IngestionAdapter:
             producers=lambda producer: producer.startswith(GATEWAY_PRODUCER),
             checkpoint=checkpoint,
             positions=positions,
-            snapshot=lambda: pickle.dumps(self.core, protocol=pickle.HIGHEST_PROTOCOL),
+            snapshot=lambda: dumps(self.core, self.shared()),
             fingerprint=fingerprint,
             outputs=self.outputs,
         )
+
+    def shared(self) -> dict[str, object]:
+        """What the checkpoint names rather than holds: the map matcher, built from the
+        network (tens of MB for a national one)."""
+        return {"positioner": self.core.positioner}
 
     def handle(self, kind: str, key: str, payload: bytes) -> list[Output]:
         """One payload through the core, with this machine's clock as the bound on future

@@ -18,11 +18,15 @@ from __future__ import annotations
 
 import fcntl
 import hashlib
+import io
 import json
+import pickle
 import sqlite3
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS checkpoint (
@@ -41,6 +45,24 @@ def fingerprint(network_path: Path | str | None, config: object) -> str:
     positions and drops its state."""
     data = Path(network_path).read_bytes() if network_path is not None else b"demo"
     return hashlib.sha256(data + repr(config).encode()).hexdigest()[:16]
+
+
+def dumps(state: object, shared: Mapping[str, object]) -> bytes:
+    """``state`` pickled, each object of ``shared`` (the network, what is built from it:
+    large, and the same after a restart) by its name only."""
+    names = {id(obj): name for name, obj in shared.items()}
+    buffer = io.BytesIO()
+    pickler = pickle.Pickler(buffer, protocol=pickle.HIGHEST_PROTOCOL)
+    pickler.persistent_id = lambda obj: names.get(id(obj))  # type: ignore[method-assign]
+    pickler.dump(state)
+    return buffer.getvalue()
+
+
+def loads(data: bytes, shared: Mapping[str, object]) -> Any:
+    """What :func:`dumps` pickled, its shared objects replaced by those of ``shared``."""
+    unpickler = pickle.Unpickler(io.BytesIO(data))
+    unpickler.persistent_load = lambda name: shared[name]  # type: ignore[method-assign]
+    return unpickler.load()
 
 
 class CheckpointBusy(Exception):

@@ -512,8 +512,9 @@ class ServiceRuntime:
         once, see :mod:`services.runtime.delivery`); BLOCK congestion control. The file is
         in ``services.delivery.outbox.dir`` if set, else in the directory of ``beside`` (the
         service's store), else in ``var/``. ``durable=False``: an outbox in memory, for a
-        process whose messages need not outlive it (the simulator). One per process and producer: the
-        outbox is the producer ``{service}/{instance}``, with the configured instance id, else
+        process whose messages need not outlive it (the simulator). One per process and
+        producer: the outbox is the producer ``{service}/{instance}``, with the configured
+        instance id, else
         ``default`` (so that a restart finds its outbox again), else, when another process
         of this service holds that one, this process's own ``{hostname}-{pid}``. ``service``:
         publish as another producer than this service (the simulator's gateway); ``raw``:

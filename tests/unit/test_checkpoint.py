@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.runtime.checkpoint import CheckpointBusy, CheckpointStore, fingerprint
+from services.runtime.checkpoint import CheckpointBusy, CheckpointStore, dumps, fingerprint, loads
 
 
 def test_state_and_positions_come_back_as_saved(tmp_path):
@@ -37,3 +37,14 @@ def test_the_fingerprint_changes_with_the_network_and_the_configuration(tmp_path
     assert fingerprint(None, {"a": 1}) != base
     network.write_text('{"type": "FeatureCollection", "features": [ ]}')
     assert fingerprint(network, {"a": 1}) != base
+
+
+def test_shared_objects_are_named_not_held():
+    big = {"table": list(range(100_000))}
+    state = {"rows": [1, 2, 3], "uses": big, "again": big}
+    data = dumps(state, {"network": big})
+    assert len(data) < 200  # the table is not in it
+    other = {"table": [7]}
+    back = loads(data, {"network": other})
+    assert back["rows"] == [1, 2, 3]
+    assert back["uses"] is other and back["again"] is other
