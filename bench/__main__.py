@@ -18,8 +18,10 @@ Workloads (targets: docs/performance.md):
    service as its own process as deployed, then in a thread of the bench's process
    (``bench/filtering.py``).
 7. at-least-once delivery: messages per second through the producer's outbox against plain
-   puts, and what a consumer away while 300 keys were published replays on its return
-   (``bench/delivery.py``; ``--keys 100000`` for a national instance's size).
+   puts, what a consumer away while 300 keys were published replays on its return, and
+   raw chunks in order from a gateway's outbox against plain puts, with a consumer that
+   resumes at its position (``bench/delivery.py``; ``--keys 100000`` for a national
+   instance's size).
 8. the filtering core's model-change re-run: events replayed per second, summaries included,
    against the filter bank alone and the one-segment-at-a-time re-run (``bench/rerun.py``).
 9. model versions calibration publishes per simulated month of the demo world, with the
