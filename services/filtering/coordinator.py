@@ -268,6 +268,8 @@ class PersistentTracker:
         for msg, reason in update.refused:
             key, payload = origin[id(msg)]
             batch.rejected.append((key, reason, payload))
+        self._commit_detected(update.detected, update.withdrawn)
+        batch.note(update.detected, update.withdrawn)
         self._commit_many([(msg, origin[id(msg)][0]) for msg in update.accepted])
         batch.accepted += len(update.accepted)
         batch.keep(update.states)

@@ -92,6 +92,49 @@ def replay_many(hists: Sequence[SegmentHistory], models: Models) -> list[Segment
     return out
 
 
+def replay_checked(
+    hists: Sequence[SegmentHistory], models: Models
+) -> tuple[list[SegmentHistory], list[int]]:
+    """:func:`replay_many` for a model change with detection on: ``(histories, suspects)``.
+
+    Whether a log's on-board data show an unreported tamping depends on the models, so a
+    model change may find one or withdraw one. The replay folds each log halting where
+    the CUSUM reaches :data:`CUSUM_THRESHOLD` (:func:`detect`'s condition); ``suspects``
+    are the positions of the histories that halted, ended at the threshold, or hold a
+    tamping (a detected one may go): their states here are not to be kept, the caller
+    walks their logs again (:func:`redetected`). The others' states are those of
+    :func:`replay_many`, bit for bit."""
+    out = list(hists)
+    suspects: list[int] = []
+    jobs: dict[int, list[tuple[int, str]]] = {}
+    for i, hist in enumerate(hists):
+        group = models.group_for(hist.line, hist.segment)
+        if _holds_tamping(hist.log):
+            suspects.append(i)
+        elif group is None or not publishable(hist.log, models):
+            out[i] = replace(hist, state=None, group=group)
+        else:
+            jobs.setdefault(models.params[group].ns, []).append((i, group))
+    for job in jobs.values():
+        logs = [hists[i].log for i, _ in job]
+        states, counts = fold_many_counted(
+            [None] * len(job), logs, [models.params[group] for _, group in job], models,
+            CUSUM_THRESHOLD,
+        )  # fmt: skip
+        for (i, group), state, count, log in zip(job, states, counts, logs, strict=True):
+            if count < len(log) or (state is not None and state.cusum >= CUSUM_THRESHOLD):
+                suspects.append(i)
+            else:
+                out[i] = replace(hists[i], state=state, group=group)
+    return out, sorted(suspects)
+
+
+def _holds_tamping(log: Sequence[Event] | LogColumns) -> bool:
+    if isinstance(log, LogColumns):
+        return bool((log.kinds == TAMPING).any())
+    return any(e.kind == TAMPING for e in log)
+
+
 def replay(hist: SegmentHistory, models: Models) -> SegmentHistory:
     """The history with its state recomputed from the start of its log."""
     return replay_many([hist], models)[0]
@@ -206,6 +249,13 @@ def advance(hist: SegmentHistory, event: Event, models: Models, *, detecting: bo
         return Advanced(new, "", () if found is None else (found,), withdrawn)
     new = redetect(new, models)
     return Advanced(new, "", *_changes(hist, new))
+
+
+def redetected(hist: SegmentHistory, models: Models):
+    """``(history, found, withdrawn)``: :func:`redetect` with ``models`` and the detected
+    tampings that changed."""
+    new = redetect(hist, models)
+    return (new, *_changes(hist, new))
 
 
 def _changes(old: SegmentHistory, new: SegmentHistory):

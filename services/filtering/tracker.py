@@ -134,6 +134,8 @@ from services.filtering.segment import (
     add_event,
     advance,
     publishable,
+    redetected,
+    replay_checked,
     replay_many,
 )
 from services.filtering.summary import summarize_states
@@ -164,13 +166,16 @@ class ModelUpdate:
     ``accepted``: applied (the newest version per model name); ``ignored``: not newer than
     the one held or superseded by a newer one in the same update, with why; ``refused``:
     invalid (the reason names the field) or its re-run failed; ``states``: the re-run
-    segments' publishable states.
+    segments' publishable states; ``detected``, ``withdrawn``: the detected tampings the
+    re-run found or took out (stored and published as a fold's are).
     """
 
     accepted: list[ModelMessage] = field(default_factory=list)
     ignored: list[tuple[ModelMessage, str]] = field(default_factory=list)
     refused: list[tuple[ModelMessage, str]] = field(default_factory=list)
     states: tuple[SegmentState, ...] = ()
+    detected: tuple[MaintenanceEvent, ...] = ()  # tampings the new models find in the data
+    withdrawn: tuple[MaintenanceEvent, ...] = ()  # detected ones the new models do not
 
 
 class Tracker:
@@ -323,7 +328,9 @@ class Tracker:
         ]
         accepted = [msg for msg in msgs if newest.get(model_name(msg)) is msg]
         try:
-            hists, states = self._rerun(models, affected)
+            hists, states, found, withdrawn = self._rerun(
+                models, affected, detect=self.detect_maintenance
+            )
         except (ValueError, ArithmeticError) as exc:
             if len(accepted) == 1:
                 refused.append((accepted[0], f"re-run with this model failed: {exc}"))
@@ -334,10 +341,12 @@ class Tracker:
                 ignored + [m for u in one_by_one for m in u.ignored],
                 refused + [m for u in one_by_one for m in u.refused],
                 tuple(state for u in one_by_one for state in u.states),
+                tuple(m for u in one_by_one for m in u.detected),
+                tuple(m for u in one_by_one for m in u.withdrawn),
             )
         self.models = models
         self._swap(hists)
-        return ModelUpdate(accepted, ignored, refused, states)
+        return ModelUpdate(accepted, ignored, refused, states, found, withdrawn)
 
     def _newest_models(self, msgs: Iterable[ModelMessage]):
         """``(models, newest, ignored, refused)``: the held models with the newest valid
@@ -381,7 +390,7 @@ class Tracker:
             hist = self.histories.get(sid) or SegmentHistory(msg.line, msg.segment)
             self.histories[sid] = add_event(hist, event_of(msg))[0]
         models_in, *_ = self._newest_models(models)
-        hists, states = self._rerun(models_in, list(self.histories))
+        hists, states, *_ = self._rerun(models_in, list(self.histories))
         self.models = models_in
         self._swap(hists)
         return list(states)
@@ -435,7 +444,7 @@ class Tracker:
             if sid not in self.histories:  # no (usable) checkpoint: all from its log
                 self.histories.rest(sid, Checkpoint(*sid, None, None, None, None), dirty=True)
         rested = self._fold_on(on)
-        hists, states = self._rerun(self.models, sorted(full))
+        hists, states, *_ = self._rerun(self.models, sorted(full))
         self._swap(hists)
         for sid in hists:
             self.histories.dirty.add(sid)
@@ -478,10 +487,15 @@ class Tracker:
             else:
                 self.histories[sid] = hist
 
-    def _rerun(
-        self, models: Models, sids: Sequence[SegmentId]
-    ) -> tuple[dict[SegmentId, SegmentHistory | Checkpoint], tuple[SegmentState, ...]]:
-        """Re-run ``sids`` with ``models``; nothing is changed in place.
+    def _rerun(self, models: Models, sids: Sequence[SegmentId], *, detect: bool = False):
+        """Re-run ``sids`` with ``models``; nothing is changed in place. Returns the
+        histories, their publishable states, and the detected tampings found and taken out.
+
+        With ``detect`` (a model change while detecting), a segment whose replay could
+        change a detection (:func:`~services.filtering.segment.replay_checked`) has its log
+        walked again with :func:`~services.filtering.segment.redetect`, as the canonical
+        delivery of its events would with these models. Without (a restart from the store,
+        whose logs hold the detections made), the logs are replayed as they are.
 
         In chunks of ``RERUN_CHUNK`` segments (one batched :func:`replay_many` and
         summary each): a segment whose log was not loaded is read for its chunk only (as
@@ -491,16 +505,26 @@ class Tracker:
         """
         out: dict[SegmentId, SegmentHistory | Checkpoint] = {}
         states: list[SegmentState] = []
+        found: list[MaintenanceEvent] = []
+        withdrawn: list[MaintenanceEvent] = []
         for first in range(0, len(sids), RERUN_CHUNK):
             chunk = sids[first : first + RERUN_CHUNK]
-            hists = replay_many([self.histories.load_columns(sid) for sid in chunk], models)
+            logs = [self.histories.load_columns(sid) for sid in chunk]
+            if detect:
+                hists, suspects = replay_checked(logs, models)
+                for j in suspects:
+                    hists[j], new, gone = redetected(self.histories.load(chunk[j]), models)
+                    found.extend(new)
+                    withdrawn.extend(gone)
+            else:
+                hists = replay_many(logs, models)
             states.extend(s for s in self.segment_states(hists, models) if s is not None)
             for sid, hist in zip(chunk, hists, strict=True):
                 if self.histories.is_loaded(sid):
                     out[sid] = hist
                 else:
                     out[sid] = checkpoint_of(hist)
-        return out, tuple(states)
+        return out, tuple(states), tuple(found), tuple(withdrawn)
 
     def segment_states(
         self, hists: Sequence[SegmentHistory], models: Models | None = None

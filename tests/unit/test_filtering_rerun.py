@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from test_filtering_tracker import (  # tests/unit is on sys.path (rootdir conftest)
     LIMITS,
+    assert_same_states,
     calibration,
     index,
     new_tracker,
@@ -21,6 +22,7 @@ from test_filtering_tracker import (  # tests/unit is on sys.path (rootdir conft
 from schemas import NDArray, SchemaError, encode
 from services.filtering import banks as banks_module
 from services.filtering import tracker as tracker_module
+from services.filtering.events import TAMPING as TAMPING_KIND
 from services.filtering.histories import SegmentHistory
 from services.filtering.segment import replay, replay_many
 from services.filtering.tracker import Tracker
@@ -171,6 +173,7 @@ def test_a_failing_rerun_keeps_the_models_and_histories_it_had(monkeypatch):
         raise ValueError("boom")
 
     monkeypatch.setattr(tracker_module, "replay_many", failing)
+    monkeypatch.setattr(tracker_module, "replay_checked", failing)  # the detecting re-run
     update = tracker.update_models([calibration(2, scale=1.1)])
     assert update.accepted == [] and "re-run with this model failed: boom" in update.refused[0][1]
     assert tracker.models is models and tracker.histories == hists
@@ -281,3 +284,39 @@ def test_update_models_applies_the_good_and_refuses_the_bad():
     assert tracker.models.calibration.version == 1
     for sid, hist in reference.histories.items():
         assert_bit_identical(tracker.histories[sid], hist, tracker)
+
+
+def detected_tampings(tracker: Tracker) -> list:
+    return sorted(
+        e.message.event_id
+        for hist in tracker.histories.values()
+        for e in hist.log
+        if e.kind == TAMPING_KIND and e.message.detected
+    )
+
+
+def test_a_model_change_finds_and_withdraws_detections_as_a_fresh_fold_would():
+    """Whether the on-board data show an unreported tamping depends on the observation
+    model: events folded under one calibration, then a new one, must end as the same events
+    folded under the new one from the start (states and detected tampings), whichever way
+    the change goes."""
+    rng = np.random.default_rng(3)
+    events = [trc(0.0, 3.0, 2.5)]
+    for day in range(1, 60):
+        level = (3.0, 2.5) if day < 30 else (1.8, 1.5)  # an unreported tamping on day 30
+        top6, align10 = np.exp(np.log(level) + rng.normal(0.0, 0.05, 2)).tolist()
+        events.append(index(day + 0.5, top6, align10))
+    flips = 0
+    for first, second in [(1.0, 0.6), (0.6, 1.0), (1.0, 2.0), (2.0, 0.45)]:
+        changed, _ = run([calibration(1, first), posterior(), *events])
+        before = detected_tampings(changed)
+        update = changed.update_models([calibration(2, second)])
+        fresh, _ = run([calibration(2, second), posterior(), *events])
+        assert detected_tampings(changed) == detected_tampings(fresh)
+        assert_same_states(changed, fresh)
+        found = sorted(m.event_id for m in update.detected)
+        withdrawn = sorted(m.event_id for m in update.withdrawn)
+        assert found == sorted(set(detected_tampings(fresh)) - set(before))
+        assert withdrawn == sorted(set(before) - set(detected_tampings(fresh)))
+        flips += bool(found or withdrawn)
+    assert flips, "no model change here changed a detection: the test checks nothing"
