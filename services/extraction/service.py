@@ -24,7 +24,7 @@ from pathlib import Path
 from schemas import PositionedChunk, decode, encode, keys
 from services.defaults import load_network
 from services.extraction.pipeline import ExtractionConfig, Extractor
-from services.runtime.checkpoint import CheckpointStore, dumps, fingerprint, loads
+from services.runtime.checkpoint import CheckpointStore, dumps, fingerprint, resume
 from services.runtime.config import RuntimeConfig
 from services.runtime.service import ServiceRuntime, network_stage_command, open_checkpoint
 from track.segments import SegmentTable
@@ -48,18 +48,8 @@ class ExtractionAdapter:
     def start(self, checkpoint: CheckpointStore, fingerprint: str) -> None:
         """Resume from ``checkpoint`` (the extractor too, when it was saved on the same
         network and configuration ``fingerprint``), then read ingestion's stream."""
-        saved = checkpoint.load()
-        positions = {}
-        if saved is not None:
-            positions = saved.positions
-            if saved.fingerprint == fingerprint:
-                self.extractor = loads(saved.state, shared(self.extractor))
-                log.info("%s: resumed from its checkpoint", SERVICE)
-            else:
-                log.warning(
-                    "%s: the checkpoint was saved on another network or configuration: "
-                    "resuming ingestion's stream with new pipelines", SERVICE,
-                )  # fmt: skip
+        extractor, positions = resume(checkpoint, fingerprint, shared(self.extractor), "extractor")
+        self.extractor = extractor or self.extractor
         # at least once to calibration and filtering
         self.indices = self.rt.reliable_publisher(
             checkpoint.path, durable=checkpoint.path is not None

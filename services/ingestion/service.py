@@ -29,7 +29,7 @@ from schemas import GpsFix, PositionedChunk, RawChunk, decode, encode, keys
 from services.defaults import load_network
 from services.ingestion.config import IngestionConfig
 from services.ingestion.core import IngestionCore, Output, Rejection
-from services.runtime.checkpoint import CheckpointStore, dumps, fingerprint, loads
+from services.runtime.checkpoint import CheckpointStore, dumps, fingerprint, resume
 from services.runtime.config import RuntimeConfig
 from services.runtime.service import ServiceRuntime, network_stage_command, open_checkpoint
 
@@ -58,18 +58,8 @@ class IngestionAdapter:
     def start(self, checkpoint: CheckpointStore, fingerprint: str) -> None:
         """Resume from ``checkpoint`` (the core too, when it was saved on the same network
         and configuration ``fingerprint``), then read the gateways."""
-        saved = checkpoint.load()
-        positions = {}
-        if saved is not None:
-            positions = saved.positions
-            if saved.fingerprint == fingerprint:
-                self.core = loads(saved.state, self.shared())
-                log.info("%s: resumed from the checkpoint of %s", SERVICE, _when(saved.saved_at))
-            else:
-                log.warning(
-                    "%s: the checkpoint was saved on another network or configuration: "
-                    "resuming the gateways' streams with a new core", SERVICE,
-                )  # fmt: skip
+        core, positions = resume(checkpoint, fingerprint, self.shared(), "core")
+        self.core = core or self.core
         self.outputs = self.rt.reliable_publisher(
             checkpoint.path, durable=checkpoint.path is not None, raw=True
         )
@@ -108,10 +98,6 @@ class IngestionAdapter:
                     else:
                         key = keys.gps(ns, message.train)
                     self.rt.deadletters.reject(key, reason, encode(message)[:256])
-
-
-def _when(t: float) -> str:
-    return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t))
 
 
 def ingestion_config(conf: RuntimeConfig) -> IngestionConfig:

@@ -16,10 +16,10 @@ The file is held with an exclusive lock: two processes never write one checkpoin
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import io
 import json
+import logging
 import pickle
 import sqlite3
 import time
@@ -27,6 +27,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from services.runtime.outbox import hold_exclusively
+
+log = logging.getLogger(__name__)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS checkpoint (
@@ -77,6 +81,25 @@ class Checkpoint:
     saved_at: float
 
 
+def resume(
+    store: CheckpointStore, fingerprint: str, shared: Mapping[str, object], what: str
+) -> tuple[Any, dict[str, tuple[str, int]]]:
+    """``(state, positions)`` of ``store``'s checkpoint: the state (None without one, or when
+    it was saved on another network or configuration ``fingerprint``: then only the
+    positions are kept, and a warning names ``what`` starts anew) and the positions."""
+    saved = store.load()
+    if saved is None:
+        return None, {}
+    if saved.fingerprint != fingerprint:
+        log.warning(
+            "the checkpoint %s was saved on another network or configuration: resuming its "
+            "positions with a new %s", store.path, what,
+        )  # fmt: skip
+        return None, saved.positions
+    log.info("resumed from the checkpoint %s of %s", store.path, time.ctime(saved.saved_at))
+    return loads(saved.state, shared), saved.positions
+
+
 class CheckpointStore:
     """One stage's checkpoint in ``path`` (None: in memory, for a stage run in a test)."""
 
@@ -87,12 +110,8 @@ class CheckpointStore:
         else:
             self.path = Path(path)
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._lockfile = open(f"{path}.lock", "a")  # noqa: SIM115 (held until close)
-            try:
-                fcntl.flock(self._lockfile, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                self._lockfile.close()
-                raise CheckpointBusy(f"checkpoint {path}: held by another process") from None
+            busy = CheckpointBusy(f"checkpoint {path}: held by another process")
+            self._lockfile = hold_exclusively(path, busy)
             target = str(path)
         self._db = sqlite3.connect(target, isolation_level=None, check_same_thread=False)
         self._db.execute("PRAGMA journal_mode=WAL")

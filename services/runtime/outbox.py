@@ -37,6 +37,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO
 
 DEFAULT_MAX_BYTES = 2_000_000_000  # keys plus payloads kept per producer (2 GB)
 DEFAULT_MAX_AGE_S = 7 * 86400.0  # how long an entry is kept (7 days)
@@ -48,6 +49,18 @@ CREATE TABLE IF NOT EXISTS entries (
 );
 CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value);
 """
+
+
+def hold_exclusively(path: Path | str, busy: Exception) -> IO[str]:
+    """``{path}.lock``, held with an exclusive lock until it is closed; ``busy`` raised when
+    another process holds it (two writers never share one file)."""
+    lockfile = open(f"{path}.lock", "a")  # noqa: SIM115 (held until the caller closes it)
+    try:
+        fcntl.flock(lockfile, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lockfile.close()
+        raise busy from None
+    return lockfile
 
 
 class OutboxBusy(Exception):
@@ -84,12 +97,9 @@ class Outbox:
         else:
             self.path, uri = Path(path), f"file:{path}"
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._lockfile = open(f"{path}.lock", "a")  # noqa: SIM115 (held until close)
-            try:
-                fcntl.flock(self._lockfile, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                self._lockfile.close()
-                raise OutboxBusy(f"outbox {path}: held by another process") from None
+            self._lockfile = hold_exclusively(
+                path, OutboxBusy(f"outbox {path}: held by another process")
+            )
         self.max_bytes = max_bytes
         self.max_age_s = max_age_s
         self._clock = clock
