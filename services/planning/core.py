@@ -195,6 +195,27 @@ class SegmentRef:
 
 
 @dataclass(frozen=True)
+class Evidence:
+    """A segment's on-board evidence over its posterior group's samples from its TRC
+    intervals before the current one.
+
+    The filter restarts the mixture weights at every TRC record (paper Eq. 13: equal
+    weights), so a state's ``log_weights`` hold the likelihood of the on-board data since the
+    last record only. Given sample j, the intervals' data are independent (each starts from
+    its own record), so the segment's weights over all of them are
+
+        log w_j = Σ_k log p(y_k | θ_j) = Σ_{closed k} ℓ_kj + ℓ_now,j,
+
+    each ``ℓ_kj`` the last ``log_weights`` seen of interval k: a segment slower or faster
+    than its group keeps being forecast so after the next record."""
+
+    group: str
+    version: int  # the posterior version whose samples these weigh
+    last_trc_t: float  # the start of the newest interval counted
+    log_weights: np.ndarray  # (Ns,) summed, max 0
+
+
+@dataclass(frozen=True)
 class PlannedSegment:
     """One row of a plan: a segment tamped, or one whose risk limit the plan does not meet."""
 
@@ -259,6 +280,9 @@ class PlanningCore:
         self.last_tamped: dict[int, float] = {}
         # per segment, the highest-ranked MaintenanceEvent of each event_id (withdrawals too)
         self.tampings: dict[int, dict[str, MaintenanceEvent]] = {}
+        # per segment, the on-board evidence of its TRC intervals before the current one
+        self.evidence: dict[int, Evidence] = {}
+        self.evidence_changed: set[int] = set()  # not yet taken by take_changed_evidence
         self._rows: dict[int, tuple[Any, np.ndarray, np.ndarray]] = {}  # i -> (key, cost, F)
         self._solved: dict[bytes, tuple] = {}  # regions' solutions by their problem's digest
         self.version = 0  # changes that can move the plan
@@ -284,6 +308,7 @@ class PlanningCore:
         frozen.states = dict(self.states)
         frozen.posteriors = dict(self.posteriors)
         frozen.last_tamped = dict(self.last_tamped)
+        frozen.evidence = dict(self.evidence)
         return frozen
 
     # --- inputs --------------------------------------------------------------------------
@@ -304,9 +329,52 @@ class PlanningCore:
         missing = [name for name in INDICATORS if name not in state.indicators]
         if missing:
             raise ValueError(f"SegmentState {state.line}/{state.segment}: lacks {missing}")
+        if held is not None:
+            self._close_interval(i, held, state)
         self.states[i] = state
         self.version += 1
         return True
+
+    def _close_interval(self, i: int, held: SegmentState, new: SegmentState) -> None:
+        """When ``new`` starts a TRC interval after ``held``'s, add ``held``'s log weights (its
+        interval's on-board evidence) to the segment's :class:`Evidence`."""
+        if held.last_trc_t is None or new.last_trc_t is None:
+            return
+        if new.last_trc_t <= held.last_trc_t:
+            return
+        ev = self.evidence.get(i)
+        if ev is not None and (ev.group, ev.version) != (new.posterior_group,
+                                                         new.posterior_version):  # fmt: skip
+            ev = None  # another posterior's samples: its evidence does not carry over
+        if held.log_weights is None or (held.posterior_group, held.posterior_version) != (
+            new.posterior_group,
+            new.posterior_version,
+        ):
+            return
+        lw = held.log_weights.array().astype(float)
+        if ev is not None and (
+            ev.log_weights.shape != lw.shape or held.last_trc_t <= ev.last_trc_t
+        ):
+            return
+        total = lw if ev is None else ev.log_weights + lw
+        self.evidence[i] = Evidence(new.posterior_group, new.posterior_version,
+                                    held.last_trc_t, total - total.max())  # fmt: skip
+        self.evidence_changed.add(i)
+
+    def take_changed_evidence(self) -> list[tuple[str, str, Evidence]]:
+        """``(line, segment, evidence)`` of the segments whose evidence changed since the
+        last call (what to persist)."""
+        changed, self.evidence_changed = self.evidence_changed, set()
+        return [(self.refs[i].line, self.refs[i].segment, self.evidence[i]) for i in changed]
+
+    def restore_evidence(self, items: Iterable[tuple[str, str, Evidence]]) -> None:
+        """Take back evidence persisted from :meth:`take_changed_evidence`."""
+        for line, segment, ev in items:
+            i = self.index.get((line, segment))
+            if i is None:
+                i = self._add(SegmentRef(line, segment, DEFAULT_SEGMENT_M))
+            self.evidence[i] = ev
+        self.version += 1
 
     def on_posterior(self, posterior: DegradationPosterior) -> bool:
         """Keep a group's newest posterior; True if it changed."""
@@ -505,8 +573,12 @@ class PlanningCore:
         out = risk.equal_weights(len(idx), post)
         for r, i in enumerate(idx):
             s = self.states[i]
-            if s.log_weights is not None and s.posterior_version == version:
-                out[r] = post.weights(s.log_weights.array())
+            lw = s.log_weights.array() if s.log_weights is not None else None
+            ev = self.evidence.get(i)
+            if ev is not None and (ev.group, ev.version) == (s.posterior_group, version):
+                lw = ev.log_weights if lw is None else ev.log_weights + lw
+            if lw is not None and s.posterior_version == version:
+                out[r] = post.weights(lw)
         return out
 
     def _cost_after_tamping(self, post, log_il, log_ial, weeks: int, w) -> np.ndarray:

@@ -10,8 +10,10 @@ on folding states while it plans): once nothing new arrived for ``replan.quiet_s
 few plans, never a storm. Each plan goes out on ``{ns}/plan/maintenance`` (cached for late
 joiners) and answers ``{ns}/q/plan/maintenance``; a query with ``weeks`` or ``budget`` is
 planned anew by the planner thread, which replies. At start it asks ``{ns}/q/state/**`` and
-``{ns}/model/**`` for what was published before it ran. It keeps nothing on disk: a restart
-rebuilds the same inputs from those queryables.
+``{ns}/model/**`` for what was published before it ran, and rebuilds its inputs from them;
+the one thing no message holds any more, each segment's evidence from its closed TRC
+intervals, it keeps in its SQLite file (``--db``, :mod:`services.planning.evidence`), written
+before every plan and when it stops.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import argparse
 import logging
 import math
 import queue
+import sqlite3
 import threading
 import time
 from pathlib import Path
@@ -47,6 +50,7 @@ from services.limits import (
     network_line_speeds,
 )
 from services.planning.core import Plan, PlanningConfig, PlanningCore, SegmentRef
+from services.planning.evidence import EvidenceStore
 from services.runtime.config import (
     RuntimeConfig,
     add_zenoh_arguments,
@@ -142,9 +146,10 @@ def plan_parameters(parameters) -> tuple[int | None, float | None]:
 class PlanningAdapter:
     """Decode → core (worker); plan → encode → put (planner thread); queryable."""
 
-    def __init__(self, rt: ServiceRuntime, core: PlanningCore) -> None:
+    def __init__(self, rt: ServiceRuntime, core: PlanningCore, store: EvidenceStore) -> None:
         self.rt = rt
         self.core = core
+        self.store = store
         self.lock = threading.Lock()  # the worker writes the core, the planner snapshots it
         self.changed = threading.Condition(self.lock)
         self.first_change: float | None = None  # monotonic s of the first unplanned change
@@ -168,6 +173,10 @@ class PlanningAdapter:
 
     def start(self) -> None:
         ns = self.rt.ns
+        saved = self.store.load()
+        self.core.restore_evidence(saved)
+        if saved:
+            log.info("evidence of %d segments from %s", len(saved), self.store.path)
         self.out = self.rt.reliable_publisher()
         subscriptions = {
             "state": keys.segment_keys(ns, "state"),
@@ -250,9 +259,11 @@ class PlanningAdapter:
                     continue
                 self.first_change = None
                 now_t = self.now_t
-                if now_t is None:
-                    continue
-                inputs = self.core.snapshot()
+                evidence = self.core.take_changed_evidence()
+                inputs = None if now_t is None else self.core.snapshot()
+            self.save_evidence(evidence)
+            if inputs is None:
+                continue
             # planned outside the lock: the worker goes on folding states into the core
             started = time.perf_counter()
             plan = inputs.plan(now_t)
@@ -271,6 +282,22 @@ class PlanningAdapter:
                 sum(plan.km_per_week), 100 * plan.gap, plan.status,
                 time.perf_counter() - started,
             )  # fmt: skip
+
+    def save_evidence(self, evidence=None) -> None:
+        """Persist the evidence that changed (taken from the core when ``evidence`` is None).
+        A failed write puts it back, to be written with the next plan."""
+        if evidence is None:
+            with self.lock:
+                evidence = self.core.take_changed_evidence()
+        try:
+            self.store.save(evidence)
+        except sqlite3.Error as exc:
+            log.error("evidence %s: not written (%s); retried with the next plan",
+                      self.store.path, exc)  # fmt: skip
+            with self.lock:
+                self.core.evidence_changed.update(
+                    self.core.index[(line, segment)] for line, segment, _ in evidence
+                )
 
     def _answer(self, query: zenoh.Query, weeks: int | None, budget: float | None) -> None:
         try:
@@ -308,10 +335,12 @@ def main(
     planning_config: str | Path | None = None,
     limits: str | Path | None = None,
     network: str | Path | None = None,
+    db: str | Path | None = None,
     stop: threading.Event | None = None,
     handle_signals: bool = True,
 ) -> int:
-    """Run the planner until ``stop`` is set or SIGINT/SIGTERM; 0."""
+    """Run the planner until ``stop`` is set or SIGINT/SIGTERM; 0. ``db``: the evidence file
+    (None: kept in memory only)."""
     limits_path = limits or DEFAULT_LIMITS_FILE
     loaded = load_network(network)
     table = load_limits(limits_path, network_line_speeds(loaded))
@@ -321,9 +350,16 @@ def main(
         load_immediate_action(limits_path, table),
         network_segments(loaded),
     )
-    with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
-        PlanningAdapter(rt, core).start()
-        return rt.run()
+    store = EvidenceStore(db)
+    try:
+        with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
+            adapter = PlanningAdapter(rt, core, store)
+            adapter.start()
+            code = rt.run()
+        adapter.save_evidence()  # the workers are stopped: what changed since the last plan
+        return code
+    finally:
+        store.close()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -343,6 +379,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--network", metavar="FILE.geojson", help="segments and their order (default: the demo)"
     )
+    parser.add_argument(
+        "--db",
+        metavar="FILE",
+        type=Path,
+        help="SQLite file of each segment's on-board evidence from its closed TRC intervals "
+        "(default: kept in memory, lost when the planner stops)",
+    )
     add_zenoh_arguments(parser)
 
 
@@ -353,4 +396,5 @@ def run(args: argparse.Namespace) -> int:
         planning_config=args.config_planning,
         limits=args.limits,
         network=args.network,
+        db=args.db,
     )

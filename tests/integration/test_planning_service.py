@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
 import zenoh
 
@@ -134,3 +135,68 @@ def test_states_keep_being_taken_while_a_plan_is_made(
         got = plans.get(timeout=FIRST_PLAN_S)
     assert any(r.segment == SEGMENTS[5] for r in got.rows)
     model_pub.undeclare()
+
+
+def test_a_restarted_planner_keeps_the_evidence_of_closed_trc_intervals(
+    open_session, service_config, service_thread, collector, until_matched, config_file,
+    tmp_path,
+):  # fmt: skip
+    """A segment's on-board data favoured fast drifts before its last TRC record: its plan
+    row is the same after a restart that is given only the states of now (what ``q/state``
+    holds), because the planner kept that evidence in its file."""
+    import msgspec
+
+    from schemas import NDArray
+    from services.planning.evidence import EvidenceStore
+
+    ns = service_config.ns
+    db = tmp_path / "planning.sqlite"
+    client = open_session()
+    posterior = make_posterior(mu_spread=0.8)
+    mu = posterior.mu.array()[:, 0]
+    fast = NDArray.of(np.where(mu >= np.quantile(mu, 0.9), 0.0, -30.0).astype(np.float32), "f4")
+    before = msgspec.structs.replace(
+        make_state("L1", SEGMENTS[0], T0 - 40 * 86400.0, mean_mm=(8.0, 4.6)),
+        last_trc_t=T0 - 120 * 86400.0, log_weights=fast,
+    )  # fmt: skip
+    now = [
+        msgspec.structs.replace(
+            make_state("L1", segment, T0, mean_mm=(8.5, 5.0)), last_trc_t=T0 - 30 * 86400.0
+        )  # fmt: skip
+        for segment in SEGMENTS[:2]
+    ]
+
+    def run_planner(states):
+        plans = collector(lambda s: decode(s.payload.to_bytes(), MaintenancePlan))
+        subscriber = client.declare_subscriber(keys.maintenance_plan(ns), plans)
+        service = service_thread(
+            "planning",
+            lambda stop: planning.main(
+                service_config,
+                planning_config=config_file,
+                db=db,
+                stop=stop,
+                handle_signals=False,
+            ),  # fmt: skip
+            alive=keys.alive(ns, planning.SERVICE, "test"),
+        )
+        model_pub = client.declare_publisher(keys.degradation(ns, "net"))
+        until_matched(model_pub)
+        model_pub.put(encode(posterior))
+        for state in states:
+            client.put(keys.state(ns, state.line, state.segment), encode(state))
+        plan = plans.get(timeout=FIRST_PLAN_S)
+        while plan.segments < 2:  # a plan made before both states arrived
+            plan = plans.get(timeout=FIRST_PLAN_S)
+        model_pub.undeclare()
+        subscriber.undeclare()
+        assert service.stop() == 0
+        return {r.segment: r for r in plan.rows}
+
+    first = run_planner([before, *now])
+    assert first[SEGMENTS[0]].deadline_week < first[SEGMENTS[1]].deadline_week
+    store = EvidenceStore(db)
+    saved = store.load()
+    store.close()
+    assert [(line, segment) for line, segment, _ in saved] == [("L1", SEGMENTS[0])]
+    assert run_planner(now) == first

@@ -300,3 +300,82 @@ def test_a_segment_whose_weights_favour_fast_samples_has_an_earlier_deadline():
     rows = {r.segment: r for r in core.plan(T0).rows}
     assert rows["fast"].deadline_week < rows["pooled"].deadline_week
     assert rows["stale"].deadline_week == rows["pooled"].deadline_week
+
+
+def _with(state, **fields):
+    import msgspec
+
+    return msgspec.structs.replace(state, **fields)
+
+
+def _weights_favouring_fast(posterior) -> np.ndarray:
+    from schemas import NDArray
+
+    mu = posterior.mu.array()[:, 0]
+    return NDArray.of(np.where(mu >= np.quantile(mu, 0.9), 0.0, -30.0).astype(np.float32), "f4")
+
+
+def test_the_evidence_of_a_closed_trc_interval_keeps_weighing_after_the_next_record():
+    """A segment whose on-board data favoured fast drifts before its last TRC record is still
+    forecast fast after it (the filter's weights restart at the record); counted once, by
+    posterior version, and kept through a save and restore."""
+    limits, ial = make_limits()
+    refs = [SegmentRef("L1", name, 200.0) for name in ("learned", "pooled")]
+    core = PlanningCore(PlanningConfig(), limits, ial, refs)
+    posterior = make_posterior(mu_spread=0.8)
+    core.on_posterior(posterior)
+    first, second = T0 - 120 * DAY_S, T0 - 30 * DAY_S
+    before = _with(make_state("L1", "learned", T0 - 40 * DAY_S, mean_mm=(8.0, 4.6)),
+                   last_trc_t=first, log_weights=_weights_favouring_fast(posterior))  # fmt: skip
+    now = {name: _with(make_state("L1", name, T0, mean_mm=(8.5, 5.0)), last_trc_t=second)
+           for name in ("learned", "pooled")}  # fmt: skip
+    core.on_state(before)
+    assert not core.evidence
+    core.on_state(now["learned"])
+    core.on_state(now["pooled"])
+    assert set(core.evidence) == {0} and core.evidence[0].last_trc_t == first
+    planned = core.plan(T0).rows
+    rows = {r.segment: r for r in planned}
+    assert rows["learned"].deadline_week < rows["pooled"].deadline_week
+
+    # the same interval again, an older state: nothing added twice
+    counted = core.evidence[0].log_weights.copy()
+    core.on_state(_with(now["learned"], t=T0 + DAY_S))
+    core.on_state(before)
+    assert np.array_equal(core.evidence[0].log_weights, counted)
+    assert [(line, seg) for line, seg, _ in core.take_changed_evidence()] == [("L1", "learned")]
+    assert core.take_changed_evidence() == []
+
+    restored = PlanningCore(PlanningConfig(), limits, ial, refs)
+    restored.on_posterior(posterior)
+    restored.restore_evidence([("L1", "learned", core.evidence[0])])
+    for state in now.values():
+        restored.on_state(state)
+    assert restored.plan(T0).rows == planned
+
+    # a new posterior's samples are other samples: the evidence weighs nothing for them
+    core.on_posterior(make_posterior(mu_spread=0.8, version=2))
+    for name in ("learned", "pooled"):
+        core.on_state(_with(now[name], t=T0 + 2 * DAY_S, posterior_version=2))
+    rows = {r.segment: r for r in core.plan(T0).rows}
+    assert rows["learned"].deadline_week == rows["pooled"].deadline_week
+
+
+def test_the_evidence_store_keeps_each_segment_once_and_refuses_a_second_writer(tmp_path):
+    from services.planning.core import Evidence
+    from services.planning.evidence import EvidenceBusy, EvidenceStore
+
+    path = tmp_path / "planning.sqlite"
+    store = EvidenceStore(path)
+    a = Evidence("net", 1, T0, np.array([0.0, -1.5, -3.0]))
+    store.save([("L1", "s1", a), ("L1", "s2", a)])
+    store.save([("L1", "s1", Evidence("net", 2, T0 + 1, np.array([-2.0, 0.0, -1.0])))])
+    with pytest.raises(EvidenceBusy):
+        EvidenceStore(path)
+    store.close()
+    again = EvidenceStore(path)
+    loaded = {(line, seg): ev for line, seg, ev in again.load()}
+    again.close()
+    assert set(loaded) == {("L1", "s1"), ("L1", "s2")}
+    assert loaded[("L1", "s1")].version == 2 and loaded[("L1", "s1")].last_trc_t == T0 + 1
+    assert np.array_equal(loaded[("L1", "s2")].log_weights, a.log_weights)
