@@ -98,7 +98,7 @@ def stack_file(work: Path, endpoint: str, web_port: int, grpc_port: int) -> Path
                 "{defaults}/initial-models.json5", "--network", "{network}"),
         service("filtering", "--db", str(state / "f.sqlite"), "--network", "{network}"),
         service("alerting", "--db", str(state / "a.sqlite")),
-        service("planning", "--network", "{network}"),
+        service("planning", "--db", str(state / "p.sqlite"), "--network", "{network}"),
         service("viewer", "--network", "{network}", "--web", "--web-port", str(web_port),
                 "--grpc-port", str(grpc_port)),
         {"name": "simulator", "command": "simulate", "restart": "on-failure",

@@ -55,6 +55,7 @@ from services.runtime.config import (
     RuntimeConfig,
     add_zenoh_arguments,
     config_from_args,
+    default_db,
     read_json5,
 )
 from services.runtime.event_time import NewestTimes
@@ -340,7 +341,7 @@ def main(
     handle_signals: bool = True,
 ) -> int:
     """Run the planner until ``stop`` is set or SIGINT/SIGTERM; 0. ``db``: the evidence file
-    (None: kept in memory only)."""
+    (default ``./var/planning-{instance}.sqlite``)."""
     limits_path = limits or DEFAULT_LIMITS_FILE
     loaded = load_network(network)
     table = load_limits(limits_path, network_line_speeds(loaded))
@@ -350,7 +351,7 @@ def main(
         load_immediate_action(limits_path, table),
         network_segments(loaded),
     )
-    store = EvidenceStore(db)
+    store = EvidenceStore(db or default_db(SERVICE, conf.instance))
     try:
         with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
             adapter = PlanningAdapter(rt, core, store)
@@ -384,7 +385,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         type=Path,
         help="SQLite file of each segment's on-board evidence from its closed TRC intervals "
-        "(default: kept in memory, lost when the planner stops)",
+        "(default: ./var/planning-{instance}.sqlite)",
     )
     add_zenoh_arguments(parser)
 

@@ -32,7 +32,7 @@ def query(session: zenoh.Session, selector: str) -> list[zenoh.Reply]:
 
 
 def test_states_and_a_model_give_a_published_plan_that_the_queryable_answers(
-    open_session, service_config, service_thread, collector, until_matched, config_file
+    open_session, service_config, service_thread, collector, until_matched, config_file, tmp_path
 ):
     ns = service_config.ns
     client = open_session()
@@ -43,7 +43,11 @@ def test_states_and_a_model_give_a_published_plan_that_the_queryable_answers(
     service_thread(
         "planning",
         lambda stop: planning.main(
-            service_config, planning_config=config_file, stop=stop, handle_signals=False
+            service_config,
+            planning_config=config_file,
+            db=tmp_path / "p.sqlite",
+            stop=stop,
+            handle_signals=False,
         ),
         alive=keys.alive(ns, planning.SERVICE, "test"),
     )
@@ -87,7 +91,7 @@ def test_states_and_a_model_give_a_published_plan_that_the_queryable_answers(
 
 def test_states_keep_being_taken_while_a_plan_is_made(
     open_session, service_config, service_thread, collector, until_matched, config_file,
-    monkeypatch,
+    monkeypatch, tmp_path,
 ):  # fmt: skip
     # the first plan is held until the test lets it go; a state put meanwhile must be folded
     # into the core before then, and the next plan has it
@@ -115,7 +119,11 @@ def test_states_keep_being_taken_while_a_plan_is_made(
     service_thread(
         "planning",
         lambda stop: planning.main(
-            service_config, planning_config=config_file, stop=stop, handle_signals=False
+            service_config,
+            planning_config=config_file,
+            db=tmp_path / "p.sqlite",
+            stop=stop,
+            handle_signals=False,
         ),
         alive=keys.alive(ns, planning.SERVICE, "test"),
     )
