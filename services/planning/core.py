@@ -23,11 +23,12 @@ in week ``u`` (its unplanned tamping follows ``d`` = ``unplanned_delay_days`` la
 :math:`F_i(u)` the probability of reaching the IAL before the end of week ``u - 1`` (first
 passage), :math:`U_i` the unplanned intervention that follows,
 :math:`V` the wear value at the horizon's end and :math:`R_i` the risk violation cost of a
-week late: :math:`L_i(w) = \#\{u : e_i < u \le w,\ F_i(u + 1) > \varepsilon\}` counts the
-weeks after the first allowed one :math:`e_i` whose tamping would miss the risk limit (not
-tamping counts as week ``W``, with :math:`F_i(W + 1) \ge F_i(W)`). The segment's *deadline*
-is the last week whose tamping keeps :math:`F \le \varepsilon`; one already past it at week
-0 is tamped as early as capacity allows.
+week late: :math:`L_i(w) = \sum_{e_i < u \le w,\ F_i(u + 1) > \varepsilon} (1 + F_i(u + 1))`
+counts the weeks after the first allowed one :math:`e_i` whose tamping would miss the risk
+limit, the likelier to be at the IAL the heavier (not tamping counts as week ``W``, with
+:math:`F_i(W + 1) \ge F_i(W)`). The segment's *deadline* is the last week whose tamping
+keeps :math:`F \le \varepsilon`; one already past it at week 0 is tamped as early as
+capacity allows.
 """
 
 from __future__ import annotations
@@ -520,20 +521,24 @@ class PlanningCore:
         return cost, fp_out
 
     def _weeks_late(self, fp: np.ndarray, earliest: np.ndarray, weeks: int) -> np.ndarray:
-        """(rows, W+1): weeks by which a tamping in week w (column W: not in the horizon,
-        counted as week W) misses the risk limit, beyond the first allowed week.
+        """(rows, W+1): the weeks by which a tamping in week w (column W: not in the horizon,
+        counted as week W) misses the risk limit, beyond the first allowed week, each
+        weighted 1 + F(u+1).
 
         A tamping in week u meets the limit when F(u+1) <= eps. Each week after the first
-        allowed one that a tamping could not meet it in counts once, so a late tamping costs
-        more the later it is, not tamping costs the most, and a segment that no allowed
-        week can save (already past its deadline at week 0, or held off by the minimum
-        interval) is still tamped as early as capacity allows, paying nothing for the part
-        no plan avoids.
+        allowed one that a tamping could not meet it in counts at least once, so a late
+        tamping costs more the later it is, not tamping costs the most, and a segment that
+        no allowed week can save (already past its deadline at week 0, or held off by the
+        minimum interval) is still tamped as early as capacity allows, paying nothing for
+        the part no plan avoids. The weight 1 + F(u+1) (1 to 2) puts first, when capacity
+        cannot take every late segment, those likeliest to be at the IAL by then: a segment
+        already above it before one merely past its deadline.
         """
-        missed = fp[:, 1:] > self.config.eps  # a tamping in week u misses the limit
-        missed = np.c_[missed, missed[:, -1:]]  # after the horizon: as its last week, at least
+        risk = fp[:, 1:]
+        risk = np.c_[risk, risk[:, -1:]]  # after the horizon: as its last week, at least
+        missed = risk > self.config.eps  # a tamping in week u misses the limit
         after_first = np.arange(weeks + 1)[None, :] > earliest[:, None]
-        return np.cumsum(missed & after_first, axis=1)
+        return np.cumsum(np.where(missed & after_first, 1.0 + risk, 0.0), axis=1)
 
     def _segment_inputs(self, idx: Sequence[int], t0: float):
         """Per segment of ``idx``: mean and variance of the indicators, age in days at ``t0``,

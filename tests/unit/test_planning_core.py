@@ -379,3 +379,21 @@ def test_the_evidence_store_keeps_each_segment_once_and_refuses_a_second_writer(
     assert set(loaded) == {("L1", "s1"), ("L1", "s2")}
     assert loaded[("L1", "s1")].version == 2 and loaded[("L1", "s1")].last_trc_t == T0 + 1
     assert np.array_equal(loaded[("L1", "s2")].log_weights, a.log_weights)
+
+
+def test_when_capacity_takes_one_late_segment_a_week_the_one_above_the_ial_goes_first():
+    """Two segments past their deadline far apart on one line, a worksite's capacity a week:
+    the one already above the immediate-action limit is tamped in week 0, the one merely
+    past its deadline a week later, whichever comes first along the line."""
+    limits, ial = make_limits()
+    refs = [SegmentRef("L1", f"s{k:02d}", 200.0) for k in range(20)]
+    for above, late in ((2, 17), (17, 2)):
+        core = PlanningCore(PlanningConfig(capacity_km_per_week=1.0), limits, ial, refs)
+        core.on_posterior(make_posterior())
+        for k in range(20):
+            mean = {above: (12.5, 6.0), late: (10.2, 6.0)}.get(k, FRESH)
+            core.on_state(make_state("L1", f"s{k:02d}", T0, mean_mm=mean))
+        rows = {r.segment: r for r in core.plan(T0).rows}
+        first, second = rows[f"s{above:02d}"], rows[f"s{late:02d}"]
+        assert first.p_reach_ial > 0.99 and 0.05 < second.p_reach_ial < 0.9
+        assert (first.week, second.week) == (0, 1)
