@@ -353,6 +353,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--weeks", type=int, default=52)
     parser.add_argument("--lines", type=int, default=0,
                         help="also a generated network of this many 20 km lines")  # fmt: skip
+    parser.add_argument("--no-demo", action="store_true",
+                        help="the generated network (--lines) only")  # fmt: skip
     parser.add_argument("--capacity", type=float, default=2.0, help="km a week per line")
     parser.add_argument("--trc-weeks", type=int, default=9)
     parser.add_argument("--cycle-years", type=float, default=4.0)
@@ -373,7 +375,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="a km per week late on the risk limit (0: no risk limit)")  # fmt: skip
     args = parser.parse_args(argv)
     cfg = world_config()
-    networks = [("demo", load_network(None))]
+    networks = [] if args.no_demo else [("demo", load_network(None))]
     if args.lines:
         networks.append((f"{args.lines}x20km", generate_network(args.lines, 20.0, seed=7)))
     assert week_start(START) == START
