@@ -35,6 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--weeks", type=int, default=26)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--baseline", type=int, default=500, help="segments of the baseline")
+    parser.add_argument("--milp-s", type=float, default=PlanningConfig.milp_s,
+                        help="the planner's milp_s: s for integer programs")  # fmt: skip
     args = parser.parse_args(argv)
 
     started = time.perf_counter()
@@ -44,6 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     regions = {f"R{k // args.lines_per_region}" for k in range(args.lines)}
     config = PlanningConfig(
         horizon_weeks=args.weeks,
+        milp_s=args.milp_s,
         regions={r: args.capacity for r in regions},
         region_of_line={f"L{k + 1}": f"R{k // args.lines_per_region}" for k in range(args.lines)},
     )

@@ -46,7 +46,10 @@ against the best bound is the reported gap.
 from __future__ import annotations
 
 import hashlib
+import os
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numba
@@ -57,6 +60,7 @@ from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 NONE = -1  # a segment's choice: not tamped in the horizon
 MAX_COLUMN_ROUNDS = 60  # column generation rounds at most
 MILP_TIME_LIMIT_S = 5.0  # per integer master or compact MILP
+REGION_THREADS = min(4, os.cpu_count() or 1)  # regions solved at once
 MILP_REL_GAP = 0.002  # HiGHS stops the integer master within this of its own bound
 NEAR_LP_COLUMNS = 5  # the restricted integer master: this many worksites of least reduced
 # cost per worksite in the LP's support (with the support and the rounded plan's)
@@ -236,12 +240,12 @@ def solve(
 ) -> Solution:
     """The plan of ``problem``: every block's best plan; where that breaks a capacity or the
     budget, column generation and the integer master (module docstring). Without a budget the
-    regions are independent and each is solved on its own. ``milp_s``: seconds from the start
-    of the regions that need column generation (their LPs included) after which no integer
-    master starts; what is left is shared evenly by the regions still to solve, and a
-    region without time keeps its rounded LP. ``solved``: the regions' solutions by their
-    problem's digest, kept between calls, so that a re-plan solves again only the regions
-    whose costs changed."""
+    regions are independent and each is solved on its own, ``REGION_THREADS`` at once.
+    ``milp_s``: seconds from the start of the regions that need column generation (their LPs
+    included) after which no integer master starts; what is left is shared evenly by the
+    regions still to solve, and a region without time keeps its rounded LP. ``solved``: the
+    regions' solutions by their problem's digest, kept between calls, so that a re-plan
+    solves again only the regions whose costs changed."""
     started = time.perf_counter()
     timings = {"dp": 0.0, "lp": 0.0, "milp": 0.0}
     cap = problem.capacity
@@ -259,27 +263,12 @@ def solve(
         choice, bound, rounds, columns = _coupled(problem, target_gap, timings, milp_s)
     elif over.size:
         # regions within their capacity keep their blocks' best plans (optimal there)
-        deadline = time.perf_counter() + milp_s
-        used: set[bytes] = set()
-        for n, r in enumerate(over):
-            blocks = np.flatnonzero(problem.region == r)
-            sub, rows = subproblem(problem, blocks)
-            share = max(0.0, deadline - time.perf_counter()) / (len(over) - n)
-            key = _digest(sub, target_gap)
-            used.add(key)
-            if solved is not None and key in solved:
-                sub_choice, sub_bound, n_rounds, n_columns = solved[key]
-            else:
-                found = _coupled(sub, target_gap, timings, share)
-                sub_choice, sub_bound, n_rounds, n_columns = found
-                if solved is not None:
-                    solved[key] = found
+        regions = _solve_regions(problem, over, target_gap, milp_s, solved, timings)
+        for rows, blocks, (sub_choice, sub_bound, n_rounds, n_columns) in regions:
             choice[rows] = sub_choice
             bound += sub_bound - value[blocks].sum()
             rounds = max(rounds, n_rounds)
             columns += n_columns
-        for key in set(solved or ()) - used:  # regions whose costs changed since
-            del solved[key]
     total = plan_cost(problem, choice)[0]
     bound = min(bound, total)
     gap = max(0.0, total - bound) / max(abs(total), 1e-12)
@@ -287,6 +276,48 @@ def solve(
     status = "optimal" if gap <= 1e-9 else status
     return Solution(choice, total, float(bound), status, rounds, columns,
                     time.perf_counter() - started, timings)  # fmt: skip
+
+
+def _solve_regions(problem, over, target_gap, milp_s, solved, timings) -> list[tuple]:
+    """``(rows, blocks, (choice, bound, rounds, columns))`` of each region of ``over``, solved
+    on its own (:func:`_coupled`) by ``REGION_THREADS`` threads: the LPs and integer programs
+    (HiGHS) and the block DP (numba) release the GIL. A region starting with ``T`` s left
+    of ``milp_s`` and ``L`` regions not started gets ``T x threads / L`` s; a region whose
+    problem is in ``solved`` takes that solution; ``solved`` keeps the regions' solutions
+    only."""
+    threads = min(REGION_THREADS, len(over))
+    deadline = time.perf_counter() + milp_s
+    lock = threading.Lock()
+    started = [0]
+
+    def region(r: int):
+        blocks = np.flatnonzero(problem.region == r)
+        sub, rows = subproblem(problem, blocks)
+        key = _digest(sub, target_gap)
+        with lock:
+            share = max(0.0, deadline - time.perf_counter()) * threads / (len(over) - started[0])
+            started[0] += 1
+        mine = {"dp": 0.0, "lp": 0.0, "milp": 0.0}
+        if solved is not None and key in solved:
+            found = solved[key]
+        else:
+            found = _coupled(sub, target_gap, mine, share)
+        return key, rows, blocks, found, mine
+
+    if threads > 1:
+        with ThreadPoolExecutor(threads, thread_name_prefix="planning:region") as pool:
+            results = list(pool.map(region, over.tolist()))
+    else:
+        results = [region(r) for r in over.tolist()]
+    for _, _, _, _, mine in results:
+        for name, seconds in mine.items():
+            timings[name] = timings.get(name, 0.0) + seconds
+    if solved is not None:
+        used = {key: found for key, _, _, found, _ in results}
+        for key in set(solved) - set(used):  # regions whose costs changed since
+            del solved[key]
+        solved.update(used)
+    return [(rows, blocks, found) for _, rows, blocks, found, _ in results]
 
 
 def _digest(problem: Problem, target_gap: float) -> bytes:
