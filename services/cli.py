@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import sqlite3
 import sys
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 
 EXIT_USAGE = 2  # what argparse exits with on a bad command line; a bad config is one too
+EXIT_IO = 74  # EX_IOERR: a file the command needs cannot be opened or written
 
 
 @dataclass(frozen=True)
@@ -149,6 +151,13 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         print(f"trackfusion {_command_name(args)}: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except (OSError, sqlite3.Error) as exc:  # a state file's path or disk: say which
+        if getattr(args, "log_level", None) == "debug":
+            traceback.print_exc()
+        where = getattr(args, "db", None)  # SQLite's own messages name no file
+        where = f"{where}: " if isinstance(exc, sqlite3.Error) and where else ""
+        print(f"trackfusion {_command_name(args)}: {where}{exc}", file=sys.stderr)
+        return EXIT_IO
 
 
 if __name__ == "__main__":

@@ -129,3 +129,15 @@ def test_delivery_outbox_max_bytes_must_be_a_positive_integer(bad):
     with pytest.raises(ValueError, match=r"services\.delivery\.outbox\.max_bytes must be"):
         DeliverySettings.from_options({"outbox": {"max_bytes": bad}})
     assert DeliverySettings.from_options({"outbox": {"max_bytes": 5}}).outbox.max_bytes == 5
+
+
+@pytest.mark.parametrize("command", ["planning", "filtering"])
+def test_a_state_file_that_cannot_be_opened_exits_74_naming_it(tmp_path, capsys, command):
+    blocker = tmp_path / "not-a-directory"
+    blocker.write_text("")
+    db = blocker / "state.sqlite"
+    argv = [command, "--db", str(db), "--connect", "tcp/127.0.0.1:1", "--log-level", "warning"]
+    assert cli.main(argv) == cli.EXIT_IO
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"trackfusion {command}: ")
+    assert str(blocker) in err
