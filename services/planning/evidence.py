@@ -31,7 +31,7 @@ CREATE TABLE IF NOT EXISTS evidence (
 """
 
 
-class EvidenceBusy(Exception):
+class EvidenceBusy(OSError):
     """Another process holds this evidence file."""
 
 
