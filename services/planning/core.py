@@ -11,7 +11,7 @@ formulation):
 .. math::
 
     c_{i,w} = T_i + \sum_{u \le w} E^{pre}_i(u) + \ell_i \sum_{u > w} E^{post}(u - w - 1)
-              + U_i F_i(w + 1) + V_i(w) + R_i L_i(w)
+              + U_i F_i(w) + V_i(w) + R_i L_i(w)
 
     c_{i,\varnothing} = \sum_{u < W} E^{pre}_i(u) + U_i F_i(W) + V_i(\varnothing) + R_i L_i(W)
 
@@ -21,9 +21,10 @@ limit at mid-week (:mod:`services.planning.risk`) and not yet tamped unplanned, 
 :math:`d\,\ell_i c_{IAL}` times the probability of reaching the immediate-action limit (IAL)
 in week ``u`` (its unplanned tamping follows ``d`` = ``unplanned_delay_days`` later);
 :math:`F_i(u)` the probability of reaching the IAL before the end of week ``u - 1`` (first
-passage), :math:`U_i` the unplanned intervention that follows,
-:math:`V` the wear value at the horizon's end and :math:`R_i` the risk violation cost of a
-week late: :math:`L_i(w) = \sum_{e_i < u \le w,\ F_i(u + 1) > \varepsilon} (1 + F_i(u + 1))`
+passage), :math:`U_i` the unplanned intervention that follows when the IAL is reached before
+the week of the planned tamping (that week's work pre-empts it), :math:`V` the wear value
+at the horizon's end and :math:`R_i` the risk violation cost of a week late:
+:math:`L_i(w) = \sum_{e_i < u \le w,\ F_i(u + 1) > \varepsilon} (1 + F_i(u + 1))`
 counts the weeks after the first allowed one :math:`e_i` whose tamping would miss the risk
 limit, the likelier to be at the IAL the heavier (not tamping counts as week ``W``, with
 :math:`F_i(W + 1) \ge F_i(W)`). The segment's *deadline* is the last week whose tamping
@@ -506,7 +507,7 @@ class PlanningCore:
                 tamp[:, None]
                 + cum_pre
                 + km[r, None] * post_sum
-                + unplanned[:, None] * fp[:, 1:]
+                + unplanned[:, None] * fp[:, :-1]  # reached before week w's work: F(w)
                 + c.wear_value * tamp[:, None] * wear_tamped
                 + violation[:, :weeks]
             )

@@ -397,3 +397,21 @@ def test_when_capacity_takes_one_late_segment_a_week_the_one_above_the_ial_goes_
         first, second = rows[f"s{above:02d}"], rows[f"s{late:02d}"]
         assert first.p_reach_ial > 0.99 and 0.05 < second.p_reach_ial < 0.9
         assert (first.week, second.week) == (0, 1)
+
+
+def test_the_unplanned_intervention_is_paid_by_paths_reaching_the_ial_before_the_tamping_week():
+    """A week's planned work pre-empts the unplanned intervention of a path that reaches the
+    IAL during that week: tamped in week w, a segment pays U F(w), nothing in week 0."""
+    limits, ial = make_limits()
+    costs = Costs(tamping_per_km=0.0, possession=0.0, intervention_per_km_day=0.0,
+                  immediate_action_per_km_day=0.0, unplanned_per_km=1e6,
+                  risk_violation_per_km=0.0, wear_value=0.0)  # fmt: skip
+    core = PlanningCore(PlanningConfig(costs=costs), limits, ial, [SegmentRef("L1", "s", 200.0)])
+    core.on_posterior(make_posterior())
+    core.on_state(make_state("L1", "s", T0, mean_mm=(10.5, 5.0)))
+    cost, fp = core.cost_rows([0], week_start(T0), 4)
+    assert fp[0, 0] == 0.0 and 0.05 < fp[0, 1] < fp[0, 2]
+    unplanned = 1e6 * 0.2
+    assert cost[0, 0] < 1e-6 * unplanned
+    assert cost[0, 1:4] == pytest.approx(unplanned * fp[0, 1:4])
+    assert cost[0, 4] == pytest.approx(unplanned * fp[0, 4])
