@@ -582,7 +582,10 @@ class PlanningCore:
             lw = s.log_weights.array() if s.log_weights is not None else None
             ev = self.evidence.get(i)
             if ev is not None and (ev.group, ev.version) == (s.posterior_group, version):
-                lw = ev.log_weights if lw is None else ev.log_weights + lw
+                if lw is None:
+                    lw = ev.log_weights
+                elif lw.shape == ev.log_weights.shape:  # else: of other samples, as below
+                    lw = ev.log_weights + lw
             if lw is not None and s.posterior_version == version:
                 out[r] = post.weights(lw)
         return out

@@ -415,3 +415,19 @@ def test_the_unplanned_intervention_is_paid_by_paths_reaching_the_ial_before_the
     assert cost[0, 0] < 1e-6 * unplanned
     assert cost[0, 1:4] == pytest.approx(unplanned * fp[0, 1:4])
     assert cost[0, 4] == pytest.approx(unplanned * fp[0, 4])
+
+
+def test_weights_of_another_length_than_the_evidence_do_not_stop_the_plan():
+    from schemas import NDArray
+
+    limits, ial = make_limits()
+    core = PlanningCore(PlanningConfig(), limits, ial, [SegmentRef("L1", "s", 200.0)])
+    posterior = make_posterior()
+    core.on_posterior(posterior)
+    core.on_state(_with(make_state("L1", "s", T0 - 40 * DAY_S, mean_mm=(8.0, 4.6)),
+                        last_trc_t=T0 - 120 * DAY_S,
+                        log_weights=_weights_favouring_fast(posterior)))  # fmt: skip
+    three = NDArray.of(np.array([0.0, -1.0, -2.0], np.float32), "f4")
+    core.on_state(_with(make_state("L1", "s", T0, mean_mm=(8.5, 5.0)),
+                        last_trc_t=T0 - 30 * DAY_S, log_weights=three))  # fmt: skip
+    assert core.evidence and [r.segment for r in core.plan(T0).rows] == ["s"]
