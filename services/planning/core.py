@@ -45,7 +45,8 @@ import numpy as np
 from schemas import DAY_S, INDICATORS, DegradationPosterior, MaintenanceEvent, SegmentState
 from schemas.keys import SegmentId
 from services.limits import Limits
-from services.planning import risk
+from services.planning import evidence, risk
+from services.planning.evidence import Evidence
 from services.planning.solver import NONE, Problem, Solution, run_starts, solve
 
 WEEK_S = 7 * DAY_S
@@ -197,27 +198,6 @@ class SegmentRef:
 
 
 @dataclass(frozen=True)
-class Evidence:
-    """A segment's on-board evidence over its posterior group's samples from its TRC
-    intervals before the current one.
-
-    The filter restarts the mixture weights at every TRC record (paper Eq. 13: equal
-    weights), so a state's ``log_weights`` hold the likelihood of the on-board data since the
-    last record only. Given sample j, the intervals' data are independent (each starts from
-    its own record), so the segment's weights over all of them are
-
-        log w_j = Σ_k log p(y_k | θ_j) = Σ_{closed k} ℓ_kj + ℓ_now,j,
-
-    each ``ℓ_kj`` the last ``log_weights`` seen of interval k: a segment slower or faster
-    than its group keeps being forecast so after the next record."""
-
-    group: str
-    version: int  # the posterior version whose samples these weigh
-    last_trc_t: float  # the start of the newest interval counted
-    log_weights: np.ndarray  # (Ns,) summed, max 0
-
-
-@dataclass(frozen=True)
 class PlannedSegment:
     """One row of a plan: a segment tamped, or one whose risk limit the plan does not meet."""
 
@@ -338,30 +318,12 @@ class PlanningCore:
         return True
 
     def _close_interval(self, i: int, held: SegmentState, new: SegmentState) -> None:
-        """When ``new`` starts a TRC interval after ``held``'s, add ``held``'s log weights (its
-        interval's on-board evidence) to the segment's :class:`Evidence`."""
-        if held.last_trc_t is None or new.last_trc_t is None:
-            return
-        if new.last_trc_t <= held.last_trc_t:
-            return
-        ev = self.evidence.get(i)
-        if ev is not None and (ev.group, ev.version) != (new.posterior_group,
-                                                         new.posterior_version):  # fmt: skip
-            ev = None  # another posterior's samples: its evidence does not carry over
-        if held.log_weights is None or (held.posterior_group, held.posterior_version) != (
-            new.posterior_group,
-            new.posterior_version,
-        ):
-            return
-        lw = held.log_weights.array().astype(float)
-        if ev is not None and (
-            ev.log_weights.shape != lw.shape or held.last_trc_t <= ev.last_trc_t
-        ):
-            return
-        total = lw if ev is None else ev.log_weights + lw
-        self.evidence[i] = Evidence(new.posterior_group, new.posterior_version,
-                                    held.last_trc_t, total - total.max())  # fmt: skip
-        self.evidence_changed.add(i)
+        """When ``new`` starts a TRC interval after ``held``'s, count ``held``'s log weights
+        in the segment's :class:`~services.planning.evidence.Evidence`."""
+        ev = evidence.closed_interval(self.evidence.get(i), held, new)
+        if ev is not None:
+            self.evidence[i] = ev
+            self.evidence_changed.add(i)
 
     def take_changed_evidence(self) -> list[tuple[str, str, Evidence]]:
         """``(line, segment, evidence)`` of the segments whose evidence changed since the
@@ -579,14 +541,8 @@ class PlanningCore:
         out = risk.equal_weights(len(idx), post)
         for r, i in enumerate(idx):
             s = self.states[i]
-            lw = s.log_weights.array() if s.log_weights is not None else None
-            ev = self.evidence.get(i)
-            if ev is not None and (ev.group, ev.version) == (s.posterior_group, version):
-                if lw is None:
-                    lw = ev.log_weights
-                elif lw.shape == ev.log_weights.shape:  # else: of other samples, as below
-                    lw = ev.log_weights + lw
-            if lw is not None and s.posterior_version == version:
+            lw = evidence.log_weights(self.evidence.get(i), s, version)
+            if lw is not None:
                 out[r] = post.weights(lw)
         return out
 

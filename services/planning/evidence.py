@@ -1,91 +1,66 @@
-"""The planner's one persisted state: each segment's :class:`~services.planning.core.Evidence`
-(the on-board evidence of its closed TRC intervals), one SQLite row a segment.
-
-Everything else the planner holds, it rebuilds at start from ``q/state`` and ``model/**``.
-The evidence it cannot: a state carries the log weights of its current TRC interval only, so
-a closed interval's are in no message any more. The file is held with an exclusive lock: two
-planners never write one file.
-"""
+"""Pure: a segment's on-board evidence from its closed TRC intervals, and the mixture log
+weights the plan gives it (services/planning/README.md#formulation)."""
 
 from __future__ import annotations
 
-import sqlite3
-from collections.abc import Iterable
-from pathlib import Path
+from dataclasses import dataclass
 
 import numpy as np
 
-from services.planning.core import Evidence
-from services.runtime.outbox import hold_exclusively
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS evidence (
-    line TEXT NOT NULL,
-    segment TEXT NOT NULL,
-    posterior_group TEXT NOT NULL,
-    posterior_version INTEGER NOT NULL,
-    last_trc_t REAL NOT NULL,
-    log_weights BLOB NOT NULL,  -- (Ns,) little-endian float64
-    PRIMARY KEY (line, segment)
-)
-"""
+from schemas import SegmentState
 
 
-class EvidenceBusy(OSError):
-    """Another process holds this evidence file."""
+@dataclass(frozen=True)
+class Evidence:
+    """A segment's on-board evidence over its posterior group's samples from its TRC
+    intervals before the current one.
+
+    The filter restarts the mixture weights at every TRC record (paper Eq. 13: equal
+    weights), so a state's ``log_weights`` hold the likelihood of the on-board data since the
+    last record only. Given sample j, the intervals' data are independent (each starts from
+    its own record), so the segment's weights over all of them are
+
+        log w_j = Σ_k log p(y_k | θ_j) = Σ_{closed k} ℓ_kj + ℓ_now,j,
+
+    each ``ℓ_kj`` the last ``log_weights`` seen of interval k: a segment slower or faster
+    than its group keeps being forecast so after the next record."""
+
+    group: str
+    version: int  # the posterior version whose samples these weigh
+    last_trc_t: float  # the start of the newest interval counted
+    log_weights: np.ndarray  # (Ns,) summed, max 0
 
 
-class EvidenceStore:
-    """The evidence of every segment in ``path`` (None: in memory, lost with the process)."""
+def closed_interval(ev: Evidence | None, held: SegmentState, new: SegmentState) -> Evidence | None:
+    """The evidence once ``new`` has come after ``held``: with ``held``'s log weights added
+    when ``new`` starts a later TRC interval (``held``'s weights being its interval's last);
+    None when nothing changes. Weights of another posterior group or version than
+    ``new``'s, or an interval already counted, add nothing; evidence of another posterior
+    than ``new``'s is dropped (other samples)."""
+    if held.last_trc_t is None or new.last_trc_t is None or new.last_trc_t <= held.last_trc_t:
+        return None
+    posterior = (new.posterior_group, new.posterior_version)
+    if ev is not None and (ev.group, ev.version) != posterior:
+        ev = None
+    if held.log_weights is None or (held.posterior_group, held.posterior_version) != posterior:
+        return None
+    lw = held.log_weights.array().astype(float)
+    if ev is not None and (ev.log_weights.shape != lw.shape or held.last_trc_t <= ev.last_trc_t):
+        return None
+    total = lw if ev is None else ev.log_weights + lw
+    return Evidence(*posterior, held.last_trc_t, total - total.max())
 
-    def __init__(self, path: Path | str | None) -> None:
-        self._lockfile = None
-        target = ":memory:"
-        self.path = None if path is None else Path(path)
-        if self.path is not None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            busy = EvidenceBusy(f"evidence {path}: held by another process")
-            self._lockfile = hold_exclusively(self.path, busy)
-            target = str(self.path)
-        self._db = sqlite3.connect(target, isolation_level=None, check_same_thread=False)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.executescript(_SCHEMA)
 
-    def load(self) -> list[tuple[str, str, Evidence]]:
-        """``(line, segment, evidence)`` of every segment saved."""
-        rows = self._db.execute(
-            "SELECT line, segment, posterior_group, posterior_version, last_trc_t, log_weights "
-            "FROM evidence ORDER BY line, segment"
-        )
-        return [
-            (
-                line,
-                segment,
-                Evidence(group, int(version), float(t), np.frombuffer(blob, "<f8").copy()),
-            )  # fmt: skip
-            for line, segment, group, version, t, blob in rows
-        ]
-
-    def save(self, items: Iterable[tuple[str, str, Evidence]]) -> int:
-        """Write (replace) these segments' evidence in one transaction; how many."""
-        rows = [
-            (
-                line,
-                segment,
-                ev.group,
-                ev.version,
-                ev.last_trc_t,
-                np.ascontiguousarray(ev.log_weights, "<f8").tobytes(),
-            )  # fmt: skip
-            for line, segment, ev in items
-        ]
-        if rows:
-            with self._db:
-                self._db.execute("BEGIN")
-                self._db.executemany("INSERT OR REPLACE INTO evidence VALUES (?,?,?,?,?,?)", rows)
-        return len(rows)
-
-    def close(self) -> None:
-        self._db.close()
-        if self._lockfile is not None:
-            self._lockfile.close()
+def log_weights(ev: Evidence | None, state: SegmentState, version: int) -> np.ndarray | None:
+    """The log weights of ``state``'s segment over the samples of its group's posterior
+    ``version``: its closed intervals' evidence plus the state's own (each counted when of
+    that version and of the same length); None: equal weights."""
+    lw = state.log_weights.array() if state.log_weights is not None else None
+    if lw is not None and state.posterior_version != version:
+        lw = None
+    if ev is not None and (ev.group, ev.version) == (state.posterior_group, version):
+        if lw is None:
+            return ev.log_weights
+        if lw.shape == ev.log_weights.shape:
+            return ev.log_weights + lw
+    return lw

@@ -12,7 +12,7 @@ joiners) and answers ``{ns}/q/plan/maintenance``; a query with ``weeks`` or ``bu
 planned anew by the planner thread, which replies. At start it asks ``{ns}/q/state/**`` and
 ``{ns}/model/**`` for what was published before it ran, and rebuilds its inputs from them;
 the one thing no message holds any more, each segment's evidence from its closed TRC
-intervals, it keeps in its SQLite file (``--db``, :mod:`services.planning.evidence`), written
+intervals, it keeps in its SQLite file (``--db``, :mod:`services.planning.evidence_store`), written
 before every plan and when it stops.
 """
 
@@ -50,7 +50,7 @@ from services.limits import (
     network_line_speeds,
 )
 from services.planning.core import Plan, PlanningConfig, PlanningCore, SegmentRef
-from services.planning.evidence import EvidenceStore
+from services.planning.evidence_store import EvidenceStore
 from services.runtime.config import (
     RuntimeConfig,
     add_zenoh_arguments,

@@ -155,7 +155,7 @@ def test_a_restarted_planner_keeps_the_evidence_of_closed_trc_intervals(
     import msgspec
 
     from schemas import NDArray
-    from services.planning.evidence import EvidenceStore
+    from services.planning.evidence_store import EvidenceStore
 
     ns = service_config.ns
     db = tmp_path / "planning.sqlite"

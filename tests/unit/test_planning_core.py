@@ -362,8 +362,8 @@ def test_the_evidence_of_a_closed_trc_interval_keeps_weighing_after_the_next_rec
 
 
 def test_the_evidence_store_keeps_each_segment_once_and_refuses_a_second_writer(tmp_path):
-    from services.planning.core import Evidence
-    from services.planning.evidence import EvidenceBusy, EvidenceStore
+    from services.planning.evidence import Evidence
+    from services.planning.evidence_store import EvidenceBusy, EvidenceStore
 
     path = tmp_path / "planning.sqlite"
     store = EvidenceStore(path)
