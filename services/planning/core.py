@@ -320,6 +320,10 @@ class PlanningCore:
     def _close_interval(self, i: int, held: SegmentState, new: SegmentState) -> None:
         """When ``new`` starts a TRC interval after ``held``'s, count ``held``'s log weights
         in the segment's :class:`~services.planning.evidence.Evidence`."""
+        post = self.posteriors.get(held.posterior_group)
+        samples = post[1].source_samples or len(post[1].mu) if post is not None else None
+        if held.log_weights is not None and samples not in (None, held.log_weights.array().size):
+            return  # weights over other samples than the group's posterior: not evidence
         ev = evidence.closed_interval(self.evidence.get(i), held, new)
         if ev is not None:
             self.evidence[i] = ev

@@ -36,7 +36,7 @@ def closed_interval(ev: Evidence | None, held: SegmentState, new: SegmentState) 
     when ``new`` starts a later TRC interval (``held``'s weights being its interval's last);
     None when nothing changes. Weights of another posterior group or version than
     ``new``'s, or an interval already counted, add nothing; evidence of another posterior
-    than ``new``'s is dropped (other samples)."""
+    than ``new``'s, or over another number of samples, is dropped (other samples)."""
     if held.last_trc_t is None or new.last_trc_t is None or new.last_trc_t <= held.last_trc_t:
         return None
     posterior = (new.posterior_group, new.posterior_version)
@@ -45,7 +45,9 @@ def closed_interval(ev: Evidence | None, held: SegmentState, new: SegmentState) 
     if held.log_weights is None or (held.posterior_group, held.posterior_version) != posterior:
         return None
     lw = held.log_weights.array().astype(float)
-    if ev is not None and (ev.log_weights.shape != lw.shape or held.last_trc_t <= ev.last_trc_t):
+    if ev is not None and ev.log_weights.shape != lw.shape:
+        ev = None  # counted over another number of samples: not these
+    if ev is not None and held.last_trc_t <= ev.last_trc_t:
         return None
     total = lw if ev is None else ev.log_weights + lw
     return Evidence(*posterior, held.last_trc_t, total - total.max())

@@ -417,17 +417,21 @@ def test_the_unplanned_intervention_is_paid_by_paths_reaching_the_ial_before_the
     assert cost[0, 4] == pytest.approx(unplanned * fp[0, 4])
 
 
-def test_weights_of_another_length_than_the_evidence_do_not_stop_the_plan():
+def test_weights_of_another_length_than_the_group_s_samples_are_no_evidence():
+    """A state whose weights are over another number of samples (a wrong producer) neither
+    stops the plan nor replaces the segment's evidence."""
     from schemas import NDArray
 
     limits, ial = make_limits()
     core = PlanningCore(PlanningConfig(), limits, ial, [SegmentRef("L1", "s", 200.0)])
     posterior = make_posterior()
     core.on_posterior(posterior)
-    core.on_state(_with(make_state("L1", "s", T0 - 40 * DAY_S, mean_mm=(8.0, 4.6)),
-                        last_trc_t=T0 - 120 * DAY_S,
-                        log_weights=_weights_favouring_fast(posterior)))  # fmt: skip
+    fast = _weights_favouring_fast(posterior)
     three = NDArray.of(np.array([0.0, -1.0, -2.0], np.float32), "f4")
-    core.on_state(_with(make_state("L1", "s", T0, mean_mm=(8.5, 5.0)),
-                        last_trc_t=T0 - 30 * DAY_S, log_weights=three))  # fmt: skip
-    assert core.evidence and [r.segment for r in core.plan(T0).rows] == ["s"]
+    states = [((8.0, 4.6), 120, fast), ((8.2, 4.7), 60, three), ((8.5, 5.0), 30, fast)]
+    for k, (mean, trc_days_ago, weights) in enumerate(states):
+        state = make_state("L1", "s", T0 - (len(states) - 1 - k) * 10 * DAY_S, mean_mm=mean)
+        core.on_state(_with(state, last_trc_t=T0 - trc_days_ago * DAY_S, log_weights=weights))
+        assert [r.segment for r in core.plan(T0).rows] == ["s"]
+    held = core.evidence[0]
+    assert held.last_trc_t == T0 - 120 * DAY_S and held.log_weights.shape == (64,)
