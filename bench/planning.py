@@ -19,8 +19,9 @@ Policies, on the same world (paired seeds):
 - ``point``: the same optimiser on point forecasts: the same fused estimates' means taken as
   exact, the posterior's mean parameters;
 - ``threshold``: tamp (the shortest worksite around it) when the last TRC record exceeds the
-  intervention limit, within the week's capacity;
-- ``cycle``: every section of 25 segments tamped every ``--cycle-years``, staggered;
+  intervention limit, within its line's capacity that week (as every policy's);
+- ``cycle``: each line in sections of the week's capacity, each section tamped once every
+  ``--cycle-years``, the sections' weeks spread evenly over the cycle;
 - ``oracle``: the planning core on the true state and the segment's true parameters.
 
 Figures per policy (sums over the seeds): total cost, the year's cost (the planner's cost
@@ -217,7 +218,26 @@ class Loop:
         # above the IAL at the start, before any decision: no policy can spare their first days
         self.inherited = (self.truth.z > self.log_ial).any(axis=1)
         self.last_tamped = np.full(len(self.refs), -np.inf)
+        self.cycle_period, self.cycle_week = self._cycle(seed)
         self.figures = defaultdict(float)
+
+    def _cycle(self, seed: int) -> tuple[int, np.ndarray]:
+        """The fixed cycle's week of every segment within its period: each line cut into
+        sections of the week's capacity (whole segments, at least the shortest worksite),
+        every section tamped once a period, the sections' weeks spread evenly over it in a
+        random order (a network in the cycle's steady state: 1/period of it a week)."""
+        period = max(1, round(self.args.cycle_years * 52))
+        size = max(self.k, int(self.args.capacity // np.median(self.km)))
+        line_of = [r.line for r in self.refs]
+        section = np.zeros(len(self.refs), int)
+        n_sections = start = 0
+        for i in range(len(self.refs)):
+            new_line = i == 0 or line_of[i] != line_of[i - 1]
+            if new_line or (i - start) == size:
+                start, n_sections = i, n_sections + 1
+            section[i] = n_sections - 1
+        order = stable_rng(seed, "bench-cycle").permutation(n_sections)
+        return period, (order * period // n_sections)[section]
 
     # --- observations ----------------------------------------------------------------------
 
@@ -265,20 +285,18 @@ class Loop:
             over = over[~recent[over]]
             order = over[np.argsort(-(self.trc_seen[over] - self.log_il[over]).max(axis=1))]
             chosen: set[int] = set()
+            used: dict[str, float] = defaultdict(float)  # km this week, per line
             for i in order:
-                site = [j for j in range(i, i + self.k) if j < len(self.refs)
-                        and self.refs[j].line == self.refs[i].line]  # fmt: skip
-                if self.km[list(chosen | set(site))].sum() > self.args.capacity * self._lines():
-                    break
-                chosen |= set(site)
+                line = self.refs[i].line
+                site = {j for j in range(i, i + self.k) if j < len(self.refs)
+                        and self.refs[j].line == line} - chosen  # fmt: skip
+                km = self.km[list(site)].sum()
+                if used[line] + km > self.args.capacity:  # the line's capacity, as the planner's
+                    continue
+                used[line] += km
+                chosen |= site
             return np.array(sorted(chosen), int)
-        # cycle: sections of 25 segments, each tamped once every cycle_years, staggered
-        period = round(self.args.cycle_years * 52)
-        section = np.arange(len(self.refs)) // 25
-        return np.flatnonzero(section % period == week % period)
-
-    def _lines(self) -> int:
-        return len(self.trc_phase)
+        return np.flatnonzero(self.cycle_week == week % self.cycle_period)
 
     # --- one week ----------------------------------------------------------------------------
 
