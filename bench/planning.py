@@ -315,6 +315,7 @@ class Loop:
             self.figures["days_il"] += above_il.sum()
             self.figures["days_ial"] += above_ial.sum()
             self.figures["days_ial_inherited"] += (above_ial & self.inherited).sum()
+            self.figures["km_days_ial"] += self.km[above_ial].sum()
             c = self.config.costs
             self.figures["cost"] += (
                 c.intervention_per_km_day * self.km[above_il].sum()
@@ -403,8 +404,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{'policy':10} {'total cost':>14} {'year':>12} {'wear left':>10} {'days>IL':>9} "
               f"{'days>IAL':>9} {'inherited':>9} {'unplanned':>9} {'km':>7} {'possessions':>11} "
               f"{'TRC runs':>8} {'s':>6}")  # fmt: skip
+        totals = {}
         for policy in args.policies.split(","):
-            total = defaultdict(float)
+            total = totals[policy] = defaultdict(float)
             started = time.perf_counter()
             for seed in range(1, args.seeds + 1):
                 loop = Loop(network, cfg, seed, policy, args)
@@ -420,7 +422,34 @@ def main(argv: list[str] | None = None) -> int:
                   f"{total['unplanned']:9,.0f} {total['km']:7.1f} "
                   f"{total['possessions']:11,.0f} {total['trc']:8,.0f} "
                   f"{time.perf_counter() - started:6.0f}")  # fmt: skip
+        for line in break_even(totals, Costs().immediate_action_per_km_day):
+            print(line)
     return 0
+
+
+def break_even(totals: dict, price: float) -> list[str]:
+    """Per baseline, the price of a km-day above the IAL at which the planner's runs would
+    cost as much as the baseline's (the same decisions repriced: total cost is linear in
+    it). The default prices put a day above the IAL at ``immediate_action_per_km_day``;
+    what a railway pays for one (a speed restriction or a closure, every train's delay) is
+    its own figure, so this says from which price on the planner is the cheaper."""
+    if "planner" not in totals:
+        return []
+    cost = {p: t["cost"] + t["wear"] for p, t in totals.items()}
+    ial = {p: t["km_days_ial"] for p, t in totals.items()}
+    out = [f"the planner costs the same as a baseline at an IAL km-day of (default {price:g}):"]
+    for policy in totals:
+        if policy == "planner":
+            continue
+        extra_cost, fewer_days = cost["planner"] - cost[policy], ial[policy] - ial["planner"]
+        if extra_cost <= 0:
+            verdict = "cheaper already"
+        elif fewer_days <= 0:
+            verdict = "never (it has no fewer IAL km-days)"
+        else:
+            verdict = f"{price + extra_cost / fewer_days:,.0f}"
+        out.append(f"  {policy:10} {verdict}")
+    return out
 
 
 if __name__ == "__main__":
