@@ -30,8 +30,9 @@ unplanned tampings) plus the wear left at the year's end (the planner's wear rul
 true levels: a policy cannot look cheap by leaving the track worn for the next year),
 segment-days above the intervention and IAL limits (and of the IAL days, those ``inherited``:
 of segments above the IAL at the start, until their first tamping: a policy can at best
-tamp them in week 0), km tamped, possessions, TRC runs. Every
-tamping, planned or unplanned, reaches the planner as a maintenance record.
+tamp them in week 0), km tamped, possessions, TRC runs; then, per baseline, the price of a
+km-day above the IAL at which the planner's runs would cost as much (:func:`break_even`).
+Every tamping, planned or unplanned, reaches the planner as a maintenance record.
 """
 
 from __future__ import annotations
