@@ -86,7 +86,7 @@ def format_plan(plan: MaintenancePlan) -> str:
             lines.append(f"  {value.line:12} {value.value:12,.0f}  ({value.segments} segments)")
     unmet = [r for r in plan.rows if not r.risk_met]
     if unmet:
-        lines.append(f"risk limit not met on {len(unmet)} segments:")
+        lines.append(f"risk limit not met on {len(unmet)} segment{'s' * (len(unmet) != 1)}:")
         for r in unmet[:20]:
             when = "not tamped" if r.week < 0 else f"tamped week {r.week}"
             if r.deadline_week < 0:

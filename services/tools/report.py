@@ -604,7 +604,8 @@ def _worksites(plan: MaintenancePlan, rows, network: NetworkMap) -> str:
             sites.setdefault(r.worksite, []).append(r)
     unmet = [r for r in rows if not r.risk_met]
     if not sites:
-        return f"<p>No tamping planned; risk limit not met on {len(unmet)} segments.</p>"
+        many = "s" * (len(unmet) != 1)
+        return f"<p>No tamping planned; risk limit not met on {len(unmet)} segment{many}.</p>"
     head = ("week", "starts", "segments", "chainage (km)", "km", "deadline", "max P(IAL first)")
     out = ['<table class="worksites"><thead><tr>']
     out += [f"<th>{h}</th>" for h in head]
