@@ -367,7 +367,7 @@ class Loop:
         return float((c.wear_value * c.tamping_per_km * self.km * wear).sum())
 
 
-def main(argv: list[str] | None = None) -> int:
+def arguments() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=2)
     parser.add_argument("--weeks", type=int, default=52)
@@ -393,7 +393,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--risk-violation-per-km", type=float,
                         default=Costs.risk_violation_per_km,
                         help="a km per week late on the risk limit (0: no risk limit)")  # fmt: skip
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = arguments().parse_args(argv)
     cfg = world_config()
     networks = [] if args.no_demo else [("demo", load_network(None))]
     if args.lines:

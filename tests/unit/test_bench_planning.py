@@ -5,7 +5,7 @@ import argparse
 import numpy as np
 import pytest
 
-from bench.planning import Loop, break_even, world_config
+from bench.planning import Loop, arguments, break_even, world_config
 from services.defaults import load_network
 
 
@@ -34,26 +34,14 @@ def test_break_even_needs_the_planner():
     assert break_even(_totals(cycle=(1.0, 1.0)), price=400.0) == []
 
 
-def _args(**over):
-    args = dict(
-        capacity=2.0,
-        milp_s=1.0,
-        eps=0.05,
-        min_interval_weeks=26.0,
-        risk_violation_per_km=1e6,
-        trc_weeks=9,
-        cycle_years=4.0,
-        samples=8,
-        passes=1,
-    )
-    args.update(over)  # fmt: skip
-    return argparse.Namespace(**args)
+def _args(*argv: str) -> argparse.Namespace:
+    return arguments().parse_args(["--samples", "8", *argv])
 
 
 @pytest.mark.parametrize("years", [1.0, 4.0])
 def test_the_cycle_tamps_every_segment_once_a_period_within_a_line_s_capacity(years):
     network = load_network(None)
-    loop = Loop(network, world_config(), 1, "cycle", _args(cycle_years=years))
+    loop = Loop(network, world_config(), 1, "cycle", _args("--cycle-years", str(years)))
     period = loop.cycle_period
     assert period == round(52 * years)
     weeks = [loop.decide(w) for w in range(period)]
@@ -67,7 +55,7 @@ def test_the_cycle_tamps_every_segment_once_a_period_within_a_line_s_capacity(ye
 
 def test_the_threshold_rule_keeps_each_line_s_capacity():
     network = load_network(None)
-    loop = Loop(network, world_config(), 1, "threshold", _args(capacity=0.6))
+    loop = Loop(network, world_config(), 1, "threshold", _args("--capacity", "0.6"))
     loop.trc_seen = loop.log_il + 1.0  # every segment over the intervention limit
     rows = loop.decide(0)
     lines = {r.line for r in loop.refs}
