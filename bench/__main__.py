@@ -36,13 +36,15 @@ Workloads (targets: docs/performance.md):
     instance's size).
 12. the compiled index step alone, ns per sample-update on one core and on all, against the
     numpy filter bank on the same shapes (``bench/kernel.py``).
+13. the maintenance plan of 100,000 segments x 26 weeks, 4 km a week a region: the first
+    plan against its 60 s target, the same with the regions one at a time, a re-plan after
+    one segment's change, and HiGHS's MILP over every (segment, week) of 500 segments of
+    one region as the baseline (``bench/planning_scale.py``, about 4 minutes).
 
 Not run here (minutes each, real processes): ``make scale`` (``bench/scale.py``, a national
 deployment: two routers, four filtering shards, 10,000 to 100,000 segments);
-``make soak``; ``python -m bench.planning_scale`` (the maintenance plan of
-100,000 segments x 26 weeks against HiGHS's MILP over (segment, week) on one region) and
-``python -m bench.planning`` (the planner in closed loop on a simulated year against the
-threshold rule, a fixed cycle, point forecasts and an oracle).
+``make soak``; ``python -m bench.planning`` (the planner in closed loop on a simulated year
+against the threshold rule, a fixed cycle, point forecasts and an oracle).
 """
 
 from __future__ import annotations
@@ -203,6 +205,7 @@ def main() -> None:
     from bench.filtering import bench_filtering_service
     from bench.ingestion import bench_ingestion
     from bench.kernel import bench_kernel
+    from bench.planning_scale import main as bench_planning_scale
     from bench.rerun import bench_rerun
     from bench.restart import bench_restart
     from bench.simulator import bench_raw_generation
@@ -223,6 +226,7 @@ def main() -> None:
     bench_delivery()
     bench_calibration_versions([])
     bench_restart()
+    bench_planning_scale(["--capacity", "4"])
 
 
 if __name__ == "__main__":
