@@ -147,10 +147,14 @@ def plan_parameters(parameters) -> tuple[int | None, float | None]:
 class PlanningAdapter:
     """Decode → core (worker); plan → encode → put (planner thread); queryable."""
 
-    def __init__(self, rt: ServiceRuntime, core: PlanningCore, store: EvidenceStore) -> None:
+    def __init__(
+        self, rt: ServiceRuntime, core: PlanningCore, store: EvidenceStore, network: str
+    ) -> None:
         self.rt = rt
         self.core = core
         self.store = store
+        self.network = network  # its name, in the dead letter of a segment not in it
+        self.segments = frozenset(core.index)  # the network's: states of others are refused
         self.lock = threading.Lock()  # the worker writes the core, the planner snapshots it
         self.changed = threading.Condition(self.lock)
         self.first_change: float | None = None  # monotonic s of the first unplanned change
@@ -207,6 +211,12 @@ class PlanningAdapter:
         else:
             message = decode(payload, SegmentState if kind == "state" else MaintenanceEvent)
         keys.check_key(key, message)
+        where = None if kind == "model" else (message.line, message.segment)
+        if where is not None and where not in self.segments:
+            raise SchemaError(
+                f"{type(message).__name__}: segment {'/'.join(where)} is not in the network "
+                f"{self.network}"
+            )
         with self.lock:
             match message:
                 case SegmentState():
@@ -354,7 +364,7 @@ def main(
     store = EvidenceStore(db or default_db(SERVICE, conf.instance))
     try:
         with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
-            adapter = PlanningAdapter(rt, core, store)
+            adapter = PlanningAdapter(rt, core, store, Path(network).name if network else "demo")
             adapter.start()
             code = rt.run()
         adapter.save_evidence()  # the workers are stopped: what changed since the last plan

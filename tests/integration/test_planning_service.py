@@ -1,5 +1,6 @@
 """The planner in-process on a real router: a posterior and states in, a plan published and
-answered, a plan for another horizon on request, bad parameters and bad payloads refused."""
+answered, a plan for another horizon on request, bad parameters, bad payloads and segments
+not in the network refused."""
 
 from __future__ import annotations
 
@@ -64,6 +65,9 @@ def test_states_and_a_model_give_a_published_plan_that_the_queryable_answers(
                                                                     mean_mm=worn)))  # fmt: skip
     client.put(keys.state(ns, "L1", "s00000"), b"not msgpack")
     assert letters.get().reason
+    client.put(keys.state(ns, "NOLINE", "s00000"),
+               encode(make_state("NOLINE", "s00000", T0, mean_mm=(30.0, 30.0))))  # fmt: skip
+    assert "NOLINE/s00000 is not in the network demo" in letters.get().reason
 
     # On a fresh checkout the first plan compiles the planner's kernels (numba): the wait
     # bounds a stalled service, it times nothing.
