@@ -233,9 +233,10 @@ def read_json5(path: str | Path) -> dict[str, Any]:
 # 2 on 2 cores. A process that holds a router *and* client sessions of it (a test, a bench)
 # can deadlock: when every rx thread is blocked forwarding BLOCK messages (replies, states)
 # to an in-process client, none is left to read for that client; after 5 s the router closes
-# the transports (tests/integration/test_latest.py reproduces it with 2 threads: two
-# queryables of 5,000 replies). More rx threads than producers avoid it. A process holding
-# only a router (`trackfusion router`, `trackfusion up`'s supervisor) needs none.
+# the transports (two in-process queryables of 5,000 replies each did it with 2 threads).
+# More rx threads than producers avoid it. A process holding only a router (`trackfusion
+# router`, `trackfusion up`'s supervisor) needs none, nor one holding only clients: the
+# deployed topology, which tests/e2e/test_sharded_query.py runs.
 ROUTER_AND_CLIENTS_RUNTIME = "(rx: (worker_threads: 8))"
 
 
