@@ -254,6 +254,19 @@ def closed_at_exit(open_: Callable[..., Any]) -> Iterator[Callable[..., Any]]:
             session.close()
 
 
+def ready_querier(session: Any, key_expr: str, timeout: float = TIMEOUT_S) -> Any:
+    """A ``zenoh.Querier`` on ``key_expr`` of ``session`` once the router knows a queryable
+    matching it (the matching listener's event, not a sleep)."""
+    matched = threading.Event()
+    querier = session.declare_querier(key_expr, timeout=timeout)
+    listener = querier.declare_matching_listener(lambda s: matched.set() if s.matching else None)
+    try:
+        assert querier.matching_status.matching or matched.wait(timeout), "no queryable matched"
+    finally:
+        listener.undeclare()
+    return querier
+
+
 def outbox_config(directory: Path) -> Path:
     """A service configuration file (``--config``) that keeps producers' outboxes in
     ``directory`` rather than in ``./var`` of the checkout."""

@@ -5,9 +5,9 @@ deployed; this process holds only the asking client."""
 from __future__ import annotations
 
 import sys
-import threading
 
 import zenoh
+from support import ready_querier
 
 from services.runtime.config import zenoh_config
 
@@ -33,18 +33,6 @@ with zenoh.open(zenoh_config(settings)) as session:
 """
 
 
-def _ready_querier(session: zenoh.Session, key_expr: str) -> zenoh.Querier:
-    """A querier on ``key_expr`` once the router knows a queryable matching it."""
-    matched = threading.Event()
-    querier = session.declare_querier(key_expr, timeout=READY_S)
-    listener = querier.declare_matching_listener(lambda s: matched.set() if s.matching else None)
-    try:
-        assert querier.matching_status.matching or matched.wait(READY_S), "no queryable matched"
-    finally:
-        listener.undeclare()
-    return querier
-
-
 def test_one_query_answered_by_several_instances_gets_every_reply(
     stack, spawn, free_port, namespace
 ):
@@ -57,7 +45,7 @@ def test_one_query_answered_by_several_instances_gets_every_reply(
     settings = {"connect": {"endpoints": [endpoint], "timeout_ms": int(READY_S * 1000)}}
     client = stack.enter_context(zenoh.open(zenoh_config(settings)))
     for shard in "AB":
-        stack.callback(_ready_querier(client, f"{ns}/q/state/{shard}001/**").undeclare)
+        stack.callback(ready_querier(client, f"{ns}/q/state/{shard}001/**", READY_S).undeclare)
 
     # as ServiceRuntime.ask: BLOCK, so that the replies are not dropped when queues fill;
     # a deadline shows as an error reply ("Timeout"), a lost transport as replies missing

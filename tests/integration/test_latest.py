@@ -3,26 +3,13 @@ over a real router on loopback."""
 
 from __future__ import annotations
 
-import threading
-
 import pytest
 import zenoh
+from support import ready_querier
 
 from services.runtime.latest import LatestValues
 
 TIMEOUT_S = 5.0
-
-
-def _ready_querier(session: zenoh.Session, key_expr: str) -> zenoh.Querier:
-    """A querier on ``key_expr`` once the router knows a queryable matching it."""
-    matched = threading.Event()
-    querier = session.declare_querier(key_expr, timeout=TIMEOUT_S)
-    listener = querier.declare_matching_listener(lambda s: matched.set() if s.matching else None)
-    try:
-        assert querier.matching_status.matching or matched.wait(TIMEOUT_S), "no queryable matched"
-    finally:
-        listener.undeclare()
-    return querier
 
 
 def _ask(session: zenoh.Session, key_expr: str) -> dict[str, bytes]:
@@ -49,7 +36,7 @@ def test_a_query_gets_the_latest_value_of_each_key_it_matches(open_session, name
         latest.put(key, payload)
     server, client = open_session(), open_session()
     queryable = server.declare_queryable(f"{ns}/m/**", latest.on_query)
-    querier = _ready_querier(client, f"{ns}/m/**")
+    querier = ready_querier(client, f"{ns}/m/**")
     try:
         everything = {
             f"{ns}/m/calibration": b"c2",
