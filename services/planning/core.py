@@ -10,8 +10,8 @@ formulation):
 
 .. math::
 
-    c_{i,w} = T_i + \sum_{u \le w} E^{pre}_i(u) + \ell_i \sum_{u > w} E^{post}(u - w - 1)
-              + U_i F_i(w) + V_i(w) + R_i L_i(w)
+    c_{i,w} = T_i (1 - G_i(w)) + U_i G_i(w) + \sum_{u \le w} E^{pre}_i(u)
+              + \ell_i \sum_{u > w} E^{post}(u - w - 1) + V_i(w) + R_i L_i(w)
 
     c_{i,\varnothing} = \sum_{u < W} E^{pre}_i(u) + U_i F_i(W) + V_i(\varnothing) + R_i L_i(W)
 
@@ -21,8 +21,11 @@ limit at mid-week (:mod:`services.planning.risk`) and not yet tamped unplanned, 
 :math:`d\,\ell_i c_{IAL}` times the probability of reaching the immediate-action limit (IAL)
 in week ``u`` (its unplanned tamping follows ``d`` = ``unplanned_delay_days`` later);
 :math:`F_i(u)` the probability of reaching the IAL before the end of week ``u - 1`` (first
-passage), :math:`U_i` the unplanned intervention that follows when the IAL is reached before
-the week of the planned tamping (that week's work pre-empts it), :math:`V` the wear value
+passage), :math:`U_i` the unplanned intervention that follows ``d`` days after a path reaches
+the IAL, :math:`G_i(w) = F_i` at :math:`7w + 3.5 - d` days (0 before week 0): the paths whose
+unplanned tamping comes before the planned one at mid-week ``w`` and replaces it (it resets
+the segment, and the minimum interval rules the planned one out; the planned work pre-empts
+the others), :math:`V` the wear value
 at the horizon's end and :math:`R_i` the risk violation cost of a week late:
 :math:`L_i(w) = \sum_{e_i < u \le w,\ F_i(u + 1) > \varepsilon} (1 + F_i(u + 1))`
 counts the weeks after the first allowed one :math:`e_i` whose tamping would miss the risk
@@ -469,11 +472,14 @@ class PlanningCore:
             unplanned = c.unplanned_per_km * km[r]
             late = self._weeks_late(fp, earliest[r], weeks)
             violation = c.risk_violation_per_km * km[r, None] * late
+            # a path whose unplanned tamping comes before week w's mid-week work pays U
+            # instead of T: the unplanned work resets the segment and the minimum interval
+            # then rules the planned one out
             cost_w = (
-                tamp[:, None]
+                tamp[:, None] * (1.0 - reset)
+                + unplanned[:, None] * reset
                 + cum_pre
                 + km[r, None] * post_sum
-                + unplanned[:, None] * fp[:, :-1]  # reached before week w's work: F(w)
                 + c.wear_value * tamp[:, None] * wear_tamped
                 + violation[:, :weeks]
             )

@@ -399,22 +399,26 @@ def test_when_capacity_takes_one_late_segment_a_week_the_one_above_the_ial_goes_
         assert (first.week, second.week) == (0, 1)
 
 
-def test_the_unplanned_intervention_is_paid_by_paths_reaching_the_ial_before_the_tamping_week():
-    """A week's planned work pre-empts the unplanned intervention of a path that reaches the
-    IAL during that week: tamped in week w, a segment pays U F(w), nothing in week 0."""
+def test_the_unplanned_intervention_replaces_the_planned_tamping_it_comes_before():
+    """A path that reaches the IAL forces an unplanned tamping ``unplanned_delay_days`` (7)
+    later; when that comes before the planned work at mid-week w, the path pays U instead of
+    T. So tamped in week w, a segment pays T (1 - G(w)) + U G(w), G(w) = F at 7w - 3.5 days
+    (halfway between the week ends), and in week 0 the planned work comes first."""
     limits, ial = make_limits()
-    costs = Costs(tamping_per_km=0.0, possession=0.0, intervention_per_km_day=0.0,
-                  immediate_action_per_km_day=0.0, unplanned_per_km=1e6,
-                  risk_violation_per_km=0.0, wear_value=0.0)  # fmt: skip
-    core = PlanningCore(PlanningConfig(costs=costs), limits, ial, [SegmentRef("L1", "s", 200.0)])
-    core.on_posterior(make_posterior())
-    core.on_state(make_state("L1", "s", T0, mean_mm=(10.5, 5.0)))
-    cost, fp = core.cost_rows([0], week_start(T0), 4)
-    assert fp[0, 0] == 0.0 and 0.05 < fp[0, 1] < fp[0, 2]
-    unplanned = 1e6 * 0.2
-    assert cost[0, 0] < 1e-6 * unplanned
-    assert cost[0, 1:4] == pytest.approx(unplanned * fp[0, 1:4])
-    assert cost[0, 4] == pytest.approx(unplanned * fp[0, 4])
+    zero = dict(possession=0.0, intervention_per_km_day=0.0, immediate_action_per_km_day=0.0,
+                risk_violation_per_km=0.0, wear_value=0.0)  # fmt: skip
+    km = 0.2
+    for tamping, unplanned in ((0.0, 1e6), (1e6, 0.0), (2e4, 6e4)):
+        costs = Costs(tamping_per_km=tamping, unplanned_per_km=unplanned, **zero)
+        refs = [SegmentRef("L1", "s", 1000 * km)]
+        core = PlanningCore(PlanningConfig(costs=costs), limits, ial, refs)
+        core.on_posterior(make_posterior())
+        core.on_state(make_state("L1", "s", T0, mean_mm=(10.5, 5.0)))
+        cost, fp = core.cost_rows([0], week_start(T0), 4)
+        assert fp[0, 0] == 0.0 and 0.05 < fp[0, 1] < fp[0, 2]
+        g = np.r_[0.0, (fp[0, :3] + fp[0, 1:4]) / 2]  # weeks 0..3
+        assert cost[0, :4] == pytest.approx(km * (tamping * (1 - g) + unplanned * g))
+        assert cost[0, 4] == pytest.approx(km * unplanned * fp[0, 4])  # not tamped: no T
 
 
 def test_weights_of_another_length_than_the_group_s_samples_are_no_evidence():
