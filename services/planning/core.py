@@ -99,7 +99,7 @@ class PlanningConfig:
     target_gap: float = 0.01
     milp_s: float = 10.0  # s of the regions' optimisation after which no integer program starts
     unplanned_delay_days: float = 7.0  # from reaching the IAL to the unplanned tamping
-    posterior_samples: int = 16
+    posterior_samples: int = 64
     quadrature_nodes: int = 5
     replan_quiet_s: float = 2.0
     replan_max_wait_s: float = 30.0
