@@ -181,6 +181,7 @@ class Loop:
             capacity_km_per_week=args.capacity,
             milp_s=args.milp_s,
             eps=args.eps,
+            posterior_samples=args.posterior_samples,
             min_interval_weeks=args.min_interval_weeks,
             costs=Costs(risk_violation_per_km=args.risk_violation_per_km),
         )
@@ -390,6 +391,8 @@ def arguments() -> argparse.ArgumentParser:
         help="between two tampings of a segment (every policy but the cycle)",
     )
     parser.add_argument("--eps", type=float, default=PlanningConfig.eps, help="the risk limit")
+    parser.add_argument("--posterior-samples", type=int, default=PlanningConfig.posterior_samples,
+                        help="posterior samples the planner's forecasts mix")  # fmt: skip
     parser.add_argument("--risk-violation-per-km", type=float,
                         default=Costs.risk_violation_per_km,
                         help="a km per week late on the risk limit (0: no risk limit)")  # fmt: skip
