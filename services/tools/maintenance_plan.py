@@ -49,6 +49,11 @@ def to_json(plan: MaintenancePlan) -> str:
     return json.dumps(msgspec.to_builtins(plan), indent=1)
 
 
+def possessions(n: int) -> str:
+    """'1 possession', 'n possessions'."""
+    return f"{n} possession{'s' * (n != 1)}"
+
+
 def format_plan(plan: MaintenancePlan) -> str:
     """A planner's reading: how good the plan is, the weeks, the worksites, the unmet risks."""
     if plan.status == "no_data" or plan.t is None:
@@ -59,7 +64,7 @@ def format_plan(plan: MaintenancePlan) -> str:
         f"{_day(plan.computed_at or plan.t)}), {plan.segments} segments",
         f"  expected cost {plan.objective:,.0f}; bound {plan.bound:,.0f}; gap "
         f"{100 * plan.gap:.2f} % ({plan.status}); solved in {plan.solve_s:.1f} s",
-        f"  {sum(plan.km_per_week):.1f} km in {plan.possessions} possessions; money "
+        f"  {sum(plan.km_per_week):.1f} km in {possessions(plan.possessions)}; money "
         f"{plan.money:,.0f} (budget {budget}); risk limit P(IAL before tamping) <= {plan.eps:g}",
     ]
     sites: dict[int, list] = {}

@@ -478,7 +478,8 @@ def _tamping(data: ReportData) -> str:
     out = [
         f"<p>{plan.horizon_weeks} weeks from {day(plan.t)} (Monday of week 0), made from the "
         f"states up to {escape(iso(plan.computed_at))}: {plan.segments} segments planned, "
-        f"{sum(plan.km_per_week):.1f} km tamped in {plan.possessions} possessions, money "
+        f"{sum(plan.km_per_week):.1f} km tamped in "
+        f"{maintenance_plan.possessions(plan.possessions)}, money "
         f"{plan.money:,.0f} ({budget}), expected cost {plan.objective:,.0f} "
         f"({escape(plan.status.replace('_', ' '))}, {100 * plan.gap:.2f} % above the bound). "
         f"Risk limit: P(reaching the immediate-action limit before the tamping) ≤ "

@@ -15,7 +15,7 @@ from services.cli import build_parser
 from services.planning.core import PlanningConfig, PlanningCore, SegmentRef
 from services.planning.service import to_message
 from services.planning.testing import T0, make_limits, make_posterior, make_state
-from services.tools.maintenance_plan import format_plan, selector, to_csv, to_json
+from services.tools.maintenance_plan import format_plan, possessions, selector, to_csv, to_json
 from services.tools.operator import (
     format_alerting_ranking,
     format_trc_ranking,
@@ -50,7 +50,7 @@ def test_the_command_line_asks_for_weeks_and_budget():
 def test_the_table_csv_and_json_show_the_worksite():
     plan = plan_message()
     text = format_plan(plan)
-    assert "L1/s" in text and "possessions" in text and "gap" in text
+    assert "L1/s" in text and f"in {possessions(plan.possessions)};" in text and "gap" in text
     rows = list(csv.DictReader(io.StringIO(to_csv(plan))))
     tamped = [r for r in rows if int(r["week"]) >= 0]
     assert {r["segment"] for r in tamped} >= {"s03", "s04", "s05"}
@@ -89,3 +89,9 @@ def test_plan_inspection_falls_back_to_alerting_and_says_why():
     head, _, row = text.splitlines()
     assert "alerting's ranking: no planning service answered" in head
     assert row.split()[:7] == ["1", "L1/s2", "0.800", "top6", "8.0", "mm", "80<v<=120"]
+
+
+def test_one_possession_is_singular():
+    assert (possessions(0), possessions(1), possessions(2)) == (
+        "0 possessions", "1 possession", "2 possessions",
+    )  # fmt: skip
