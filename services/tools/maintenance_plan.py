@@ -49,9 +49,9 @@ def to_json(plan: MaintenancePlan) -> str:
     return json.dumps(msgspec.to_builtins(plan), indent=1)
 
 
-def possessions(n: int) -> str:
-    """'1 possession', 'n possessions'."""
-    return f"{n} possession{'s' * (n != 1)}"
+def counted(n: int, noun: str) -> str:
+    """'1 possession', '2 possessions': ``n`` and ``noun``, plural unless one."""
+    return f"{n} {noun}{'s' * (n != 1)}"
 
 
 def format_plan(plan: MaintenancePlan) -> str:
@@ -64,7 +64,7 @@ def format_plan(plan: MaintenancePlan) -> str:
         f"{_day(plan.computed_at or plan.t)}), {plan.segments} segments",
         f"  expected cost {plan.objective:,.0f}; bound {plan.bound:,.0f}; gap "
         f"{100 * plan.gap:.2f} % ({plan.status}); solved in {plan.solve_s:.1f} s",
-        f"  {sum(plan.km_per_week):.1f} km in {possessions(plan.possessions)}; money "
+        f"  {sum(plan.km_per_week):.1f} km in {counted(plan.possessions, 'possession')}; money "
         f"{plan.money:,.0f} (budget {budget}); risk limit P(IAL before tamping) <= {plan.eps:g}",
     ]
     sites: dict[int, list] = {}
@@ -91,7 +91,7 @@ def format_plan(plan: MaintenancePlan) -> str:
             lines.append(f"  {value.line:12} {value.value:12,.0f}  ({value.segments} segments)")
     unmet = [r for r in plan.rows if not r.risk_met]
     if unmet:
-        lines.append(f"risk limit not met on {len(unmet)} segment{'s' * (len(unmet) != 1)}:")
+        lines.append(f"risk limit not met on {counted(len(unmet), 'segment')}:")
         for r in unmet[:20]:
             when = "not tamped" if r.week < 0 else f"tamped week {r.week}"
             if r.deadline_week < 0:

@@ -479,7 +479,7 @@ def _tamping(data: ReportData) -> str:
         f"<p>{plan.horizon_weeks} weeks from {day(plan.t)} (Monday of week 0), made from the "
         f"states up to {escape(iso(plan.computed_at))}: {plan.segments} segments planned, "
         f"{sum(plan.km_per_week):.1f} km tamped in "
-        f"{maintenance_plan.possessions(plan.possessions)}, money "
+        f"{maintenance_plan.counted(plan.possessions, 'possession')}, money "
         f"{plan.money:,.0f} ({budget}), expected cost {plan.objective:,.0f} "
         f"({escape(plan.status.replace('_', ' '))}, {100 * plan.gap:.2f} % above the bound). "
         f"Risk limit: P(reaching the immediate-action limit before the tamping) ≤ "
@@ -605,8 +605,8 @@ def _worksites(plan: MaintenancePlan, rows, network: NetworkMap) -> str:
             sites.setdefault(r.worksite, []).append(r)
     unmet = [r for r in rows if not r.risk_met]
     if not sites:
-        many = "s" * (len(unmet) != 1)
-        return f"<p>No tamping planned; risk limit not met on {len(unmet)} segment{many}.</p>"
+        unmet_segments = maintenance_plan.counted(len(unmet), "segment")
+        return f"<p>No tamping planned; risk limit not met on {unmet_segments}.</p>"
     head = ("week", "starts", "segments", "chainage (km)", "km", "deadline", "max P(IAL first)")
     out = ['<table class="worksites"><thead><tr>']
     out += [f"<th>{h}</th>" for h in head]

@@ -15,7 +15,7 @@ from services.cli import build_parser
 from services.planning.core import PlanningConfig, PlanningCore, SegmentRef
 from services.planning.service import to_message
 from services.planning.testing import T0, make_limits, make_posterior, make_state
-from services.tools.maintenance_plan import format_plan, possessions, selector, to_csv, to_json
+from services.tools.maintenance_plan import counted, format_plan, selector, to_csv, to_json
 from services.tools.operator import (
     format_alerting_ranking,
     format_trc_ranking,
@@ -50,7 +50,8 @@ def test_the_command_line_asks_for_weeks_and_budget():
 def test_the_table_csv_and_json_show_the_worksite():
     plan = plan_message()
     text = format_plan(plan)
-    assert "L1/s" in text and f"in {possessions(plan.possessions)};" in text and "gap" in text
+    sites = counted(plan.possessions, "possession")
+    assert "L1/s" in text and f"in {sites};" in text and "gap" in text
     rows = list(csv.DictReader(io.StringIO(to_csv(plan))))
     tamped = [r for r in rows if int(r["week"]) >= 0]
     assert {r["segment"] for r in tamped} >= {"s03", "s04", "s05"}
@@ -92,6 +93,6 @@ def test_plan_inspection_falls_back_to_alerting_and_says_why():
 
 
 def test_one_possession_is_singular():
-    assert (possessions(0), possessions(1), possessions(2)) == (
+    assert tuple(counted(n, "possession") for n in (0, 1, 2)) == (
         "0 possessions", "1 possession", "2 possessions",
     )  # fmt: skip
