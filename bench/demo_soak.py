@@ -270,11 +270,15 @@ def open_viewer(health: dict | None, out: Path, minute: float) -> dict:
     url = (health or {}).get("viewer_url", "")
     if not url:
         return {"minute": round(minute, 2), "error": "no viewer URL in health.json"}
-    picture = first_picture(
-        url, out / f"browser-{minute:.0f}", wanted=("green", "blue", "limit"), timeout_s=120
-    )
+    workdir = out / f"browser-{minute:.0f}"
+    picture = first_picture(url, workdir, wanted=("green", "blue", "limit"), timeout_s=120)
+    for at, png in picture.shots[::10]:  # what the operator saw, every 5 s
+        (workdir / f"shot-{at:05.1f}s.png").write_bytes(png)
+    if picture.png:
+        (workdir / "last.png").write_bytes(picture.png)
     return {"minute": round(minute, 2), "started_s": picture.started_s,
             "map_s": picture.seen_s.get("green"), "plots_s": picture.drawn_s,
+            "hues_s": {hue: round(s, 1) for hue, s in picture.seen_s.items()},
             "missing": picture.missing}  # fmt: skip
 
 

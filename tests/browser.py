@@ -32,8 +32,10 @@ import numpy as np
 CHROMIUM = Path("/usr/bin/chromium")
 CLOSE_TIMEOUT_S = 5.0
 # a hue counts as on screen from this many pixels: the map's colour legend alone has up to
-# ~100 of green, yellow and red, the viewer's blue selection highlight ~220 of blue
-MIN_PIXELS = {"green": 200, "yellow": 200, "red": 200, "blue": 400, "limit": 100}
+# ~100 of green, yellow and red; "blue" counts in the plot row that has the fewest, and a
+# few days of estimate (line and band) in a row's 90-day window are ~70 of it
+MIN_PIXELS = {"green": 200, "yellow": 200, "red": 200, "blue": 40, "limit": 100}
+PLOT_ROWS = 4  # the viewer's default layout: the three worst segments, then the selected one
 
 
 class DevTools:
@@ -148,32 +150,38 @@ class DevTools:
 
 def hue_pixels(png: bytes) -> dict[str, int]:
     """Pixels of the map's exceedance hues (green, yellow, red) in the map's part of the
-    screenshot (left 58 %, below the top bar, above the alert log) and of the plots'
-    estimate blue and intervention-limit red (``limit``) in the plots' part (the rest of
-    those rows). Strips are drawn with an outline and blended, so hues are matched, not
-    exact RGB."""
+    screenshot (left 58 %, below the top bar, above the alert log), of the plots'
+    intervention-limit red (``limit``) in the plots' part (the right 38 %, from the top bar
+    to the time panel) and of the estimate blue in the plot row of the worst segments that
+    has the fewest (``blue``: every worst row shows its estimate, however short its history
+    still is). Strips are drawn with an outline and blended, so hues are matched, not exact
+    RGB."""
     from PIL import Image  # matplotlib's dependency
 
     rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
     h, w = rgb.shape[:2]
     rows = slice(int(0.05 * h), int(0.55 * h))  # below the top bar ("Software rasterizer")
-    map_part, plots = rgb[rows, : int(0.58 * w)], rgb[rows, int(0.62 * w) :]
+    map_part = rgb[rows, : int(0.58 * w)]
+    plots = rgb[int(0.045 * h) : int(0.81 * h), int(0.62 * w) :]
 
     def hues(part: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return part[..., 0], part[..., 1], part[..., 2]
 
     r, g, b = hues(map_part)
     pr, pg, pb = hues(plots)
+    # the estimate (80, 160, 255); the trains' (0, 200, 255) are on the map, not here
+    blue = (pb > pg + 60) & (pg > pr + 40) & (pr > 30)
+    row_h = len(blue) // PLOT_ROWS
     masks = {
         "green": (g > r + 30) & (g > b + 30),
         "yellow": (r > 180) & (g > 150) & (b < 90) & (abs(r - g) < 60),
         "red": (r > g + 60) & (r > b + 60),
-        # the estimate (80, 160, 255); the trains' (0, 200, 255) are on the map, not here
-        "blue": (pb > pg + 60) & (pg > pr + 40) & (pr > 30),
-        # the plots' intervention limit (230, 40, 40)
-        "limit": (pr > pg + 60) & (pr > pb + 60),
+        # the plots' intervention limit (230, 40, 40), not the orange of a notification
+        "limit": (pr > pg + 120) & (pr > pb + 120) & (abs(pg - pb) < 40),
     }
-    return {name: int(mask.sum()) for name, mask in masks.items()}
+    pixels = {name: int(mask.sum()) for name, mask in masks.items()}
+    pixels["blue"] = min(int(blue[k * row_h : (k + 1) * row_h].sum()) for k in range(PLOT_ROWS - 1))
+    return pixels
 
 
 def missing_colors(png: bytes, wanted: tuple[str, ...] = ("green", "red")) -> list[str]:
