@@ -35,7 +35,8 @@ reuses the solution of a region whose problem did not change).
 **The plan** is a set of *worksites* (one run of adjacent segments, one week) taken from the
 block plans found, each also in every other week all its segments may be tamped and cut into
 pieces that fit a week's capacity. Their set-packing LP (every segment in at most one
-worksite, capacity and budget rows) is rounded greedily; when that is further than the
+worksite, capacity and budget rows) is rounded greedily, and each worksite of the rounded
+plan lengthened into the capacity whole worksites leave over; when that is further than the
 target gap from the bound, the set-packing MILP (HiGHS through ``scipy.optimize.milp``)
 restricted to the worksites near the LP's (a fraction of the time), then over every
 worksite, within a time budget, then for at most ``COMPACT_MAX_VARIABLES / 2`` (segment, week)
@@ -528,7 +529,7 @@ class _Worksites:
         self.first: list[int] = []  # first segment
         self.length: list[int] = []
         self.week: list[int] = []
-        self.seen: set[tuple[int, int, int]] = set()
+        self.seen: dict[tuple[int, int, int], int] = {}  # (first, length, week) -> index
 
     @property
     def n(self) -> int:
@@ -567,14 +568,20 @@ class _Worksites:
         allowed = np.isfinite(self.problem.cost[first : first + length, : self.problem.weeks])
         new = 0
         for w in np.flatnonzero(allowed.all(axis=0)):
-            key = (first, length, int(w))
-            if key not in self.seen:
-                self.seen.add(key)
-                self.first.append(first)
-                self.length.append(length)
-                self.week.append(int(w))
-                new += 1
+            before = self.n
+            self._index(first, length, int(w))
+            new += self.n - before
         return new
+
+    def _index(self, first: int, length: int, week: int) -> int:
+        """The index of a worksite, added if new."""
+        key = (first, length, week)
+        if key not in self.seen:
+            self.seen[key] = self.n
+            self.first.append(first)
+            self.length.append(length)
+            self.week.append(week)
+        return self.seen[key]
 
     def matrices(self, cap_rows, budget):
         p = self.problem
@@ -621,8 +628,9 @@ class _Worksites:
 
     def rounded(self, cost, x) -> tuple[np.ndarray, np.ndarray]:
         """Worksites by their LP value ``x`` (then cost), each taken if it still fits; then
-        every other worksite that lowers the cost, cheapest first, while it fits: the plan
-        and the worksites taken."""
+        every other worksite that lowers the cost, cheapest first, while it fits; then each
+        worksite lengthened where that lowers the cost (:meth:`_lengthened`). The plan and
+        its worksites (added to the known ones where new)."""
         p = self.problem
         first, length, week = (np.array(v, np.int64) for v in (self.first, self.length, self.week))
         cum_km = np.r_[0.0, np.cumsum(p.km)]
@@ -639,7 +647,6 @@ class _Worksites:
         order = np.r_[
             support[np.lexsort((cost[support], -x[support]))], rest[np.argsort(cost[rest])]
         ]
-        taken = []
         for c in order.tolist():
             lo, hi, w, r = first[c], first[c] + length[c], week[c], region[c]
             if km[c] <= left[r, w] + 1e-9 and money[c] <= budget + 1e-9 and free[lo:hi].all():
@@ -647,8 +654,54 @@ class _Worksites:
                 left[r, w] -= km[c]
                 budget -= money[c]
                 choice[lo:hi] = w
-                taken.append(c)
+        choice = self._lengthened(choice, left, budget)
+        taken = []
+        for a in np.flatnonzero(run_starts(p, choice)).tolist():
+            b = a + 1
+            while b < len(choice) and choice[b] == choice[a] and self.blocks[b] == self.blocks[a]:
+                b += 1
+            taken.append(self._index(a, b - a, int(choice[a])))
         return choice, np.array(taken, np.int64)
+
+    def _lengthened(self, choice: np.ndarray, left: np.ndarray, budget: float) -> np.ndarray:
+        """``choice`` with each worksite lengthened, at either end, by the untamped segments
+        of its block whose tamping in its week lowers the cost most, within the capacity
+        ``left`` (region, week) and the ``budget`` left. A week's capacity left over by whole
+        worksites is often less than the shortest worksite; a longer worksite needs no other
+        possession, so it can use it."""
+        p = self.problem
+        weeks = p.weeks
+        relative = p.cost[:, :weeks] - p.cost[:, weeks : weeks + 1]
+        choice = choice.copy()
+        block_lo = p.starts[self.blocks]
+        block_hi = p.starts[self.blocks + 1]
+        for a in np.flatnonzero(run_starts(p, choice)).tolist():
+            w = int(choice[a])
+            b = a
+            while b < block_hi[a] and choice[b] == w:
+                b += 1
+            r = p.region[self.blocks[a]]
+            for step, edge, stop in ((1, b, block_hi[a]), (-1, a - 1, block_lo[a] - 1)):
+                total = best = 0.0
+                km = money = 0.0
+                reach = edge
+                j = edge
+                while j != stop and choice[j] == NONE and np.isfinite(relative[j, w]):
+                    km += p.km[j]
+                    money += p.money[j]
+                    if km > left[r, w] + 1e-9 or money > budget + 1e-9:
+                        break
+                    total += relative[j, w]
+                    if total < best:
+                        best, reach = total, j + step
+                    j += step
+                if reach == edge:
+                    continue
+                lo, hi = (edge, reach) if step == 1 else (reach + 1, edge + 1)
+                choice[lo:hi] = w
+                left[r, w] -= p.km[lo:hi].sum()
+                budget -= p.money[lo:hi].sum()
+        return choice
 
     def near_relaxation(self, x, reduced, taken, per_support: int) -> np.ndarray:
         """The worksites an integer master restricted to them can do well with: the LP's

@@ -140,3 +140,27 @@ def test_the_integer_master_near_the_lp_is_feasible_and_no_worse_than_the_rounde
     np.add.at(load, problem.region, km)
     assert (load <= problem.capacity + 1e-9).all() and worksites_long_enough(problem, found)
     assert total <= plan_cost(problem, rounded)[0] + 1e-6
+
+
+def test_the_rounded_plan_lengthens_a_worksite_into_the_capacity_whole_worksites_leave():
+    # one block of 8 segments of 0.2 km, worksites of at least 3, 1.0 km a week: a whole
+    # worksite of 3 (0.6 km) leaves 0.4 km, too little for another but enough for 2 more
+    # segments of the same worksite, at no other possession
+    n, weeks = 8, 1
+    cost = np.zeros((n, weeks + 1))
+    cost[:, 0] = -100.0  # tamping any segment this week is worth it
+    cost[5:, 0] = 50.0  # but not these three
+    problem = Problem(
+        cost=cost, starts=np.array([0, n]), k=np.array([3]), possession=np.array([10.0]),
+        region=np.array([0]), km=np.full(n, 0.2), money=np.full(n, 1.0),
+        capacity=np.array([[1.0]]),
+    )  # fmt: skip
+    worksites = solver._Worksites(problem)
+    three = np.array([0, 0, 0, NONE, NONE, NONE, NONE, NONE])
+    worksites.add(three)
+    x = np.zeros(worksites.n)
+    x[0] = 1.0
+    choice, taken = worksites.rounded(np.full(worksites.n, -290.0), x)
+    assert choice.tolist() == [0, 0, 0, 0, 0, NONE, NONE, NONE]  # not into the dear ones
+    assert [(worksites.first[c], worksites.length[c]) for c in taken] == [(0, 5)]
+    assert worksites_long_enough(problem, choice)
