@@ -36,7 +36,9 @@ reuses the solution of a region whose problem did not change).
 block plans found, each also in every other week all its segments may be tamped and cut into
 pieces that fit a week's capacity. Their set-packing LP (every segment in at most one
 worksite, capacity and budget rows) is rounded greedily, and each worksite of the rounded
-plan lengthened into the capacity whole worksites leave over; when that is further than the
+plan lengthened into the capacity whole worksites leave over; without a budget, a plan that
+fills each week in turn with its cheapest worksites (:func:`week_by_week`, an exact DP per
+week) replaces it when cheaper; when that is further than the
 target gap from the bound, the set-packing MILP (HiGHS through ``scipy.optimize.milp``)
 restricted to the worksites near the LP's (a fraction of the time), then over every
 worksite, within a time budget, then for at most ``COMPACT_MAX_VARIABLES / 2`` (segment, week)
@@ -138,6 +140,72 @@ def dp_blocks(cost, starts, k, poss):  # pragma: no cover - compiled
             if i > 0:
                 s = back[i, s]
     return choice, value
+
+
+@numba.njit(cache=True, nogil=True)
+def week_runs(value, starts, k, poss, units, cap):  # pragma: no cover - compiled
+    """The cheapest worksites of one week over blocks sharing one capacity: tamped (N,) bool.
+
+    ``value`` (N,): a segment's cost of being tamped this week less its cost untamped (inf:
+    not allowed); ``units`` (N,) its km in capacity units, ``cap`` the week's units. A
+    shortest path over (segment, units used, run length r capped at the block's k), a run
+    ending only at r = k, each run paying its block's possession."""
+    n = value.shape[0]
+    kmax = 1
+    for b in range(starts.shape[0] - 1):
+        kmax = max(kmax, k[b])
+    v = np.full((cap + 1, kmax + 1), np.inf)
+    vn = np.empty_like(v)
+    back = np.full((n, cap + 1, kmax + 1), -1, np.int16)  # the run length before
+    v[0, 0] = 0.0
+    prev_k = 0
+    for b in range(starts.shape[0] - 1):
+        kk, p = k[b], poss[b]
+        for i in range(starts[b], starts[b + 1]):
+            first = i == starts[b]
+            vn[:] = np.inf
+            u = units[i]
+            for c in range(cap + 1):
+                # untamped: a run so far, if any, is long enough
+                closed, from_r = v[c, 0], 0
+                last = prev_k if first else kk
+                if last > 0 and v[c, last] < closed:
+                    closed, from_r = v[c, last], last
+                vn[c, 0] = closed
+                back[i, c, 0] = from_r
+                if not np.isfinite(value[i]) or c + u > cap:
+                    continue
+                # tamped: a new run (after a closed state), or the run goes on
+                cn = c + u
+                start = closed + p + value[i]
+                if start < vn[cn, 1]:
+                    vn[cn, 1] = start
+                    back[i, cn, 1] = from_r
+                if first:
+                    continue
+                for r in range(1, kk + 1):
+                    if not np.isfinite(v[c, r]):
+                        continue
+                    rn = min(r + 1, kk)
+                    if v[c, r] + value[i] < vn[cn, rn]:
+                        vn[cn, rn] = v[c, r] + value[i]
+                        back[i, cn, rn] = r
+            v, vn = vn, v
+        prev_k = kk
+    best, bc, br = np.inf, 0, 0
+    for c in range(cap + 1):
+        for r in (0, prev_k):
+            if v[c, r] < best:
+                best, bc, br = v[c, r], c, r
+    tamped = np.zeros(n, np.bool_)
+    c, r = bc, br
+    for i in range(n - 1, -1, -1):
+        before = back[i, c, r]
+        if r > 0:
+            tamped[i] = True
+            c -= units[i]
+        r = before
+    return tamped
 
 
 @dataclass
@@ -401,6 +469,11 @@ def _coupled(problem: Problem, target_gap: float, timings: dict[str, float], mil
     x, reduced = worksites.relaxation(cost, a_seg, a_cap, b_cap)
     choice, taken = worksites.rounded(cost, x)
     total = plan_cost(problem, choice)[0]
+    for urgent in (False, True):  # where capacity binds, packing each week exactly may do better
+        packed = week_by_week(problem, urgent)
+        if packed is not None and plan_cost(problem, packed)[0] < total:
+            choice, total = packed, plan_cost(problem, packed)[0]
+            taken = worksites.of_plan(choice)
     timings["rounding"] = timings.get("rounding", 0.0) + time.perf_counter() - t
     # the integer master over the worksites near the LP's (fast), then over all of them
     for columns in (worksites.near_relaxation(x, reduced, taken, NEAR_LP_COLUMNS), None):
@@ -426,6 +499,45 @@ def _coupled(problem: Problem, target_gap: float, timings: dict[str, float], mil
             if plan_cost(problem, compact_choice)[0] < total:
                 choice = compact_choice
     return choice, best_bound, rounds, plans.n + worksites.n
+
+
+WEEK_UNITS = 100  # a week's capacity in units at most (week_by_week)
+WEEK_STATES = 20_000_000  # segments x units x run lengths week_by_week takes at most
+
+
+def week_by_week(problem: Problem, urgent: bool) -> np.ndarray | None:
+    """A plan that fills each week's capacity in turn with its cheapest worksites
+    (:func:`week_runs`, exact for one week) among the segments earlier weeks left; None with
+    a budget, a week without a capacity, or too many states. ``urgent``: a segment's value
+    in week w is what tamping it then saves over its best later week (or none), so that
+    what cannot wait goes first; else its cost itself. Greedy over the weeks, so a
+    candidate next to the rounded LP's plan, not a bound."""
+    if problem.budget is not None or not np.isfinite(problem.capacity).all():
+        return None
+    weeks = problem.weeks
+    relative = problem.cost[:, :weeks] - problem.cost[:, weeks : weeks + 1]
+    later = np.zeros_like(relative)  # the best of the weeks after w, or none
+    for w in range(weeks - 2, -1, -1):
+        later[:, w] = np.minimum(later[:, w + 1], relative[:, w + 1])
+    choice = np.full(len(problem.km), NONE)
+    for r in np.unique(problem.region):
+        blocks = np.flatnonzero(problem.region == r)
+        lo, hi = problem.starts[blocks], problem.starts[blocks + 1]
+        rows = np.concatenate([np.arange(a, b) for a, b in zip(lo, hi, strict=True)])
+        starts = np.r_[0, np.cumsum(hi - lo)].astype(np.int64)
+        km = problem.km[rows]
+        unit = max(float(km.min()), float(problem.capacity[r].max()) / WEEK_UNITS)
+        units = np.ceil(km / unit - 1e-9).astype(np.int64)
+        k = problem.k[blocks]
+        if len(rows) * (WEEK_UNITS + 1) * (int(k.max()) + 1) > WEEK_STATES:
+            return None
+        for w in range(weeks):
+            value = relative[rows, w] - (later[rows, w] if urgent else 0.0)
+            value[choice[rows] != NONE] = np.inf
+            cap = int(np.floor(problem.capacity[r, w] / unit + 1e-9))
+            tamped = week_runs(value, starts, k, problem.possession[blocks], units, cap)
+            choice[rows[tamped]] = w
+    return choice
 
 
 def _block_costs(problem: Problem, choice: np.ndarray) -> np.ndarray:
@@ -655,13 +767,17 @@ class _Worksites:
                 budget -= money[c]
                 choice[lo:hi] = w
         choice = self._lengthened(choice, left, budget)
+        return choice, self.of_plan(choice)
+
+    def of_plan(self, choice: np.ndarray) -> np.ndarray:
+        """The worksites of a plan (added to the known ones where new)."""
         taken = []
-        for a in np.flatnonzero(run_starts(p, choice)).tolist():
+        for a in np.flatnonzero(run_starts(self.problem, choice)).tolist():
             b = a + 1
             while b < len(choice) and choice[b] == choice[a] and self.blocks[b] == self.blocks[a]:
                 b += 1
             taken.append(self._index(a, b - a, int(choice[a])))
-        return choice, np.array(taken, np.int64)
+        return np.array(taken, np.int64)
 
     def _lengthened(self, choice: np.ndarray, left: np.ndarray, budget: float) -> np.ndarray:
         """``choice`` with each worksite lengthened, at either end, by the untamped segments

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -164,3 +165,56 @@ def test_the_rounded_plan_lengthens_a_worksite_into_the_capacity_whole_worksites
     assert choice.tolist() == [0, 0, 0, 0, 0, NONE, NONE, NONE]  # not into the dear ones
     assert [(worksites.first[c], worksites.length[c]) for c in taken] == [(0, 5)]
     assert worksites_long_enough(problem, choice)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_week_dp_finds_the_cheapest_worksites_that_fit_one_week(seed):
+    rng = np.random.default_rng(seed)
+    sizes = [int(s) for s in rng.integers(1, 6, size=int(rng.integers(1, 3)))]
+    n = sum(sizes)
+    starts = np.r_[0, np.cumsum(sizes)].astype(np.int64)
+    k = rng.integers(1, 4, size=len(sizes)).astype(np.int64)
+    poss = rng.uniform(0, 5, size=len(sizes))
+    value = rng.normal(-3, 4, size=n)
+    value[rng.random(n) < 0.15] = np.inf  # not allowed this week
+    units = rng.integers(1, 3, size=n).astype(np.int64)
+    cap = int(rng.integers(0, 8))
+    tamped = solver.week_runs(value, starts, k, poss, units, cap)
+
+    def cost(t) -> float:
+        if units[t].sum() > cap or not np.isfinite(value[t]).all():
+            return np.inf
+        total = float(value[t].sum())
+        for b, (lo, hi) in enumerate(zip(starts[:-1], starts[1:], strict=True)):
+            i = lo
+            while i < hi:
+                if not t[i]:
+                    i += 1
+                    continue
+                j = i
+                while j < hi and t[j]:
+                    j += 1
+                if j - i < k[b]:
+                    return np.inf
+                total += poss[b]
+                i = j
+        return total
+
+    best = min(cost(np.array(t, bool)) for t in itertools.product((False, True), repeat=n))
+    assert cost(tamped) == pytest.approx(best, abs=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_week_by_week_plan_keeps_every_capacity_and_worksite_length(seed):
+    problem = dataclasses.replace(random_problem(seed, coupled=True), budget=None)
+    best = brute_force(problem)
+    for urgent in (False, True):
+        choice = solver.week_by_week(problem, urgent)
+        total, km, _ = plan_cost(problem, choice)
+        load = np.zeros_like(problem.capacity)
+        np.add.at(load, problem.region, km)
+        assert (load <= problem.capacity + 1e-9).all()
+        assert worksites_long_enough(problem, choice) and np.isfinite(total)
+        assert total >= best - 1e-9
+    solution = solve(problem)
+    assert solution.bound <= best + 1e-6 <= solution.cost + 2e-6
