@@ -526,7 +526,7 @@ def week_by_week(problem: Problem, urgent: bool) -> np.ndarray | None:
         rows = np.concatenate([np.arange(a, b) for a, b in zip(lo, hi, strict=True)])
         starts = np.r_[0, np.cumsum(hi - lo)].astype(np.int64)
         km = problem.km[rows]
-        unit = max(float(km.min()), float(problem.capacity[r].max()) / WEEK_UNITS)
+        unit = max(float(km.min()), float(problem.capacity[r].max()) / WEEK_UNITS, 1e-9)
         units = np.ceil(km / unit - 1e-9).astype(np.int64)
         k = problem.k[blocks]
         if len(rows) * (WEEK_UNITS + 1) * (int(k.max()) + 1) > WEEK_STATES:
