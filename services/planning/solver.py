@@ -36,13 +36,15 @@ reuses the solution of a region whose problem did not change).
 block plans found, each also in every other week all its segments may be tamped and cut into
 pieces that fit a week's capacity. Their set-packing LP (every segment in at most one
 worksite, capacity and budget rows) is rounded greedily, and each worksite of the rounded
-plan lengthened into the capacity whole worksites leave over; without a budget, a plan that
-fills each week in turn with its cheapest worksites (:func:`week_by_week`, an exact DP per
-week) replaces it when cheaper; when that is further than the
+plan lengthened into the capacity whole worksites leave over; when that is further than the
 target gap from the bound, the set-packing MILP (HiGHS through ``scipy.optimize.milp``)
 restricted to the worksites near the LP's (a fraction of the time), then over every
 worksite, within a time budget, then for at most ``COMPACT_MAX_VARIABLES / 2`` (segment, week)
-options the MILP over them; the better plan and the better bound are kept. The plan's cost
+options the MILP over them; the better plan and the better bound are kept. Last, without a
+budget, a plan that fills each week in turn with its cheapest worksites
+(:func:`week_by_week`, an exact DP per week) replaces it when cheaper: where the capacity
+binds every week and the integer programs got little time, that packing is what the
+rounded LP lacks. The plan's cost
 against the best bound is the reported gap.
 """
 
@@ -469,11 +471,6 @@ def _coupled(problem: Problem, target_gap: float, timings: dict[str, float], mil
     x, reduced = worksites.relaxation(cost, a_seg, a_cap, b_cap)
     choice, taken = worksites.rounded(cost, x)
     total = plan_cost(problem, choice)[0]
-    for urgent in (False, True):  # where capacity binds, packing each week exactly may do better
-        packed = week_by_week(problem, urgent)
-        if packed is not None and plan_cost(problem, packed)[0] < total:
-            choice, total = packed, plan_cost(problem, packed)[0]
-            taken = worksites.of_plan(choice)
     timings["rounding"] = timings.get("rounding", 0.0) + time.perf_counter() - t
     # the integer master over the worksites near the LP's (fast), then over all of them
     for columns in (worksites.near_relaxation(x, reduced, taken, NEAR_LP_COLUMNS), None):
@@ -498,6 +495,14 @@ def _coupled(problem: Problem, target_gap: float, timings: dict[str, float], mil
             best_bound = max(best_bound, compact_bound)
             if plan_cost(problem, compact_choice)[0] < total:
                 choice = compact_choice
+    # where the capacity binds every week and the integer programs got little time, a plan
+    # that packs each week exactly often beats theirs and the rounded LP's
+    t = time.perf_counter()
+    for urgent in (False, True):
+        packed = week_by_week(problem, urgent)
+        if packed is not None and plan_cost(problem, packed)[0] < plan_cost(problem, choice)[0]:
+            choice = packed
+    timings["rounding"] += time.perf_counter() - t
     return choice, best_bound, rounds, plans.n + worksites.n
 
 
