@@ -8,7 +8,7 @@ import itertools
 import numpy as np
 import pytest
 
-from services.planning import solver
+from services.planning import dynamic_programs, solver
 from services.planning.core import PlanningConfig, PlanningCore, week_start
 from services.planning.solver import NONE, Problem, plan_cost, run_starts, solve
 from services.planning.testing import T0, make_limits, make_posterior, random_network
@@ -179,7 +179,7 @@ def test_the_week_dp_finds_the_cheapest_worksites_that_fit_one_week(seed):
     value[rng.random(n) < 0.15] = np.inf  # not allowed this week
     units = rng.integers(1, 3, size=n).astype(np.int64)
     cap = int(rng.integers(0, 8))
-    tamped = solver.week_runs(value, starts, k, poss, units, cap)
+    tamped = dynamic_programs.week_runs(value, starts, k, poss, units, cap)
 
     def cost(t) -> float:
         if units[t].sum() > cap or not np.isfinite(value[t]).all():
@@ -209,7 +209,7 @@ def test_the_week_by_week_plan_keeps_every_capacity_and_worksite_length(seed):
     problem = dataclasses.replace(random_problem(seed, coupled=True), budget=None)
     best = brute_force(problem)
     for urgent in (False, True):
-        choice = solver.week_by_week(problem, urgent)
+        choice = dynamic_programs.week_by_week(problem, urgent)
         total, km, _ = plan_cost(problem, choice)
         load = np.zeros_like(problem.capacity)
         np.add.at(load, problem.region, km)
