@@ -354,15 +354,15 @@ def _coupled(problem: Problem, target_gap: float, timings: dict[str, float], mil
         if found is not None:
             compact_choice, compact_bound = found
             best_bound = max(best_bound, compact_bound)
-            if plan_cost(problem, compact_choice)[0] < total:
-                choice = compact_choice
+            if (compact_total := plan_cost(problem, compact_choice)[0]) < total:
+                choice, total = compact_choice, compact_total
     # where the capacity binds every week and the integer programs got little time, a plan
     # that packs each week exactly often beats theirs and the rounded LP's
     t = time.perf_counter()
     for urgent in (False, True):
         packed = week_by_week(problem, urgent)
-        if packed is not None and plan_cost(problem, packed)[0] < plan_cost(problem, choice)[0]:
-            choice = packed
+        if packed is not None and (packed_total := plan_cost(problem, packed)[0]) < total:
+            choice, total = packed, packed_total
     timings["rounding"] += time.perf_counter() - t
     return choice, best_bound, rounds, plans.n + worksites.n
 
