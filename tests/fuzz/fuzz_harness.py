@@ -10,7 +10,7 @@ import queue
 import random
 import sqlite3
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,6 +29,7 @@ from schemas import (
     keys,
 )
 from services.runtime.config import RuntimeConfig
+from services.runtime.delivery import ReliablePublisher
 from services.viewer import service as viewer
 from services.viewer.testing import rrd_contents
 
@@ -86,6 +87,7 @@ class Run:
         self.exit_code: int | None = None
         self.markers = 0
         self.subscribers: list[zenoh.Subscriber] = []
+        self.publishers: list[ReliablePublisher] = []  # the service's, flushed by `sync`
         self._letters_key = zenoh.KeyExpr(keys.deadletter(self.ns, spec.name))
         self._outputs = [zenoh.KeyExpr(key) for key in spec.outputs]
 
@@ -104,6 +106,7 @@ class Run:
             self.session.liveliness().declare_subscriber(self.alive_key, alive.put)
         )
         spec = self.spec
+        self._stop_recording = record_publishers(self.publishers)
         self.service = ServiceThread(
             spec.name, lambda stop: spec.main(self.conf, stop, self.tmp)
         ).start()
@@ -119,6 +122,7 @@ class Run:
         try:
             self.exit_code = self.service.stop(TIMEOUT_S)
         finally:
+            self._stop_recording()
             for subscriber in self.subscribers:
                 subscriber.undeclare()
 
@@ -160,10 +164,21 @@ class Run:
                 publisher.undeclare()
 
     def sync(self) -> None:
-        """Until every worker has handled everything put so far, and its outputs are out."""
+        """Until every worker has handled everything put so far, and its outputs are out.
+
+        A reliable publisher puts from its own writer thread, after recording the message in
+        its outbox, so a marker's letter can overtake an output queued before it: its
+        publishers are flushed, then one more marker goes through. The service's outputs
+        and letters leave one session on one priority, in order, and one callback here sees
+        them in that order."""
+        marker_keys = self.spec.marker_keys or [self.spec.inputs[0].key]
         for _ in range(2):  # twice: a batching worker publishes after a batch's letters
-            for key in self.spec.marker_keys or [self.spec.inputs[0].key]:
+            for key in marker_keys:
                 self.letters.until(self.marker(key))
+        for publisher in self.publishers:
+            assert publisher.flush(TIMEOUT_S), f"{publisher.producer}: outputs not put"
+        for key in marker_keys:
+            self.letters.until(self.marker(key))
 
     def drive(self, bad: Iterator[Bad] | None, n_bad: int) -> list[Bad]:
         """Publish the valid traffic with ``n_bad`` bad messages spread between it."""
@@ -227,6 +242,22 @@ class Run:
             if tokens:
                 break
         assert tokens == [self.alive_key], f"{self.spec.name}: liveliness token gone"
+
+
+def record_publishers(into: list[ReliablePublisher]) -> Callable[[], None]:
+    """Append every ReliablePublisher made from now on to ``into``; returns the undo."""
+    init = ReliablePublisher.__init__
+
+    def recording(self: ReliablePublisher, *args: Any, **kwargs: Any) -> None:
+        init(self, *args, **kwargs)
+        into.append(self)
+
+    ReliablePublisher.__init__ = recording  # type: ignore[method-assign]
+
+    def undo() -> None:
+        ReliablePublisher.__init__ = init  # type: ignore[method-assign]
+
+    return undo
 
 
 class FuzzIterator:

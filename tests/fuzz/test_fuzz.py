@@ -18,9 +18,10 @@ checks that
 End of input is detected with *markers*: a payload of one never-used MessagePack byte
 (0xc1) and a counter, which every service refuses; each service handles its inputs in one
 worker thread, in order, so once a marker's dead letter is back everything put before it
-has been handled. The clean run uses the same markers at the same places (they come after
-the valid message they follow, so they cannot change its result); they are counted among
-the fuzz run's bad messages.
+has been handled (and, once the service's reliable publishers are flushed and one more
+marker is back, everything it put for it has arrived). The clean run uses the same markers
+at the same places (they come after the valid message they follow, so they cannot change
+its result); they are counted among the fuzz run's bad messages.
 
 Each valid message is followed by a marker on its own key, and the next valid message waits
 for that marker's letter. This makes the clean run reproducible: zenoh-python runs each
