@@ -27,6 +27,7 @@ from schemas import (
     InspectionPlan,
     MaintenanceEvent,
     RaisedAlerts,
+    SchemaError,
     SegmentState,
     TrcRecord,
     decode,
@@ -73,10 +74,21 @@ _TYPES = {"state": SegmentState, "trc": TrcRecord, "maintenance": MaintenanceEve
 class AlertingAdapter:
     """Decode → core → encode → put, persisted; one instance per running service."""
 
-    def __init__(self, rt: ServiceRuntime, core: AlertingCore, store: AlertStore) -> None:
+    def __init__(
+        self,
+        rt: ServiceRuntime,
+        core: AlertingCore,
+        store: AlertStore,
+        segments: frozenset[tuple[str, str]] | None = None,
+        network: str = "",
+    ) -> None:
         self.rt = rt
         self.core = core
         self.store = store
+        # the network's (line, segment) ids: a message on another is a dead letter, so a
+        # sender cannot raise alerts on, or grow the memory with, segments that do not exist
+        self.segments = segments
+        self.network = network  # its name, in that dead letter
         self.lock = threading.Lock()  # the worker writes the core, queryables read it
         self.published = 0
 
@@ -112,6 +124,11 @@ class AlertingAdapter:
         message_type = _TYPES[kind]
         message = decode(payload, message_type)
         keys.check_key(key, message)
+        if self.segments is not None and (message.line, message.segment) not in self.segments:
+            raise SchemaError(
+                f"{type(message).__name__}: segment {message.line}/{message.segment} is not in "
+                f"the network {self.network}"
+            )
         with self.lock:
             run = None
             memory = None
@@ -178,7 +195,13 @@ def main(
     """Run the alerting service until ``stop`` is set or SIGINT/SIGTERM; 0. ``network``: the
     network file whose line speeds choose the speed class of lines the limits file does not
     name (``services.limits``)."""
-    speeds = network_line_speeds(load_network(network)) if network is not None else None
+    loaded = load_network(network) if network is not None else None
+    speeds = network_line_speeds(loaded) if loaded is not None else None
+    segments = None
+    if loaded is not None:
+        segments = frozenset(
+            (line_id, seg.id) for line_id, line in loaded.lines.items() for seg in line.segments
+        )
     core = AlertingCore(
         load_alerting_config(alerting_config or DEFAULT_ALERTING_FILE),
         load_limits(limits or DEFAULT_LIMITS_FILE, speeds),
@@ -195,7 +218,7 @@ def main(
             db_path,
         )
         with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
-            AlertingAdapter(rt, core, store).start()
+            AlertingAdapter(rt, core, store, segments, Path(network or "").name).start()
             return rt.run()
     finally:
         store.close()

@@ -25,6 +25,7 @@ from schemas import (
 )
 from services.alerting import service as alerting
 from services.alerting.testing import T0, make_state, p_top6
+from services.defaults import DEMO_NETWORK, demo_network
 
 TIMEOUT_S = 5.0
 
@@ -146,6 +147,48 @@ def test_malformed_payload_goes_to_dead_letter(
         assert reasons[2] == "SegmentState: key says L1/other, message says L1/s1"
         assert alerts.get().kind == "sudden_change"
     pub.undeclare()
+
+
+def test_a_message_on_a_segment_not_in_its_network_is_a_dead_letter(
+    open_session, service_config, service_thread, collector, until_matched, tmp_path
+):
+    """With ``--network``, states, TRC records and tamping records of segments the network
+    lacks are refused with the reason; those of its segments are judged as before."""
+    ns = service_config.ns
+    client = open_session()
+    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
+    client.declare_subscriber(keys.deadletter(ns, alerting.SERVICE), letters)
+    alerts = collector(lambda s: decode(s.payload.to_bytes(), Alert))
+    client.declare_subscriber(keys.segment_keys(ns, "alert"), alerts)
+    segment = demo_network().lines["L2"].segments[3].id
+    known = client.declare_publisher(keys.state(ns, "L2", segment))
+    unknown = client.declare_publisher(keys.state(ns, "L2", "nowhere"))
+    trc = client.declare_publisher(keys.trc(ns, "L9", "s1"))
+
+    def main(stop):
+        return alerting.main(
+            service_config, network=DEMO_NETWORK, db=tmp_path / "a.sqlite", stop=stop,
+            handle_signals=False,
+        )  # fmt: skip
+
+    with service_thread("alerting", main, alive=keys.alive(ns, alerting.SERVICE, "test")):
+        for publisher in (known, unknown, trc):
+            until_matched(publisher)
+        unknown.put(encode(make_state(T0, line="L2", segment="nowhere", nis=50.0)))
+        trc.put(encode(TrcRecord(line="L9", segment="s1", t=T0, top6_mm=3, align10_mm=2,
+                                 run_id="r1")))  # fmt: skip
+        reasons = sorted(letters.get().reason for _ in range(2))
+        assert reasons == [
+            f"SegmentState: segment L2/nowhere is not in the network {DEMO_NETWORK.name}",
+            f"TrcRecord: segment L9/s1 is not in the network {DEMO_NETWORK.name}",
+        ]
+        known.put(encode(make_state(T0, line="L2", segment=segment, nis=50.0)))
+        alert = alerts.get()
+        assert (alert.line, alert.segment, alert.kind) == ("L2", segment, "sudden_change")
+        (body,) = query(client, keys.q_alerts(ns))
+        assert [(a.line, a.segment) for a in decode(body, RaisedAlerts).alerts] == [("L2", segment)]
+    for publisher in (known, unknown, trc):
+        publisher.undeclare()
 
 
 def test_at_start_it_asks_q_state_for_the_states_it_cannot_recover(
