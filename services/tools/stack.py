@@ -100,6 +100,7 @@ class Stack:
     state_dir: Path
     processes: tuple[ProcessSpec, ...]
     supervision: Supervision = field(default_factory=Supervision)
+    network: str | None = None  # the network file of its processes' {network}; None: none
 
 
 def _process_spec(raw: dict[str, Any], network: str) -> ProcessSpec:
@@ -136,21 +137,25 @@ def load_stack(
     network_arg = str(Path(network).absolute()) if network is not None else DEMO_NETWORK_ARG
     raw = read_json5(path)
     try:
+        uses_network = any(
+            NETWORK in str(arg) for p in raw["processes"] for arg in p.get("args", [])
+        )
         stack = Stack(
             ns=ns or raw.get("ns", keys.DEFAULT_NS),
             listen=listen or raw["router"]["listen"],
             state_dir=Path(raw.get("state_dir", "var")).absolute(),  # where `up` runs
             processes=tuple(_process_spec(p, network_arg) for p in raw["processes"]),
             supervision=_supervision(raw.get("supervision", {})),
+            network=network_arg.replace(DEFAULTS, str(DEFAULT_STACK.parent))
+            if uses_network
+            else None,
         )
     except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{path}: not a valid stack file ({type(exc).__name__}: {exc})") from None
     names = [p.name for p in stack.processes]
     if len(set(names)) != len(names):
         raise ValueError(f"{path}: process names must be unique, got {names}")
-    if network is not None and not any(
-        NETWORK in str(arg) for p in raw["processes"] for arg in p.get("args", [])
-    ):
+    if network is not None and not uses_network:
         raise ValueError(
             f"--network {network}: the stack file {path} has no {NETWORK} in its processes' "
             f'args; give them "--network", "{NETWORK}"'
@@ -398,10 +403,13 @@ class Flow:
 
 class StatusBoard:
     """Counts what flows on the bus, fed by subscriber callbacks that only count under a
-    lock (and keep alert payloads for the main loop); thread-safe."""
+    lock (and keep alert payloads for the main loop); thread-safe. ``network``: the
+    ``line/segment`` ids that count as tracked (None: any), so that states a sender puts on
+    segments that do not exist neither inflate the count nor grow this process's memory."""
 
-    def __init__(self) -> None:
+    def __init__(self, network: frozenset[str] | None = None) -> None:
         self.lock = threading.Lock()
+        self.network = network
         self.counts: Counter[str] = Counter()
         self.segments: set[str] = set()
         self.trains: set[str] = set()
@@ -422,7 +430,8 @@ class StatusBoard:
         with self.lock:
             self.counts[kind] += 1
             if ids:
-                self.segments.add("/".join(ids))
+                if self.network is None or "/".join(ids) in self.network:
+                    self.segments.add("/".join(ids))
             elif train:
                 self.trains.add(train)
             elif payload:
@@ -604,19 +613,29 @@ class Supervisor:
                 child.popen.wait()
 
 
-def main(stack_path: str | Path = DEFAULT_STACK, *, out: TextIO = sys.stdout, **overrides) -> int:
-    if overrides.get("network") is not None:  # a bad file stops `up` now, not each child
-        from services.defaults import load_network
+def network_segments(path: str | None) -> frozenset[str] | None:
+    """The ``line/segment`` ids of a network file (None: None); ValueError saying what to
+    fix when the file is bad, so that a bad file stops `up` now, not each child."""
+    if path is None:
+        return None
+    from services.defaults import load_network
 
-        load_network(str(overrides["network"]))
+    network = load_network(path)
+    return frozenset(
+        f"{line_id}/{seg.id}" for line_id, line in network.lines.items() for seg in line.segments
+    )
+
+
+def main(stack_path: str | Path = DEFAULT_STACK, *, out: TextIO = sys.stdout, **overrides) -> int:
     stack = load_stack(stack_path, **overrides)
+    segments = network_segments(stack.network)
     stack.state_dir.mkdir(parents=True, exist_ok=True)
     stop = threading.Event()
     previous = {
         sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)
     }
     router_conf = zenoh_config({"mode": "router", "listen": {"endpoints": [stack.listen]}})
-    board = StatusBoard()
+    board = StatusBoard(segments)
     supervisor = Supervisor(stack, board)
     try:
         try:

@@ -10,6 +10,7 @@ import json5
 import pytest
 
 from schemas import Alert, encode
+from services.defaults import DEMO_NETWORK
 from services.tools.stack import (
     Child,
     Flow,
@@ -19,6 +20,7 @@ from services.tools.stack import (
     Supervision,
     backoff_s,
     load_stack,
+    network_segments,
 )
 
 
@@ -213,6 +215,26 @@ class FakeSample:
 
     def to_bytes(self) -> bytes:
         return self._payload
+
+
+def test_the_board_counts_only_the_segments_of_its_network():
+    board = StatusBoard(frozenset({"L1/s1", "L1/s2"}))
+    for key in ("ns/state/L1/s1", "ns/state/L1/s9", "ns/state/NOLINE/s1", "ns/state/L1/s2"):
+        board.on_sample(FakeSample(key))  # type: ignore[arg-type]
+    assert board.totals() == (0, 2, 0)
+    assert board.snapshot()["state"] == 4  # every message still counts in the rates
+
+
+def test_the_stack_names_the_network_its_processes_use(tmp_path):
+    assert load_stack().network == str(DEMO_NETWORK)
+    assert network_segments(load_stack().network) >= {"L1/s00001", "L2/s00003"}
+    other = tmp_path / "net.geojson"
+    assert load_stack(network=other).network == str(other.absolute())
+    bare = tmp_path / "stack.json5"
+    bare.write_text('{router: {listen: "tcp/127.0.0.1:7447"}, processes: [{name: "viewer"}]}')
+    assert load_stack(bare).network is None and network_segments(None) is None
+    with pytest.raises(ValueError, match="--network"):
+        network_segments(str(other))  # no such file: what to fix
 
 
 def test_the_board_counts_in_callbacks_and_decodes_alerts_later():
