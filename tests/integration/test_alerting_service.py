@@ -49,6 +49,15 @@ def query(session: zenoh.Session, key: str) -> list[bytes]:
     return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
 
 
+def letters_and_alerts(client: zenoh.Session, ns: str, collector) -> tuple:
+    """Collectors of the service's dead letters and of the alerts it publishes."""
+    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
+    client.declare_subscriber(keys.deadletter(ns, alerting.SERVICE), letters)
+    alerts = collector(lambda s: decode(s.payload.to_bytes(), Alert))
+    client.declare_subscriber(keys.segment_keys(ns, "alert"), alerts)
+    return letters, alerts
+
+
 def test_state_raises_alert_queryables_answer_and_restart_keeps_it(
     open_session, service_config, running, collector, until_matched, tmp_path
 ):
@@ -127,10 +136,7 @@ def test_malformed_payload_goes_to_dead_letter(
 ):
     ns = service_config.ns
     client = open_session()
-    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
-    client.declare_subscriber(keys.deadletter(ns, alerting.SERVICE), letters)
-    alerts = collector(lambda s: decode(s.payload.to_bytes(), Alert))
-    client.declare_subscriber(keys.segment_keys(ns, "alert"), alerts)
+    letters, alerts = letters_and_alerts(client, ns, collector)
     pub = client.declare_publisher(keys.state(ns, "L1", "s1"))
 
     with running(tmp_path / "a.sqlite"):
@@ -156,10 +162,7 @@ def test_a_message_on_a_segment_not_in_its_network_is_a_dead_letter(
     lacks are refused with the reason; those of its segments are judged as before."""
     ns = service_config.ns
     client = open_session()
-    letters = collector(lambda s: decode(s.payload.to_bytes(), DeadLetter))
-    client.declare_subscriber(keys.deadletter(ns, alerting.SERVICE), letters)
-    alerts = collector(lambda s: decode(s.payload.to_bytes(), Alert))
-    client.declare_subscriber(keys.segment_keys(ns, "alert"), alerts)
+    letters, alerts = letters_and_alerts(client, ns, collector)
     segment = demo_network().lines["L2"].segments[3].id
     known = client.declare_publisher(keys.state(ns, "L2", segment))
     unknown = client.declare_publisher(keys.state(ns, "L2", "nowhere"))
