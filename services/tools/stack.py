@@ -2,7 +2,8 @@
 
 An embedded Zenoh router (this process), every service and simulator of the stack file as
 a child process connected to it, and a live status table: services alive (liveliness
-tokens), trains seen, messages per second, segments tracked, alerts raised.
+tokens), trains seen in the last minutes, messages per second, segments tracked, alerts
+raised.
 
 ``up`` supervises its children: a process that exits is started again (per its ``restart``
 policy), and so is one whose liveliness token has been missing for ``token_missing_s``
@@ -29,6 +30,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from datetime import UTC, datetime
 from pathlib import Path
@@ -53,6 +55,7 @@ WATCHED = ("state", "index", "alert", "gps", "trc", "maintenance", "deadletter")
 RESTART_POLICIES = ("always", "on-failure", "never")
 TICK_S = 0.5  # supervision step
 REFRESH_S = 1.0  # health file and rates (the board on a terminal; every 5 s otherwise)
+TRAIN_SEEN_S = 300.0  # a train counts as seen for this long after its last GPS fix
 HEALTH_FILE = "health.json"
 # Environment of `up` that must not reach the children: a child would talk to the
 # systemd notify socket of `up`'s unit as if it were the unit's main process.
@@ -405,14 +408,19 @@ class StatusBoard:
     """Counts what flows on the bus, fed by subscriber callbacks that only count under a
     lock (and keep alert payloads for the main loop); thread-safe. ``network``: the
     ``line/segment`` ids that count as tracked (None: any), so that states a sender puts on
-    segments that do not exist neither inflate the count nor grow this process's memory."""
+    segments that do not exist neither inflate the count nor grow this process's memory.
+    Trains are not known ahead: one counts for ``TRAIN_SEEN_S`` after its last GPS fix, and
+    is forgotten then. ``clock``: monotonic seconds."""
 
-    def __init__(self, network: frozenset[str] | None = None) -> None:
+    def __init__(
+        self, network: frozenset[str] | None = None, clock: Callable[[], float] = time.monotonic
+    ) -> None:
         self.lock = threading.Lock()
         self.network = network
         self.counts: Counter[str] = Counter()
         self.segments: set[str] = set()
-        self.trains: set[str] = set()
+        self.trains: dict[str, float] = {}  # train -> when its last GPS fix came
+        self.clock = clock
         self.raised: set[tuple[str, ...]] = set()
         self.alerts: list[bytes] = []  # payloads not decoded yet
         self.alive: set[tuple[str, str]] = set()
@@ -433,7 +441,7 @@ class StatusBoard:
                 if self.network is None or "/".join(ids) in self.network:
                     self.segments.add("/".join(ids))
             elif train:
-                self.trains.add(train)
+                self.trains[train] = self.clock()
             elif payload:
                 self.alerts.append(payload)  # decoded by the main loop, off the Zenoh thread
 
@@ -474,6 +482,8 @@ class StatusBoard:
 
     def totals(self) -> tuple[int, int, int]:
         with self.lock:
+            since = self.clock() - TRAIN_SEEN_S
+            self.trains = {t: seen for t, seen in self.trains.items() if seen >= since}
             return len(self.trains), len(self.segments), len(self.raised)
 
 

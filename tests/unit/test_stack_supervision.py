@@ -12,6 +12,7 @@ import pytest
 from schemas import Alert, encode
 from services.defaults import DEMO_NETWORK
 from services.tools.stack import (
+    TRAIN_SEEN_S,
     Child,
     Flow,
     ProcessSpec,
@@ -223,6 +224,19 @@ def test_the_board_counts_only_the_segments_of_its_network():
         board.on_sample(FakeSample(key))  # type: ignore[arg-type]
     assert board.totals() == (0, 2, 0)
     assert board.snapshot()["state"] == 4  # every message still counts in the rates
+
+
+def test_a_train_counts_until_its_last_fix_is_older_than_the_window():
+    now = [0.0]
+    board = StatusBoard(clock=lambda: now[0])
+    board.on_sample(FakeSample("ns/gps/T1"))  # type: ignore[arg-type]
+    now[0] = 200.0
+    board.on_sample(FakeSample("ns/gps/T2"))  # type: ignore[arg-type]
+    assert board.totals()[0] == 2
+    now[0] = TRAIN_SEEN_S + 1.0  # T1 silent for longer than the window: forgotten
+    assert board.totals()[0] == 1 and set(board.trains) == {"T2"}
+    board.on_sample(FakeSample("ns/gps/T1"))  # type: ignore[arg-type]
+    assert board.totals()[0] == 2
 
 
 def test_the_stack_names_the_network_its_processes_use(tmp_path):
