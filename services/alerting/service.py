@@ -197,11 +197,11 @@ def main(
     name (``services.limits``)."""
     loaded = load_network(network) if network is not None else None
     speeds = network_line_speeds(loaded) if loaded is not None else None
-    segments = None
-    if loaded is not None:
-        segments = frozenset(
-            (line_id, seg.id) for line_id, line in loaded.lines.items() for seg in line.segments
-        )
+    segments = (
+        frozenset((line.id, seg.id) for line, seg in loaded.segments())
+        if loaded is not None
+        else None
+    )
     core = AlertingCore(
         load_alerting_config(alerting_config or DEFAULT_ALERTING_FILE),
         load_limits(limits or DEFAULT_LIMITS_FILE, speeds),

@@ -630,10 +630,7 @@ def network_segments(path: str | None) -> frozenset[str] | None:
         return None
     from services.defaults import load_network
 
-    network = load_network(path)
-    return frozenset(
-        f"{line_id}/{seg.id}" for line_id, line in network.lines.items() for seg in line.segments
-    )
+    return frozenset(f"{line.id}/{seg.id}" for line, seg in load_network(path).segments())
 
 
 def main(stack_path: str | Path = DEFAULT_STACK, *, out: TextIO = sys.stdout, **overrides) -> int:
