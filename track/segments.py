@@ -7,11 +7,13 @@ and calibration need to tell a known segment from an unknown one.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from schemas import SchemaError
 from track.network import Network
 
 
@@ -67,3 +69,35 @@ class SegmentTable:
     @property
     def n_segments(self) -> int:
         return sum(len(s.ids) for s in self.lines.values())
+
+
+class KnownSegments:
+    """The (line, segment) ids of one network, under its name.
+
+    A service given a network refuses a message on any other segment (a dead letter that
+    names the network), so a sender cannot make it keep state for ids that do not exist.
+    """
+
+    def __init__(self, ids: Iterable[tuple[str, str]], network: str) -> None:
+        self.ids = frozenset(ids)
+        self.network = network
+
+    @classmethod
+    def of(cls, network: Network, name: str) -> KnownSegments:
+        """The segments of a :class:`track.network.Network`; ``name`` is its file's."""
+        return cls(((line.id, seg.id) for line, seg in network.segments()), name)
+
+    def __contains__(self, segment: object) -> bool:
+        return segment in self.ids
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def check(self, message) -> None:
+        """Refuse a message (with ``line`` and ``segment``) on a segment the network lacks:
+        SchemaError ``SegmentState: segment L1/s99 is not in the network demo.geojson``."""
+        if (message.line, message.segment) not in self.ids:
+            raise SchemaError(
+                f"{type(message).__name__}: segment {message.line}/{message.segment} is not "
+                f"in the network {self.network}"
+            )

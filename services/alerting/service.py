@@ -27,7 +27,6 @@ from schemas import (
     InspectionPlan,
     MaintenanceEvent,
     RaisedAlerts,
-    SchemaError,
     SegmentState,
     TrcRecord,
     decode,
@@ -51,6 +50,7 @@ from services.runtime.config import (
     read_json5,
 )
 from services.runtime.service import ServiceRuntime, run_command
+from track.segments import KnownSegments
 
 log = logging.getLogger(__name__)
 
@@ -79,16 +79,14 @@ class AlertingAdapter:
         rt: ServiceRuntime,
         core: AlertingCore,
         store: AlertStore,
-        segments: frozenset[tuple[str, str]] | None = None,
-        network: str = "",
+        known: KnownSegments | None = None,
     ) -> None:
         self.rt = rt
         self.core = core
         self.store = store
-        # the network's (line, segment) ids: a message on another is a dead letter, so a
-        # sender cannot raise alerts on, or grow the memory with, segments that do not exist
-        self.segments = segments
-        self.network = network  # its name, in that dead letter
+        # the network's segments: a message on another is a dead letter, so a sender
+        # cannot raise alerts on, or grow the memory with, segments that do not exist
+        self.known = known
         self.lock = threading.Lock()  # the worker writes the core, queryables read it
         self.published = 0
 
@@ -124,11 +122,8 @@ class AlertingAdapter:
         message_type = _TYPES[kind]
         message = decode(payload, message_type)
         keys.check_key(key, message)
-        if self.segments is not None and (message.line, message.segment) not in self.segments:
-            raise SchemaError(
-                f"{type(message).__name__}: segment {message.line}/{message.segment} is not in "
-                f"the network {self.network}"
-            )
+        if self.known is not None:
+            self.known.check(message)
         with self.lock:
             run = None
             memory = None
@@ -197,11 +192,7 @@ def main(
     name (``services.limits``)."""
     loaded = load_network(network) if network is not None else None
     speeds = network_line_speeds(loaded) if loaded is not None else None
-    segments = (
-        frozenset((line.id, seg.id) for line, seg in loaded.segments())
-        if loaded is not None
-        else None
-    )
+    known = KnownSegments.of(loaded, Path(network).name) if loaded is not None else None
     core = AlertingCore(
         load_alerting_config(alerting_config or DEFAULT_ALERTING_FILE),
         load_limits(limits or DEFAULT_LIMITS_FILE, speeds),
@@ -218,7 +209,7 @@ def main(
             db_path,
         )
         with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
-            AlertingAdapter(rt, core, store, segments, Path(network or "").name).start()
+            AlertingAdapter(rt, core, store, known).start()
             return rt.run()
     finally:
         store.close()

@@ -28,7 +28,7 @@ import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import msgpack
 
@@ -41,7 +41,6 @@ from schemas import (
     encode,
     keys,
 )
-from schemas.keys import SegmentId
 from services.calibration.calibrator import Calibrator
 from services.calibration.config import CalibratorConfig
 from services.calibration.initial import initial_models
@@ -59,6 +58,8 @@ from services.runtime.config import (
 from services.runtime.delivery import MARK
 from services.runtime.latest import LatestValues
 from services.runtime.service import ServiceRuntime, run_command
+from track.network import Network
+from track.segments import KnownSegments
 
 log = logging.getLogger(__name__)
 
@@ -134,18 +135,15 @@ def load_initial_models(path: Path, core: CalibratorConfig):
         raise ValueError(f"initial models {path}: {e}") from None
 
 
-def known_segments(network: Path | None) -> frozenset[SegmentId] | None:
-    """The (line, segment) ids of a network file, or None (accept any); as the filtering
-    service's ``--network``."""
+def known_segments(network: Path | None) -> KnownSegments | None:
+    """The segments of a network file, or None (accept any); as the filtering service's
+    ``--network``."""
     if network is None:
         return None
-    from track.segments import SegmentTable
-
     try:
-        table = SegmentTable.from_geojson(network)
+        return KnownSegments.of(Network.from_geojson(network), network.name)
     except (OSError, ValueError) as exc:
         raise ValueError(f"network {network}: {exc}") from None
-    return frozenset((line, seg) for line, segs in table.lines.items() for seg in segs.ids)
 
 
 def quarantine_key(ns: str, q: Quarantine) -> str:
@@ -186,8 +184,8 @@ def main(
                 if installed:
                     log.info("initial models installed: %d", len(installed))
             store.apply(core.drain_changes())
-            segments = known_segments(settings.network)
-            return _serve(rt, core, store, segments, settings.network, state.positions)
+            known = known_segments(settings.network)
+            return _serve(rt, core, store, known, state.positions)
         finally:
             store.close()
 
@@ -196,8 +194,7 @@ def _serve(
     rt: ServiceRuntime,
     core: Calibrator,
     store: SqliteStore,
-    segments: frozenset[SegmentId] | None = None,
-    network: Path | None = None,
+    known: KnownSegments | None = None,
     positions: Mapping[str, tuple[str, int]] | None = None,
 ) -> int:
     ns = rt.ns
@@ -214,12 +211,8 @@ def _serve(
     def decode_sample(key: str, payload: bytes) -> Event:
         message = decode(payload, _KINDS[keys.kind(key)])
         keys.check_key(key, message)
-        line, segment = message.line, message.segment
-        if segments is not None and (line, segment) not in segments:
-            raise SchemaError(
-                f"{type(message).__name__}: segment {line}/{segment} is not in the network "
-                f"{cast(Path, network).name}"
-            )
+        if known is not None:
+            known.check(message)
         return message
 
     def ingest(_kind: str, key: str, payload: bytes) -> None:

@@ -54,3 +54,8 @@ def load_network(path: str | Path | None, segment_length_m: float | None = None)
         return Network.from_geojson(Path(path), segment_length_m=segment_length_m)
     except (OSError, ValueError) as exc:
         raise ValueError(f"--network {path}: {exc}") from None
+
+
+def network_name(path: str | Path | None) -> str:
+    """How dead letters name the network of ``--network``: the file's name, else "demo"."""
+    return Path(path).name if path is not None else "demo"

@@ -8,7 +8,7 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from collections.abc import Collection, Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,6 +41,7 @@ from services.filtering.payloads import decode_keyed, indices_of, stored_events
 from services.filtering.state import pack_state, unpack_state
 from services.filtering.store import Store, index_identity, order_json, order_of
 from services.filtering.tracker import Step, Tracker
+from track.segments import KnownSegments
 
 log = logging.getLogger(__name__)
 CHECKPOINT_S = 10.0  # worker time between two checkpoints of the changed segments
@@ -120,8 +121,7 @@ class PersistentTracker:
         tracker: Tracker,
         store: Store,
         *,
-        segments: Collection[SegmentId] | None = None,
-        network_name: str = "the network",
+        known: KnownSegments | None = None,
         ns: str = keys.DEFAULT_NS,
         checkpoint_s: float = CHECKPOINT_S,
         max_loaded: int = MAX_LOADED,
@@ -129,8 +129,9 @@ class PersistentTracker:
         self.tracker = tracker
         self.store = store
         self.ns = ns  # the key a detected tamping is stored under
-        self.segments = None if segments is None else frozenset(segments)
-        self._network_name = network_name
+        # the network's segments: an event on another is refused, so a sender cannot make
+        # the service hold segment histories for ids that do not exist
+        self.known = known
         if tracker.histories.loader is None:
             tracker.histories.loader = self.segment_log
         if tracker.histories.columns is None:
@@ -142,21 +143,12 @@ class PersistentTracker:
         self._checkpointed = time.monotonic()
         self._due: list[SegmentId] | None = None  # a due checkpoint's segments left to write
 
-    def _check_known(self, msg: EventMessage) -> None:
-        """An event on a segment the network does not have is refused (when one is given):
-        a sender cannot make the service hold segment histories for ids that do not exist."""
-        if self.segments is not None and (msg.line, msg.segment) not in self.segments:
-            raise SchemaError(
-                f"{type(msg).__name__}: segment {msg.line}/{msg.segment} is not in "
-                f"{self._network_name}"
-            )
-
     def handle(self, key: str, payload: bytes) -> Step:
         msg = decode_keyed(key, payload)
         if msg is None:
             return Step(False, "not a model this service uses")
-        if not isinstance(msg, Calibration | DegradationPosterior):
-            self._check_known(msg)
+        if self.known is not None and not isinstance(msg, Calibration | DegradationPosterior):
+            self.known.check(msg)
         step = self.tracker.step(msg)
         if step.accepted:
             self._commit_detected(step.detected, step.withdrawn)
@@ -252,11 +244,12 @@ class PersistentTracker:
             if isinstance(msg, Calibration | DegradationPosterior):
                 models.append((msg, key, payload))
                 continue
-            try:
-                self._check_known(msg)
-            except SchemaError as e:
-                rejected.append((key, str(e), payload))
-                continue
+            if self.known is not None:
+                try:
+                    self.known.check(msg)
+                except SchemaError as e:
+                    rejected.append((key, str(e), payload))
+                    continue
             events.append((msg, key, payload))
         return models, events, rejected
 

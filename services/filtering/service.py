@@ -96,6 +96,7 @@ from services.runtime.inbox import Inbox
 from services.runtime.latest import LatestValues
 from services.runtime.service import ServiceRuntime, run_command
 from track.network import Network
+from track.segments import KnownSegments
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +148,7 @@ def main(
         store = Store(db, migrating=extend_start_timeout)
         stack.callback(store.close)  # after the runtime has joined the worker
         tracker = Tracker(limits_table.for_line, limits_table.levels)
-        node = PersistentTracker(tracker, store, ns=conf.ns, **known_segments(loaded, network))
+        node = PersistentTracker(tracker, store, ns=conf.ns, known=known_segments(loaded, network))
         stack.callback(node.close)  # checkpoint at a clean stop, once the worker is joined
         rt = stack.enter_context(
             ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop)
@@ -168,14 +169,9 @@ def read_network(network: str | Path | None) -> Network | None:
         raise ValueError(f"network {network}: {exc}") from None
 
 
-def known_segments(network: Network | None, path: str | Path | None = None) -> dict:
-    """``PersistentTracker`` keywords: the (line, segment) ids of a network (read from the
-    file ``path``), if given."""
-    if network is None:
-        return {}
-    ids = [(line.id, seg.id) for line, seg in network.segments()]
-    name = f"the network {Path(path).name}" if path is not None else "the network"
-    return {"segments": ids, "network_name": name}
+def known_segments(network: Network | None, path: str | Path) -> KnownSegments | None:
+    """The segments of the network read from the file ``path``, None without one."""
+    return None if network is None else KnownSegments.of(network, Path(path).name)
 
 
 class Revisions:

@@ -41,7 +41,7 @@ from schemas import (
     encode,
     keys,
 )
-from services.defaults import default_file, load_network
+from services.defaults import default_file, load_network, network_name
 from services.limits import (
     DEFAULT_LIMITS_FILE,
     add_limits_argument,
@@ -60,6 +60,7 @@ from services.runtime.config import (
 )
 from services.runtime.event_time import NewestTimes
 from services.runtime.service import ServiceRuntime, configure_logging
+from track.segments import KnownSegments
 
 log = logging.getLogger(__name__)
 
@@ -153,8 +154,7 @@ class PlanningAdapter:
         self.rt = rt
         self.core = core
         self.store = store
-        self.network = network  # its name, in the dead letter of a segment not in it
-        self.segments = frozenset(core.index)  # the network's: states of others are refused
+        self.known = KnownSegments(core.index, network)  # states of others are refused
         self.lock = threading.Lock()  # the worker writes the core, the planner snapshots it
         self.changed = threading.Condition(self.lock)
         self.first_change: float | None = None  # monotonic s of the first unplanned change
@@ -211,12 +211,8 @@ class PlanningAdapter:
         else:
             message = decode(payload, SegmentState if kind == "state" else MaintenanceEvent)
         keys.check_key(key, message)
-        where = None if kind == "model" else (message.line, message.segment)
-        if where is not None and where not in self.segments:
-            raise SchemaError(
-                f"{type(message).__name__}: segment {'/'.join(where)} is not in the network "
-                f"{self.network}"
-            )
+        if kind != "model":
+            self.known.check(message)
         with self.lock:
             match message:
                 case SegmentState():
@@ -364,7 +360,7 @@ def main(
     store = EvidenceStore(db or default_db(SERVICE, conf.instance))
     try:
         with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
-            adapter = PlanningAdapter(rt, core, store, Path(network).name if network else "demo")
+            adapter = PlanningAdapter(rt, core, store, network_name(network))
             adapter.start()
             code = rt.run()
         adapter.save_evidence()  # the workers are stopped: what changed since the last plan

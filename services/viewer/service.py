@@ -55,7 +55,7 @@ from schemas import (
     encode,
     keys,
 )
-from services.defaults import add_network_argument, load_network
+from services.defaults import add_network_argument, load_network, network_name
 from services.runtime.config import (
     RuntimeConfig,
     add_zenoh_arguments,
@@ -72,6 +72,7 @@ from services.viewer.core import (
     coalesce_key,
     message_version,
 )
+from track.segments import KnownSegments
 
 log = logging.getLogger(__name__)
 
@@ -167,10 +168,14 @@ class ViewerAdapter:
         rt: ServiceRuntime,
         core: ViewerCore,
         *,
+        known: KnownSegments | None = None,
         on_logged: Callable[[int], None] | None = None,
     ) -> None:
         self.rt = rt
         self.core = core
+        # what the map draws: a message on a segment it does not have is a dead letter, so
+        # a sender cannot grow the viewer's per-segment memory with ids that do not exist
+        self.known = known
         # the viewer writes only the newest state, index, fix of a key (coalesce_key) anyway
         self.inbox: LatestInbox[Message] = LatestInbox(
             INBOX_CAPACITY, key=coalesce_key, version=message_version
@@ -179,18 +184,6 @@ class ViewerAdapter:
         self._worker: threading.Thread | None = None
         self._alive_lock = threading.Lock()
         self._alive: dict[tuple[str, str], bool] = {}  # (service, instance) -> token present
-        network = core.network
-        # what the map draws: a message on a segment it does not have is a dead letter, so
-        # a sender cannot grow the viewer's per-segment memory with ids that do not exist
-        self._known = (
-            None
-            if network is None
-            else {
-                (line_id, seg.id)
-                for line_id, line in network.lines.items()
-                for seg in line.segments
-            }
-        )
 
     def start(self) -> None:
         ns = self.rt.ns
@@ -244,13 +237,8 @@ class ViewerAdapter:
         why not."""
         message = decode(payload, message_type)
         keys.check_key(key, message)
-        segment = (getattr(message, "line", None), getattr(message, "segment", None))
-        on_map = kind not in ("gps", "health", "plan")
-        if self._known is not None and on_map and segment not in self._known:
-            raise SchemaError(
-                f"{type(message).__name__}: segment {segment[0]}/{segment[1]} is not in "
-                "the viewer's network"
-            )
+        if self.known is not None and kind not in ("gps", "health", "plan"):
+            self.known.check(message)
         self.inbox.put(message)
 
     def _decoder(self, kind: str, message_type: type[Message]) -> Callable[[zenoh.Sample], None]:
@@ -337,7 +325,8 @@ def main(
         )
         core.start(time.monotonic())
         with ServiceRuntime(SERVICE, conf, handle_signals=handle_signals, stop_event=stop) as rt:
-            adapter = ViewerAdapter(rt, core, on_logged=on_logged)
+            known = KnownSegments.of(network, network_name(network_path))
+            adapter = ViewerAdapter(rt, core, known=known, on_logged=on_logged)
             adapter.start()
             try:
                 return rt.run()

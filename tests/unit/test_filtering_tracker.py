@@ -35,6 +35,7 @@ from services.filtering.summary import state_weights
 from services.filtering.testing import example_posterior, onboard_index
 from services.filtering.tracker import Tracker
 from services.limits import load_limits
+from track.segments import KnownSegments
 
 T0 = 1_767_225_600.0  # 2026-01-01 UTC
 NS = 40
@@ -416,8 +417,7 @@ def test_events_on_segments_the_network_lacks_are_refused_and_hold_nothing(tmp_p
     node = PersistentTracker(
         new_tracker(),
         Store(tmp_path / "known.sqlite"),
-        segments=[("L1", "s1")],
-        network_name="the network demo.geojson",
+        known=KnownSegments([("L1", "s1")], "demo.geojson"),
     )
     known, unknown = trc(0.0, 3.0, 2.5, segment="s1"), trc(0.0, 3.0, 2.5, segment="s9")
     result = node.handle_batch([keyed(m) for m in (calibration(1), posterior(), known, unknown)])

@@ -310,9 +310,12 @@ def test_select_worst_sticky_keeps_plotted_segments_through_near_ties():
 def test_messages_on_segments_the_map_lacks_are_refused(recording):
     from schemas import SchemaError, encode
     from services.viewer.service import ViewerAdapter
+    from track.segments import KnownSegments
 
     rec, _ = recording
-    adapter = ViewerAdapter(None, ViewerCore(rec, demo_network(), worst_n=2))  # type: ignore[arg-type]
+    network = demo_network()
+    known = KnownSegments.of(network, "demo")
+    adapter = ViewerAdapter(None, ViewerCore(rec, network, worst_n=2), known=known)  # type: ignore[arg-type]
 
     class Sample:  # what the decoder reads of a zenoh.Sample
         def __init__(self, key: str, payload: bytes) -> None:
@@ -329,7 +332,7 @@ def test_messages_on_segments_the_map_lacks_are_refused(recording):
         if state is known:
             on_state(sample)  # type: ignore[arg-type]
         else:
-            with pytest.raises(SchemaError, match="L1/s99999 is not in the viewer's network"):
+            with pytest.raises(SchemaError, match="L1/s99999 is not in the network demo"):
                 on_state(sample)  # type: ignore[arg-type]
     assert len(adapter.inbox.take(timeout=0)) == 1
 
