@@ -385,8 +385,8 @@ def test_the_written_file_reads_back_in_every_reader(imported, tmp_path):
         assert (got.route, got.running) == (line.route, line.running)
     assert Network.from_geojson(path).origin_lonlat == network.origin_lonlat
     ids = {(line.id, seg.id) for line, seg in network.segments()}
-    assert calibration_segments(path) == ids
-    assert set(filtering_segments(read_network(path), path)["segments"]) == ids
+    assert calibration_segments(path).ids == ids
+    assert filtering_segments(read_network(path), path).ids == ids
     assert SegmentTable.from_geojson(path).n_segments == network.n_segments
     stations = network_map(str(path)).stations
     assert {s.label for s in stations} == {"Westbrook", "Lakeside Halt", "Eastfield", "Valley"}
