@@ -87,9 +87,6 @@ class KnownSegments:
         """The segments of a :class:`track.network.Network`; ``name`` is its file's."""
         return cls(((line.id, seg.id) for line, seg in network.segments()), name)
 
-    def __contains__(self, segment: object) -> bool:
-        return segment in self.ids
-
     def __len__(self) -> int:
         return len(self.ids)
 

@@ -35,7 +35,7 @@ from schemas import (
 )
 from services.alerting.core import AlertingConfig, AlertingCore
 from services.alerting.store import AlertStore
-from services.defaults import add_network_argument, default_file, load_network
+from services.defaults import add_network_argument, default_file, load_network, network_name
 from services.limits import (
     DEFAULT_LIMITS_FILE,
     add_limits_argument,
@@ -192,7 +192,7 @@ def main(
     name (``services.limits``)."""
     loaded = load_network(network) if network is not None else None
     speeds = network_line_speeds(loaded) if loaded is not None else None
-    known = KnownSegments.of(loaded, Path(network).name) if loaded is not None else None
+    known = KnownSegments.of(loaded, network_name(network)) if loaded is not None else None
     core = AlertingCore(
         load_alerting_config(alerting_config or DEFAULT_ALERTING_FILE),
         load_limits(limits or DEFAULT_LIMITS_FILE, speeds),

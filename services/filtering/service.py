@@ -78,7 +78,7 @@ import msgspec
 
 from schemas import MaintenanceEvent, SegmentState, encode, keys
 from schemas.keys import SegmentId
-from services.defaults import add_network_argument
+from services.defaults import add_network_argument, network_name
 from services.filtering.coordinator import PersistentTracker
 from services.filtering.store import Store
 from services.filtering.tracker import Tracker
@@ -171,7 +171,7 @@ def read_network(network: str | Path | None) -> Network | None:
 
 def known_segments(network: Network | None, path: str | Path) -> KnownSegments | None:
     """The segments of the network read from the file ``path``, None without one."""
-    return None if network is None else KnownSegments.of(network, Path(path).name)
+    return None if network is None else KnownSegments.of(network, network_name(path))
 
 
 class Revisions:
